@@ -1,0 +1,318 @@
+"""The double-sided ArUco board: geometry in the board frame, loading and validation.
+
+Board frame (docs/formats.md): origin at the outer bottom-left corner of the front-face marker
+grid, x right and y up as seen from the front, z out of the front face. Back-face markers lie
+at ``z = -thickness``.
+
+Every marker's corners are stored in **ArUco detection order**: top-left, top-right,
+bottom-right, bottom-left *as seen from outside that marker's face*. For a back-face marker
+that order is the mirror of the front-face order (the thesis's Table 4.2 lists back markers in
+front-face order; :func:`load_board` detects and rejects or fixes that).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .errors import BoardError, ConfigError
+from .yamlio import check_keys, read_yaml_mapping, write_yaml
+
+FRONT, BACK = 1, -1
+PLANE_TOL_M = 1e-4  # corners further than this from their face plane are "non-planar"
+SQUARE_TOL = 1e-3  # relative tolerance on equal sides and diagonals
+
+
+def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
+    """Predefined OpenCV dictionary by name, e.g. ``DICT_4X4_100``."""
+    code = getattr(cv2.aruco, str(name), None)
+    if not str(name).startswith("DICT_") or not isinstance(code, int):
+        raise BoardError(f"unknown ArUco dictionary {name!r}; use an OpenCV name like DICT_4X4_100")
+    return cv2.aruco.getPredefinedDictionary(code)
+
+
+@dataclass(frozen=True, eq=False)
+class Board:
+    """A rigid board carrying ArUco markers on one or two parallel faces.
+
+    ``corners`` is ``(M,4,3)`` in metres in the board frame, detection order per marker;
+    ``faces`` is ``(M,)`` with +1 (front, z = 0) or -1 (back, z = -thickness).
+    ``panel`` is the physical outline ``(xmin, xmax, ymin, ymax)`` in metres.
+    """
+
+    dictionary: str
+    ids: np.ndarray
+    corners: np.ndarray
+    faces: np.ndarray
+    thickness: float
+    panel: tuple[float, float, float, float]
+    name: str = "board"
+    grid: dict[str, Any] | None = None
+    source: Path | None = field(default=None, compare=False)
+
+    @cached_property
+    def index_of(self) -> dict[int, int]:
+        return {int(i): k for k, i in enumerate(self.ids)}
+
+    @cached_property
+    def aruco_dict(self) -> cv2.aruco.Dictionary:
+        return aruco_dictionary(self.dictionary)
+
+    @property
+    def marker_length(self) -> float:
+        """Mean side length of the markers (metres)."""
+        return float(np.linalg.norm(np.diff(self.corners[:, [0, 1]], axis=1), axis=-1).mean())
+
+    @property
+    def bits(self) -> int:
+        return int(self.aruco_dict.markerSize)
+
+    def object_points(self, ids: np.ndarray) -> np.ndarray:
+        """Board-frame corners ``(N,4,3)`` of the given marker ids (metres)."""
+        return self.corners[[self.index_of[int(i)] for i in ids]]
+
+    def face_ids(self, face: int) -> np.ndarray:
+        return self.ids[self.faces == face]
+
+    def marker_cells(self, marker_id: int) -> np.ndarray:
+        """Marker pattern as a ``(bits+2, bits+2)`` uint8 image (0 black, 255 white), row 0 at
+        the marker's top edge, including the one-cell black border."""
+        n = self.bits + 2
+        return cv2.aruco.generateImageMarker(self.aruco_dict, int(marker_id), n, borderBits=1)
+
+    def face_normal(self, face: int) -> np.ndarray:
+        """Outward unit normal of a face in the board frame."""
+        return np.array([0.0, 0.0, float(face)])
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"name": self.name, "dictionary": self.dictionary,
+                               "thickness": self.thickness}
+        if self.grid is not None:
+            out["grid"] = dict(self.grid)
+        else:
+            out["corner_order"] = "detection"
+            out["markers"] = {int(i): c.tolist() for i, c in zip(self.ids, self.corners)}
+        out["panel"] = list(self.panel)
+        return out
+
+
+def grid_corners(rows: int, cols: int, length: float, sep: float, first_id: int, face: int,
+                 thickness: float) -> tuple[np.ndarray, np.ndarray]:
+    """Markers of one printed sheet: ids row-major from the sheet's top-left as printed.
+
+    The front sheet is seen from +z, so its column 0 sits at x = 0. The back sheet is printed
+    the same way and glued on the back, so seen from the back (from -z) its column 0 sits at
+    the board's largest x, and "right" on the sheet is -x in the board frame.
+    """
+    pitch = length + sep
+    width = cols * length + (cols - 1) * sep
+    height = rows * length + (rows - 1) * sep
+    ids, corners = [], []
+    for r in range(rows):
+        for c in range(cols):
+            top = height - r * pitch
+            if face == FRONT:
+                left, right = c * pitch, c * pitch + length
+                z = 0.0
+            else:
+                left, right = width - c * pitch, width - c * pitch - length
+                z = -thickness
+            tl = (left, top, z)
+            tr = (right, top, z)
+            br = (right, top - length, z)
+            bl = (left, top - length, z)
+            ids.append(first_id + r * cols + c)
+            corners.append((tl, tr, br, bl))
+    return np.asarray(ids, dtype=int), np.asarray(corners, dtype=float)
+
+
+def winding_sign(corners: np.ndarray, face: int) -> float:
+    """+1 when a marker's corners are in detection order seen from outside ``face``.
+
+    Seen from outside a face the camera looks along the inward normal; image x (TL->TR) cross
+    image y (TL->BL) is the viewing direction, so it must oppose the outward normal."""
+    c = np.asarray(corners, dtype=float)
+    n = np.cross(c[1] - c[0], c[3] - c[0])
+    return float(-np.sign(n[2] * face))
+
+
+def _number(value: Any, where: str, positive: bool = True, allow_zero: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise BoardError(f"{where}: expected a finite number, got {value!r}")
+    if positive and (value < 0 or (value == 0 and not allow_zero)):
+        raise BoardError(f"{where}: must be positive, got {value!r}")
+    return float(value)
+
+
+def _int(value: Any, where: str, minimum: int = 0) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise BoardError(f"{where}: expected a whole number >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def validate_markers(ids: np.ndarray, corners: np.ndarray, thickness: float, dict_size: int,
+                     where: str, fix_winding: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Check ids and marker geometry; return ``(corners, faces)`` (corners fixed if asked).
+
+    Raises BoardError naming the offending markers: duplicate ids, ids outside the dictionary,
+    markers off both face planes, non-planar or non-square markers, mirrored winding."""
+    uniq, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        raise BoardError(f"{where}: duplicate marker id(s) {uniq[counts > 1].tolist()}; "
+                         "every marker id may appear once")
+    bad = ids[(ids < 0) | (ids >= dict_size)]
+    if bad.size:
+        raise BoardError(f"{where}: marker id(s) {bad.tolist()} outside the dictionary "
+                         f"(ids 0..{dict_size - 1}); use a larger dictionary or fix the ids")
+    z = corners[:, :, 2]
+    faces = np.where(np.all(np.abs(z) <= PLANE_TOL_M, axis=1), FRONT,
+                     np.where(np.all(np.abs(z + thickness) <= PLANE_TOL_M, axis=1), BACK, 0))
+    off = ids[faces == 0]
+    if off.size:
+        raise BoardError(
+            f"{where}: marker(s) {off.tolist()} are not planar on the front face (z = 0) or the "
+            f"back face (z = -{thickness}); check their z coordinates and the thickness")
+    sides = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=-1)
+    diag = np.linalg.norm(corners[:, [0, 1]] - corners[:, [2, 3]], axis=-1)
+    side_ref = sides.mean(axis=1, keepdims=True)
+    not_square = (np.abs(sides - side_ref) > SQUARE_TOL * side_ref).any(axis=1) | (
+        np.abs(diag[:, 0] - diag[:, 1]) > SQUARE_TOL * side_ref[:, 0])
+    if np.any(not_square):
+        raise BoardError(f"{where}: marker(s) {ids[not_square].tolist()} are not squares; "
+                         "list the 4 corners of each marker in order around the square")
+    signs = np.array([winding_sign(c, f) for c, f in zip(corners, faces)])
+    mirrored = signs < 0
+    if np.any(mirrored):
+        if not fix_winding:
+            raise BoardError(
+                f"{where}: marker(s) {ids[mirrored].tolist()} are listed mirrored for their face "
+                "(e.g. back-face corners in front-face order, as in the thesis Table 4.2); "
+                "list corners TL,TR,BR,BL as seen from outside the face, or set "
+                "corner_order: front / pass --fix-winding")
+        corners = corners.copy()
+        corners[mirrored] = corners[mirrored][:, [1, 0, 3, 2]]
+    return corners, faces
+
+
+def board_from_grid(dictionary: str, rows: int, cols: int, marker_length: float,
+                    separation: float, thickness: float, front_first_id: int,
+                    back_first_id: int | None, margin: float | None = None,
+                    panel: tuple[float, float, float, float] | None = None,
+                    name: str = "board", where: str = "board") -> Board:
+    """Build a (double-sided unless ``back_first_id`` is None) grid board."""
+    ids, corners = grid_corners(rows, cols, marker_length, separation, front_first_id, FRONT,
+                                thickness)
+    if back_first_id is not None:
+        ids_b, corners_b = grid_corners(rows, cols, marker_length, separation, back_first_id,
+                                        BACK, thickness)
+        ids = np.concatenate([ids, ids_b])
+        corners = np.concatenate([corners, corners_b])
+    d = aruco_dictionary(dictionary)
+    corners, faces = validate_markers(ids, corners, thickness, d.bytesList.shape[0], where)
+    if panel is None:
+        m = separation if margin is None else margin
+        w = cols * marker_length + (cols - 1) * separation
+        h = rows * marker_length + (rows - 1) * separation
+        panel = (-m, w + m, -m, h + m)
+    grid = {"rows": rows, "cols": cols, "marker_length": marker_length,
+            "separation": separation, "front_first_id": front_first_id,
+            "back_first_id": back_first_id}
+    return Board(dictionary, ids, corners, faces, thickness, tuple(map(float, panel)), name, grid)
+
+
+_TOP_KEYS = {"name", "dictionary", "thickness", "grid", "markers", "corner_order", "panel",
+             "margin"}
+_GRID_KEYS = {"rows", "cols", "marker_length", "separation", "front_first_id", "back_first_id"}
+
+
+def load_board(path: Path, fix_winding: bool = False) -> Board:
+    """Load a board YAML in grid form or explicit form (see configs/board_thesis*.yaml).
+
+    ``fix_winding`` (or ``corner_order: front`` in the file) reorders mirrored markers instead
+    of rejecting them."""
+    path = Path(path)
+    data = read_yaml_mapping(path, "board file")
+    where = str(path)
+    try:
+        check_keys(data, _TOP_KEYS, where, required=("dictionary", "thickness"))
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    if ("grid" in data) == ("markers" in data):
+        raise BoardError(f"{where}: give exactly one of 'grid' (grid form) or 'markers' "
+                         "(explicit form)")
+    dictionary = str(data["dictionary"])
+    d = aruco_dictionary(dictionary)
+    thickness = _number(data["thickness"], f"{where}: thickness", allow_zero=True)
+    name = str(data.get("name", path.stem))
+    panel = data.get("panel")
+    if panel is not None:
+        if not (isinstance(panel, list) and len(panel) == 4):
+            raise BoardError(f"{where}: panel must be [xmin, xmax, ymin, ymax] in metres")
+        panel = tuple(_number(v, f"{where}: panel", positive=False) for v in panel)
+        if panel[0] >= panel[1] or panel[2] >= panel[3]:
+            raise BoardError(f"{where}: panel must be [xmin, xmax, ymin, ymax] with min < max")
+    if "grid" in data:
+        g = data["grid"]
+        if not isinstance(g, dict):
+            raise BoardError(f"{where}: grid must be a mapping")
+        try:
+            check_keys(g, _GRID_KEYS, f"{where}: grid",
+                       required=("rows", "cols", "marker_length", "separation", "front_first_id"))
+        except ConfigError as exc:
+            raise BoardError(str(exc)) from None
+        back = g.get("back_first_id")
+        margin = data.get("margin")
+        board = board_from_grid(
+            dictionary,
+            _int(g["rows"], f"{where}: grid.rows", 1),
+            _int(g["cols"], f"{where}: grid.cols", 1),
+            _number(g["marker_length"], f"{where}: grid.marker_length"),
+            _number(g["separation"], f"{where}: grid.separation", allow_zero=True),
+            thickness,
+            _int(g["front_first_id"], f"{where}: grid.front_first_id"),
+            None if back is None else _int(back, f"{where}: grid.back_first_id"),
+            None if margin is None else _number(margin, f"{where}: margin", allow_zero=True),
+            panel, name, where)
+        return Board(board.dictionary, board.ids, board.corners, board.faces, board.thickness,
+                     board.panel, board.name, board.grid, path)
+
+    order = data.get("corner_order", "detection")
+    if order not in ("detection", "front"):
+        raise BoardError(f"{where}: corner_order must be 'detection' or 'front', got {order!r}")
+    markers = data["markers"]
+    if not isinstance(markers, dict) or not markers:
+        raise BoardError(f"{where}: markers must map marker id -> 4 corners [[x,y,z], ...]")
+    ids, corners = [], []
+    for key, value in markers.items():
+        try:
+            mid = int(key)
+            c = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise BoardError(f"{where}: marker {key!r}: expected an integer id and 4 corners "
+                             "of 3 numbers") from None
+        if c.shape != (4, 3) or not np.all(np.isfinite(c)):
+            raise BoardError(f"{where}: marker {key}: expected 4 corners of 3 finite numbers, "
+                             f"got shape {c.shape}")
+        ids.append(mid)
+        corners.append(c)
+    ids_a = np.asarray(ids, dtype=int)
+    corners_a = np.asarray(corners, dtype=float)
+    corners_a, faces = validate_markers(ids_a, corners_a, thickness, d.bytesList.shape[0],
+                                        where, fix_winding=fix_winding or order == "front")
+    if panel is None:
+        m = float(data.get("margin", 0.0) or 0.0)
+        lo = corners_a.reshape(-1, 3).min(axis=0)
+        hi = corners_a.reshape(-1, 3).max(axis=0)
+        panel = (lo[0] - m, hi[0] + m, lo[1] - m, hi[1] + m)
+    return Board(dictionary, ids_a, corners_a, faces, thickness, tuple(map(float, panel)), name,
+                 None, path)
+
+
+def save_board(board: Board, path: Path) -> None:
+    write_yaml(path, board.to_dict())

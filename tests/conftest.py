@@ -1,0 +1,28 @@
+"""Shared fixtures: a seeded rng, paths to the shared data, and tolerance helpers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rgbd_calib.geometry import transform_error
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIGS = REPO / "configs"
+SHARED = REPO.parent / "shared"
+SHARED_DATA = SHARED / "data"
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)
+
+
+def assert_transforms_close(T_a, T_b, atol_mm: float, atol_deg: float) -> None:
+    """Assert two ``T_x_y`` (4x4, metres) agree within a translation (mm) and angle (deg)."""
+    err_deg, err_mm = transform_error(T_a, T_b)
+    assert err_mm <= atol_mm and err_deg <= atol_deg, (
+        f"transforms differ by {err_mm:.4f} mm / {err_deg:.5f} deg "
+        f"(allowed {atol_mm} mm / {atol_deg} deg)")

@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# One entry point that sets everything up, then runs the demo or the tests.
+#   bash tools/run.sh demo    # render a synthetic rig, calibrate it, write the report
+#   bash tools/run.sh test    # the test suite (CI: .ci/run calls this)
+# Creates .venv (Python 3.11+), installs the pinned packages of requirements.lock and the
+# package itself, and Debian's libusb-1.0-0 (needed by open3d and pyrealsense2) when missing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$(pwd)
+VENV="${RGBD_CALIB_VENV:-$ROOT/.venv}"
+
+need_libusb() { ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; }
+if need_libusb; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "installing libusb-1.0-0 (needed by open3d and pyrealsense2) ..." >&2
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0) >/dev/null \
+      || { echo "error: apt-get install libusb-1.0-0 failed; install it and re-run" >&2; exit 1; }
+  else
+    echo "error: libusb-1.0-0 is missing; run 'sudo apt-get install libusb-1.0-0' and re-run" >&2
+    exit 1
+  fi
+fi
+
+PY=""
+for c in python3.13 python3.12 python3.11 python3; do
+  if command -v "$c" >/dev/null && "$c" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+    PY=$c; break
+  fi
+done
+[ -n "$PY" ] || { echo "error: Python 3.11+ not found; install python3 (>= 3.11) and re-run" >&2; exit 1; }
+
+STAMP="$VENV/.rgbd-calib-stamp"
+WANT=$(cat pyproject.toml requirements.lock | sha256sum | cut -d' ' -f1)
+if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ]; then
+  echo "setting up $VENV (pinned packages from requirements.lock) ..." >&2
+  "$PY" -m venv "$VENV" 2>/dev/null || {
+    echo "error: '$PY -m venv' failed; run 'sudo apt-get install python3-venv' and re-run" >&2; exit 1; }
+  "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
+  "$VENV/bin/python" -m pip install -q -r requirements.lock
+  "$VENV/bin/python" -m pip install -q --no-deps -e ".[dev,ros]"
+  echo "$WANT" > "$STAMP"
+fi
+
+cmd="${1:-demo}"; shift || true
+case "$cmd" in
+  demo)
+    exec "$VENV/bin/rgbd-calib" demo "$@" ;;
+  test)
+    # Default suite: everything not marked slow. RGBD_CALIB_SLOW=1 adds the slow tier.
+    marker="not slow"
+    [ "${RGBD_CALIB_SLOW:-0}" = 1 ] && marker=""
+    set +e
+    "$VENV/bin/python" -m pytest -m "$marker" "$@"
+    rc=$?
+    set -e
+    if [ $rc -eq 5 ]; then echo "error: pytest collected no tests" >&2; exit 1; fi
+    exit $rc ;;
+  *)
+    exec "$VENV/bin/rgbd-calib" "$cmd" "$@" ;;
+esac
