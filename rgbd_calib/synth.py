@@ -1,0 +1,509 @@
+"""Synthetic RGB-D rigs with ground truth: layouts, board motion and rendering.
+
+A rig of pinhole cameras (no distortion) looks at a static textured scene (floor, walls,
+rails, boxes: :mod:`rgbd_calib.scene`) while the double-sided board moves through it. Colour
+is the exact board texture (area-averaged over each pixel: pixels whose four corners disagree
+are supersampled 8x8), lens blur and sensor noise. Depth is aligned to colour, with the D435
+stereo noise model ``sigma_z = z^2 * s / (f * B)`` (Intel's depth-quality white paper, "RMS
+error"), a per-camera scale bias, 1-count quantisation, dropout and range limits.
+
+Pure numpy rendering; cv2 only filters and encodes images.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .board import BACK, FRONT, Board
+from .errors import ConfigError
+from .geometry import invert_transform, look_at, make_transform, rotvec_to_matrix
+from .rig import CameraIntrinsics, Rig, save_rig
+from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
+from .yamlio import write_yaml
+
+LAYOUTS = ("thesis-line", "race", "ring")
+LIGHT_DIR_WORLD = np.array([0.3, -0.4, 0.87]) / np.linalg.norm([0.3, -0.4, 0.87])
+PAPER_WHITE, INK_BLACK, WOOD = 0.88, 0.07, 0.55
+
+
+@dataclass(frozen=True)
+class SynthParams:
+    """Rendering and noise settings (units in the names)."""
+
+    resolution: tuple[int, int] | None = None  # (width, height); None: the layout's default
+    blur_sigma_px: float = 0.6
+    color_noise_dn: float = 2.0
+    depth_subpixel_px: float = 0.08  # D435 subpixel disparity error s
+    depth_baseline_m: float = 0.050  # D435 stereo baseline B
+    depth_bias: float = 0.0  # max |relative depth-scale error| per camera (uniform in +-)
+    depth_dropout: float = 0.02  # fraction of valid depth pixels set to 0
+    depth_min_m: float = 0.28
+    depth_max_m: float = 6.0
+    drop_rate: float = 0.0  # probability that a camera misses a frame entirely
+    supersample: int = 8
+    cameras: int | None = None  # camera count (ring only)
+
+
+@dataclass(frozen=True)
+class SynthCamera:
+    name: str
+    intrinsics: CameraIntrinsics
+    T_world_cam: np.ndarray
+    depth_scale_bias: float = 1.0
+
+
+@dataclass(frozen=True)
+class SynthRig:
+    """Cameras, scene and the board's workspace in the world frame (z up, metres)."""
+
+    layout: str
+    cameras: list[SynthCamera]
+    scene: list[Rect]
+    workspace_lo: np.ndarray
+    workspace_hi: np.ndarray
+    facing: str = "camera"  # how board normals are chosen: towards a random camera
+
+    @property
+    def reference(self) -> str:
+        return self.cameras[0].name
+
+    def T_ref_cam(self, cam: SynthCamera) -> np.ndarray:
+        return invert_transform(self.cameras[0].T_world_cam) @ cam.T_world_cam
+
+
+# --------------------------------------------------------------------------- layouts
+def _intrinsics(width: int, height: int, rng: np.random.Generator) -> CameraIntrinsics:
+    """D435-like colour intrinsics (69 deg HFOV at 1280x720), varied per camera as the
+    thesis's factory values vary (Table 4.1)."""
+    s = width / 1280.0
+    f = (633.0 + rng.uniform(-3.0, 10.0)) * s
+    return CameraIntrinsics(width, height, f, f, width / 2 + rng.uniform(-4, 6) * s,
+                            height / 2 + rng.uniform(-5, 5) * s)
+
+
+def _room(rng: np.random.Generator, half: float = 3.5, height: float = 3.0) -> list[Rect]:
+    rects = [
+        rect((-half, -half, 0), (2 * half, 0, 0), (0, 2 * half, 0), (0.55, 0.6, 0.62), 11, 0.08),
+        rect((-half, -half, 0), (0, 2 * half, 0), (0, 0, height), (0.7, 0.72, 0.6), 21, 0.1),
+        rect((half, half, 0), (0, -2 * half, 0), (0, 0, height), (0.6, 0.7, 0.75), 31, 0.1),
+        rect((half, -half, 0), (-2 * half, 0, 0), (0, 0, height), (0.75, 0.65, 0.6), 41, 0.1),
+        rect((-half, half, 0), (2 * half, 0, 0), (0, 0, height), (0.62, 0.7, 0.68), 51, 0.1),
+    ]
+    for k in range(6):  # boxes on the floor, away from the board's workspace
+        ang = rng.uniform(0, 2 * np.pi)
+        r = rng.uniform(2.2, 3.0)
+        c = np.array([r * np.cos(ang), r * np.sin(ang)])
+        size = rng.uniform(0.25, 0.6, 3)
+        lo = (c[0] - size[0] / 2, c[1] - size[1] / 2, 0.0)
+        hi = (c[0] + size[0] / 2, c[1] + size[1] / 2, size[2])
+        rects += box(lo, hi, tuple(rng.uniform(0.35, 0.85, 3)), 100 + 10 * k, 0.04)
+    return rects
+
+
+def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
+    """Camera poses, intrinsics, depth biases and scene of a named layout."""
+    rng = np.random.default_rng(seed)
+    scene = _room(rng)
+    cams: list[tuple[str, np.ndarray]] = []
+    if layout == "thesis-line":
+        # Four cameras in a line, 0.4 m apart, the last one turned inwards (thesis Fig. 4.2,
+        # Table 4.3: cam10 about 30 deg yawed and 0.17 m forward).
+        default_res = (1280, 720)
+        for k in range(4):
+            eye = np.array([0.4 * k, 0.0, 1.2]) + rng.normal(0, 0.01, 3)
+            target = np.array([0.4 * k, 2.0, 0.9])
+            if k == 3:
+                eye += [-0.15, 0.17, 0.0]
+                target = np.array([0.3, 2.0, 0.9])
+            cams.append((f"cam{7 + k}", look_at(eye, target + rng.normal(0, 0.03, 3))))
+        lo, hi = np.array([-0.1, 0.9, 0.75]), np.array([1.3, 1.9, 1.35])
+    elif layout == "race":
+        # A cattle race along x: rails on both sides, two rows of cameras facing each other
+        # across it, so one row sees the board's front while the other sees its back.
+        default_res = (848, 480)
+        for side, y in (("left", -1.15), ("right", 1.15)):
+            for k, x in enumerate((-0.9, -0.3, 0.3, 0.9)):
+                eye = np.array([x, y, 1.75]) + rng.normal(0, 0.02, 3)
+                target = np.array([0.75 * x, 0.0, 1.15]) + rng.normal(0, 0.05, 3)
+                cams.append((f"{side}{k}", look_at(eye, target)))
+        for y in (-0.45, 0.45):
+            for z in (0.35, 0.75):
+                scene += box((-2.0, y - 0.02, z - 0.02), (2.0, y + 0.02, z + 0.02),
+                             (0.5, 0.52, 0.55), 300 + int(10 * z), 0.03)
+            for x in np.arange(-1.8, 1.81, 0.9):
+                scene += box((x - 0.04, y - 0.04, 0.0), (x + 0.04, y + 0.04, 0.85),
+                             (0.45, 0.47, 0.5), 400, 0.03)
+        lo, hi = np.array([-0.95, -0.15, 0.95]), np.array([0.95, 0.15, 1.45])
+    elif layout == "ring":
+        default_res = (1280, 720)
+        n = params.cameras or 6
+        for k in range(n):
+            ang = 2 * np.pi * k / n
+            eye = np.array([1.7 * np.cos(ang), 1.7 * np.sin(ang), 1.5]) + rng.normal(0, 0.02, 3)
+            cams.append((f"cam{k}", look_at(eye, np.array([0.0, 0.0, 1.0]) + rng.normal(0, .05, 3))))
+        lo, hi = np.array([-0.35, -0.35, 0.8]), np.array([0.35, 0.35, 1.25])
+    else:
+        raise ConfigError(f"unknown layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
+    width, height = params.resolution or default_res
+    cameras = []
+    for name, T_world_cam in cams:
+        bias = 1.0 + (rng.uniform(-params.depth_bias, params.depth_bias)
+                      if params.depth_bias > 0 else 0.0)
+        cameras.append(SynthCamera(name, _intrinsics(width, height, rng), T_world_cam, bias))
+    return SynthRig(layout, cameras, scene, lo, hi)
+
+
+# --------------------------------------------------------------------------- board motion
+def marker_visibility(board: Board, cam: SynthCamera, T_world_board: np.ndarray,
+                      min_px: float = 12.0, max_angle_deg: float = 70.0) -> int:
+    """How many markers a camera sees whole, facing it, and at least ``min_px`` wide."""
+    T_cam_board = invert_transform(cam.T_world_cam) @ T_world_board
+    K = cam.intrinsics
+    normal_cam = T_cam_board[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    count = 0
+    for face in (FRONT, BACK):
+        sel = board.faces == face
+        pts = board.corners[sel].reshape(-1, 3) @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+        if np.any(pts[:, 2] < 0.2):
+            continue
+        centre = pts.mean(axis=0)
+        cos_view = -face * (normal_cam @ centre) / np.linalg.norm(centre)
+        if cos_view < np.cos(np.radians(max_angle_deg)):
+            continue
+        uv = K.project(pts).reshape(-1, 4, 2)
+        inside = np.all((uv[..., 0] > 2) & (uv[..., 0] < K.width - 3) & (uv[..., 1] > 2)
+                        & (uv[..., 1] < K.height - 3), axis=1)
+        size = np.linalg.norm(uv[:, 0] - uv[:, 1], axis=1)
+        count += int(np.sum(inside & (size >= min_px)))
+    return count
+
+
+def sample_board_poses(rig: SynthRig, board: Board, n_frames: int, rng: np.random.Generator,
+                       min_cameras: int = 2, min_markers: int = 6) -> list[np.ndarray]:
+    """Random board poses ``T_world_board`` seen by at least ``min_cameras`` cameras.
+
+    The board centre is uniform in the workspace; its front normal points at a random camera
+    (or away from it, showing the back), tilted by up to 35 deg and rolled by up to 25 deg, so
+    distance and obliquity vary from frame to frame."""
+    centre_b = np.array([(board.panel[0] + board.panel[1]) / 2,
+                         (board.panel[2] + board.panel[3]) / 2, -board.thickness / 2])
+    poses: list[np.ndarray] = []
+    attempts = 0
+    while len(poses) < n_frames:
+        attempts += 1
+        if attempts > 2000 * n_frames:
+            raise ConfigError("could not place the board in view of two cameras; the board is "
+                              "too large or small for this layout")
+        c = rng.uniform(rig.workspace_lo, rig.workspace_hi)
+        cam = rig.cameras[rng.integers(len(rig.cameras))]
+        to_cam = cam.T_world_cam[:3, 3] - c
+        to_cam /= np.linalg.norm(to_cam)
+        if rng.random() < 0.5:
+            to_cam = -to_cam  # show the back face to this camera's side
+        tilt_axis = np.cross(to_cam, rng.normal(size=3))
+        tilt_axis /= np.linalg.norm(tilt_axis)
+        z_axis = rotvec_to_matrix(tilt_axis * np.radians(rng.uniform(0, 35))) @ to_cam
+        up = np.array([0.0, 0.0, 1.0])
+        x_axis = np.cross(up, z_axis)
+        x_axis /= np.linalg.norm(x_axis)
+        y_axis = np.cross(z_axis, x_axis)
+        R = np.column_stack([x_axis, y_axis, z_axis])
+        R = R @ rotvec_to_matrix([0, 0, np.radians(rng.uniform(-25, 25))])
+        T_world_board = make_transform(R, c - R @ centre_b)
+        seen = [marker_visibility(board, k, T_world_board) for k in rig.cameras]
+        if sum(s >= min_markers for s in seen) >= min_cameras:
+            poses.append(T_world_board)
+    return poses
+
+
+# --------------------------------------------------------------------------- rendering
+@dataclass
+class _BoardModel:
+    """The board as six rectangles in the board frame plus marker look-up per face."""
+
+    board: Board
+    rects: list[Rect] = field(init=False)
+    trees: dict[int, cKDTree] = field(init=False)
+    cells: dict[int, np.ndarray] = field(init=False)
+
+    def __post_init__(self) -> None:
+        b = self.board
+        x0, x1, y0, y1 = b.panel
+        t = b.thickness
+        w, h = x1 - x0, y1 - y0
+        self.rects = [
+            rect((x0, y0, 0), (w, 0, 0), (0, h, 0), (1, 1, 1), 0),  # front, normal +z
+            rect((x0, y0, -t), (0, h, 0), (w, 0, 0), (1, 1, 1), 0),  # back, normal -z
+            rect((x0, y0, -t), (w, 0, 0), (0, 0, t), (1, 1, 1), 0),  # bottom edge
+            rect((x0, y1, -t), (0, 0, t), (w, 0, 0), (1, 1, 1), 0),  # top edge
+            rect((x0, y0, -t), (0, 0, t), (0, h, 0), (1, 1, 1), 0),  # left edge
+            rect((x1, y0, -t), (0, h, 0), (0, 0, t), (1, 1, 1), 0),  # right edge
+        ]
+        self.trees = {f: cKDTree(b.corners[b.faces == f].mean(axis=1)[:, :2])
+                      for f in (FRONT, BACK) if np.any(b.faces == f)}
+        self.cells = {int(i): b.marker_cells(int(i)) for i in b.ids}
+
+    def reflectance(self, hit_index: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Reflectance of board hits: ink, paper or the panel's edge."""
+        out = np.full(hit_index.shape, WOOD)
+        x0, _, y0, _ = self.board.panel
+        for rect_index, face in ((0, FRONT), (1, BACK)):
+            sel = np.nonzero(hit_index == rect_index)[0]
+            if sel.size == 0:
+                continue
+            out[sel] = PAPER_WHITE
+            if face not in self.trees:
+                continue
+            xy = (np.column_stack([x0 + a[sel], y0 + b[sel]]) if face == FRONT
+                  else np.column_stack([x0 + b[sel], y0 + a[sel]]))
+            ids = self.board.ids[self.board.faces == face]
+            corners = self.board.corners[self.board.faces == face][:, :, :2]
+            k = min(2, len(ids))
+            _, cand = self.trees[face].query(xy, k=k)
+            cand = cand.reshape(len(sel), k)
+            for j in range(k):
+                c = corners[cand[:, j]]
+                e1, e3 = c[:, 1] - c[:, 0], c[:, 3] - c[:, 0]
+                d = xy - c[:, 0]
+                u = np.einsum("ij,ij->i", d, e1) / np.einsum("ij,ij->i", e1, e1)
+                v = np.einsum("ij,ij->i", d, e3) / np.einsum("ij,ij->i", e3, e3)
+                inside = (u >= 0) & (u < 1) & (v >= 0) & (v < 1)
+                for m in np.unique(cand[inside, j]):
+                    pick = inside & (cand[:, j] == m)
+                    cells = self.cells[int(ids[m])]
+                    n = cells.shape[0]
+                    val = cells[(v[pick] * n).astype(int), (u[pick] * n).astype(int)]
+                    out[sel[pick]] = np.where(val > 127, PAPER_WHITE, INK_BLACK)
+        return out
+
+
+@dataclass
+class _Background:
+    color: np.ndarray  # HxWx3 float BGR [0,1]
+    depth: np.ndarray  # HxW metres (inf: no surface)
+
+
+def render_background(scene: list[Rect], cam: SynthCamera, samples: int = 2) -> _Background:
+    """Static scene seen by a camera: colour box-filtered over ``samples^2`` rays per pixel,
+    depth at pixel centres."""
+    K = cam.intrinsics
+    T_cam_world = invert_transform(cam.T_world_cam)
+    light = T_cam_world[:3, :3] @ LIGHT_DIR_WORLD
+    vs, us = np.mgrid[0:K.height, 0:K.width].astype(float)
+    color = np.zeros((K.height, K.width, 3))
+    for i in range(samples):
+        for j in range(samples):
+            du, dv = (i + 0.5) / samples - 0.5, (j + 0.5) / samples - 0.5
+            rays = pixel_rays(K.K, (us + du).ravel(), (vs + dv).ravel())
+            hits = cast(scene, T_cam_world, rays)
+            color += shade_scene(scene, hits, light, T_cam_world).reshape(color.shape)
+    rays = pixel_rays(K.K, us.ravel(), vs.ravel())
+    depth = cast(scene, T_cam_world, rays).depth.reshape(K.height, K.width)
+    return _Background(color / samples**2, depth)
+
+
+def _board_bbox(model: _BoardModel, K: CameraIntrinsics, T_cam_board: np.ndarray):
+    x0, x1, y0, y1 = model.board.panel
+    t = model.board.thickness
+    pts = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (0.0, -t)])
+    pc = pts @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+    if np.all(pc[:, 2] <= 0.01):
+        return None
+    if np.any(pc[:, 2] <= 0.01):
+        return 0, K.width - 1, 0, K.height - 1
+    uv = K.project(pc)
+    u0 = max(int(np.floor(uv[:, 0].min())) - 1, 0)
+    u1 = min(int(np.ceil(uv[:, 0].max())) + 1, K.width - 1)
+    v0 = max(int(np.floor(uv[:, 1].min())) - 1, 0)
+    v1 = min(int(np.ceil(uv[:, 1].max())) + 1, K.height - 1)
+    if u0 > u1 or v0 > v1:
+        return None
+    return u0, u1, v0, v1
+
+
+def render_board(model: _BoardModel, cam: SynthCamera, bg: _Background,
+                 T_cam_board: np.ndarray, supersample: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free colour (HxWx3 float, BGR [0,1]) and depth (HxW metres) with the board.
+
+    Exact area coverage: pixels whose four corners hit the same surface with the same
+    reflectance are uniform; the rest are averaged over ``supersample^2`` rays."""
+    color = bg.color.copy()
+    depth = bg.depth.copy()
+    K = cam.intrinsics
+    box_ = _board_bbox(model, K, T_cam_board)
+    if box_ is None:
+        return color, depth
+    u0, u1, v0, v1 = box_
+    light = T_cam_board[:3, :3].T @ (invert_transform(cam.T_world_cam)[:3, :3] @ LIGHT_DIR_WORLD)
+    face_shade = np.array([0.55 + 0.45 * abs(r.normal @ light) for r in model.rects])
+    T_board_cam_dummy = np.eye(4)
+
+    def trace(us: np.ndarray, vs: np.ndarray):
+        rays = pixel_rays(K.K, us, vs)
+        hits = cast(model.rects, T_cam_board, rays)
+        refl = model.reflectance(hits.index, hits.a, hits.b)
+        value = np.where(hits.index >= 0, refl * face_shade[np.maximum(hits.index, 0)], np.nan)
+        return hits, value
+
+    del T_board_cam_dummy
+    cv_, cu_ = np.mgrid[v0:v1 + 2, u0:u1 + 2].astype(float) - 0.5
+    hits_c, val_c = trace(cu_.ravel(), cv_.ravel())
+    key = np.where(hits_c.index >= 0, hits_c.index * 10 + (val_c * 8).round(), -1)
+    key = key.reshape(cv_.shape)
+    val_c = val_c.reshape(cv_.shape)
+    same = ((key[:-1, :-1] == key[1:, :-1]) & (key[:-1, :-1] == key[:-1, 1:])
+            & (key[:-1, :-1] == key[1:, 1:]))
+    region_bg = color[v0:v1 + 1, u0:u1 + 1]
+    region_depth_bg = bg.depth[v0:v1 + 1, u0:u1 + 1]
+    # pixel-centre depth decides occlusion between the board and the static scene
+    cvv, cuu = np.mgrid[v0:v1 + 1, u0:u1 + 1].astype(float)
+    hits_p, _ = trace(cuu.ravel(), cvv.ravel())
+    z_board = hits_p.depth.reshape(cvv.shape)
+    board_front = z_board < region_depth_bg
+    uniform_board = same & (key[:-1, :-1] >= 0) & board_front
+    out = region_bg.copy()
+    out[uniform_board] = val_c[:-1, :-1][uniform_board][:, None]
+    mixed = ~same
+    if np.any(mixed):
+        mv, mu = np.nonzero(mixed)
+        s = supersample
+        offs = (np.arange(s) + 0.5) / s - 0.5
+        ov, ou = np.meshgrid(offs, offs, indexing="ij")
+        us = (mu[:, None] + u0 + ou.ravel()[None]).ravel()
+        vs = (mv[:, None] + v0 + ov.ravel()[None]).ravel()
+        hits_s, val_s = trace(us, vs)
+        zbg = np.repeat(region_depth_bg[mv, mu], s * s)
+        vis = (hits_s.index >= 0) & (hits_s.depth < zbg)
+        bgc = np.repeat(region_bg[mv, mu], s * s, axis=0)
+        samp = np.where(vis[:, None], val_s[:, None], bgc)
+        out[mv, mu] = samp.reshape(-1, s * s, 3).mean(axis=1)
+    color[v0:v1 + 1, u0:u1 + 1] = out
+    depth[v0:v1 + 1, u0:u1 + 1] = np.where(board_front, z_board, region_depth_bg)
+    return color, depth
+
+
+def finish_color(color: np.ndarray, params: SynthParams, rng: np.random.Generator) -> np.ndarray:
+    """Lens blur, sensor noise and 8-bit quantisation."""
+    img = color * 255.0
+    if params.blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), params.blur_sigma_px)
+    if params.color_noise_dn > 0:
+        img = img + rng.normal(0.0, params.color_noise_dn, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def finish_depth(depth_m: np.ndarray, cam: SynthCamera, params: SynthParams,
+                 rng: np.random.Generator) -> np.ndarray:
+    """D435 depth: noise sigma_z = z^2 s / (f B), scale bias, range limits, dropout, counts."""
+    K = cam.intrinsics
+    z = np.where(np.isfinite(depth_m), depth_m, 0.0)
+    sigma = z**2 * params.depth_subpixel_px / (K.fx * params.depth_baseline_m)
+    z = (z + rng.normal(0.0, 1.0, z.shape) * sigma) * cam.depth_scale_bias
+    valid = (z >= params.depth_min_m) & (z <= params.depth_max_m)
+    valid &= rng.random(z.shape) >= params.depth_dropout
+    counts = np.where(valid, np.rint(z / K.depth_scale), 0)
+    return np.clip(counts, 0, 65535).astype(np.uint16)
+
+
+# --------------------------------------------------------------------------- dataset writer
+_WORKER: dict = {}
+
+
+def _init_worker(state: dict) -> None:
+    _WORKER.update(state)
+    _WORKER["model"] = _BoardModel(state["board"])
+
+
+def _render_frame(job: tuple[int, np.ndarray]) -> None:
+    index, T_world_board = job
+    rig: SynthRig = _WORKER["rig"]
+    params: SynthParams = _WORKER["params"]
+    out: Path = _WORKER["out"]
+    frame = f"{index:06d}"
+    for ci, cam in enumerate(rig.cameras):
+        rng = np.random.default_rng([_WORKER["seed"], index, ci])
+        if params.drop_rate > 0 and rng.random() < params.drop_rate:
+            continue
+        T_cam_board = invert_transform(cam.T_world_cam) @ T_world_board
+        color, depth = render_board(_WORKER["model"], cam, _WORKER["backgrounds"][ci],
+                                    T_cam_board, params.supersample)
+        cv2.imwrite(str(out / cam.name / "color" / f"{frame}.png"),
+                    finish_color(color, params, rng), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        cv2.imwrite(str(out / cam.name / "depth" / f"{frame}.png"),
+                    finish_depth(depth, cam, params, rng), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+
+
+@dataclass(frozen=True)
+class SynthDataset:
+    path: Path
+    rig: SynthRig
+    board_poses: list[np.ndarray]
+
+
+def synthesize(out: Path, layout: str, n_frames: int, seed: int, board: Board,
+               params: SynthParams = SynthParams(), workers: int | None = None,
+               progress=None) -> SynthDataset:
+    """Render a rig into the folder form of docs/formats.md, with ``ground_truth.yaml``.
+
+    Written into a temporary sibling folder and renamed into place at the end, so an
+    interrupted run never leaves a half-written dataset under ``out``."""
+    out = Path(out)
+    if n_frames < 1:
+        raise ConfigError("--frames must be at least 1")
+    if out.exists() and any(out.iterdir()):
+        raise ConfigError(f"{out}: output folder exists and is not empty; choose a new folder "
+                          "or delete it")
+    rig = make_rig(layout, seed, params)
+    rng = np.random.default_rng(seed + 1)
+    poses = sample_board_poses(rig, board, n_frames, rng)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        for cam in rig.cameras:
+            (tmp / cam.name / "color").mkdir(parents=True)
+            (tmp / cam.name / "depth").mkdir(parents=True)
+        save_rig(Rig({c.name: c.intrinsics for c in rig.cameras}, rig.reference), tmp / "rig.yaml")
+        backgrounds = [render_background(rig.scene, cam) for cam in rig.cameras]
+        state = {"rig": rig, "params": params, "out": tmp, "seed": seed, "board": board,
+                 "backgrounds": backgrounds}
+        jobs = list(enumerate(poses))
+        workers = workers or os.cpu_count() or 1
+        if workers <= 1:
+            _init_worker(state)
+            for job in jobs:
+                _render_frame(job)
+                if progress:
+                    progress()
+        else:
+            with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(state,)) as ex:
+                for _ in ex.map(_render_frame, jobs, chunksize=1):
+                    if progress:
+                        progress()
+        T_world_ref = rig.cameras[0].T_world_cam
+        T_ref_world = invert_transform(T_world_ref)
+        write_yaml(tmp / "ground_truth.yaml", {
+            "reference": rig.reference,
+            "T_ref_cam": {c.name: rig.T_ref_cam(c) for c in rig.cameras},
+            "T_ref_board": {f"{i:06d}": T_ref_world @ T for i, T in enumerate(poses)},
+            "depth_scale_bias": {c.name: c.depth_scale_bias for c in rig.cameras},
+            "layout": layout,
+            "seed": seed,
+            "board": board.to_dict(),
+            "params": {k: (list(v) if isinstance(v, tuple) else v)
+                       for k, v in params.__dict__.items()},
+        })
+        if out.exists():
+            out.rmdir()
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return SynthDataset(out, rig, poses)
