@@ -91,8 +91,11 @@ class Board:
         return np.array([0.0, 0.0, float(face)])
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"name": self.name, "dictionary": self.dictionary,
-                               "thickness": self.thickness}
+        out: dict[str, Any] = {
+            "name": self.name,
+            "dictionary": self.dictionary,
+            "thickness": self.thickness,
+        }
         if self.grid is not None:
             out["grid"] = dict(self.grid)
         else:
@@ -102,8 +105,9 @@ class Board:
         return out
 
 
-def grid_corners(rows: int, cols: int, length: float, sep: float, first_id: int, face: int,
-                 thickness: float) -> tuple[np.ndarray, np.ndarray]:
+def grid_corners(
+    rows: int, cols: int, length: float, sep: float, first_id: int, face: int, thickness: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Markers of one printed sheet: ids row-major from the sheet's top-left as printed.
 
     The front sheet is seen from +z, so its column 0 sits at x = 0. The back sheet is printed
@@ -156,36 +160,53 @@ def _int(value: Any, where: str, minimum: int = 0) -> int:
     return int(value)
 
 
-def validate_markers(ids: np.ndarray, corners: np.ndarray, thickness: float, dict_size: int,
-                     where: str, fix_winding: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def validate_markers(
+    ids: np.ndarray,
+    corners: np.ndarray,
+    thickness: float,
+    dict_size: int,
+    where: str,
+    fix_winding: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
     """Check ids and marker geometry; return ``(corners, faces)`` (corners fixed if asked).
 
     Raises BoardError naming the offending markers: duplicate ids, ids outside the dictionary,
     markers off both face planes, non-planar or non-square markers, mirrored winding."""
     uniq, counts = np.unique(ids, return_counts=True)
     if np.any(counts > 1):
-        raise BoardError(f"{where}: duplicate marker id(s) {uniq[counts > 1].tolist()}; "
-                         "every marker id may appear once")
+        raise BoardError(
+            f"{where}: duplicate marker id(s) {uniq[counts > 1].tolist()}; "
+            "every marker id may appear once"
+        )
     bad = ids[(ids < 0) | (ids >= dict_size)]
     if bad.size:
-        raise BoardError(f"{where}: marker id(s) {bad.tolist()} outside the dictionary "
-                         f"(ids 0..{dict_size - 1}); use a larger dictionary or fix the ids")
+        raise BoardError(
+            f"{where}: marker id(s) {bad.tolist()} outside the dictionary "
+            f"(ids 0..{dict_size - 1}); use a larger dictionary or fix the ids"
+        )
     z = corners[:, :, 2]
-    faces = np.where(np.all(np.abs(z) <= PLANE_TOL_M, axis=1), FRONT,
-                     np.where(np.all(np.abs(z + thickness) <= PLANE_TOL_M, axis=1), BACK, 0))
+    faces = np.where(
+        np.all(np.abs(z) <= PLANE_TOL_M, axis=1),
+        FRONT,
+        np.where(np.all(np.abs(z + thickness) <= PLANE_TOL_M, axis=1), BACK, 0),
+    )
     off = ids[faces == 0]
     if off.size:
         raise BoardError(
             f"{where}: marker(s) {off.tolist()} are not planar on the front face (z = 0) or the "
-            f"back face (z = -{thickness}); check their z coordinates and the thickness")
+            f"back face (z = -{thickness}); check their z coordinates and the thickness"
+        )
     sides = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=-1)
     diag = np.linalg.norm(corners[:, [0, 1]] - corners[:, [2, 3]], axis=-1)
     side_ref = sides.mean(axis=1, keepdims=True)
     not_square = (np.abs(sides - side_ref) > SQUARE_TOL * side_ref).any(axis=1) | (
-        np.abs(diag[:, 0] - diag[:, 1]) > SQUARE_TOL * side_ref[:, 0])
+        np.abs(diag[:, 0] - diag[:, 1]) > SQUARE_TOL * side_ref[:, 0]
+    )
     if np.any(not_square):
-        raise BoardError(f"{where}: marker(s) {ids[not_square].tolist()} are not squares; "
-                         "list the 4 corners of each marker in order around the square")
+        raise BoardError(
+            f"{where}: marker(s) {ids[not_square].tolist()} are not squares; "
+            "list the 4 corners of each marker in order around the square"
+        )
     signs = np.array([winding_sign(c, f) for c, f in zip(corners, faces)])
     mirrored = signs < 0
     if np.any(mirrored):
@@ -194,23 +215,35 @@ def validate_markers(ids: np.ndarray, corners: np.ndarray, thickness: float, dic
                 f"{where}: marker(s) {ids[mirrored].tolist()} are listed mirrored for their face "
                 "(e.g. back-face corners in front-face order, as in the thesis Table 4.2); "
                 "list corners TL,TR,BR,BL as seen from outside the face, or set "
-                "corner_order: front / pass --fix-winding")
+                "corner_order: front / pass --fix-winding"
+            )
         corners = corners.copy()
         corners[mirrored] = corners[mirrored][:, [1, 0, 3, 2]]
     return corners, faces
 
 
-def board_from_grid(dictionary: str, rows: int, cols: int, marker_length: float,
-                    separation: float, thickness: float, front_first_id: int,
-                    back_first_id: int | None, margin: float | None = None,
-                    panel: tuple[float, float, float, float] | None = None,
-                    name: str = "board", where: str = "board") -> Board:
+def board_from_grid(
+    dictionary: str,
+    rows: int,
+    cols: int,
+    marker_length: float,
+    separation: float,
+    thickness: float,
+    front_first_id: int,
+    back_first_id: int | None,
+    margin: float | None = None,
+    panel: tuple[float, float, float, float] | None = None,
+    name: str = "board",
+    where: str = "board",
+) -> Board:
     """Build a (double-sided unless ``back_first_id`` is None) grid board."""
-    ids, corners = grid_corners(rows, cols, marker_length, separation, front_first_id, FRONT,
-                                thickness)
+    ids, corners = grid_corners(
+        rows, cols, marker_length, separation, front_first_id, FRONT, thickness
+    )
     if back_first_id is not None:
-        ids_b, corners_b = grid_corners(rows, cols, marker_length, separation, back_first_id,
-                                        BACK, thickness)
+        ids_b, corners_b = grid_corners(
+            rows, cols, marker_length, separation, back_first_id, BACK, thickness
+        )
         ids = np.concatenate([ids, ids_b])
         corners = np.concatenate([corners, corners_b])
     d = aruco_dictionary(dictionary)
@@ -220,14 +253,27 @@ def board_from_grid(dictionary: str, rows: int, cols: int, marker_length: float,
         w = cols * marker_length + (cols - 1) * separation
         h = rows * marker_length + (rows - 1) * separation
         panel = (-m, w + m, -m, h + m)
-    grid = {"rows": rows, "cols": cols, "marker_length": marker_length,
-            "separation": separation, "front_first_id": front_first_id,
-            "back_first_id": back_first_id}
+    grid = {
+        "rows": rows,
+        "cols": cols,
+        "marker_length": marker_length,
+        "separation": separation,
+        "front_first_id": front_first_id,
+        "back_first_id": back_first_id,
+    }
     return Board(dictionary, ids, corners, faces, thickness, tuple(map(float, panel)), name, grid)
 
 
-_TOP_KEYS = {"name", "dictionary", "thickness", "grid", "markers", "corner_order", "panel",
-             "margin"}
+_TOP_KEYS = {
+    "name",
+    "dictionary",
+    "thickness",
+    "grid",
+    "markers",
+    "corner_order",
+    "panel",
+    "margin",
+}
 _GRID_KEYS = {"rows", "cols", "marker_length", "separation", "front_first_id", "back_first_id"}
 
 
@@ -244,8 +290,9 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
     except ConfigError as exc:
         raise BoardError(str(exc)) from None
     if ("grid" in data) == ("markers" in data):
-        raise BoardError(f"{where}: give exactly one of 'grid' (grid form) or 'markers' "
-                         "(explicit form)")
+        raise BoardError(
+            f"{where}: give exactly one of 'grid' (grid form) or 'markers' (explicit form)"
+        )
     dictionary = str(data["dictionary"])
     d = aruco_dictionary(dictionary)
     thickness = _number(data["thickness"], f"{where}: thickness", allow_zero=True)
@@ -262,8 +309,12 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
         if not isinstance(g, dict):
             raise BoardError(f"{where}: grid must be a mapping")
         try:
-            check_keys(g, _GRID_KEYS, f"{where}: grid",
-                       required=("rows", "cols", "marker_length", "separation", "front_first_id"))
+            check_keys(
+                g,
+                _GRID_KEYS,
+                f"{where}: grid",
+                required=("rows", "cols", "marker_length", "separation", "front_first_id"),
+            )
         except ConfigError as exc:
             raise BoardError(str(exc)) from None
         back = g.get("back_first_id")
@@ -278,9 +329,21 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
             _int(g["front_first_id"], f"{where}: grid.front_first_id"),
             None if back is None else _int(back, f"{where}: grid.back_first_id"),
             None if margin is None else _number(margin, f"{where}: margin", allow_zero=True),
-            panel, name, where)
-        return Board(board.dictionary, board.ids, board.corners, board.faces, board.thickness,
-                     board.panel, board.name, board.grid, path)
+            panel,
+            name,
+            where,
+        )
+        return Board(
+            board.dictionary,
+            board.ids,
+            board.corners,
+            board.faces,
+            board.thickness,
+            board.panel,
+            board.name,
+            board.grid,
+            path,
+        )
 
     order = data.get("corner_order", "detection")
     if order not in ("detection", "front"):
@@ -294,24 +357,34 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
             mid = int(key)
             c = np.asarray(value, dtype=float)
         except (TypeError, ValueError):
-            raise BoardError(f"{where}: marker {key!r}: expected an integer id and 4 corners "
-                             "of 3 numbers") from None
+            raise BoardError(
+                f"{where}: marker {key!r}: expected an integer id and 4 corners of 3 numbers"
+            ) from None
         if c.shape != (4, 3) or not np.all(np.isfinite(c)):
-            raise BoardError(f"{where}: marker {key}: expected 4 corners of 3 finite numbers, "
-                             f"got shape {c.shape}")
+            raise BoardError(
+                f"{where}: marker {key}: expected 4 corners of 3 finite numbers, "
+                f"got shape {c.shape}"
+            )
         ids.append(mid)
         corners.append(c)
     ids_a = np.asarray(ids, dtype=int)
     corners_a = np.asarray(corners, dtype=float)
-    corners_a, faces = validate_markers(ids_a, corners_a, thickness, d.bytesList.shape[0],
-                                        where, fix_winding=fix_winding or order == "front")
+    corners_a, faces = validate_markers(
+        ids_a,
+        corners_a,
+        thickness,
+        d.bytesList.shape[0],
+        where,
+        fix_winding=fix_winding or order == "front",
+    )
     if panel is None:
         m = float(data.get("margin", 0.0) or 0.0)
         lo = corners_a.reshape(-1, 3).min(axis=0)
         hi = corners_a.reshape(-1, 3).max(axis=0)
         panel = (lo[0] - m, hi[0] + m, lo[1] - m, hi[1] + m)
-    return Board(dictionary, ids_a, corners_a, faces, thickness, tuple(map(float, panel)), name,
-                 None, path)
+    return Board(
+        dictionary, ids_a, corners_a, faces, thickness, tuple(map(float, panel)), name, None, path
+    )
 
 
 def save_board(board: Board, path: Path) -> None:

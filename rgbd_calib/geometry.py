@@ -13,7 +13,7 @@ Array = NDArray[np.float64]
 
 
 def make_transform(R: ArrayLike, t: ArrayLike) -> Array:
-    """Build ``T_a_b`` (4x4) from rotation ``R_a_b`` (3x3) and translation ``t_a_b`` (3,) in metres."""
+    """``T_a_b`` (4x4) from rotation ``R_a_b`` (3x3) and translation ``t_a_b`` (3,) in metres."""
     T = np.eye(4)
     T[:3, :3] = np.asarray(R, dtype=float)
     T[:3, 3] = np.asarray(t, dtype=float).reshape(3)

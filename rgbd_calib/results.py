@@ -70,16 +70,31 @@ def load_extrinsics(path: Path) -> Extrinsics:
         where = f"{path}: cameras.{name}"
         if not isinstance(raw, dict):
             raise ConfigError(f"{where}: expected a mapping with T_ref_cam")
-        check_keys(raw, {"T_ref_cam", "translation_m", "quaternion_xyzw", "sigma_rotation_deg",
-                         "sigma_translation_mm"}, where, required=("T_ref_cam",))
+        check_keys(
+            raw,
+            {
+                "T_ref_cam",
+                "translation_m",
+                "quaternion_xyzw",
+                "sigma_rotation_deg",
+                "sigma_translation_mm",
+            },
+            where,
+            required=("T_ref_cam",),
+        )
         T = matrix4(raw["T_ref_cam"], f"{where}.T_ref_cam")
         if not is_rigid(T, atol=1e-4):
-            raise ConfigError(f"{where}.T_ref_cam is not a rigid transform (rotation not "
-                              "orthonormal or last row not 0 0 0 1)")
+            raise ConfigError(
+                f"{where}.T_ref_cam is not a rigid transform (rotation not "
+                "orthonormal or last row not 0 0 0 1)"
+            )
         T[:3, :3] = orthonormalize(T[:3, :3])
         out[str(name)] = CameraExtrinsics(
-            str(name), T, float(raw.get("sigma_rotation_deg", float("nan"))),
-            float(raw.get("sigma_translation_mm", float("nan"))))
+            str(name),
+            T,
+            float(raw.get("sigma_rotation_deg", float("nan"))),
+            float(raw.get("sigma_translation_mm", float("nan"))),
+        )
     reference = str(data.get("reference") or next(iter(out)))
     if reference not in out:
         raise ConfigError(f"{path}: reference {reference!r} is not among the cameras")

@@ -142,7 +142,9 @@ def load_rig(path: Path) -> Rig:
     check_keys(data, {"reference", "cameras"}, str(path), required=("cameras",))
     cams_raw = data["cameras"]
     if not isinstance(cams_raw, dict) or not cams_raw:
-        raise ConfigError(f"{path}: 'cameras' must be a non-empty mapping of camera name to intrinsics")
+        raise ConfigError(
+            f"{path}: 'cameras' must be a non-empty mapping of camera name to intrinsics"
+        )
     cameras: dict[str, CameraIntrinsics] = {}
     for name, raw in cams_raw.items():
         name = str(name)
@@ -154,7 +156,8 @@ def load_rig(path: Path) -> Rig:
     reference = str(data.get("reference") or next(iter(cameras)))
     if reference not in cameras:
         raise ConfigError(
-            f"{path}: reference camera {reference!r} is not among the cameras ({', '.join(cameras)})"
+            f"{path}: reference camera {reference!r} is not among the cameras "
+            f"({', '.join(cameras)})"
         )
     return Rig(cameras=cameras, reference=reference, source=path)
 

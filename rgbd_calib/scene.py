@@ -40,8 +40,16 @@ def rect(origin, u_vec, v_vec, albedo, seed, cell=0.05) -> Rect:
     u_vec = np.asarray(u_vec, float)
     v_vec = np.asarray(v_vec, float)
     lu, lv = np.linalg.norm(u_vec), np.linalg.norm(v_vec)
-    return Rect(np.asarray(origin, float), u_vec / lu, v_vec / lv, float(lu), float(lv),
-                tuple(albedo), int(seed), float(cell))
+    return Rect(
+        np.asarray(origin, float),
+        u_vec / lu,
+        v_vec / lv,
+        float(lu),
+        float(lv),
+        tuple(albedo),
+        int(seed),
+        float(cell),
+    )
 
 
 def box(lo, hi, albedo, seed, cell=0.05) -> list[Rect]:
@@ -83,9 +91,11 @@ def value_noise(a: np.ndarray, b: np.ndarray, cell: float, seed: int) -> np.ndar
 def surface_texture(r: Rect, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Three octaves of value noise (coarse blotches, mid detail, fine grain) -> (N,) in [0,1]."""
     c = r.texture_cell_m
-    n = (0.5 * value_noise(a, b, 4 * c, r.texture_seed)
-         + 0.35 * value_noise(a, b, c, r.texture_seed + 7)
-         + 0.15 * value_noise(a, b, c / 4, r.texture_seed + 13))
+    n = (
+        0.5 * value_noise(a, b, 4 * c, r.texture_seed)
+        + 0.35 * value_noise(a, b, c, r.texture_seed + 7)
+        + 0.15 * value_noise(a, b, c / 4, r.texture_seed + 13)
+    )
     return n
 
 
@@ -100,8 +110,9 @@ class Hits:
     b: np.ndarray
 
 
-def cast(rects: list[Rect], T_cam_world: np.ndarray, rays: np.ndarray,
-         two_sided: bool = True) -> Hits:
+def cast(
+    rects: list[Rect], T_cam_world: np.ndarray, rays: np.ndarray, two_sided: bool = True
+) -> Hits:
     """Nearest intersection of camera-frame rays ``(N,3)`` (z = 1) with the rectangles."""
     n_rays = rays.shape[0]
     best = np.full(n_rays, np.inf)
@@ -117,15 +128,21 @@ def cast(rects: list[Rect], T_cam_world: np.ndarray, rays: np.ndarray,
         on = o @ n
         if not two_sided and on >= 0:  # camera behind the face
             continue
-        corners = o + np.array([[0, 0], [r.size_u, 0], [0, r.size_v], [r.size_u, r.size_v]]) @ np.stack([u, v])
+        corners = o + np.array(
+            [[0, 0], [r.size_u, 0], [0, r.size_v], [r.size_u, r.size_v]]
+        ) @ np.stack([u, v])
         if np.all(corners[:, 2] <= 0):
             continue
         cand = all_rays
         if np.all(corners[:, 2] > 1e-6):  # cull rays outside the rectangle's image bbox
             xy = corners[:, :2] / corners[:, 2:]
             lo, hi = xy.min(axis=0) - 1e-9, xy.max(axis=0) + 1e-9
-            cand = np.nonzero((rays[:, 0] >= lo[0]) & (rays[:, 0] <= hi[0])
-                              & (rays[:, 1] >= lo[1]) & (rays[:, 1] <= hi[1]))[0]
+            cand = np.nonzero(
+                (rays[:, 0] >= lo[0])
+                & (rays[:, 0] <= hi[0])
+                & (rays[:, 1] >= lo[1])
+                & (rays[:, 1] <= hi[1])
+            )[0]
             if cand.size == 0:
                 continue
         denom = rays[cand] @ n
@@ -148,8 +165,13 @@ def cast(rects: list[Rect], T_cam_world: np.ndarray, rays: np.ndarray,
     return Hits(best, index, best_a, best_b)
 
 
-def shade_scene(rects: list[Rect], hits: Hits, light_dir_cam: np.ndarray,
-                T_cam_world: np.ndarray, ambient: float = 0.55) -> np.ndarray:
+def shade_scene(
+    rects: list[Rect],
+    hits: Hits,
+    light_dir_cam: np.ndarray,
+    T_cam_world: np.ndarray,
+    ambient: float = 0.55,
+) -> np.ndarray:
     """BGR colour in [0,1] of scene hits: albedo x texture x (ambient + diffuse)."""
     out = np.zeros((hits.depth.size, 3))
     R = T_cam_world[:3, :3]

@@ -85,8 +85,9 @@ def _intrinsics(width: int, height: int, rng: np.random.Generator) -> CameraIntr
     thesis's factory values vary (Table 4.1)."""
     s = width / 1280.0
     f = (633.0 + rng.uniform(-3.0, 10.0)) * s
-    return CameraIntrinsics(width, height, f, f, width / 2 + rng.uniform(-4, 6) * s,
-                            height / 2 + rng.uniform(-5, 5) * s)
+    return CameraIntrinsics(
+        width, height, f, f, width / 2 + rng.uniform(-4, 6) * s, height / 2 + rng.uniform(-5, 5) * s
+    )
 
 
 def _room(rng: np.random.Generator, half: float = 3.5, height: float = 3.0) -> list[Rect]:
@@ -136,11 +137,21 @@ def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
                 cams.append((f"{side}{k}", look_at(eye, target)))
         for y in (-0.45, 0.45):
             for z in (0.35, 0.75):
-                scene += box((-2.0, y - 0.02, z - 0.02), (2.0, y + 0.02, z + 0.02),
-                             (0.5, 0.52, 0.55), 300 + int(10 * z), 0.03)
+                scene += box(
+                    (-2.0, y - 0.02, z - 0.02),
+                    (2.0, y + 0.02, z + 0.02),
+                    (0.5, 0.52, 0.55),
+                    300 + int(10 * z),
+                    0.03,
+                )
             for x in np.arange(-1.8, 1.81, 0.9):
-                scene += box((x - 0.04, y - 0.04, 0.0), (x + 0.04, y + 0.04, 0.85),
-                             (0.45, 0.47, 0.5), 400, 0.03)
+                scene += box(
+                    (x - 0.04, y - 0.04, 0.0),
+                    (x + 0.04, y + 0.04, 0.85),
+                    (0.45, 0.47, 0.5),
+                    400,
+                    0.03,
+                )
         lo, hi = np.array([-0.95, -0.15, 0.95]), np.array([0.95, 0.15, 1.45])
     elif layout == "ring":
         default_res = (1280, 720)
@@ -148,22 +159,30 @@ def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
         for k in range(n):
             ang = 2 * np.pi * k / n
             eye = np.array([1.7 * np.cos(ang), 1.7 * np.sin(ang), 1.5]) + rng.normal(0, 0.02, 3)
-            cams.append((f"cam{k}", look_at(eye, np.array([0.0, 0.0, 1.0]) + rng.normal(0, .05, 3))))
+            cams.append(
+                (f"cam{k}", look_at(eye, np.array([0.0, 0.0, 1.0]) + rng.normal(0, 0.05, 3)))
+            )
         lo, hi = np.array([-0.35, -0.35, 0.8]), np.array([0.35, 0.35, 1.25])
     else:
         raise ConfigError(f"unknown layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
     width, height = params.resolution or default_res
     cameras = []
     for name, T_world_cam in cams:
-        bias = 1.0 + (rng.uniform(-params.depth_bias, params.depth_bias)
-                      if params.depth_bias > 0 else 0.0)
+        bias = 1.0 + (
+            rng.uniform(-params.depth_bias, params.depth_bias) if params.depth_bias > 0 else 0.0
+        )
         cameras.append(SynthCamera(name, _intrinsics(width, height, rng), T_world_cam, bias))
     return SynthRig(layout, cameras, scene, lo, hi)
 
 
 # --------------------------------------------------------------------------- board motion
-def marker_visibility(board: Board, cam: SynthCamera, T_world_board: np.ndarray,
-                      min_px: float = 12.0, max_angle_deg: float = 70.0) -> int:
+def marker_visibility(
+    board: Board,
+    cam: SynthCamera,
+    T_world_board: np.ndarray,
+    min_px: float = 12.0,
+    max_angle_deg: float = 70.0,
+) -> int:
     """How many markers a camera sees whole, facing it, and at least ``min_px`` wide."""
     T_cam_board = invert_transform(cam.T_world_cam) @ T_world_board
     K = cam.intrinsics
@@ -179,29 +198,47 @@ def marker_visibility(board: Board, cam: SynthCamera, T_world_board: np.ndarray,
         if cos_view < np.cos(np.radians(max_angle_deg)):
             continue
         uv = K.project(pts).reshape(-1, 4, 2)
-        inside = np.all((uv[..., 0] > 2) & (uv[..., 0] < K.width - 3) & (uv[..., 1] > 2)
-                        & (uv[..., 1] < K.height - 3), axis=1)
+        inside = np.all(
+            (uv[..., 0] > 2)
+            & (uv[..., 0] < K.width - 3)
+            & (uv[..., 1] > 2)
+            & (uv[..., 1] < K.height - 3),
+            axis=1,
+        )
         size = np.linalg.norm(uv[:, 0] - uv[:, 1], axis=1)
         count += int(np.sum(inside & (size >= min_px)))
     return count
 
 
-def sample_board_poses(rig: SynthRig, board: Board, n_frames: int, rng: np.random.Generator,
-                       min_cameras: int = 2, min_markers: int = 6) -> list[np.ndarray]:
+def sample_board_poses(
+    rig: SynthRig,
+    board: Board,
+    n_frames: int,
+    rng: np.random.Generator,
+    min_cameras: int = 2,
+    min_markers: int = 6,
+) -> list[np.ndarray]:
     """Random board poses ``T_world_board`` seen by at least ``min_cameras`` cameras.
 
     The board centre is uniform in the workspace; its front normal points at a random camera
     (or away from it, showing the back), tilted by up to 35 deg and rolled by up to 25 deg, so
     distance and obliquity vary from frame to frame."""
-    centre_b = np.array([(board.panel[0] + board.panel[1]) / 2,
-                         (board.panel[2] + board.panel[3]) / 2, -board.thickness / 2])
+    centre_b = np.array(
+        [
+            (board.panel[0] + board.panel[1]) / 2,
+            (board.panel[2] + board.panel[3]) / 2,
+            -board.thickness / 2,
+        ]
+    )
     poses: list[np.ndarray] = []
     attempts = 0
     while len(poses) < n_frames:
         attempts += 1
         if attempts > 2000 * n_frames:
-            raise ConfigError("could not place the board in view of two cameras; the board is "
-                              "too large or small for this layout")
+            raise ConfigError(
+                "could not place the board in view of two cameras; the board is "
+                "too large or small for this layout"
+            )
         c = rng.uniform(rig.workspace_lo, rig.workspace_hi)
         cam = rig.cameras[rng.integers(len(rig.cameras))]
         to_cam = cam.T_world_cam[:3, 3] - c
@@ -247,8 +284,11 @@ class _BoardModel:
             rect((x0, y0, -t), (0, 0, t), (0, h, 0), (1, 1, 1), 0),  # left edge
             rect((x1, y0, -t), (0, h, 0), (0, 0, t), (1, 1, 1), 0),  # right edge
         ]
-        self.trees = {f: cKDTree(b.corners[b.faces == f].mean(axis=1)[:, :2])
-                      for f in (FRONT, BACK) if np.any(b.faces == f)}
+        self.trees = {
+            f: cKDTree(b.corners[b.faces == f].mean(axis=1)[:, :2])
+            for f in (FRONT, BACK)
+            if np.any(b.faces == f)
+        }
         self.cells = {int(i): b.marker_cells(int(i)) for i in b.ids}
 
     def reflectance(self, hit_index: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -262,8 +302,11 @@ class _BoardModel:
             out[sel] = PAPER_WHITE
             if face not in self.trees:
                 continue
-            xy = (np.column_stack([x0 + a[sel], y0 + b[sel]]) if face == FRONT
-                  else np.column_stack([x0 + b[sel], y0 + a[sel]]))
+            xy = (
+                np.column_stack([x0 + a[sel], y0 + b[sel]])
+                if face == FRONT
+                else np.column_stack([x0 + b[sel], y0 + a[sel]])
+            )
             ids = self.board.ids[self.board.faces == face]
             corners = self.board.corners[self.board.faces == face][:, :, :2]
             k = min(2, len(ids))
@@ -297,7 +340,7 @@ def render_background(scene: list[Rect], cam: SynthCamera, samples: int = 2) -> 
     K = cam.intrinsics
     T_cam_world = invert_transform(cam.T_world_cam)
     light = T_cam_world[:3, :3] @ LIGHT_DIR_WORLD
-    vs, us = np.mgrid[0:K.height, 0:K.width].astype(float)
+    vs, us = np.mgrid[0 : K.height, 0 : K.width].astype(float)
     color = np.zeros((K.height, K.width, 3))
     for i in range(samples):
         for j in range(samples):
@@ -329,8 +372,13 @@ def _board_bbox(model: _BoardModel, K: CameraIntrinsics, T_cam_board: np.ndarray
     return u0, u1, v0, v1
 
 
-def render_board(model: _BoardModel, cam: SynthCamera, bg: _Background,
-                 T_cam_board: np.ndarray, supersample: int = 8) -> tuple[np.ndarray, np.ndarray]:
+def render_board(
+    model: _BoardModel,
+    cam: SynthCamera,
+    bg: _Background,
+    T_cam_board: np.ndarray,
+    supersample: int = 8,
+) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free colour (HxWx3 float, BGR [0,1]) and depth (HxW metres) with the board.
 
     Exact area coverage: pixels whose four corners hit the same surface with the same
@@ -344,7 +392,6 @@ def render_board(model: _BoardModel, cam: SynthCamera, bg: _Background,
     u0, u1, v0, v1 = box_
     light = T_cam_board[:3, :3].T @ (invert_transform(cam.T_world_cam)[:3, :3] @ LIGHT_DIR_WORLD)
     face_shade = np.array([0.55 + 0.45 * abs(r.normal @ light) for r in model.rects])
-    T_board_cam_dummy = np.eye(4)
 
     def trace(us: np.ndarray, vs: np.ndarray):
         rays = pixel_rays(K.K, us, vs)
@@ -353,18 +400,20 @@ def render_board(model: _BoardModel, cam: SynthCamera, bg: _Background,
         value = np.where(hits.index >= 0, refl * face_shade[np.maximum(hits.index, 0)], np.nan)
         return hits, value
 
-    del T_board_cam_dummy
-    cv_, cu_ = np.mgrid[v0:v1 + 2, u0:u1 + 2].astype(float) - 0.5
+    cv_, cu_ = np.mgrid[v0 : v1 + 2, u0 : u1 + 2].astype(float) - 0.5
     hits_c, val_c = trace(cu_.ravel(), cv_.ravel())
     key = np.where(hits_c.index >= 0, hits_c.index * 10 + (val_c * 8).round(), -1)
     key = key.reshape(cv_.shape)
     val_c = val_c.reshape(cv_.shape)
-    same = ((key[:-1, :-1] == key[1:, :-1]) & (key[:-1, :-1] == key[:-1, 1:])
-            & (key[:-1, :-1] == key[1:, 1:]))
-    region_bg = color[v0:v1 + 1, u0:u1 + 1]
-    region_depth_bg = bg.depth[v0:v1 + 1, u0:u1 + 1]
+    same = (
+        (key[:-1, :-1] == key[1:, :-1])
+        & (key[:-1, :-1] == key[:-1, 1:])
+        & (key[:-1, :-1] == key[1:, 1:])
+    )
+    region_bg = color[v0 : v1 + 1, u0 : u1 + 1]
+    region_depth_bg = bg.depth[v0 : v1 + 1, u0 : u1 + 1]
     # pixel-centre depth decides occlusion between the board and the static scene
-    cvv, cuu = np.mgrid[v0:v1 + 1, u0:u1 + 1].astype(float)
+    cvv, cuu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1].astype(float)
     hits_p, _ = trace(cuu.ravel(), cvv.ravel())
     z_board = hits_p.depth.reshape(cvv.shape)
     board_front = z_board < region_depth_bg
@@ -385,8 +434,8 @@ def render_board(model: _BoardModel, cam: SynthCamera, bg: _Background,
         bgc = np.repeat(region_bg[mv, mu], s * s, axis=0)
         samp = np.where(vis[:, None], val_s[:, None], bgc)
         out[mv, mu] = samp.reshape(-1, s * s, 3).mean(axis=1)
-    color[v0:v1 + 1, u0:u1 + 1] = out
-    depth[v0:v1 + 1, u0:u1 + 1] = np.where(board_front, z_board, region_depth_bg)
+    color[v0 : v1 + 1, u0 : u1 + 1] = out
+    depth[v0 : v1 + 1, u0 : u1 + 1] = np.where(board_front, z_board, region_depth_bg)
     return color, depth
 
 
@@ -400,8 +449,9 @@ def finish_color(color: np.ndarray, params: SynthParams, rng: np.random.Generato
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
-def finish_depth(depth_m: np.ndarray, cam: SynthCamera, params: SynthParams,
-                 rng: np.random.Generator) -> np.ndarray:
+def finish_depth(
+    depth_m: np.ndarray, cam: SynthCamera, params: SynthParams, rng: np.random.Generator
+) -> np.ndarray:
     """D435 depth: noise sigma_z = z^2 s / (f B), scale bias, range limits, dropout, counts."""
     K = cam.intrinsics
     z = np.where(np.isfinite(depth_m), depth_m, 0.0)
@@ -433,12 +483,19 @@ def _render_frame(job: tuple[int, np.ndarray]) -> None:
         if params.drop_rate > 0 and rng.random() < params.drop_rate:
             continue
         T_cam_board = invert_transform(cam.T_world_cam) @ T_world_board
-        color, depth = render_board(_WORKER["model"], cam, _WORKER["backgrounds"][ci],
-                                    T_cam_board, params.supersample)
-        cv2.imwrite(str(out / cam.name / "color" / f"{frame}.png"),
-                    finish_color(color, params, rng), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-        cv2.imwrite(str(out / cam.name / "depth" / f"{frame}.png"),
-                    finish_depth(depth, cam, params, rng), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        color, depth = render_board(
+            _WORKER["model"], cam, _WORKER["backgrounds"][ci], T_cam_board, params.supersample
+        )
+        cv2.imwrite(
+            str(out / cam.name / "color" / f"{frame}.png"),
+            finish_color(color, params, rng),
+            [cv2.IMWRITE_PNG_COMPRESSION, 1],
+        )
+        cv2.imwrite(
+            str(out / cam.name / "depth" / f"{frame}.png"),
+            finish_depth(depth, cam, params, rng),
+            [cv2.IMWRITE_PNG_COMPRESSION, 1],
+        )
 
 
 @dataclass(frozen=True)
@@ -448,9 +505,16 @@ class SynthDataset:
     board_poses: list[np.ndarray]
 
 
-def synthesize(out: Path, layout: str, n_frames: int, seed: int, board: Board,
-               params: SynthParams = SynthParams(), workers: int | None = None,
-               progress=None) -> SynthDataset:
+def synthesize(
+    out: Path,
+    layout: str,
+    n_frames: int,
+    seed: int,
+    board: Board,
+    params: SynthParams = SynthParams(),
+    workers: int | None = None,
+    progress=None,
+) -> SynthDataset:
     """Render a rig into the folder form of docs/formats.md, with ``ground_truth.yaml``.
 
     Written into a temporary sibling folder and renamed into place at the end, so an
@@ -459,8 +523,9 @@ def synthesize(out: Path, layout: str, n_frames: int, seed: int, board: Board,
     if n_frames < 1:
         raise ConfigError("--frames must be at least 1")
     if out.exists() and any(out.iterdir()):
-        raise ConfigError(f"{out}: output folder exists and is not empty; choose a new folder "
-                          "or delete it")
+        raise ConfigError(
+            f"{out}: output folder exists and is not empty; choose a new folder or delete it"
+        )
     rig = make_rig(layout, seed, params)
     rng = np.random.default_rng(seed + 1)
     poses = sample_board_poses(rig, board, n_frames, rng)
@@ -471,11 +536,23 @@ def synthesize(out: Path, layout: str, n_frames: int, seed: int, board: Board,
             (tmp / cam.name / "color").mkdir(parents=True)
             (tmp / cam.name / "depth").mkdir(parents=True)
         save_rig(Rig({c.name: c.intrinsics for c in rig.cameras}, rig.reference), tmp / "rig.yaml")
-        backgrounds = [render_background(rig.scene, cam) for cam in rig.cameras]
-        state = {"rig": rig, "params": params, "out": tmp, "seed": seed, "board": board,
-                 "backgrounds": backgrounds}
-        jobs = list(enumerate(poses))
         workers = workers or os.cpu_count() or 1
+        if workers <= 1:
+            backgrounds = [render_background(rig.scene, cam) for cam in rig.cameras]
+        else:
+            with ProcessPoolExecutor(workers) as ex:
+                backgrounds = list(
+                    ex.map(render_background, [rig.scene] * len(rig.cameras), rig.cameras)
+                )
+        state = {
+            "rig": rig,
+            "params": params,
+            "out": tmp,
+            "seed": seed,
+            "board": board,
+            "backgrounds": backgrounds,
+        }
+        jobs = list(enumerate(poses))
         if workers <= 1:
             _init_worker(state)
             for job in jobs:
@@ -489,17 +566,21 @@ def synthesize(out: Path, layout: str, n_frames: int, seed: int, board: Board,
                         progress()
         T_world_ref = rig.cameras[0].T_world_cam
         T_ref_world = invert_transform(T_world_ref)
-        write_yaml(tmp / "ground_truth.yaml", {
-            "reference": rig.reference,
-            "T_ref_cam": {c.name: rig.T_ref_cam(c) for c in rig.cameras},
-            "T_ref_board": {f"{i:06d}": T_ref_world @ T for i, T in enumerate(poses)},
-            "depth_scale_bias": {c.name: c.depth_scale_bias for c in rig.cameras},
-            "layout": layout,
-            "seed": seed,
-            "board": board.to_dict(),
-            "params": {k: (list(v) if isinstance(v, tuple) else v)
-                       for k, v in params.__dict__.items()},
-        })
+        write_yaml(
+            tmp / "ground_truth.yaml",
+            {
+                "reference": rig.reference,
+                "T_ref_cam": {c.name: rig.T_ref_cam(c) for c in rig.cameras},
+                "T_ref_board": {f"{i:06d}": T_ref_world @ T for i, T in enumerate(poses)},
+                "depth_scale_bias": {c.name: c.depth_scale_bias for c in rig.cameras},
+                "layout": layout,
+                "seed": seed,
+                "board": board.to_dict(),
+                "params": {
+                    k: (list(v) if isinstance(v, tuple) else v) for k, v in params.__dict__.items()
+                },
+            },
+        )
         if out.exists():
             out.rmdir()
         tmp.rename(out)
@@ -507,3 +588,28 @@ def synthesize(out: Path, layout: str, n_frames: int, seed: int, board: Board,
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return SynthDataset(out, rig, poses)
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """``ground_truth.yaml`` of a synthetic set (never read by the calibration itself)."""
+
+    reference: str
+    T_ref_cam: dict[str, np.ndarray]
+    T_ref_board: dict[str, np.ndarray]
+    depth_scale_bias: dict[str, float]
+
+
+def load_ground_truth(path: Path) -> GroundTruth:
+    from .yamlio import matrix4, read_yaml_mapping
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "ground_truth.yaml"
+    data = read_yaml_mapping(path, "ground truth")
+    return GroundTruth(
+        str(data["reference"]),
+        {k: matrix4(v, f"{path}: T_ref_cam.{k}") for k, v in data["T_ref_cam"].items()},
+        {str(k): matrix4(v, f"{path}: T_ref_board.{k}") for k, v in data["T_ref_board"].items()},
+        {k: float(v) for k, v in data.get("depth_scale_bias", {}).items()},
+    )
