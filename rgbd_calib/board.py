@@ -33,7 +33,8 @@ def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
     """Predefined OpenCV dictionary by name, e.g. ``DICT_4X4_100``."""
     code = getattr(cv2.aruco, str(name), None)
     if not str(name).startswith("DICT_") or not isinstance(code, int):
-        raise BoardError(f"unknown ArUco dictionary {name!r}; use an OpenCV name like DICT_4X4_100")
+        raise BoardError(
+            f"unknown ArUco dictionary {name!r}; use an OpenCV name like DICT_4X4_100")
     return cv2.aruco.getPredefinedDictionary(code)
 
 
@@ -283,7 +284,12 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
     ``fix_winding`` (or ``corner_order: front`` in the file) reorders mirrored markers instead
     of rejecting them."""
     path = Path(path)
-    data = read_yaml_mapping(path, "board file")
+    try:
+        data = read_yaml_mapping(path, "board file")
+    except BoardError:
+        raise
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
     where = str(path)
     try:
         check_keys(data, _TOP_KEYS, where, required=("dictionary", "thickness"))
@@ -294,7 +300,10 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
             f"{where}: give exactly one of 'grid' (grid form) or 'markers' (explicit form)"
         )
     dictionary = str(data["dictionary"])
-    d = aruco_dictionary(dictionary)
+    try:
+        d = aruco_dictionary(dictionary)
+    except BoardError as exc:
+        raise BoardError(f"{where}: {exc}") from None
     thickness = _number(data["thickness"], f"{where}: thickness", allow_zero=True)
     name = str(data.get("name", path.stem))
     panel = data.get("panel")
@@ -389,3 +398,9 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
 
 def save_board(board: Board, path: Path) -> None:
     write_yaml(path, board.to_dict())
+
+
+def thesis_board() -> Board:
+    """The seed thesis's board (configs/board_thesis.yaml), built in code for defaults."""
+    return board_from_grid("DICT_4X4_100", 4, 7, 0.04, 0.02, 0.0066, 0, 28,
+                           panel=(-0.01, 0.41, -0.0385, 0.2585), name="thesis")

@@ -26,3 +26,14 @@ def assert_transforms_close(T_a, T_b, atol_mm: float, atol_deg: float) -> None:
     assert err_mm <= atol_mm and err_deg <= atol_deg, (
         f"transforms differ by {err_mm:.4f} mm / {err_deg:.5f} deg "
         f"(allowed {atol_mm} mm / {atol_deg} deg)")
+
+
+@pytest.fixture(scope="session")
+def small_race(tmp_path_factory):
+    """A small synthetic race rig (8 cameras, 848x480, 3 frames, some frames dropped)."""
+    from rgbd_calib.board import thesis_board
+    from rgbd_calib.synth import SynthParams, synthesize
+
+    out = tmp_path_factory.mktemp("synth") / "race"
+    params = SynthParams(depth_bias=0.005, drop_rate=0.1)
+    return synthesize(out, "race", 3, 7, thesis_board(), params, workers=2)
