@@ -1,0 +1,1010 @@
+"""Pose-graph optimisation of camera extrinsics from board poses (GTSAM; thesis section 3.3).
+
+The graph of the thesis (Figure 3.3): one ``Pose3`` node per camera (``T_ref_cam``) and one per
+board view (``T_ref_board``); every detection of view ``v`` by camera ``c`` is a
+``BetweenFactorPose3(c, v)`` whose measurement is the PnP board pose ``T_cam_board``. GTSAM's
+error of that factor is ``Logmap(T_cam_board^-1 @ T_ref_cam^-1 @ T_ref_board)``: a 6-vector
+``[rotation rad, translation m]`` in the body frame of the board pose, whitened by the edge
+covariance (same order and frame).
+
+The solve, step by step (:func:`solve_pose_graph`):
+
+1. drop stale edges (a camera that missed the board re-reported its previous pose),
+2. initialise from the edges alone (:func:`initialise_from_edges`, a maximum spanning tree of
+   the camera co-visibility graph with robust relative poses: no hand-measured guesses),
+3. robust Levenberg-Marquardt with an M-estimator (or GNC), re-estimating the default
+   isotropic edge sigmas from the residuals when the edges carry no covariance,
+4. reject edges whose whitened residual exceeds the kernel threshold and re-solve until the
+   inlier set is stable,
+5. marginal covariances on a *Gaussian* graph of the final inliers, linearised at the
+   solution, so that robust down-weighting does not inflate (or shrink) the claimed sigmas.
+
+This is the only module of the package that imports gtsam; it does no file I/O.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import gtsam
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.stats import chi2
+
+from .errors import CalibrationError
+from .geometry import invert_transform, orthonormalize, rotation_angle_deg
+from .results import CameraExtrinsics, Extrinsics
+
+# sqrt(chi2_6.ppf(0.99)): 99% of inlier 6-dof whitened residual norms lie below this.
+DEFAULT_KERNEL_THRESHOLD = 4.1
+# Median of a chi distribution with 3 dof: median |x| of an isotropic 3D Gaussian / sigma.
+_CHI3_MEDIAN = float(np.sqrt(chi2.ppf(0.5, 3)))
+REASON_NO_SHARED_VIEW = "shares no board view with any connected camera"
+
+
+class PoseGraphConfig(BaseModel):
+    """Settings of the pose-graph stage. Thresholds are in whitened units: the norm of the
+    6-dof edge residual divided by its sigma (Mahalanobis distance)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kernel: Literal["huber", "cauchy", "tukey", "gm", "none"] = Field(
+        "cauchy",
+        description="Robust M-estimator on each edge ('gm' = Geman-McClure, "
+        "'none' = plain least squares).",
+    )
+    kernel_threshold: float = Field(
+        DEFAULT_KERNEL_THRESHOLD,
+        gt=0.0,
+        description="Kernel parameter k on the whitened 6-dof residual norm; also the outlier "
+        "flag threshold. 4.1 = sqrt(chi2_6 99%).",
+    )
+    optimizer: Literal["lm", "gnc"] = Field(
+        "lm",
+        description="First robust solve: Levenberg-Marquardt with the kernel from a "
+        "spanning-tree initialisation, or graduated non-convexity (GTSAM GncLMOptimizer).",
+    )
+    gnc_loss: Literal["gm", "tls"] = Field(
+        "gm", description="GNC surrogate loss (Geman-McClure or truncated least squares)."
+    )
+    reject_outliers: bool = Field(
+        True,
+        description="After the robust solve, drop edges above kernel_threshold and "
+        "re-solve until the inlier set is stable.",
+    )
+    max_reject_rounds: int = Field(4, ge=1, description="Cap on reject / re-solve rounds.")
+    exclude_stale: bool = Field(
+        True, description="Leave out edges that repeat the same camera's previous pose exactly."
+    )
+    default_sigma_rotation_deg: float = Field(
+        0.2, gt=0.0, description="1-sigma per rotation axis of an edge without covariance."
+    )
+    default_sigma_translation_mm: float = Field(
+        2.0, gt=0.0, description="1-sigma per translation axis of an edge without covariance."
+    )
+    estimate_default_sigmas: bool = Field(
+        True,
+        description="Re-estimate the two default sigmas from the median residuals of "
+        "the edges without covariance (robust variance-component estimate).",
+    )
+    prior_sigma: float = Field(
+        1e-6,
+        gt=0.0,
+        description="Sigma (rad and m) of the priors holding the reference and fixed cameras.",
+    )
+    max_iterations: int = Field(100, ge=1, description="Levenberg-Marquardt iteration cap.")
+    relative_error_tol: float = Field(1e-10, gt=0.0, description="LM relative error tolerance.")
+
+
+@dataclass(frozen=True)
+class PoseEdge:
+    """One detection: board view ``view`` seen by ``camera`` as ``T_cam_board`` (4x4, metres).
+
+    ``covariance`` is 6x6 in GTSAM order ``[rot rad, trans m]``, in the body frame of the board
+    pose (a right perturbation ``T_cam_board @ Exp(xi)``); ``None`` = the config's default."""
+
+    camera: str
+    view: str
+    T_cam_board: np.ndarray
+    covariance: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class EdgeResidual:
+    """Residual of edge ``index`` at a solution. ``used``: in the final optimisation;
+    ``whitened_norm``: Mahalanobis norm of the 6-dof error; ``weight``: kernel weight at that
+    norm; ``outlier``: ``whitened_norm > kernel_threshold``; ``translation_mm`` /
+    ``rotation_deg``: size of ``T_cam_board_measured^-1 @ T_cam_board_predicted``."""
+
+    index: int
+    camera: str
+    view: str
+    used: bool
+    stale: bool
+    outlier: bool
+    whitened_norm: float
+    weight: float
+    translation_mm: float
+    rotation_deg: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+@dataclass(frozen=True)
+class PoseGraphResult:
+    """Solved pose graph: cameras with marginal uncertainty, board views, per-edge residuals."""
+
+    reference: str
+    cameras: dict[str, CameraExtrinsics]
+    T_ref_board: dict[str, np.ndarray]
+    residuals: tuple[EdgeResidual, ...]
+    unconnected: dict[str, str] = field(default_factory=dict)
+    sigma_rotation_deg_default: float = float("nan")  # default edge sigmas finally used
+    sigma_translation_mm_default: float = float("nan")
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def T_ref_cam(self) -> dict[str, np.ndarray]:
+        return {name: cam.T_ref_cam for name, cam in self.cameras.items()}
+
+    @property
+    def stale_edges(self) -> tuple[int, ...]:
+        return tuple(r.index for r in self.residuals if r.stale)
+
+    @property
+    def outlier_edges(self) -> tuple[int, ...]:
+        """Non-stale edges above the kernel threshold at the solution."""
+        return tuple(r.index for r in self.residuals if r.outlier and not r.stale)
+
+    @property
+    def used_edges(self) -> tuple[int, ...]:
+        return tuple(r.index for r in self.residuals if r.used)
+
+    def to_extrinsics(self) -> Extrinsics:
+        return Extrinsics(self.reference, dict(self.cameras), dict(self.unconnected))
+
+
+# ---------------------------------------------------------------------------------------------
+# Stale edges and initialisation (numpy only)
+
+
+def flag_stale_edges(edges: list[PoseEdge]) -> set[int]:
+    """Indices of edges whose ``T_cam_board`` equals the same camera's previous edge exactly.
+
+    The thesis recorder re-used the last detected pose when a camera missed the board, so such
+    a row is not a measurement of its view. Order matters: "previous" is list (file) order."""
+    stale: set[int] = set()
+    previous: dict[str, np.ndarray] = {}
+    for i, edge in enumerate(edges):
+        T = np.asarray(edge.T_cam_board, dtype=float)
+        last = previous.get(edge.camera)
+        if last is not None and np.array_equal(T, last):
+            stale.add(i)
+        previous[edge.camera] = T
+    return stale
+
+
+def _pose_distances(T: np.ndarray, length_m: float) -> np.ndarray:
+    """Pairwise distance of poses ``(N,4,4)``: ``|t_i - t_j| + length_m * angle(R_i^T R_j)``,
+    i.e. how far a point ``length_m`` in front of the frame moves (metres)."""
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    cos = (np.einsum("iab,jab->ij", R, R) - 1.0) / 2.0
+    angle = np.arccos(np.clip(cos, -1.0, 1.0))
+    return np.linalg.norm(t[:, None] - t[None], axis=-1) + length_m * angle
+
+
+def robust_mean_pose(T: np.ndarray, length_m: float = 1.0) -> np.ndarray:
+    """Robust mean of pose estimates ``(N,4,4)`` of the same ``T_a_b``.
+
+    The medoid (the estimate with the smallest median :func:`_pose_distances` to the others)
+    is robust to < 50% gross outliers; the result is the chordal mean (SVD-projected sum of
+    rotations, mean translation) of the estimates within 3x the median distance to the medoid,
+    which recovers the averaging efficiency of a mean on the inliers."""
+    T = np.asarray(T, dtype=float).reshape(-1, 4, 4)
+    if len(T) <= 2:
+        return T[0].copy()
+    d = _pose_distances(T, length_m)
+    medoid = int(np.argmin(np.median(d, axis=1)))
+    to_medoid = d[medoid]
+    keep = to_medoid <= 3.0 * np.median(to_medoid) + 1e-12
+    out = np.eye(4)
+    out[:3, :3] = orthonormalize(T[keep, :3, :3].sum(axis=0))
+    out[:3, 3] = T[keep, :3, 3].mean(axis=0)
+    return out
+
+
+def _observations(edges: list[PoseEdge], skip: set[int]) -> dict[str, dict[str, np.ndarray]]:
+    """view -> camera -> T_cam_board (first edge of a camera/view pair wins)."""
+    obs: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
+    for i, e in enumerate(edges):
+        if i not in skip:
+            obs[e.view].setdefault(e.camera, np.asarray(e.T_cam_board, dtype=float))
+    return obs
+
+
+def _working_distance_m(edges: list[PoseEdge]) -> float:
+    if not edges:
+        return 1.0
+    return max(float(np.median([np.linalg.norm(e.T_cam_board[:3, 3]) for e in edges])), 0.1)
+
+
+def initialise_from_edges(
+    edges: list[PoseEdge], reference: str
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, str]]:
+    """Initial ``T_ref_cam`` and ``T_ref_board`` (4x4, metres) from the edges alone.
+
+    1. Co-visibility graph of the cameras: weight of (a, b) = number of board views both see
+       (stale edges ignored).
+    2. Maximum spanning tree grown from ``reference`` (Prim; ties broken by camera order).
+    3. Each tree edge gets ``T_camA_camB = robust_mean_pose({T_camA_board_v @ T_board_v_camB})``
+       over the shared views (medoid + trimmed chordal mean, see :func:`robust_mean_pose`),
+       and the poses are chained from the reference.
+    4. A board view is initialised with the robust mean of ``T_ref_cam @ T_cam_board`` over its
+       connected cameras when three or more see it, else from the one closest to the
+       reference in the tree.
+
+    Returns ``(init_T_ref_cam, init_T_ref_board, unconnected)`` where ``unconnected`` maps a
+    camera that cannot be chained to the reference to the reason."""
+    stale = flag_stale_edges(edges)
+    obs = _observations(edges, stale)
+    cameras = list(dict.fromkeys(e.camera for e in edges))
+    if reference not in cameras:
+        raise CalibrationError(
+            f"reference camera {reference!r} has no board observation; pick a camera that saw "
+            "the board"
+        )
+    order = {c: i for i, c in enumerate(cameras)}
+    shared: dict[tuple[str, str], list[str]] = defaultdict(list)
+    for view, seen in obs.items():
+        names = sorted(seen, key=order.__getitem__)
+        for ia, a in enumerate(names):
+            for b in names[ia + 1 :]:
+                shared[(a, b)].append(view)
+                shared[(b, a)].append(view)
+    length_m = _working_distance_m([e for i, e in enumerate(edges) if i not in stale])
+
+    T_ref_cam = {reference: np.eye(4)}
+    depth = {reference: 0}
+    while True:  # Prim: the heaviest edge from the tree to a camera outside it
+        frontier = [
+            (len(shared[(a, b)]), -order[a], -order[b], a, b)
+            for a in T_ref_cam
+            for b in cameras
+            if b not in T_ref_cam and (a, b) in shared
+        ]
+        if not frontier:
+            break
+        *_, a, b = max(frontier)
+        T_a_b = robust_mean_pose(
+            np.stack([obs[v][a] @ invert_transform(obs[v][b]) for v in shared[(a, b)]]), length_m
+        )
+        T_ref_cam[b] = T_ref_cam[a] @ T_a_b
+        depth[b] = depth[a] + 1
+    unconnected = {c: REASON_NO_SHARED_VIEW for c in cameras if c not in T_ref_cam}
+
+    T_ref_board: dict[str, np.ndarray] = {}
+    for view, seen in obs.items():
+        connected = sorted((c for c in seen if c in T_ref_cam), key=lambda c: (depth[c], order[c]))
+        if not connected:
+            continue
+        candidates = np.stack([T_ref_cam[c] @ seen[c] for c in connected])
+        T_ref_board[view] = (
+            robust_mean_pose(candidates, length_m) if len(connected) >= 3 else candidates[0]
+        )
+    return T_ref_cam, T_ref_board, unconnected
+
+
+# ---------------------------------------------------------------------------------------------
+# GTSAM helpers
+
+
+def _pose3(T: np.ndarray) -> gtsam.Pose3:
+    T = np.asarray(T, dtype=float)
+    return gtsam.Pose3(gtsam.Rot3(orthonormalize(T[:3, :3])), gtsam.Point3(*T[:3, 3]))
+
+
+def _kernel(config: PoseGraphConfig):
+    """The GTSAM M-estimator of ``config.kernel`` with parameter ``kernel_threshold``."""
+    if config.kernel == "none":
+        return None
+    m = gtsam.noiseModel.mEstimator
+    factory = {"huber": m.Huber, "cauchy": m.Cauchy, "tukey": m.Tukey, "gm": m.GemanMcClure}
+    return factory[config.kernel].Create(config.kernel_threshold)
+
+
+def _kernel_weight(kernel, r: float) -> float:
+    return 1.0 if kernel is None else float(kernel.weight(r))
+
+
+class _EdgeNoise:
+    """Gaussian noise model per edge: its own covariance, else the current default sigmas."""
+
+    def __init__(self, edges: list[PoseEdge], config: PoseGraphConfig):
+        self.edges = edges
+        self.sigma_rot = float(np.radians(config.default_sigma_rotation_deg))
+        self.sigma_trans = float(config.default_sigma_translation_mm) / 1000.0
+        self._own = {
+            i: gtsam.noiseModel.Gaussian.Covariance(np.asarray(e.covariance, float))
+            for i, e in enumerate(edges)
+            if e.covariance is not None
+        }
+
+    def default(self):
+        return gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([self.sigma_rot] * 3 + [self.sigma_trans] * 3)
+        )
+
+    def models(self, ids: list[int]) -> dict[int, Any]:
+        d = self.default()
+        return {i: self._own.get(i, d) for i in ids}
+
+
+def _lm(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, config: PoseGraphConfig
+) -> tuple[gtsam.Values, int]:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(config.max_iterations)
+    params.setRelativeErrorTol(config.relative_error_tol)
+    params.setAbsoluteErrorTol(1e-14)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = optimizer.optimize()
+    return result, int(optimizer.iterations())
+
+
+class _Graph:
+    """Keys, values and factor construction for one pose-graph problem."""
+
+    def __init__(self, edges, fixed, T_ref_cam, T_ref_board, config):
+        self.edges, self.fixed, self.config = edges, fixed, config
+        self.cam_key = {c: gtsam.symbol("c", i) for i, c in enumerate(T_ref_cam)}
+        self.view_key = {v: gtsam.symbol("v", i) for i, v in enumerate(T_ref_board)}
+        self.values = gtsam.Values()
+        for c, T in T_ref_cam.items():
+            self.values.insert(self.cam_key[c], _pose3(T))
+        for v, T in T_ref_board.items():
+            self.values.insert(self.view_key[v], _pose3(T))
+        self.kernel = _kernel(config)
+
+    def priors(self) -> list[gtsam.NonlinearFactor]:
+        noise = gtsam.noiseModel.Isotropic.Sigma(6, self.config.prior_sigma)
+        return [
+            gtsam.PriorFactorPose3(self.cam_key[c], _pose3(T), noise) for c, T in self.fixed.items()
+        ]
+
+    def factor(self, i: int, noise) -> gtsam.BetweenFactorPose3:
+        e = self.edges[i]
+        return gtsam.BetweenFactorPose3(
+            self.cam_key[e.camera], self.view_key[e.view], _pose3(e.T_cam_board), noise
+        )
+
+    def build(self, ids: list[int], noise: _EdgeNoise, robust: bool) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        for f in self.priors():
+            graph.add(f)
+        for i, model in noise.models(ids).items():
+            if robust and self.kernel is not None:
+                model = gtsam.noiseModel.Robust.Create(self.kernel, model)
+            graph.add(self.factor(i, model))
+        return graph
+
+    def errors(
+        self, ids: list[int], noise: _EdgeNoise, values: gtsam.Values
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Unwhitened ``(N,6)`` errors ``[rot, trans]`` and whitened norms ``(N,)``."""
+        raw, white = np.zeros((len(ids), 6)), np.zeros(len(ids))
+        for row, (i, model) in enumerate(noise.models(ids).items()):
+            f = self.factor(i, model)
+            raw[row] = f.unwhitenedError(values)
+            white[row] = np.linalg.norm(model.whiten(raw[row]))
+        return raw, white
+
+
+def _connected_to(
+    reference: str, edges: list[PoseEdge], ids: list[int], fixed: set[str]
+) -> set[str]:
+    """Cameras linked to the reference (or a fixed camera) through views with >= 2 edges."""
+    by_view: dict[str, set[str]] = defaultdict(set)
+    for i in ids:
+        by_view[edges[i].view].add(edges[i].camera)
+    neighbours: dict[str, set[str]] = defaultdict(set)
+    for cams in by_view.values():
+        for c in cams:
+            neighbours[c] |= cams
+    seen, stack = {reference} | fixed, [reference, *fixed]
+    while stack:
+        for n in neighbours[stack.pop()] - seen:
+            seen.add(n)
+            stack.append(n)
+    return seen
+
+
+def _estimate_sigmas(
+    raw: np.ndarray, dof_fraction: float, floor: tuple[float, float]
+) -> tuple[float, float]:
+    """Robust per-axis sigmas (rad, m) from residuals of edges with default noise: for an
+    isotropic 3D Gaussian ``median |e| = 1.538 sigma``; residuals are shrunk by the fit, so
+    divide by ``sqrt(dof / n_measurements)``."""
+    scale = _CHI3_MEDIAN * np.sqrt(dof_fraction)
+    sigma_rot = float(np.median(np.linalg.norm(raw[:, :3], axis=1))) / scale
+    sigma_trans = float(np.median(np.linalg.norm(raw[:, 3:], axis=1))) / scale
+    return max(sigma_rot, floor[0]), max(sigma_trans, floor[1])
+
+
+def _residual_size(
+    T_ref_cam: np.ndarray, T_ref_board: np.ndarray, T_cam_board: np.ndarray
+) -> tuple[float, float]:
+    """(translation mm, rotation deg) of ``T_cam_board^-1 @ T_ref_cam^-1 @ T_ref_board``."""
+    delta = invert_transform(T_cam_board) @ invert_transform(T_ref_cam) @ T_ref_board
+    return float(np.linalg.norm(delta[:3, 3]) * 1000.0), rotation_angle_deg(delta[:3, :3])
+
+
+def _sigmas_from_covariance(T_ref_cam: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
+    """1-sigma along the worst axis: rotation (deg) from the 3x3 rotation block; translation
+    (mm) from the body-frame 3x3 translation block rotated into the reference frame,
+    ``R_ref_cam @ S_tt @ R_ref_cam^T`` (a rotation keeps the eigenvalues, so this equals the
+    body-frame value; the rotation documents the frame)."""
+    R = T_ref_cam[:3, :3]
+    rot = float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
+    trans = float(np.sqrt(max(np.linalg.eigvalsh(R @ cov[3:, 3:] @ R.T).max(), 0.0)))
+    return float(np.degrees(rot)), trans * 1000.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Solver
+
+
+def solve_pose_graph(
+    edges: list[PoseEdge],
+    reference: str,
+    init_T_ref_cam: dict[str, np.ndarray],
+    init_T_ref_board: dict[str, np.ndarray],
+    config: PoseGraphConfig | None = None,
+    fixed_cameras: dict[str, np.ndarray] | None = None,
+) -> PoseGraphResult:
+    """Optimise ``T_ref_cam`` (per camera) and ``T_ref_board`` (per view), 4x4 in metres.
+
+    Edges whose camera or view has no initial pose, views with fewer than two usable edges
+    and (by default) stale edges are left out and reported with ``used=False``. The reference
+    camera is held at the identity and each ``fixed_cameras[c]`` (``T_ref_cam``) at its pose
+    by priors of ``config.prior_sigma``.
+
+    Uncertainty: GTSAM ``Marginals`` of a graph with the final inlier edges under their plain
+    Gaussian noise models (no robust kernel), linearised at the solution. Robust weights below
+    one would otherwise scale the information of inliers down (Cauchy, GM at every residual)
+    and inflate the sigmas; rejected edges would add no information anyway. With kernel
+    ``'none'`` and no rejection every used edge enters. Per camera the result reports the 6x6
+    body-frame covariance ``[rot rad, trans m]`` and the worst-axis 1-sigmas, see
+    :func:`_sigmas_from_covariance`."""
+    config = config or PoseGraphConfig()
+    edges = list(edges)
+    fixed = {reference: np.eye(4)}
+    for c, T in (fixed_cameras or {}).items():
+        if c == reference and not np.allclose(T, np.eye(4), atol=1e-12):
+            raise CalibrationError(
+                f"the reference camera {reference!r} is the identity by definition; "
+                "do not fix it elsewhere"
+            )
+        fixed[c] = np.asarray(T, dtype=float)
+    init_cams = {**{c: np.asarray(T, float) for c, T in init_T_ref_cam.items()}, **fixed}
+    stale = flag_stale_edges(edges)
+
+    # 1. usable edges: initialised ends, not stale, on views seen twice, linked to the reference
+    ids, cams = _usable_edges(
+        edges,
+        reference,
+        init_cams,
+        init_T_ref_board,
+        stale if config.exclude_stale else set(),
+        set(fixed),
+    )
+    views = list(dict.fromkeys(edges[i].view for i in ids))
+    problem = _Graph(
+        edges,
+        fixed,
+        {c: init_cams[c] for c in cams},
+        {v: np.asarray(init_T_ref_board[v], float) for v in views},
+        config,
+    )
+    noise = _EdgeNoise(edges, config)
+    n_free = len(views) + len([c for c in cams if c not in fixed])
+
+    # 2.-3. robust solve, default sigmas from the residuals, reject and re-solve
+    values, used, stats = _robust_solve(problem, ids, noise, n_free, config)
+
+    # 4. residuals of every edge at the solution
+    _, white = problem.errors(ids, noise, values)
+    white_of = dict(zip(ids, white, strict=True))
+    T_ref_cam = {c: values.atPose3(problem.cam_key[c]).matrix() for c in cams}
+    T_ref_board = {v: values.atPose3(problem.view_key[v]).matrix() for v in views}
+    residuals = _residual_table(
+        edges, T_ref_cam, T_ref_board, white_of, set(used), stale, problem.kernel, config
+    )
+
+    # 5. marginals on the Gaussian graph of the inliers, at the solution
+    if config.kernel == "none" and not config.reject_outliers:
+        inlier_ids = used
+    else:
+        inlier_ids = [i for i in used if white_of[i] <= config.kernel_threshold]
+    covariances = _marginals(problem, inlier_ids, noise, values, cams)
+    dof = 6 * len(inlier_ids) - 6 * n_free
+    chi2_sum = float(np.sum(np.square([white_of[i] for i in inlier_ids])))
+    stats.update(
+        edges_total=len(edges),
+        edges_stale=len(stale),
+        edges_candidate=len(ids),
+        edges_used=len(used),
+        edges_inlier=len(inlier_ids),
+        edges_outlier=sum(1 for i in ids if white_of[i] > config.kernel_threshold),
+        views=len(views),
+        final_error=float(problem.build(used, noise, True).error(values)),
+        variance_factor=chi2_sum / dof if dof > 0 else float("nan"),
+    )
+    unconnected = {
+        c: REASON_NO_SHARED_VIEW for c in dict.fromkeys(e.camera for e in edges) if c not in cams
+    }
+    return PoseGraphResult(
+        reference,
+        _camera_results(reference, T_ref_cam, covariances),
+        T_ref_board,
+        residuals,
+        unconnected,
+        float(np.degrees(noise.sigma_rot)),
+        noise.sigma_trans * 1000.0,
+        stats,
+    )
+
+
+def _usable_edges(
+    edges: list[PoseEdge],
+    reference: str,
+    init_cams: dict[str, np.ndarray],
+    init_boards: dict[str, np.ndarray],
+    excluded: set[int],
+    fixed: set[str],
+) -> tuple[list[int], list[str]]:
+    """Edge indices to optimise and the cameras they connect (the reference and fixed ones
+    included). Repeats until stable: dropping a camera can leave a view with one edge."""
+    ids = [
+        i
+        for i, e in enumerate(edges)
+        if i not in excluded and e.camera in init_cams and e.view in init_boards
+    ]
+    while True:
+        per_view = Counter(edges[i].view for i in ids)
+        linked = _connected_to(reference, edges, ids, fixed)
+        kept = [i for i in ids if per_view[edges[i].view] >= 2 and edges[i].camera in linked]
+        if kept == ids:
+            break
+        ids = kept
+    if not ids:
+        raise CalibrationError(
+            "no board view is seen by two connected cameras; nothing to optimise "
+            "(check the edges and the reference camera)"
+        )
+    return ids, [c for c in init_cams if c in linked]
+
+
+def _robust_solve(
+    problem: _Graph, ids: list[int], noise: _EdgeNoise, n_free: int, config: PoseGraphConfig
+) -> tuple[gtsam.Values, list[int], dict[str, Any]]:
+    """Robust LM (after GNC if asked); default sigmas re-estimated twice from the residuals;
+    then reject / re-solve rounds. Returns the values, the edges of the last solve, stats."""
+    stats: dict[str, Any] = {"iterations": 0, "reject_rounds": 0}
+    values = problem.values
+    if config.optimizer == "gnc":
+        values, stats["gnc_outliers"] = _gnc(problem, ids, noise, values, config)
+    values, stats["iterations"] = _lm(problem.build(ids, noise, robust=True), values, config)
+
+    default_ids = [i for i in ids if problem.edges[i].covariance is None]
+    if config.estimate_default_sigmas and default_ids:
+        dof_fraction = max(1.0 - n_free / len(ids), 0.2)
+        floor = (1e-3 * noise.sigma_rot, 1e-3 * noise.sigma_trans)
+        for _ in range(2):
+            raw, _ = problem.errors(default_ids, noise, values)
+            noise.sigma_rot, noise.sigma_trans = _estimate_sigmas(raw, dof_fraction, floor)
+            values, it = _lm(problem.build(ids, noise, robust=True), values, config)
+            stats["iterations"] += it
+
+    used = ids
+    if config.reject_outliers:
+        for _ in range(config.max_reject_rounds):
+            _, white = problem.errors(ids, noise, values)
+            inliers = [i for i, r in zip(ids, white, strict=True) if r <= config.kernel_threshold]
+            if inliers == used:
+                break
+            used = inliers
+            stats["reject_rounds"] += 1
+            values, it = _lm(problem.build(used, noise, robust=True), values, config)
+            stats["iterations"] += it
+    return values, used, stats
+
+
+def _residual_table(
+    edges: list[PoseEdge],
+    T_ref_cam: dict[str, np.ndarray],
+    T_ref_board: dict[str, np.ndarray],
+    white_of: dict[int, float],
+    used: set[int],
+    stale: set[int],
+    kernel,
+    config: PoseGraphConfig,
+) -> tuple[EdgeResidual, ...]:
+    """One :class:`EdgeResidual` per edge; whitened norm NaN (weight 0) for edges not in the
+    graph, sizes NaN when the camera or the view has no pose."""
+    rows = []
+    for i, e in enumerate(edges):
+        in_graph = i in white_of
+        r = float(white_of[i]) if in_graph else float("nan")
+        if e.camera in T_ref_cam and e.view in T_ref_board:
+            mm, deg = _residual_size(T_ref_cam[e.camera], T_ref_board[e.view], e.T_cam_board)
+        else:
+            mm, deg = float("nan"), float("nan")
+        rows.append(
+            EdgeResidual(
+                index=i,
+                camera=e.camera,
+                view=e.view,
+                used=i in used,
+                stale=i in stale,
+                outlier=in_graph and r > config.kernel_threshold,
+                whitened_norm=r,
+                weight=_kernel_weight(kernel, r) if in_graph else 0.0,
+                translation_mm=mm,
+                rotation_deg=deg,
+            )
+        )
+    return tuple(rows)
+
+
+def _camera_results(
+    reference: str, T_ref_cam: dict[str, np.ndarray], covariances: dict[str, np.ndarray]
+) -> dict[str, CameraExtrinsics]:
+    """CameraExtrinsics with marginal sigmas; the reference is the gauge, exact by definition
+    (zero covariance); a camera without a marginal gets NaN sigmas."""
+    out = {}
+    for c, T in T_ref_cam.items():
+        if c == reference:
+            out[c] = CameraExtrinsics(c, np.eye(4), 0.0, 0.0, np.zeros((6, 6)))
+        elif c in covariances:
+            out[c] = CameraExtrinsics(
+                c, T, *_sigmas_from_covariance(T, covariances[c]), covariances[c]
+            )
+        else:
+            out[c] = CameraExtrinsics(c, T)
+    return out
+
+
+def _gnc(
+    problem: _Graph,
+    ids: list[int],
+    noise: _EdgeNoise,
+    values: gtsam.Values,
+    config: PoseGraphConfig,
+) -> tuple[gtsam.Values, int]:
+    """Graduated non-convexity (Yang et al., RA-L 2020) via GTSAM's ``GncLMOptimizer`` on the
+    Gaussian graph; the priors are declared known inliers. The inlier threshold is the factor
+    error ``0.5 k^2`` (GTSAM's ``barcSq``) so it matches ``kernel_threshold``."""
+    graph = problem.build(ids, noise, robust=False)
+    params = gtsam.GncLMParams()
+    params.setLossType(gtsam.GncLossType.GM if config.gnc_loss == "gm" else gtsam.GncLossType.TLS)
+    params.setKnownInliers(list(range(len(problem.fixed))))
+    optimizer = gtsam.GncLMOptimizer(graph, values, params)
+    optimizer.setInlierCostThresholds(0.5 * config.kernel_threshold**2)
+    result = optimizer.optimize()
+    weights = np.asarray(optimizer.getWeights())[len(problem.fixed) :]
+    return result, int(np.sum(weights < 0.5))
+
+
+def _marginals(
+    problem: _Graph, ids: list[int], noise: _EdgeNoise, values: gtsam.Values, cams: list[str]
+) -> dict[str, np.ndarray]:
+    """6x6 body-frame marginal covariance of each camera (NaN-free or missing)."""
+    graph = problem.build(ids, noise, robust=False)
+    keys = set(graph.keyVector())
+    subset = gtsam.Values()
+    for key in keys:
+        subset.insert(key, values.atPose3(key))
+    try:
+        marginals = gtsam.Marginals(graph, subset)
+    except RuntimeError:  # indeterminant system: a camera lost all its inlier edges
+        return {}
+    return {
+        c: np.asarray(marginals.marginalCovariance(problem.cam_key[c]))
+        for c in cams
+        if problem.cam_key[c] in keys
+    }
+
+
+def calibrate_pose_graph(
+    edges: list[PoseEdge],
+    reference: str,
+    config: PoseGraphConfig | None = None,
+    fixed_cameras: dict[str, np.ndarray] | None = None,
+) -> PoseGraphResult:
+    """Initialise from the edges (:func:`initialise_from_edges`) and solve
+    (:func:`solve_pose_graph`); cameras that cannot be chained to the reference are reported
+    in ``result.unconnected``."""
+    init_cam, init_board, unconnected = initialise_from_edges(edges, reference)
+    result = solve_pose_graph(edges, reference, init_cam, init_board, config, fixed_cameras)
+    merged = {**result.unconnected, **unconnected}
+    return PoseGraphResult(
+        result.reference,
+        result.cameras,
+        result.T_ref_board,
+        result.residuals,
+        merged,
+        result.sigma_rotation_deg_default,
+        result.sigma_translation_mm_default,
+        result.stats,
+    )
+
+
+def refit_board_nodes(
+    edges: list[PoseEdge],
+    T_ref_cam: dict[str, np.ndarray],
+    config: PoseGraphConfig | None = None,
+) -> tuple[EdgeResidual, ...]:
+    """Residuals of every edge after optimising only the board views, cameras held at
+    ``T_ref_cam`` (4x4, metres).
+
+    With the camera fixed, ``BetweenFactorPose3(c, v, T_cam_board)`` equals a
+    ``PriorFactorPose3(v, T_ref_cam @ T_cam_board)`` with the same body-frame noise, so each
+    view is a robust average of its cameras' predictions. Same kernel, threshold and default
+    sigmas as ``config`` (no sigma re-estimation, no rejection); stale edges are left out when
+    ``config.exclude_stale``; views with fewer than two usable edges are not refitted. Used to
+    compare camera sets (ours vs. a published result) on the same footing."""
+    config = config or PoseGraphConfig()
+    edges = list(edges)
+    stale = flag_stale_edges(edges)
+    excluded = stale if config.exclude_stale else set()
+    ids = [i for i, e in enumerate(edges) if i not in excluded and e.camera in T_ref_cam]
+    per_view = Counter(edges[i].view for i in ids)
+    ids = [i for i in ids if per_view[edges[i].view] >= 2]
+    length_m = _working_distance_m([edges[i] for i in ids])
+    noise = _EdgeNoise(edges, config)
+    models = noise.models(ids)
+    kernel = _kernel(config)
+    view_key = {
+        v: gtsam.symbol("v", n) for n, v in enumerate(dict.fromkeys(edges[i].view for i in ids))
+    }
+    predicted = {i: T_ref_cam[edges[i].camera] @ edges[i].T_cam_board for i in ids}
+    by_view: dict[str, list[int]] = defaultdict(list)
+    for i in ids:
+        by_view[edges[i].view].append(i)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    factors = {}
+    for v, members in by_view.items():
+        values.insert(
+            view_key[v],
+            _pose3(robust_mean_pose(np.stack([predicted[i] for i in members]), length_m)),
+        )
+        for i in members:
+            factors[i] = gtsam.PriorFactorPose3(view_key[v], _pose3(predicted[i]), models[i])
+            model = (
+                models[i] if kernel is None else gtsam.noiseModel.Robust.Create(kernel, models[i])
+            )
+            graph.add(gtsam.PriorFactorPose3(view_key[v], _pose3(predicted[i]), model))
+    if ids:
+        values, _ = _lm(graph, values, config)
+    white_of = {
+        i: float(np.linalg.norm(models[i].whiten(f.unwhitenedError(values))))
+        for i, f in factors.items()
+    }
+    T_ref_board = {v: values.atPose3(key).matrix() for v, key in view_key.items()}
+    return _residual_table(
+        edges, T_ref_cam, T_ref_board, white_of, set(factors), stale, kernel, config
+    )
+
+
+def median_edge_residual(
+    residuals: tuple[EdgeResidual, ...] | list[EdgeResidual], used_only: bool = True
+) -> tuple[float, float]:
+    """Median (translation mm, rotation deg) over the used (or all finite) edge residuals."""
+    chosen = [r for r in residuals if (r.used or not used_only) and np.isfinite(r.translation_mm)]
+    if not chosen:
+        return float("nan"), float("nan")
+    return (
+        float(np.median([r.translation_mm for r in chosen])),
+        float(np.median([r.rotation_deg for r in chosen])),
+    )
+
+
+# ---------------------------------------------------------------------------- bundle adjustment
+@dataclass(frozen=True)
+class MarkerMeasurement:
+    """One marker seen in one view: 4 undistorted pinhole pixels and their board points."""
+
+    camera: str
+    view: str
+    marker_id: int
+    corners_px: np.ndarray  # (4,2), distortion already removed (pinhole pixels)
+    object_points: np.ndarray  # (4,3) board frame, metres
+
+
+class BundleConfig(BaseModel):
+    """Joint bundle adjustment on marker corners (camera and board poses, intrinsics fixed)."""
+
+    model_config = ConfigDict(extra="forbid")
+    pixel_sigma: float = Field(0.25, gt=0, description="prior corner noise (px); re-estimated "
+                               "from the residuals after the solve when estimate_sigma is on")
+    estimate_sigma: bool = Field(True, description="scale marginals by the a-posteriori "
+                                 "variance factor (RSS / degrees of freedom)")
+    robust: Literal["huber", "cauchy", "none"] = "huber"
+    robust_k: float = Field(3.0, gt=0, description="kernel threshold on a marker's whitened "
+                            "residual norm")
+    outlier_px: float = Field(3.0, gt=0, description="a marker whose RMS corner residual after "
+                              "the solve exceeds this is reported as an outlier and dropped")
+    max_iterations: int = Field(100, ge=1)
+    relative_error_tol: float = 1e-10
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    T_ref_cam: dict[str, np.ndarray]
+    T_ref_board: dict[str, np.ndarray]
+    covariance: dict[str, np.ndarray]  # camera -> 6x6 body-frame [rot, trans]
+    sigma_rotation_deg: dict[str, float]
+    sigma_translation_mm: dict[str, float]
+    residuals_px: list[tuple[str, str, int, float]]  # (camera, view, marker, rms px)
+    outliers: list[tuple[str, str, int, float]]
+    pixel_sigma_estimated: float
+    iterations: int
+    final_error: float
+
+
+def _projection_factor(noise, key_cam: int, key_board: int, K: np.ndarray,
+                       object_points: np.ndarray, corners_px: np.ndarray):
+    """Reprojection of 4 board corners through two Pose3 keys, T_ref_cam and T_ref_board.
+
+    p_cam = T_ref_cam^-1 T_ref_board p_board; right perturbations T <- T Exp([w, v]) give
+    dp_cam/dxi_board = R_cam_board [-[p_b]x, I] and dp_cam/dxi_cam = [[p_cam]x, -I]
+    (GTSAM's Pose3 convention, rotation first)."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    measured = corners_px.reshape(-1)
+    P_b = object_points
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
+        T_ref_cam = values.atPose3(key_cam).matrix()
+        T_ref_board = values.atPose3(key_board).matrix()
+        R_rc, t_rc = T_ref_cam[:3, :3], T_ref_cam[:3, 3]
+        R_cb = R_rc.T @ T_ref_board[:3, :3]
+        t_cb = R_rc.T @ (T_ref_board[:3, 3] - t_rc)
+        p = P_b @ R_cb.T + t_cb  # (4,3) camera frame
+        z = p[:, 2]
+        u = fx * p[:, 0] / z + cx
+        v = fy * p[:, 1] / z + cy
+        e = np.column_stack([u, v]).reshape(-1) - measured
+        if H is not None:
+            J_proj = np.zeros((4, 2, 3))
+            J_proj[:, 0, 0] = fx / z
+            J_proj[:, 0, 2] = -fx * p[:, 0] / z**2
+            J_proj[:, 1, 1] = fy / z
+            J_proj[:, 1, 2] = -fy * p[:, 1] / z**2
+            J_cam = np.zeros((4, 3, 6))
+            J_board = np.zeros((4, 3, 6))
+            for i in range(4):
+                J_cam[i, :, :3] = _skew(p[i])
+                J_cam[i, :, 3:] = -np.eye(3)
+                J_board[i, :, :3] = -R_cb @ _skew(P_b[i])
+                J_board[i, :, 3:] = R_cb
+            H[0] = np.einsum("nij,njk->nik", J_proj, J_cam).reshape(8, 6)
+            H[1] = np.einsum("nij,njk->nik", J_proj, J_board).reshape(8, 6)
+        return e
+
+    return gtsam.CustomFactor(noise, [key_cam, key_board], error)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray],
+                  reference: str, init_T_ref_cam: dict[str, np.ndarray],
+                  init_T_ref_board: dict[str, np.ndarray], config: BundleConfig = BundleConfig(),
+                  fixed_cameras: dict[str, np.ndarray] | None = None) -> BundleResult:
+    """Joint bundle adjustment of camera poses ``T_ref_cam`` and board poses ``T_ref_board``
+    on the marker corners (one GTSAM CustomFactor per marker and view, robust per marker).
+
+    Intrinsics are held fixed; the reference camera (and any ``fixed_cameras``) carry a tight
+    prior. Marginal covariances come from the converged graph, scaled by the a-posteriori
+    variance factor when ``config.estimate_sigma`` is on."""
+    fixed = dict(fixed_cameras or {})
+    fixed.setdefault(reference, np.eye(4))
+    cams = sorted({m.camera for m in measurements} | set(fixed))
+    views = sorted({m.view for m in measurements})
+    cam_key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
+    view_key = {v: gtsam.symbol("b", i) for i, v in enumerate(views)}
+    kept = [m for m in measurements if m.camera in init_T_ref_cam and m.view in init_T_ref_board]
+
+    def build(active: list[MarkerMeasurement], sigma: float,
+              robust: bool = True) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        base = gtsam.noiseModel.Isotropic.Sigma(8, sigma)
+        if not robust:
+            noise = base
+        elif config.robust == "huber":
+            noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Huber.Create(config.robust_k), base)
+        elif config.robust == "cauchy":
+            noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Cauchy.Create(config.robust_k), base)
+        else:
+            noise = base
+        for m in active:
+            graph.add(_projection_factor(noise, cam_key[m.camera], view_key[m.view], K[m.camera],
+                                         m.object_points, m.corners_px))
+        prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)
+        for c, T in fixed.items():
+            graph.add(gtsam.PriorFactorPose3(cam_key[c], gtsam.Pose3(T), prior))
+        return graph
+
+    values = gtsam.Values()
+    for c in cams:
+        T = fixed.get(c, init_T_ref_cam.get(c))
+        if T is not None:
+            values.insert(cam_key[c], gtsam.Pose3(T))
+    for v in views:
+        if v in init_T_ref_board:
+            values.insert(view_key[v], gtsam.Pose3(init_T_ref_board[v]))
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(config.max_iterations)
+    params.setRelativeErrorTol(config.relative_error_tol)
+    active = kept
+    outliers: list[tuple[str, str, int, float]] = []
+    for _ in range(3):  # solve, drop markers far off, re-solve
+        graph = build(active, config.pixel_sigma)
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        values = optimizer.optimize()
+        rms = _marker_rms(active, values, cam_key, view_key, K)
+        bad = rms > config.outlier_px
+        if not np.any(bad):
+            break
+        outliers += [(m.camera, m.view, m.marker_id, float(r))
+                     for m, r, b in zip(active, rms, bad) if b]
+        active = [m for m, b in zip(active, bad) if not b]
+    rms = _marker_rms(active, values, cam_key, view_key, K)
+    dof = max(8 * len(active) - 6 * (values.size() - len(fixed)), 1)
+    sigma_hat = float(np.sqrt(np.sum(4 * rms**2) / dof))  # 4 corners x (du^2+dv^2)
+    scale = (sigma_hat / config.pixel_sigma) ** 2 if config.estimate_sigma else 1.0
+    # marginals on the plain Gaussian graph at the solution (inlier weights are 1 for Huber
+    # below k; outliers were removed above), so robust down-weighting does not inflate them
+    marg_graph = build(active, config.pixel_sigma, robust=False)
+    marginals = gtsam.Marginals(marg_graph, values)
+    out_cam, cov, s_rot, s_trans = {}, {}, {}, {}
+    for c in cams:
+        if not values.exists(cam_key[c]):
+            continue
+        T = values.atPose3(cam_key[c]).matrix()
+        out_cam[c] = T
+        if c in fixed:
+            C = np.zeros((6, 6))
+        else:
+            C = marginals.marginalCovariance(cam_key[c]) * scale
+        cov[c] = C
+        s_rot[c], s_trans[c] = _sigmas_from_covariance(T, C)
+    boards = {v: values.atPose3(view_key[v]).matrix() for v in views if values.exists(view_key[v])}
+    residuals = [(m.camera, m.view, m.marker_id, float(r)) for m, r in zip(active, rms)]
+    return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, outliers, sigma_hat,
+                        optimizer.iterations(), graph.error(values))
+
+
+def _marker_rms(active, values, cam_key, view_key, K) -> np.ndarray:
+    out = np.empty(len(active))
+    cache: dict = {}
+    for i, m in enumerate(active):
+        key = (m.camera, m.view)
+        if key not in cache:
+            T_ref_cam = values.atPose3(cam_key[m.camera]).matrix()
+            T_ref_board = values.atPose3(view_key[m.view]).matrix()
+            cache[key] = np.linalg.inv(T_ref_cam) @ T_ref_board
+        T = cache[key]
+        p = m.object_points @ T[:3, :3].T + T[:3, 3]
+        Kc = K[m.camera]
+        uv = np.column_stack([Kc[0, 0] * p[:, 0] / p[:, 2] + Kc[0, 2],
+                              Kc[1, 1] * p[:, 1] / p[:, 2] + Kc[1, 2]])
+        out[i] = np.sqrt(np.mean(np.sum((uv - m.corners_px) ** 2, axis=1)))
+    return out

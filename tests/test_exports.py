@@ -1,0 +1,237 @@
+"""Exports: every file parses back to the extrinsics it was written from."""
+
+from __future__ import annotations
+
+import ast
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import assert_transforms_close
+
+from rgbd_calib.exports import (
+    EXPORT_FILES,
+    g2o_information,
+    g2o_text,
+    kalibr_camchain_text,
+    matrix_to_urdf_rpy,
+    ros2_launch_text,
+    urdf_rpy_to_matrix,
+    urdf_text,
+    write_exports,
+)
+from rgbd_calib.geometry import (
+    invert_transform,
+    make_transform,
+    matrix_to_quaternion_xyzw,
+    quaternion_xyzw_to_matrix,
+    rotvec_to_matrix,
+)
+from rgbd_calib.graph import PoseEdge
+from rgbd_calib.posegraph_csv import camera_node_id, read_edges_csv, read_nodes_csv
+from rgbd_calib.results import CameraExtrinsics, Extrinsics
+from rgbd_calib.rig import CameraIntrinsics, Rig
+
+EXACT_MM = 1e-9
+EXACT_DEG = 1e-5  # arccos resolution of transform_error
+
+
+def random_pose(rng: np.random.Generator, scale_m: float = 1.0) -> np.ndarray:
+    return make_transform(rotvec_to_matrix(rng.normal(size=3)), rng.normal(size=3) * scale_m)
+
+
+@pytest.fixture
+def calibration(rng):
+    names = ["cam7", "cam8", "cam9", "cam10"]
+    T = {n: (np.eye(4) if n == "cam7" else random_pose(rng)) for n in names}
+    extrinsics = Extrinsics("cam7", {n: CameraExtrinsics(n, T[n], 0.01, 0.3) for n in names})
+    boards = {str(v): random_pose(rng) for v in range(23, 29)}
+    edges = []
+    for v, T_ref_board in boards.items():
+        for c in names[: 2 + int(v) % 3]:
+            cov = None
+            if c == "cam9":
+                A = rng.normal(size=(6, 6))
+                cov = A @ A.T * 1e-6 + np.eye(6) * 1e-7
+            edges.append(PoseEdge(c, v, invert_transform(T[c]) @ T_ref_board, cov))
+    return extrinsics, edges, boards
+
+
+def read_g2o(text: str):
+    """Tiny g2o reader: vertices {id: T}, edges [(i, j, T, info 6x6)], fixed ids."""
+    vertices, edges, fixed = {}, [], []
+    for line in text.splitlines():
+        tok = line.split()
+        if not tok or tok[0].startswith("#"):
+            continue
+        if tok[0] == "VERTEX_SE3:QUAT":
+            v = [float(x) for x in tok[2:9]]
+            vertices[int(tok[1])] = make_transform(quaternion_xyzw_to_matrix(v[3:]), v[:3])
+        elif tok[0] == "EDGE_SE3:QUAT":
+            v = [float(x) for x in tok[3:10]]
+            info = np.zeros((6, 6))
+            info[np.triu_indices(6)] = [float(x) for x in tok[10:31]]
+            assert len(tok) == 31
+            info = info + np.triu(info, 1).T
+            edges.append(
+                (
+                    int(tok[1]),
+                    int(tok[2]),
+                    make_transform(quaternion_xyzw_to_matrix(v[3:]), v[:3]),
+                    info,
+                )
+            )
+        elif tok[0] == "FIX":
+            fixed.append(int(tok[1]))
+    return vertices, edges, fixed
+
+
+def test_g2o_parses_back_to_the_same_poses(calibration):
+    extrinsics, edges, boards = calibration
+    vertices, g_edges, fixed = read_g2o(g2o_text(extrinsics, edges, boards))
+    cams = ["cam7", "cam8", "cam9", "cam10"]
+    assert fixed == [0]
+    for i, c in enumerate(cams):
+        assert_transforms_close(vertices[i], extrinsics.T_ref_cam(c), EXACT_MM, EXACT_DEG)
+    for i, v in enumerate(boards):
+        assert_transforms_close(vertices[len(cams) + i], boards[v], EXACT_MM, EXACT_DEG)
+    assert len(g_edges) == len(edges)
+    for (i, j, T, info), e in zip(g_edges, edges, strict=True):
+        assert i == cams.index(e.camera)
+        assert_transforms_close(T, e.T_cam_board, EXACT_MM, EXACT_DEG)
+        # the edge is consistent with its vertices: T_cam_board = T_ref_cam^-1 T_ref_board
+        assert_transforms_close(invert_transform(vertices[i]) @ vertices[j], T, 1e-6, 1e-5)
+        if e.covariance is not None:
+            assert np.allclose(info, g2o_information(e.covariance), rtol=1e-9)
+
+
+def test_g2o_information_weighs_errors_like_gtsam(rng):
+    """chi2 of g2o's error [t, q.xyz] with our information == chi2 of GTSAM's [rot, trans]."""
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T * 1e-6 + np.eye(6) * 1e-8
+    info = g2o_information(cov)
+    for _ in range(5):
+        xi = rng.multivariate_normal(np.zeros(6), cov) * 1e-2  # small error
+        delta = make_transform(rotvec_to_matrix(xi[:3]), xi[3:])
+        e_g2o = np.concatenate([delta[:3, 3], matrix_to_quaternion_xyzw(delta[:3, :3])[:3]])
+        chi2_gtsam = xi @ np.linalg.solve(cov, xi)
+        assert e_g2o @ info @ e_g2o == pytest.approx(chi2_gtsam, rel=1e-3)
+
+
+def test_g2o_radians_convention_is_what_gtsam_reads(tmp_path, calibration):
+    gtsam = pytest.importorskip("gtsam")
+    extrinsics, edges, boards = calibration
+    path = tmp_path / "graph.g2o"
+    path.write_text(g2o_text(extrinsics, edges, boards, rotation_information="radians"))
+    graph, values = gtsam.readG2o(str(path), True)
+    assert np.allclose(values.atPose3(1).matrix(), extrinsics.T_ref_cam("cam8"), atol=1e-12)
+    with_cov = [(k, e) for k, e in enumerate(edges) if e.covariance is not None]
+    for k, e in with_cov:
+        R = graph.at(k).noiseModel().R()
+        assert np.allclose(np.linalg.inv(R.T @ R), e.covariance, rtol=1e-6, atol=1e-14)
+
+
+def test_urdf_rpy_round_trips_including_gimbal_lock(rng):
+    rotations = [rotvec_to_matrix(rng.normal(size=3)) for _ in range(50)]
+    rotations += [urdf_rpy_to_matrix([0.3, s * np.pi / 2, -1.1]) for s in (1, -1)]
+    for R in rotations:
+        assert np.allclose(urdf_rpy_to_matrix(matrix_to_urdf_rpy(R)), R, atol=1e-9)
+    # convention check: pure yaw of 90 deg maps x to y (R = Rz(yaw) Ry(pitch) Rx(roll))
+    assert np.allclose(urdf_rpy_to_matrix([0, 0, np.pi / 2]) @ [1, 0, 0], [0, 1, 0])
+    assert np.allclose(matrix_to_urdf_rpy(urdf_rpy_to_matrix([0.1, 0.2, 0.3])), [0.1, 0.2, 0.3])
+
+
+def test_urdf_joints_give_back_the_extrinsics(calibration):
+    extrinsics, _, _ = calibration
+    root = ET.fromstring(urdf_text(extrinsics))
+    joints = root.findall("joint")
+    assert len(joints) == 3
+    for joint in joints:
+        assert joint.find("parent").get("link") == "cam7_color_optical_frame"
+        child = joint.find("child").get("link").removesuffix("_color_optical_frame")
+        origin = joint.find("origin")
+        xyz = [float(v) for v in origin.get("xyz").split()]
+        rpy = [float(v) for v in origin.get("rpy").split()]
+        T = make_transform(urdf_rpy_to_matrix(rpy), xyz)
+        assert_transforms_close(T, extrinsics.T_ref_cam(child), EXACT_MM, EXACT_DEG)
+    links = {link.get("name") for link in root.findall("link")}
+    assert links == {f"{c}_color_optical_frame" for c in extrinsics.cameras}
+
+
+def test_kalibr_chain_composes_back_to_T_ref_cam(calibration):
+    extrinsics, _, _ = calibration
+    rig = Rig(
+        {
+            "cam7": CameraIntrinsics(1280, 720, 633.47, 633.47, 643.2, 358.4),
+            "cam8": CameraIntrinsics(
+                1280, 720, 637.5, 637.6, 643.3, 355.4, (0.1, -0.2, 0.001, 0.002, 0.05)
+            ),
+        },
+        "cam7",
+    )
+    text = kalibr_camchain_text(extrinsics, rig)
+    chain = yaml.safe_load(text)
+    assert list(chain) == ["cam0", "cam1", "cam2", "cam3"]
+    assert "T_cn_cnm1" not in chain["cam0"]
+    T_ref = np.eye(4)
+    for n, name in enumerate(["cam7", "cam8", "cam9", "cam10"][1:], start=1):
+        T_ref = T_ref @ invert_transform(np.asarray(chain[f"cam{n}"]["T_cn_cnm1"]))
+        assert_transforms_close(T_ref, extrinsics.T_ref_cam(name), 1e-9, EXACT_DEG)
+        assert chain[f"cam{n}"]["rostopic"] == f"/{name}/color/image_raw"
+    assert chain["cam1"]["intrinsics"] == [637.5, 637.6, 643.3, 355.4]
+    assert chain["cam1"]["distortion_coeffs"] == [0.1, -0.2, 0.001, 0.002]
+    assert chain["cam1"]["resolution"] == [1280, 720]
+    assert "k1 k2 p1 p2" in text and "cam8" in text.splitlines()[1]  # k3 dropped, said so
+    assert "intrinsics" not in chain["cam2"]  # not in the rig
+
+
+def _launch_nodes(text: str) -> list[dict[str, str]]:
+    """Arguments of each Node(...) call in a launch file, as {'--x': '0.1', ...}."""
+    out = []
+    for call in ast.walk(ast.parse(text)):
+        if isinstance(call, ast.Call) and getattr(call.func, "id", None) == "Node":
+            kw = {k.arg: k.value for k in call.keywords}
+            assert ast.literal_eval(kw["package"]) == "tf2_ros"
+            assert ast.literal_eval(kw["executable"]) == "static_transform_publisher"
+            args = ast.literal_eval(kw["arguments"])
+            out.append(dict(zip(args[::2], args[1::2], strict=True)))
+    return out
+
+
+@pytest.mark.parametrize("parent", [None, "world"])
+def test_ros2_launch_publishes_each_camera(calibration, parent):
+    extrinsics, _, _ = calibration
+    nodes = _launch_nodes(ros2_launch_text(extrinsics, parent_frame=parent))
+    assert len(nodes) == (3 if parent is None else 4)
+    for args in nodes:
+        assert args["--frame-id"] == (parent or "cam7_color_optical_frame")
+        cam = args["--child-frame-id"].removesuffix("_color_optical_frame")
+        q = [float(args[k]) for k in ("--qx", "--qy", "--qz", "--qw")]
+        t = [float(args[k]) for k in ("--x", "--y", "--z")]
+        T = make_transform(quaternion_xyzw_to_matrix(q), t)
+        assert_transforms_close(T, extrinsics.T_ref_cam(cam), EXACT_MM, EXACT_DEG)
+
+
+def test_write_exports_writes_everything_and_csvs_round_trip(tmp_path, calibration):
+    extrinsics, edges, boards = calibration
+    paths = write_exports(extrinsics, tmp_path, edges=edges, board_poses=boards)
+    assert set(paths) == set(EXPORT_FILES)
+    for kind, path in paths.items():
+        assert path == tmp_path / "exports" / EXPORT_FILES[kind] and path.stat().st_size > 0
+    assert not list(Path(tmp_path / "exports").glob(".*tmp"))
+    nodes = read_nodes_csv(paths["nodes_csv"])
+    for cam in extrinsics.cameras:
+        assert_transforms_close(
+            nodes[camera_node_id(cam)], extrinsics.T_ref_cam(cam), EXACT_MM, EXACT_DEG
+        )
+    for view, T in boards.items():
+        assert_transforms_close(nodes[view], T, EXACT_MM, EXACT_DEG)
+    back = read_edges_csv(paths["edges_csv"])
+    assert [(e.camera, e.view) for e in back] == [(e.camera, e.view) for e in edges]
+    for a, b in zip(back, edges, strict=True):
+        assert np.allclose(a.T_cam_board, b.T_cam_board, atol=1e-14)
+    vertices, g_edges, _ = read_g2o(paths["g2o"].read_text())
+    assert len(vertices) == 4 + len(boards) and len(g_edges) == len(edges)
+    compile(paths["ros2_launch"].read_text(), "launch.py", "exec")
