@@ -141,5 +141,217 @@ def synth(
     console.print(f"wrote {len(ds.rig.cameras)} cameras x {frames} frames to {ds.path}")
 
 
+def _load_config(path: Path | None, **overrides):
+    """CalibrationConfig from an optional YAML file (any subset of keys), then CLI overrides."""
+    from pydantic import ValidationError
+
+    from .calibrate import CalibrationConfig
+    from .errors import ConfigError
+    from .yamlio import read_yaml_mapping
+
+    data = read_yaml_mapping(path, "config file") if path else {}
+    for dotted, value in overrides.items():
+        if value is None:
+            continue
+        node = data
+        *parents, leaf = dotted.split(".")
+        for key in parents:
+            node = node.setdefault(key, {})
+        node[leaf] = value
+    try:
+        return CalibrationConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise ConfigError(f"{path or 'options'}: {where}: {err['msg']}") from None
+
+
+@app.command()
+@user_errors
+def calibrate(
+    dataset: Annotated[Path, typer.Argument(help="Dataset folder (rig.yaml + <camera>/color, "
+                                            "depth).")],
+    board_file: Annotated[Path | None, typer.Option("--board", help="Board YAML; default: the "
+                                                    "thesis board.")] = None,
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("calib_out"),
+    config: Annotated[Path | None, typer.Option(help="YAML overriding any calibration "
+                                                "setting.")] = None,
+    method: Annotated[str | None, typer.Option(help="bundle (default) or posegraph (the "
+                                               "thesis method).")] = None,
+    workers: Annotated[int | None, typer.Option(help="Detection processes; default all "
+                                                "cores.")] = None,
+    fix: Annotated[Path | None, typer.Option(help="extrinsics.yaml of an earlier calibration: "
+                                             "hold its cameras fixed (adding cameras).")] = None,
+) -> None:
+    """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports."""
+    from .board import load_board, thesis_board
+    from .calibrate import calibrate as run_calibration
+    from .dataset import FolderDataset
+    from .outputs import write_outputs
+    from .results import load_extrinsics
+
+    cfg = _load_config(config, method=method, workers=workers)
+    b = load_board(board_file) if board_file else thesis_board()
+    ds = FolderDataset(dataset)
+    fixed = None
+    if fix is not None:
+        prior = load_extrinsics(fix)
+        fixed = {n: c.T_ref_cam for n, c in prior.cameras.items() if n in ds.rig.cameras}
+    with progress_bar() as bar:
+        def progress(label: str, total: int, done: int):
+            task = bar.add_task(label, total=total, completed=done)
+            return lambda n=1: bar.advance(task, n)
+
+        result = run_calibration(ds, b, cfg, cache_dir=out / "cache", fixed_cameras=fixed,
+                                 progress=progress)
+    write_outputs(result, ds.rig, out)
+    _print_summary(result, out)
+
+
+def _print_summary(result, out: Path) -> None:
+    from rich.table import Table
+
+    table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
+    for col, unit in (("camera", ""), ("views", ""), ("x", "m"), ("y", "m"), ("z", "m"),
+                      ("sigma rot", "deg"), ("sigma trans", "mm")):
+        table.add_column(f"{col} [{unit}]" if unit else col, justify="right")
+    views = {}
+    for o in result.observations:
+        views[o.camera] = views.get(o.camera, 0) + 1
+    for name, cam in result.extrinsics.cameras.items():
+        t = cam.T_ref_cam[:3, 3]
+        table.add_row(name, str(views.get(name, 0)), f"{t[0]:.4f}", f"{t[1]:.4f}",
+                      f"{t[2]:.4f}", f"{cam.sigma_rotation_deg:.4f}",
+                      f"{cam.sigma_translation_mm:.3f}")
+    Console().print(table)
+    for name, why in result.extrinsics.unconnected.items():
+        console.print(f"[yellow]not calibrated[/]: {name}: {why}")
+    console.print(f"results in {out}/ (extrinsics.yaml, report.json, exports/)")
+
+
+@app.command()
+@user_errors
+def posegraph(
+    nodes: Annotated[Path, typer.Argument(help="Thesis Nodes.csv (initial guesses).")],
+    edges: Annotated[Path, typer.Argument(help="Thesis Edges.csv (T_cam_board per row).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("posegraph_out"),
+    kernel: Annotated[str, typer.Option(help="cauchy, huber, tukey, gm or none.")] = "cauchy",
+    optimizer: Annotated[str, typer.Option(help="lm or gnc.")] = "lm",
+) -> None:
+    """Robustly optimise a thesis-format pose graph (Nodes.csv / Edges.csv)."""
+    from pydantic import ValidationError
+
+    from .errors import ConfigError
+    from .graph import PoseGraphConfig
+    from .posegraph_pipeline import run_posegraph, write_posegraph_outputs
+
+    try:
+        cfg = PoseGraphConfig(kernel=kernel, optimizer=optimizer)
+    except ValidationError as exc:
+        raise ConfigError(f"options: {exc.errors()[0]['msg']}") from None
+    run = run_posegraph(nodes, edges, cfg)
+    write_posegraph_outputs(run, out)
+    console.print(f"edges: {len(run.edges)}, stale: {len(run.stale_edges)}, "
+                  f"outliers: {len(run.outlier_edges)}")
+    for name, cam in run.extrinsics.cameras.items():
+        t = cam.T_ref_cam[:3, 3]
+        console.print(f"{name}: t = [{t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}] m, sigma "
+                      f"{cam.sigma_rotation_deg:.3f} deg / {cam.sigma_translation_mm:.2f} mm")
+    console.print(f"results in {out}/ (extrinsics.yaml, posegraph_report.json, exports/)")
+
+
+@app.command()
+@user_errors
+def demo(
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("demo_out"),
+    layout: Annotated[str, typer.Option(help="thesis-line, race or ring.")] = "race",
+    frames: Annotated[int, typer.Option(help="Frame sets to render.")] = 16,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+) -> None:
+    """Render a small synthetic rig, calibrate it and compare with its ground truth."""
+    import shutil
+
+    from .board import thesis_board
+    from .calibrate import calibrate as run_calibration
+    from .dataset import FolderDataset
+    from .geometry import transform_error
+    from .outputs import write_outputs
+    from .synth import SynthParams, load_ground_truth, synthesize
+
+    dataset = out / "dataset"
+    if dataset.exists():
+        shutil.rmtree(dataset)
+    b = thesis_board()
+    with progress_bar() as bar:
+        task = bar.add_task("rendering frame sets", total=frames)
+        synthesize(dataset, layout, frames, seed, b, SynthParams(depth_bias=0.004),
+                   progress=lambda: bar.advance(task))
+    ds = FolderDataset(dataset)
+    with progress_bar() as bar:
+        def progress(label: str, total: int, done: int):
+            task = bar.add_task(label, total=total, completed=done)
+            return lambda n=1: bar.advance(task, n)
+
+        result = run_calibration(ds, b, cache_dir=out / "calibration" / "cache",
+                                 progress=progress)
+    write_outputs(result, ds.rig, out / "calibration")
+    _print_summary(result, out / "calibration")
+    gt = load_ground_truth(dataset)
+    from rich.table import Table
+
+    table = Table(title="error against the synthetic ground truth")
+    table.add_column("camera")
+    table.add_column("rotation [deg]", justify="right")
+    table.add_column("translation [mm]", justify="right")
+    for name, cam in result.extrinsics.cameras.items():
+        deg, mm = transform_error(cam.T_ref_cam, gt.T_ref_cam[name])
+        table.add_row(name, f"{deg:.4f}", f"{mm:.3f}")
+    Console().print(table)
+    console.print(f"dataset: {dataset}/  calibration: {out / 'calibration'}/")
+
+
+@app.command()
+@user_errors
+def convert(
+    sources: Annotated[list[Path], typer.Argument(help="RealSense .bag/.db3 files (one per "
+                                                  "camera) or ROS 1/ROS 2 bags.")],
+    out: Annotated[Path, typer.Option("--out", help="Dataset folder to write.")],
+    names: Annotated[str | None, typer.Option(help="Comma-separated camera names, in source "
+                                              "order (default: serial / ROS namespace).")] = None,
+    sync_tolerance_ms: Annotated[float | None, typer.Option(
+        help="Largest timestamp gap between cameras of one frame set (ms); default half a "
+        "frame period.")] = None,
+) -> None:
+    """Convert RealSense SDK recordings or ROS bags into the dataset folder form."""
+    from .convert import cli_convert
+
+    cli_convert(sources, out, names.split(",") if names else None, sync_tolerance_ms)
+
+
+@app.command()
+@user_errors
+def record(
+    out: Annotated[Path, typer.Option("--out", help="Dataset folder to write.")],
+    sets: Annotated[int | None, typer.Option(help="Stop after this many frame sets (default: "
+                                             "until Ctrl-C).")] = None,
+    resolution: Annotated[str, typer.Option(help="WIDTHxHEIGHT of colour and depth.")] =
+    "1280x720",
+    fps: Annotated[int, typer.Option(help="Frame rate.")] = 30,
+    hardware_sync: Annotated[bool, typer.Option(help="First camera master, others slaves "
+                                                "(needs sync cables).")] = False,
+    board_file: Annotated[Path | None, typer.Option("--board", help="Board YAML for the live "
+                                                    "marker count.")] = None,
+    names: Annotated[str | None, typer.Option(help="Comma-separated camera names in serial "
+                                              "order.")] = None,
+) -> None:
+    """Record colour + aligned depth from connected D435i cameras (Ctrl-C stops)."""
+    from .board import load_board, thesis_board
+    from .record import cli_record
+
+    w, h = _parse_resolution(resolution)
+    b = load_board(board_file) if board_file else thesis_board()
+    cli_record(out, sets, (w, h, fps), hardware_sync, b, names.split(",") if names else None)
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

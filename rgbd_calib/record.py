@@ -1,0 +1,416 @@
+"""Live capture of a calibration set from connected RealSense D435i cameras.
+
+Each set is one colour + depth (aligned to colour) frame per camera, written in the folder
+form of docs/formats.md as it is captured. ``rig.yaml`` is written first, from the devices'
+factory intrinsics. A set's files are written under temporary names and renamed together,
+with Ctrl-C held back during the renames, so an interrupt never leaves half a set.
+
+The device boundary is :class:`DeviceSource` (``serials()`` and ``open()``); the real one
+wraps ``rs.context``/``rs.pipeline``. Tests pass a fake source there.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from .errors import ConfigError, DatasetError
+from .rig import CAMERA_NAME, CameraIntrinsics, Rig, save_rig
+
+DEFAULT_MODE = (1280, 720, 30)  # width, height, fps: a D435i depth and colour mode
+HW_SYNC_MASTER, HW_SYNC_SLAVE = 1, 2  # rs.option.inter_cam_sync_mode values (D400)
+MARKER_IMAGE_WIDTH_PX = 640  # live marker counts run on images downscaled to this width
+MAX_RESYNC_WAITS = 4  # extra waits per set to bring free-running cameras together
+
+
+# --------------------------------------------------------------------------- device boundary
+@dataclass(frozen=True)
+class CapturedFrame:
+    """One camera's frame: colour BGR ``(H,W,3)`` uint8, depth counts ``(H,W)`` uint16
+    aligned to colour (or None), device timestamp in milliseconds."""
+
+    color: np.ndarray
+    depth: np.ndarray | None
+    timestamp_ms: float
+
+
+class CameraStream(Protocol):
+    serial: str
+    intrinsics: CameraIntrinsics  # colour intrinsics with the depth scale
+
+    def wait(self, timeout_ms: int) -> CapturedFrame: ...
+
+    def stop(self) -> None: ...
+
+
+class DeviceSource(Protocol):
+    def serials(self) -> list[str]: ...
+
+    def open(self, serial: str, mode: tuple[int, int, int], sync_mode: int) -> CameraStream: ...
+
+
+class RealSenseSource:
+    """Connected RealSense cameras through pyrealsense2 (one pipeline per camera)."""
+
+    def __init__(self, warmup_frames: int = 15):
+        try:
+            import pyrealsense2 as rs
+        except ImportError as exc:  # e.g. libusb missing
+            raise DatasetError(
+                f"pyrealsense2 cannot be imported ({exc}); install librealsense's Python "
+                "package and libusb-1.0"
+            ) from None
+        self._rs = rs
+        self._ctx = rs.context()
+        self._warmup = warmup_frames
+
+    def serials(self) -> list[str]:
+        rs = self._rs
+        return [d.get_info(rs.camera_info.serial_number) for d in self._ctx.query_devices()]
+
+    def open(self, serial: str, mode: tuple[int, int, int], sync_mode: int) -> CameraStream:
+        return _RealSenseStream(self._rs, self._ctx, serial, mode, sync_mode, self._warmup)
+
+
+class _RealSenseStream:
+    def __init__(
+        self, rs, ctx, serial: str, mode: tuple[int, int, int], sync_mode: int, warmup: int
+    ):
+        width, height, fps = mode
+        self._rs = rs
+        self.serial = serial
+        self._pipe = rs.pipeline(ctx)
+        cfg = rs.config()
+        cfg.enable_device(serial)
+        cfg.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
+        cfg.enable_stream(rs.stream.color, width, height, rs.format.bgr8, fps)
+        try:
+            device = cfg.resolve(rs.pipeline_wrapper(self._pipe)).get_device()
+        except RuntimeError:
+            raise DatasetError(
+                f"camera {serial}: mode {width}x{height}@{fps} is not available for both "
+                "depth and colour; try 1280x720@30 or 848x480@30 (and a USB 3 port)"
+            ) from None
+        depth_sensor = device.first_depth_sensor()
+        if sync_mode:
+            if not depth_sensor.supports(rs.option.inter_cam_sync_mode):
+                raise DatasetError(
+                    f"camera {serial}: no hardware sync option; record without --hardware-sync"
+                )
+            depth_sensor.set_option(rs.option.inter_cam_sync_mode, float(sync_mode))
+        profile = self._pipe.start(cfg)
+        ci = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
+        self.intrinsics = CameraIntrinsics(
+            ci.width,
+            ci.height,
+            ci.fx,
+            ci.fy,
+            ci.ppx,
+            ci.ppy,
+            tuple(float(c) for c in list(ci.coeffs)[:5]),  # k1 k2 p1 p2 k3, as convert.py
+            float(f"{depth_sensor.get_depth_scale():.7g}"),
+        )
+        self._align = rs.align(rs.stream.color)
+        for _ in range(warmup):  # let auto-exposure settle
+            self._pipe.wait_for_frames(5000)
+
+    def wait(self, timeout_ms: int) -> CapturedFrame:
+        try:
+            frames = self._pipe.wait_for_frames(timeout_ms)
+        except RuntimeError:
+            raise DatasetError(
+                f"camera {self.serial}: no frames for {timeout_ms} ms; check the cable "
+                "(USB 3) and, with --hardware-sync, the sync wiring"
+            ) from None
+        aligned = self._align.process(frames)
+        color = aligned.get_color_frame()
+        depth = aligned.get_depth_frame()
+        return CapturedFrame(
+            np.asanyarray(color.get_data()).copy(),
+            np.asanyarray(depth.get_data()).copy() if depth else None,
+            float(color.get_timestamp()),
+        )
+
+    def stop(self) -> None:
+        self._pipe.stop()
+
+
+# --------------------------------------------------------------------------- results
+@dataclass(frozen=True)
+class RecordStatus:
+    """Progress after each written set (for a live display)."""
+
+    sets_written: int
+    frame: str  # stem of the set just written
+    markers: dict[str, int]  # camera -> board markers detected (-1: no board given)
+    spread_ms: float  # largest timestamp difference between the cameras of the set
+
+
+@dataclass(frozen=True)
+class RecordReport:
+    out: Path
+    cameras: list[str]
+    sets_written: int
+    interrupted: bool
+    hardware_sync: bool
+    mode: tuple[int, int, int]
+    max_spread_ms: float
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "out": str(self.out),
+            "cameras": list(self.cameras),
+            "sets_written": self.sets_written,
+            "interrupted": self.interrupted,
+            "hardware_sync": self.hardware_sync,
+            "mode": list(self.mode),
+            "max_spread_ms": self.max_spread_ms,
+            "notes": list(self.notes),
+        }
+
+
+# --------------------------------------------------------------------------- helpers
+class MarkerCounter:
+    """Board markers visible in a colour image (ArUco on a downscaled grey image)."""
+
+    def __init__(self, board):
+        self._ids = {int(i) for i in board.ids}
+        self._detector = cv2.aruco.ArucoDetector(board.aruco_dict, cv2.aruco.DetectorParameters())
+
+    def __call__(self, color_bgr: np.ndarray) -> int:
+        grey = color_bgr if color_bgr.ndim == 2 else cv2.cvtColor(color_bgr, cv2.COLOR_BGR2GRAY)
+        scale = min(1.0, MARKER_IMAGE_WIDTH_PX / grey.shape[1])
+        if scale < 1.0:
+            grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        _, ids, _ = self._detector.detectMarkers(grey)
+        return 0 if ids is None else len({int(i) for i in np.ravel(ids)} & self._ids)
+
+
+@contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold Ctrl-C back until the block is done (main thread only), then raise it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, _frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
+
+
+def _encode_png(image: np.ndarray, where: str) -> bytes:
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise DatasetError(f"{where}: could not encode the image as PNG")
+    return buf.tobytes()
+
+
+def _stage_set(out: Path, stem: str, frames: dict[str, CapturedFrame]) -> list[tuple[Path, Path]]:
+    """Write one set's files under temporary names; returns (temporary, final) paths."""
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for name, frame in frames.items():
+            parts = [("color", frame.color)]
+            if frame.depth is not None:
+                parts.append(("depth", frame.depth.astype(np.uint16, copy=False)))
+            for kind, image in parts:
+                final = out / name / kind / f"{stem}.png"
+                tmp = final.with_name(f".{stem}.png.tmp")  # not a .png: readers skip it
+                staged.append((tmp, final))
+                tmp.write_bytes(_encode_png(image, str(final)))
+    except BaseException:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+        raise
+    return staged
+
+
+def _capture_set(
+    streams: dict[str, CameraStream], fps: float, timeout_ms: int
+) -> tuple[dict[str, CapturedFrame], float]:
+    """One frame per camera; free-running cameras that lag the newest frame by more than
+    half a frame period wait for their next frame (a few times at most)."""
+    frames = {name: s.wait(timeout_ms) for name, s in streams.items()}
+    half_period_ms = 500.0 / fps
+    for _ in range(MAX_RESYNC_WAITS):
+        newest = max(f.timestamp_ms for f in frames.values())
+        late = [n for n, f in frames.items() if newest - f.timestamp_ms > half_period_ms]
+        if not late:
+            break
+        for name in late:
+            frames[name] = streams[name].wait(timeout_ms)
+    times = [f.timestamp_ms for f in frames.values()]
+    return frames, float(max(times) - min(times))
+
+
+# --------------------------------------------------------------------------- record
+def record(
+    out: Path,
+    n_sets: int | None = None,
+    mode: tuple[int, int, int] = DEFAULT_MODE,
+    hardware_sync: bool = False,
+    board=None,
+    names: Sequence[str] | None = None,
+    device_source: DeviceSource | None = None,
+    status_callback: Callable[[RecordStatus], None] | None = None,
+    timeout_ms: int = 5000,
+) -> RecordReport:
+    """Capture synchronised sets from every connected camera into ``out`` (folder form).
+
+    Stops after ``n_sets`` sets, or on Ctrl-C (KeyboardInterrupt) when ``n_sets`` is None;
+    either way every written set is complete. With ``hardware_sync`` the first camera is
+    the master (``inter_cam_sync_mode`` 1) and the others slaves (2). ``board`` enables the
+    live marker count in :class:`RecordStatus`. Cameras are named by serial unless
+    ``names`` (one per camera, in serial order) is given."""
+    out = Path(out)
+    if n_sets is not None and n_sets < 1:
+        raise ConfigError(f"--sets must be at least 1, got {n_sets}")
+    width, height, fps = mode
+    if min(width, height, fps) <= 0:
+        raise ConfigError(f"capture mode {width}x{height}@{fps} is not valid")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise DatasetError(
+            f"{out}: output folder exists and is not empty; choose a new folder or delete it"
+        )
+    source = device_source if device_source is not None else RealSenseSource()
+    serials = sorted(source.serials())
+    if not serials:
+        raise DatasetError(
+            "no RealSense camera connected; plug the D435i cameras into USB 3 ports (check "
+            "with rs-enumerate-devices), or convert a recording with 'rgbd-calib convert'"
+        )
+    cam_names = list(names) if names else list(serials)
+    if len(cam_names) != len(serials) or len(set(cam_names)) != len(cam_names):
+        raise ConfigError(
+            f"--names: give {len(serials)} unique name(s), one per camera "
+            f"(serials {', '.join(serials)})"
+        )
+    bad = [n for n in cam_names if not CAMERA_NAME.match(n)]
+    if bad:
+        raise ConfigError(f"--names: {bad[0]!r} may only use letters, digits, '_' and '-'")
+    count_markers = MarkerCounter(board) if board is not None else None
+
+    created = not out.exists()
+    streams: dict[str, CameraStream] = {}
+    written = 0
+    interrupted = False
+    max_spread = 0.0
+    try:
+        for k, (serial, name) in enumerate(zip(serials, cam_names)):
+            sync_mode = 0 if not hardware_sync else (HW_SYNC_MASTER if k == 0 else HW_SYNC_SLAVE)
+            streams[name] = source.open(serial, mode, sync_mode)
+        for name in cam_names:
+            (out / name / "color").mkdir(parents=True, exist_ok=True)
+            (out / name / "depth").mkdir(parents=True, exist_ok=True)
+        save_rig(Rig({n: streams[n].intrinsics for n in cam_names}, cam_names[0]), out / "rig.yaml")
+        while n_sets is None or written < n_sets:
+            frames, spread = _capture_set(streams, fps, timeout_ms)
+            for name, frame in frames.items():
+                intr = streams[name].intrinsics
+                if frame.color.shape[:2] != (intr.height, intr.width):
+                    raise DatasetError(
+                        f"camera {name}: frame is {frame.color.shape[1]}x"
+                        f"{frame.color.shape[0]} but its intrinsics say "
+                        f"{intr.width}x{intr.height}"
+                    )
+            stem = f"{written:06d}"
+            staged = _stage_set(out, stem, frames)
+            try:
+                with _sigint_deferred():  # all of the set, or none of it
+                    for tmp, final in staged:
+                        os.replace(tmp, final)
+                    written += 1
+            finally:
+                for tmp, _ in staged:
+                    tmp.unlink(missing_ok=True)
+            max_spread = max(max_spread, spread)
+            if status_callback:
+                markers = {
+                    n: count_markers(f.color) if count_markers else -1 for n, f in frames.items()
+                }
+                status_callback(RecordStatus(written, stem, markers, spread))
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        for stream in streams.values():
+            try:
+                stream.stop()
+            except Exception:  # a camera unplugged mid-run must not hide the real error
+                pass
+        if written == 0 and created and out.exists():
+            shutil.rmtree(out, ignore_errors=True)
+    notes = []
+    if not hardware_sync and len(cam_names) > 1:
+        notes.append(
+            f"cameras were free-running: frames of a set were up to {max_spread:.1f} ms "
+            "apart; keep the board still while recording or use --hardware-sync"
+        )
+    return RecordReport(
+        out, cam_names, written, interrupted, hardware_sync, tuple(mode), max_spread, notes
+    )
+
+
+# --------------------------------------------------------------------------- CLI helper
+def cli_record(
+    out: Path,
+    n_sets: int | None = None,
+    mode: tuple[int, int, int] = DEFAULT_MODE,
+    hardware_sync: bool = False,
+    board=None,
+    names: Sequence[str] | None = None,
+    device_source: DeviceSource | None = None,
+) -> RecordReport:
+    """Run :func:`record` with a live table of board markers per camera."""
+    from rich.console import Console
+    from rich.live import Live
+    from rich.table import Table
+
+    console = Console(stderr=True)
+
+    def table(status: RecordStatus) -> Table:
+        t = Table(title=f"recording into {out}  (Ctrl-C to stop)")
+        t.add_column("camera")
+        t.add_column("markers", justify="right")
+        for name, n in status.markers.items():
+            t.add_row(name, "-" if n < 0 else str(n))
+        t.caption = f"{status.sets_written} set(s) written; cameras {status.spread_ms:.1f} ms apart"
+        return t
+
+    live: Live | None = None
+
+    def show(status: RecordStatus) -> None:
+        nonlocal live
+        if live is None:  # only once the cameras stream: errors stay one clean line
+            live = Live(table(status), console=console, refresh_per_second=4)
+            live.start()
+        live.update(table(status))
+
+    try:
+        report = record(
+            out, n_sets, mode, hardware_sync, board, names, device_source, status_callback=show
+        )
+    finally:
+        if live is not None:
+            live.stop()
+    how = "stopped by Ctrl-C" if report.interrupted else "done"
+    console.print(
+        f"{how}: {report.sets_written} set(s) of {len(report.cameras)} camera(s) in {report.out}"
+    )
+    for note in report.notes:
+        console.print(f"[yellow]note:[/] {note}", highlight=False)
+    return report
