@@ -1,0 +1,284 @@
+"""Per-view board pose: exact recovery, accuracy on noisy renders, an honest covariance, gates.
+
+Views are rendered with :mod:`rgbd_calib.synth` as in ``test_detection.py``: a 640x360 camera at
+the origin, the board 0.5-0.85 m away showing its front or its back. The pose error of a view is
+``xi = Log(T_true^-1 T_est)`` (right perturbation, ``[omega, v]``), the convention of the
+covariance (GTSAM Pose3, board/body frame).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+from rgbd_calib import synth
+from rgbd_calib.board import BACK, FRONT, Board, load_board
+from rgbd_calib.detection import DetectionConfig, MarkerDetections, detect_markers
+from rgbd_calib.geometry import (
+    invert_transform,
+    make_transform,
+    matrix_to_rotvec,
+    rotvec_to_matrix,
+    skew,
+    transform_error,
+    transform_points,
+)
+from rgbd_calib.pose import (
+    BoardObservation,
+    PoseConfig,
+    RejectedView,
+    estimate_board_pose,
+    pose_jacobian,
+    reprojection_residuals,
+    se3_exp,
+)
+from rgbd_calib.rig import CameraIntrinsics
+from rgbd_calib.scene import rect
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+N_VIEWS = 16
+NOISY = synth.SynthParams(blur_sigma_px=0.6, color_noise_dn=2.0)
+EXACT_MM, EXACT_DEG = 1e-6, 1e-5  # the angle comes from an arccos: ~1e-6 deg resolution
+MAX_EDGES_MEDIAN_MM = 0.06  # per-view translation error with edge-fitted corners, 0.5-0.85 m
+MAX_EDGES_WORST_MM = 0.3
+NORMALISED_RMS_RANGE = (0.5, 2.0)  # RMS of translation error / predicted sigma, per axis
+
+
+def make_camera(distortion=(0.0, 0.0, 0.0, 0.0, 0.0)) -> synth.SynthCamera:
+    K = CameraIntrinsics(640, 360, 316.5, 316.5, 321.7, 178.9, tuple(distortion))
+    return synth.SynthCamera("cam", K, np.eye(4))
+
+
+def random_board_pose(
+    board: Board, rng: np.random.Generator, face: int, K: CameraIntrinsics
+) -> np.ndarray:
+    """``T_cam_board`` showing ``face``, fully in view, tilted <= 35 deg, rolled <= 25 deg."""
+    base = np.diag([1.0, -1.0, -1.0]) if face == FRONT else np.diag([-1.0, -1.0, 1.0])
+    centre_b = np.array(
+        [
+            (board.panel[0] + board.panel[1]) / 2,
+            (board.panel[2] + board.panel[3]) / 2,
+            -board.thickness / 2,
+        ]
+    )
+    for _ in range(1000):
+        axis = np.append(rng.normal(size=2), 0.0)
+        axis /= np.linalg.norm(axis)
+        R = (
+            rotvec_to_matrix(axis * np.radians(rng.uniform(0, 35)))
+            @ rotvec_to_matrix([0, 0, np.radians(rng.uniform(-25, 25))])
+            @ base
+        )
+        centre = np.array(
+            [rng.uniform(-0.05, 0.05), rng.uniform(-0.03, 0.03), rng.uniform(0.5, 0.85)]
+        )
+        T = make_transform(R, centre - R @ centre_b)
+        uv = K.project(transform_points(T, board.corners.reshape(-1, 3)))
+        if np.all((uv > 8) & (uv < [K.width - 8, K.height - 8])):
+            return T
+    raise AssertionError("no board pose in view")
+
+
+def log_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """``xi = [omega, v]`` with ``T_est = T_true Exp(xi)`` (first order)."""
+    D = invert_transform(T_true) @ T_est
+    return np.concatenate([matrix_to_rotvec(D[:3, :3]), D[:3, 3]])
+
+
+@pytest.fixture(scope="module")
+def board() -> Board:
+    return load_board(CONFIGS / "board_thesis.yaml")
+
+
+@pytest.fixture(scope="module")
+def views(board):
+    """Noisy renders: (image, T_cam_board, intrinsics), alternating front and back."""
+    cam = make_camera()
+    rng = np.random.default_rng(11)
+    wall = [rect((-6, -4, 3.0), (12, 0, 0), (0, 8, 0), (0.45, 0.5, 0.55), 7, 0.08)]
+    background = synth.render_background(wall, cam, samples=1)
+    model = synth._BoardModel(board)
+    out = []
+    for k in range(N_VIEWS):
+        T = random_board_pose(board, rng, (FRONT, BACK)[k % 2], cam.intrinsics)
+        color, _ = synth.render_board(model, cam, background, T)
+        out.append((synth.finish_color(color, NOISY, rng), T, cam.intrinsics))
+    return out
+
+
+@pytest.fixture(scope="module")
+def solved(board, views):
+    """Per refinement method: the observations of all views (and the truth)."""
+    out = {}
+    for method in ("edges", "subpix"):
+        config = DetectionConfig(refinement=method)
+        out[method] = [
+            (
+                estimate_board_pose(
+                    detect_markers(img, board, config), board, K, camera="cam", frame=f"{k:06d}"
+                ),
+                T,
+            )
+            for k, (img, T, K) in enumerate(views)
+        ]
+    return out
+
+
+def exact_detections(board: Board, T: np.ndarray, K: CameraIntrinsics, face: int):
+    ids = board.face_ids(face)
+    uv = K.project(transform_points(T, board.object_points(ids).reshape(-1, 3)))
+    return MarkerDetections(ids, uv.reshape(-1, 4, 2), np.ones((len(ids), 4), bool))
+
+
+# --------------------------------------------------------------------------- exact maths
+def test_se3_exp_matches_the_matrix_exponential(rng):
+    for _ in range(20):
+        xi = rng.normal(size=6) * [0.5, 0.5, 0.5, 0.3, 0.3, 0.3]
+        twist = np.zeros((4, 4))
+        twist[:3, :3] = skew(xi[:3])
+        twist[:3, 3] = xi[3:]
+        np.testing.assert_allclose(se3_exp(xi), expm(twist), atol=1e-10)
+
+
+@pytest.mark.parametrize("face", [FRONT, BACK])
+def test_exact_corners_give_the_exact_pose(board, rng, face):
+    K = make_camera((0.05, -0.02, 0.001, -0.001, 0.0)).intrinsics
+    T = random_board_pose(board, rng, face, K)
+    ob = estimate_board_pose(exact_detections(board, T, K, face), board, K)
+    assert isinstance(ob, BoardObservation), ob
+    err_deg, err_mm = transform_error(ob.T_cam_board, T)
+    assert err_mm < EXACT_MM and err_deg < EXACT_DEG
+    assert ob.face == face and ob.n_markers == 28
+    assert ob.reprojection_rms_px < 1e-6
+    np.testing.assert_allclose(
+        reprojection_residuals(T, ob.object_points, ob.corners_px, K), 0.0, atol=1e-6
+    )
+    assert np.all(np.linalg.eigvalsh(ob.covariance) > 0)
+    json.dumps(ob.to_dict())
+
+
+def test_jacobian_is_for_the_right_perturbation(board, rng):
+    K = make_camera().intrinsics
+    T = random_board_pose(board, rng, FRONT, K)
+    pts = board.object_points(board.face_ids(FRONT)[:5]).reshape(-1, 3)
+    J = pose_jacobian(T, pts, K)
+    xi = rng.normal(size=6) * 1e-5
+    base = K.project(transform_points(T, pts))
+    right = K.project(transform_points(T @ se3_exp(xi), pts)) - base  # T * Exp(xi): body frame
+    left = K.project(transform_points(se3_exp(xi) @ T, pts)) - base  # Exp(xi) * T: camera frame
+    scale = np.linalg.norm(J @ xi)
+    assert np.linalg.norm(right.reshape(-1) - J @ xi) < 1e-3 * scale
+    assert np.linalg.norm(left.reshape(-1) - J @ xi) > 0.1 * scale
+
+
+# --------------------------------------------------------------------------- noisy renders
+def test_edges_pose_beats_subpix_on_noisy_views(solved):
+    assert all(isinstance(ob, BoardObservation) for ob, _ in solved["edges"])
+    errors = {
+        m: np.array(
+            [
+                transform_error(ob.T_cam_board, T)[1]
+                for ob, T in results
+                if isinstance(ob, BoardObservation)
+            ]
+        )
+        for m, results in solved.items()
+    }
+    report = {m: (len(e), float(np.median(e)), float(e.max())) for m, e in errors.items()}
+    assert np.median(errors["edges"]) < 0.5 * np.median(errors["subpix"]), report
+    assert np.median(errors["edges"]) < MAX_EDGES_MEDIAN_MM, report
+    assert errors["edges"].max() < MAX_EDGES_WORST_MM, report
+
+
+def test_covariance_is_honest(solved):
+    """Translation errors divided by the predicted sigma have an RMS near 1 per axis, and the
+    Mahalanobis distances of the full 6-vector look like chi2(6) (mean 6)."""
+    normalised, mahalanobis = [], []
+    for ob, T in solved["edges"]:
+        xi = log_error(ob.T_cam_board, T)
+        normalised.append(xi[3:] / np.sqrt(np.diag(ob.covariance)[3:]))
+        mahalanobis.append(float(xi @ np.linalg.solve(ob.covariance, xi)))
+    rms = float(np.sqrt(np.mean(np.square(normalised))))
+    assert NORMALISED_RMS_RANGE[0] < rms < NORMALISED_RMS_RANGE[1], (rms, mahalanobis)
+    assert 2.0 < np.mean(mahalanobis) < 15.0, mahalanobis
+
+
+def test_back_face_views_solve_with_detection_order_corners(solved, views):
+    backs = [(ob, T) for ob, T in solved["edges"] if ob.face == BACK]
+    assert len(backs) == N_VIEWS // 2
+    for ob, T in backs:
+        assert np.all(ob.ids >= 28)
+        err_deg, err_mm = transform_error(ob.T_cam_board, T)
+        assert err_mm < MAX_EDGES_WORST_MM and err_deg < 0.1
+        assert ob.reprojection_rms_px < 0.2
+
+
+# --------------------------------------------------------------------------- gates
+def test_too_few_markers_is_rejected(board, views):
+    img, _, K = views[0]
+    det = detect_markers(img, board)
+    few = det.subset(np.arange(3))
+    out = estimate_board_pose(few, board, K, PoseConfig(min_markers=4), "cam", "000007")
+    assert isinstance(out, RejectedView)
+    assert (out.reason, out.n_markers, out.camera, out.frame) == (
+        "too_few_markers",
+        3,
+        "cam",
+        "000007",
+    )
+
+
+def test_stray_marker_is_dropped(board, views):
+    img, T, K = views[2]
+    det = detect_markers(img, board)
+    corners = det.corners_px.copy()
+    corners[4] += [20.0, -20.0]  # a stray detection carrying a board id
+    moved = MarkerDetections(det.ids, corners, det.refined, refinement=det.refinement)
+    ob = estimate_board_pose(moved, board, K)
+    assert isinstance(ob, BoardObservation), ob
+    assert ob.dropped["outlier"] == [int(det.ids[4])]
+    assert int(det.ids[4]) not in ob.ids.tolist()
+    assert transform_error(ob.T_cam_board, T)[1] < MAX_EDGES_WORST_MM
+
+
+def test_markers_of_both_faces_keep_the_majority_face(board, views):
+    img, T, K = views[0]  # a front view
+    det = detect_markers(img, board)
+    assert np.all(det.ids < 28)
+    fake_ids = np.array([40, 41])  # back-face ids "seen" where two front markers are
+    ids = np.concatenate([det.ids, fake_ids])
+    corners = np.concatenate([det.corners_px, det.corners_px[:2] + 3.0])
+    both = MarkerDetections(ids, corners, np.ones((len(ids), 4), bool))
+    ob = estimate_board_pose(both, board, K)
+    assert isinstance(ob, BoardObservation), ob
+    assert ob.face == FRONT and sorted(ob.dropped["minority_face"]) == [40, 41]
+    assert transform_error(ob.T_cam_board, T)[1] < MAX_EDGES_WORST_MM
+
+    tie = MarkerDetections(np.array([0, 1, 40, 41]), det.corners_px[:4], np.ones((4, 4), bool))
+    out = estimate_board_pose(tie, board, K, PoseConfig(min_markers=2))
+    assert isinstance(out, RejectedView) and out.reason == "both_faces"
+
+
+def test_unrefined_markers_are_left_out_unless_asked(board, views):
+    img, T, K = views[1]
+    det = detect_markers(img, board)
+    refined = det.refined.copy()
+    refined[0, 2] = False
+    flagged = MarkerDetections(det.ids, det.corners_px, refined, refinement="edges")
+    ob = estimate_board_pose(flagged, board, K)
+    assert ob.dropped["unrefined"] == [int(det.ids[0])] and ob.n_markers == len(det) - 1
+    kept = estimate_board_pose(flagged, board, K, PoseConfig(use_unrefined_corners=True))
+    assert kept.n_markers == len(det) and "unrefined" not in kept.dropped
+
+
+def test_fixed_pixel_sigma_scales_the_covariance(board, views):
+    img, _, K = views[3]
+    det = detect_markers(img, board)
+    one = estimate_board_pose(det, board, K, PoseConfig(pixel_sigma_px=0.1))
+    two = estimate_board_pose(det, board, K, PoseConfig(pixel_sigma_px=0.2))
+    np.testing.assert_allclose(two.covariance, 4.0 * one.covariance, rtol=1e-9)
+    assert one.sigma_px == 0.1
