@@ -214,7 +214,7 @@ def _print_summary(result, out: Path) -> None:
     table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
     for col, unit in (("camera", ""), ("views", ""), ("x", "m"), ("y", "m"), ("z", "m"),
                       ("sigma rot", "deg"), ("sigma trans", "mm")):
-        table.add_column(f"{col} [{unit}]" if unit else col, justify="right")
+        table.add_column(f"{col} ({unit})" if unit else col, justify="right")
     views = {}
     for o in result.observations:
         views[o.camera] = views.get(o.camera, 0) + 1
@@ -301,8 +301,8 @@ def demo(
 
     table = Table(title="error against the synthetic ground truth")
     table.add_column("camera")
-    table.add_column("rotation [deg]", justify="right")
-    table.add_column("translation [mm]", justify="right")
+    table.add_column("rotation (deg)", justify="right")
+    table.add_column("translation (mm)", justify="right")
     for name, cam in result.extrinsics.cameras.items():
         deg, mm = transform_error(cam.T_ref_cam, gt.T_ref_cam[name])
         table.add_row(name, f"{deg:.4f}", f"{mm:.3f}")
