@@ -27,10 +27,19 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .board import Board
 from .dataset import FolderDataset, read_color_image
-from .detection import DetectionConfig, MarkerDetections, detect_markers
+from .detection import DetectionConfig, MarkerDetections, detect_markers, limit_threads
 from .errors import CalibrationError
-from .graph import (BundleConfig, BundleResult, MarkerMeasurement, PoseEdge, PoseGraphConfig,
-                    PoseGraphResult, bundle_adjust, calibrate_pose_graph)
+from .graph import (
+    BundleConfig,
+    BundleResult,
+    MarkerMeasurement,
+    PoseEdge,
+    PoseGraphConfig,
+    PoseGraphResult,
+    bundle_adjust,
+    calibrate_pose_graph,
+)
+from .parallel import process_context
 from .pose import BoardObservation, PoseConfig, RejectedView, estimate_board_pose, undistort_pixels
 from .results import CameraExtrinsics, Extrinsics
 from .yamlio import atomic_write_text
@@ -47,13 +56,17 @@ class CalibrationConfig(BaseModel):
     graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
     bundle: BundleConfig = Field(default_factory=BundleConfig)
     method: Literal["bundle", "posegraph"] = Field(
-        "bundle", description="final estimate: joint bundle adjustment on marker corners "
-        "(initialised from the pose graph) or the pose graph alone (the thesis method)")
-    workers: int | None = Field(None, ge=1, description="detection processes; default: all "
-                                "cores")
-    edge_covariance: bool = Field(True, description="weight pose-graph edges by their PnP "
-                                  "covariance (off: one isotropic sigma for every edge, as the "
-                                  "thesis did)")
+        "bundle",
+        description="final estimate: joint bundle adjustment on marker corners "
+        "(initialised from the pose graph) or the pose graph alone (the thesis method)",
+    )
+    workers: int | None = Field(None, ge=1, description="detection processes; default: all cores")
+    edge_covariance: bool = Field(
+        True,
+        description="weight pose-graph edges by their PnP "
+        "covariance (off: one isotropic sigma for every edge, as the "
+        "thesis did)",
+    )
 
 
 @dataclass(frozen=True)
@@ -75,7 +88,8 @@ class CalibrationResult:
 _WORKER: dict[str, Any] = {}
 
 
-def _init_detector(board: Board, config: DetectionConfig) -> None:
+def _init_detector(board: Board, config: DetectionConfig, threads: int = 1) -> None:
+    limit_threads(threads)  # one process per core already
     _WORKER["board"], _WORKER["config"] = board, config
 
 
@@ -86,8 +100,11 @@ def _detect_job(job: tuple[str, str, str, int, int]) -> tuple[str, str, dict]:
 
 
 def _fingerprint(board: Board, config: DetectionConfig) -> str:
-    text = json.dumps([board.to_dict(), board.corners.tolist(), config.model_dump(),
-                       CACHE_VERSION], sort_keys=True, default=str)
+    text = json.dumps(
+        [board.to_dict(), board.corners.tolist(), config.model_dump(), CACHE_VERSION],
+        sort_keys=True,
+        default=str,
+    )
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -96,10 +113,14 @@ def _file_key(path: Path) -> str:
     return f"{st.st_size}:{st.st_mtime_ns}"
 
 
-def detect_dataset(dataset: FolderDataset, board: Board, config: DetectionConfig,
-                   cache_path: Path | None = None, workers: int | None = None,
-                   progress: Callable[[int], None] | None = None
-                   ) -> dict[tuple[str, str], MarkerDetections]:
+def detect_dataset(
+    dataset: FolderDataset,
+    board: Board,
+    config: DetectionConfig,
+    cache_path: Path | None = None,
+    workers: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> dict[tuple[str, str], MarkerDetections]:
     """Detect markers in every colour image, in a process pool, reusing a cache.
 
     The cache (JSON) is keyed by the board and detection settings and, per image, by file
@@ -131,21 +152,26 @@ def detect_dataset(dataset: FolderDataset, board: Board, config: DetectionConfig
     def save() -> None:
         if cache_path is None:
             return
-        images = {f"{c}/{f}": {"file": _file_key(dataset.color_path(c, f)), "det": d.to_dict()}
-                  for (c, f), d in results.items()}
-        atomic_write_text(cache_path, json.dumps({"fingerprint": fingerprint,
-                                                  "images": images}))
+        images = {
+            f"{c}/{f}": {"file": _file_key(dataset.color_path(c, f)), "det": d.to_dict()}
+            for (c, f), d in results.items()
+        }
+        atomic_write_text(cache_path, json.dumps({"fingerprint": fingerprint, "images": images}))
 
     workers = workers or os.cpu_count() or 1
     done_since_save = 0
     try:
         if workers <= 1 or len(jobs) < 8:
-            _init_detector(board, config)
+            _init_detector(board, config, threads=-1)
             iterator = map(_detect_job, jobs)
             executor = None
         else:
-            executor = ProcessPoolExecutor(workers, initializer=_init_detector,
-                                           initargs=(board, config))
+            executor = ProcessPoolExecutor(
+                workers,
+                mp_context=process_context(),
+                initializer=_init_detector,
+                initargs=(board, config),
+            )
             iterator = executor.map(_detect_job, jobs, chunksize=4)
         for cam, frame, det in iterator:
             results[(cam, frame)] = MarkerDetections.from_dict(det)
@@ -164,10 +190,14 @@ def detect_dataset(dataset: FolderDataset, board: Board, config: DetectionConfig
 
 
 # ----------------------------------------------------------------------------- pipeline
-def calibrate(dataset: FolderDataset, board: Board, config: CalibrationConfig | None = None,
-              cache_dir: Path | None = None, fixed_cameras: dict[str, np.ndarray] | None = None,
-              progress: Callable[[str, int, int], Callable[[int], None]] | None = None
-              ) -> CalibrationResult:
+def calibrate(
+    dataset: FolderDataset,
+    board: Board,
+    config: CalibrationConfig | None = None,
+    cache_dir: Path | None = None,
+    fixed_cameras: dict[str, np.ndarray] | None = None,
+    progress: Callable[[str, int, int], Callable[[int], None]] | None = None,
+) -> CalibrationResult:
     """Calibrate the extrinsics of every camera of ``dataset`` relative to its reference.
 
     ``fixed_cameras`` holds given cameras at ``T_ref_cam`` (adding a camera to a calibrated
@@ -196,36 +226,43 @@ def calibrate(dataset: FolderDataset, board: Board, config: CalibrationConfig | 
         raise CalibrationError(
             f"{dataset.path}: no usable board view in {n_images} images ({total} board markers "
             "detected); check that --board matches the printed board (dictionary, ids) and that "
-            "the board is in view")
+            "the board is in view"
+        )
 
     t0 = time.perf_counter()
-    edges = [PoseEdge(o.camera, o.frame, o.T_cam_board,
-                      o.covariance if config.edge_covariance else None) for o in observations]
+    edges = [
+        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance if config.edge_covariance else None)
+        for o in observations
+    ]
     reference = rig.reference
     seen = {o.camera for o in observations}
     if reference not in seen:
         raise CalibrationError(
             f"{dataset.path}: the reference camera {reference!r} has no usable board view; "
-            "record the board in its view or choose another reference in rig.yaml")
+            "record the board in its view or choose another reference in rig.yaml"
+        )
     pg = calibrate_pose_graph(edges, reference, config.graph, fixed_cameras)
     timings["pose_graph"] = time.perf_counter() - t0
     unconnected = dict(pg.unconnected)
     for cam in rig.names:
         if cam not in seen and cam not in unconnected:
-            unconnected[cam] = "no usable board view (board never detected, or every view " \
-                               "was rejected)"
+            unconnected[cam] = (
+                "no usable board view (board never detected, or every view was rejected)"
+            )
     if len(pg.cameras) < 2:
         raise CalibrationError(
             f"{dataset.path}: no camera shares a board view with the reference "
-            f"{reference!r}; move the board where two cameras see it at once")
+            f"{reference!r}; move the board where two cameras see it at once"
+        )
 
     bundle = None
     cameras = dict(pg.cameras)
     if config.method == "bundle":
         t0 = time.perf_counter()
         measurements = []
-        stale_or_out = {pg.residuals[i].view + "/" + pg.residuals[i].camera
-                        for i in pg.outlier_edges}
+        stale_or_out = {
+            pg.residuals[i].view + "/" + pg.residuals[i].camera for i in pg.outlier_edges
+        }
         for o in observations:
             if o.camera not in pg.cameras or o.frame not in pg.T_ref_board:
                 continue
@@ -235,13 +272,31 @@ def calibrate(dataset: FolderDataset, board: Board, config: CalibrationConfig | 
             for mid, c, P in zip(o.ids, px, o.object_points):
                 measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P))
         K = {c: rig.cameras[c].K for c in rig.names}
-        bundle = bundle_adjust(measurements, K, reference, pg.T_ref_cam, pg.T_ref_board,
-                               config.bundle, fixed_cameras)
-        cameras = {c: CameraExtrinsics(c, bundle.T_ref_cam[c], bundle.sigma_rotation_deg[c],
-                                       bundle.sigma_translation_mm[c], bundle.covariance[c])
-                   for c in bundle.T_ref_cam}
+        bundle = bundle_adjust(
+            measurements, K, reference, pg.T_ref_cam, pg.T_ref_board, config.bundle, fixed_cameras
+        )
+        cameras = {
+            c: CameraExtrinsics(
+                c,
+                bundle.T_ref_cam[c],
+                bundle.sigma_rotation_deg[c],
+                bundle.sigma_translation_mm[c],
+                bundle.covariance[c],
+            )
+            for c in bundle.T_ref_cam
+        }
         timings["bundle"] = time.perf_counter() - t0
-    extrinsics = Extrinsics(reference, {c: cameras[c] for c in rig.names if c in cameras},
-                            unconnected)
-    return CalibrationResult(extrinsics, observations, rejected, pg, bundle, config,
-                             n_images, timings, dataset.summary().to_dict())
+    extrinsics = Extrinsics(
+        reference, {c: cameras[c] for c in rig.names if c in cameras}, unconnected
+    )
+    return CalibrationResult(
+        extrinsics,
+        observations,
+        rejected,
+        pg,
+        bundle,
+        config,
+        n_images,
+        timings,
+        dataset.summary().to_dict(),
+    )

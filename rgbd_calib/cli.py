@@ -53,8 +53,11 @@ def user_errors(fn):
             console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
         except PermissionError as exc:
-            console.print(f"[bold red]error:[/] {exc.filename}: permission denied; choose a "
-                          "writable folder", highlight=False, soft_wrap=True)
+            console.print(
+                f"[bold red]error:[/] {exc.filename}: permission denied; choose a writable folder",
+                highlight=False,
+                soft_wrap=True,
+            )
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
             console.print("[yellow]interrupted[/]: earlier results were left untouched")
@@ -64,12 +67,24 @@ def user_errors(fn):
 
 
 def progress_bar():
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                               TimeElapsedColumn, TimeRemainingColumn)
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), TimeRemainingColumn(), console=console,
-                    disable=not sys.stderr.isatty())
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        disable=not sys.stderr.isatty(),
+    )
 
 
 def _parse_resolution(text: str | None) -> tuple[int, int] | None:
@@ -90,10 +105,15 @@ def board(
     board_file: Annotated[Path, typer.Argument(help="Board YAML (grid or explicit form).")],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("board_print"),
     dpi: Annotated[int, typer.Option(help="Resolution of the PNG files (dots per inch).")] = 300,
-    page: Annotated[str | None, typer.Option(help="Page size, e.g. A3 or A4-landscape; "
-                                             "default: the smallest A size that fits.")] = None,
-    fix_winding: Annotated[bool, typer.Option(help="Reorder mirrored markers instead of "
-                                              "rejecting them.")] = False,
+    page: Annotated[
+        str | None,
+        typer.Option(
+            help="Page size, e.g. A3 or A4-landscape; default: the smallest A size that fits."
+        ),
+    ] = None,
+    fix_winding: Annotated[
+        bool, typer.Option(help="Reorder mirrored markers instead of rejecting them.")
+    ] = False,
 ) -> None:
     """Write the board's faces as true-scale PDFs and PNGs, ready to print and glue."""
     from .board import load_board
@@ -108,17 +128,23 @@ def board(
 @app.command()
 @user_errors
 def synth(
-    out: Annotated[Path, typer.Argument(help="Output dataset folder (must not exist or be "
-                                        "empty).")],
+    out: Annotated[
+        Path, typer.Argument(help="Output dataset folder (must not exist or be empty).")
+    ],
     layout: Annotated[str, typer.Option(help="thesis-line, race or ring.")] = "race",
     frames: Annotated[int, typer.Option(help="Number of synchronised frame sets.")] = 40,
     seed: Annotated[int, typer.Option(help="Random seed (rig jitter, board motion, noise).")] = 0,
-    resolution: Annotated[str | None, typer.Option(help="WIDTHxHEIGHT; default: 848x480 for "
-                                                   "race, 1280x720 otherwise.")] = None,
-    board_file: Annotated[Path | None, typer.Option("--board", help="Board YAML; default: "
-                                                    "the thesis board.")] = None,
-    depth_bias: Annotated[float, typer.Option(help="Max |relative depth-scale error| per camera, "
-                                              "e.g. 0.006 for +-0.6%.")] = 0.0,
+    resolution: Annotated[
+        str | None,
+        typer.Option(help="WIDTHxHEIGHT; default: 848x480 for race, 1280x720 otherwise."),
+    ] = None,
+    board_file: Annotated[
+        Path | None, typer.Option("--board", help="Board YAML; default: the thesis board.")
+    ] = None,
+    depth_bias: Annotated[
+        float,
+        typer.Option(help="Max |relative depth-scale error| per camera, e.g. 0.006 for +-0.6%."),
+    ] = 0.0,
     blur: Annotated[float, typer.Option(help="Lens blur sigma (px).")] = 0.6,
     noise: Annotated[float, typer.Option(help="Colour noise sigma (8-bit DN).")] = 2.0,
     depth_dropout: Annotated[float, typer.Option(help="Fraction of depth pixels lost.")] = 0.02,
@@ -130,14 +156,21 @@ def synth(
     from .board import load_board, thesis_board
     from .synth import SynthParams, synthesize
 
-    params = SynthParams(resolution=_parse_resolution(resolution), blur_sigma_px=blur,
-                         color_noise_dn=noise, depth_bias=depth_bias,
-                         depth_dropout=depth_dropout, drop_rate=drop_rate, cameras=cameras)
+    params = SynthParams(
+        resolution=_parse_resolution(resolution),
+        blur_sigma_px=blur,
+        color_noise_dn=noise,
+        depth_bias=depth_bias,
+        depth_dropout=depth_dropout,
+        drop_rate=drop_rate,
+        cameras=cameras,
+    )
     b = load_board(board_file) if board_file else thesis_board()
     with progress_bar() as bar:
         task = bar.add_task("rendering frame sets", total=frames)
-        ds = synthesize(out, layout, frames, seed, b, params, workers,
-                        progress=lambda: bar.advance(task))
+        ds = synthesize(
+            out, layout, frames, seed, b, params, workers, progress=lambda: bar.advance(task)
+        )
     console.print(f"wrote {len(ds.rig.cameras)} cameras x {frames} frames to {ds.path}")
 
 
@@ -169,19 +202,29 @@ def _load_config(path: Path | None, **overrides):
 @app.command()
 @user_errors
 def calibrate(
-    dataset: Annotated[Path, typer.Argument(help="Dataset folder (rig.yaml + <camera>/color, "
-                                            "depth).")],
-    board_file: Annotated[Path | None, typer.Option("--board", help="Board YAML; default: the "
-                                                    "thesis board.")] = None,
+    dataset: Annotated[
+        Path, typer.Argument(help="Dataset folder (rig.yaml + <camera>/color, depth).")
+    ],
+    board_file: Annotated[
+        Path | None, typer.Option("--board", help="Board YAML; default: the thesis board.")
+    ] = None,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("calib_out"),
-    config: Annotated[Path | None, typer.Option(help="YAML overriding any calibration "
-                                                "setting.")] = None,
-    method: Annotated[str | None, typer.Option(help="bundle (default) or posegraph (the "
-                                               "thesis method).")] = None,
-    workers: Annotated[int | None, typer.Option(help="Detection processes; default all "
-                                                "cores.")] = None,
-    fix: Annotated[Path | None, typer.Option(help="extrinsics.yaml of an earlier calibration: "
-                                             "hold its cameras fixed (adding cameras).")] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="YAML overriding any calibration setting.")
+    ] = None,
+    method: Annotated[
+        str | None, typer.Option(help="bundle (default) or posegraph (the thesis method).")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Detection processes; default all cores.")
+    ] = None,
+    fix: Annotated[
+        Path | None,
+        typer.Option(
+            help="extrinsics.yaml of an earlier calibration: "
+            "hold its cameras fixed (adding cameras)."
+        ),
+    ] = None,
 ) -> None:
     """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports."""
     from .board import load_board, thesis_board
@@ -198,12 +241,14 @@ def calibrate(
         prior = load_extrinsics(fix)
         fixed = {n: c.T_ref_cam for n, c in prior.cameras.items() if n in ds.rig.cameras}
     with progress_bar() as bar:
+
         def progress(label: str, total: int, done: int):
             task = bar.add_task(label, total=total, completed=done)
             return lambda n=1: bar.advance(task, n)
 
-        result = run_calibration(ds, b, cfg, cache_dir=out / "cache", fixed_cameras=fixed,
-                                 progress=progress)
+        result = run_calibration(
+            ds, b, cfg, cache_dir=out / "cache", fixed_cameras=fixed, progress=progress
+        )
     write_outputs(result, ds.rig, out)
     _print_summary(result, out)
 
@@ -212,17 +257,30 @@ def _print_summary(result, out: Path) -> None:
     from rich.table import Table
 
     table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
-    for col, unit in (("camera", ""), ("views", ""), ("x", "m"), ("y", "m"), ("z", "m"),
-                      ("sigma rot", "deg"), ("sigma trans", "mm")):
+    for col, unit in (
+        ("camera", ""),
+        ("views", ""),
+        ("x", "m"),
+        ("y", "m"),
+        ("z", "m"),
+        ("sigma rot", "deg"),
+        ("sigma trans", "mm"),
+    ):
         table.add_column(f"{col} ({unit})" if unit else col, justify="right")
     views = {}
     for o in result.observations:
         views[o.camera] = views.get(o.camera, 0) + 1
     for name, cam in result.extrinsics.cameras.items():
         t = cam.T_ref_cam[:3, 3]
-        table.add_row(name, str(views.get(name, 0)), f"{t[0]:.4f}", f"{t[1]:.4f}",
-                      f"{t[2]:.4f}", f"{cam.sigma_rotation_deg:.4f}",
-                      f"{cam.sigma_translation_mm:.3f}")
+        table.add_row(
+            name,
+            str(views.get(name, 0)),
+            f"{t[0]:.4f}",
+            f"{t[1]:.4f}",
+            f"{t[2]:.4f}",
+            f"{cam.sigma_rotation_deg:.4f}",
+            f"{cam.sigma_translation_mm:.3f}",
+        )
     Console().print(table)
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
@@ -251,12 +309,16 @@ def posegraph(
         raise ConfigError(f"options: {exc.errors()[0]['msg']}") from None
     run = run_posegraph(nodes, edges, cfg)
     write_posegraph_outputs(run, out)
-    console.print(f"edges: {len(run.edges)}, stale: {len(run.stale_edges)}, "
-                  f"outliers: {len(run.outlier_edges)}")
+    console.print(
+        f"edges: {len(run.edges)}, stale: {len(run.stale_edges)}, "
+        f"outliers: {len(run.outlier_edges)}"
+    )
     for name, cam in run.extrinsics.cameras.items():
         t = cam.T_ref_cam[:3, 3]
-        console.print(f"{name}: t = [{t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}] m, sigma "
-                      f"{cam.sigma_rotation_deg:.3f} deg / {cam.sigma_translation_mm:.2f} mm")
+        console.print(
+            f"{name}: t = [{t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}] m, sigma "
+            f"{cam.sigma_rotation_deg:.3f} deg / {cam.sigma_translation_mm:.2f} mm"
+        )
     console.print(f"results in {out}/ (extrinsics.yaml, posegraph_report.json, exports/)")
 
 
@@ -284,16 +346,23 @@ def demo(
     b = thesis_board()
     with progress_bar() as bar:
         task = bar.add_task("rendering frame sets", total=frames)
-        synthesize(dataset, layout, frames, seed, b, SynthParams(depth_bias=0.004),
-                   progress=lambda: bar.advance(task))
+        synthesize(
+            dataset,
+            layout,
+            frames,
+            seed,
+            b,
+            SynthParams(depth_bias=0.004),
+            progress=lambda: bar.advance(task),
+        )
     ds = FolderDataset(dataset)
     with progress_bar() as bar:
+
         def progress(label: str, total: int, done: int):
             task = bar.add_task(label, total=total, completed=done)
             return lambda n=1: bar.advance(task, n)
 
-        result = run_calibration(ds, b, cache_dir=out / "calibration" / "cache",
-                                 progress=progress)
+        result = run_calibration(ds, b, cache_dir=out / "calibration" / "cache", progress=progress)
     write_outputs(result, ds.rig, out / "calibration")
     _print_summary(result, out / "calibration")
     gt = load_ground_truth(dataset)
@@ -313,14 +382,24 @@ def demo(
 @app.command()
 @user_errors
 def convert(
-    sources: Annotated[list[Path], typer.Argument(help="RealSense .bag/.db3 files (one per "
-                                                  "camera) or ROS 1/ROS 2 bags.")],
+    sources: Annotated[
+        list[Path],
+        typer.Argument(help="RealSense .bag/.db3 files (one per camera) or ROS 1/ROS 2 bags."),
+    ],
     out: Annotated[Path, typer.Option("--out", help="Dataset folder to write.")],
-    names: Annotated[str | None, typer.Option(help="Comma-separated camera names, in source "
-                                              "order (default: serial / ROS namespace).")] = None,
-    sync_tolerance_ms: Annotated[float | None, typer.Option(
-        help="Largest timestamp gap between cameras of one frame set (ms); default half a "
-        "frame period.")] = None,
+    names: Annotated[
+        str | None,
+        typer.Option(
+            help="Comma-separated camera names, in source order (default: serial / ROS namespace)."
+        ),
+    ] = None,
+    sync_tolerance_ms: Annotated[
+        float | None,
+        typer.Option(
+            help="Largest timestamp gap between cameras of one frame set (ms); default half a "
+            "frame period."
+        ),
+    ] = None,
 ) -> None:
     """Convert RealSense SDK recordings or ROS bags into the dataset folder form."""
     from .convert import cli_convert
@@ -332,17 +411,20 @@ def convert(
 @user_errors
 def record(
     out: Annotated[Path, typer.Option("--out", help="Dataset folder to write.")],
-    sets: Annotated[int | None, typer.Option(help="Stop after this many frame sets (default: "
-                                             "until Ctrl-C).")] = None,
-    resolution: Annotated[str, typer.Option(help="WIDTHxHEIGHT of colour and depth.")] =
-    "1280x720",
+    sets: Annotated[
+        int | None, typer.Option(help="Stop after this many frame sets (default: until Ctrl-C).")
+    ] = None,
+    resolution: Annotated[str, typer.Option(help="WIDTHxHEIGHT of colour and depth.")] = "1280x720",
     fps: Annotated[int, typer.Option(help="Frame rate.")] = 30,
-    hardware_sync: Annotated[bool, typer.Option(help="First camera master, others slaves "
-                                                "(needs sync cables).")] = False,
-    board_file: Annotated[Path | None, typer.Option("--board", help="Board YAML for the live "
-                                                    "marker count.")] = None,
-    names: Annotated[str | None, typer.Option(help="Comma-separated camera names in serial "
-                                              "order.")] = None,
+    hardware_sync: Annotated[
+        bool, typer.Option(help="First camera master, others slaves (needs sync cables).")
+    ] = False,
+    board_file: Annotated[
+        Path | None, typer.Option("--board", help="Board YAML for the live marker count.")
+    ] = None,
+    names: Annotated[
+        str | None, typer.Option(help="Comma-separated camera names in serial order.")
+    ] = None,
 ) -> None:
     """Record colour + aligned depth from connected D435i cameras (Ctrl-C stops)."""
     from .board import load_board, thesis_board

@@ -782,3 +782,8 @@ def refine_corners_edges(
     out[sel] = current
     refined[sel] = ok_corner
     return out, refined
+
+
+def limit_threads(threads: int) -> None:
+    """OpenCV's own thread pool size (1 inside worker processes, -1 = OpenCV's default)."""
+    cv2.setNumThreads(threads)

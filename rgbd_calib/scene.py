@@ -110,10 +110,24 @@ class Hits:
     b: np.ndarray
 
 
+def _dot3(vectors: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Row-wise dot product with a 3-vector, without BLAS (no thread oversubscription when
+    rendering in several processes)."""
+    return vectors[:, 0] * w[0] + vectors[:, 1] * w[1] + vectors[:, 2] * w[2]
+
+
 def cast(
-    rects: list[Rect], T_cam_world: np.ndarray, rays: np.ndarray, two_sided: bool = True
+    rects: list[Rect],
+    T_cam_world: np.ndarray,
+    rays: np.ndarray,
+    two_sided: bool = True,
+    grid: tuple[int, int] | None = None,
 ) -> Hits:
-    """Nearest intersection of camera-frame rays ``(N,3)`` (z = 1) with the rectangles."""
+    """Nearest intersection of camera-frame rays ``(N,3)`` (z = 1) with the rectangles.
+
+    ``grid=(rows, cols)`` says the rays are a row-major pixel grid (x varies along columns
+    only, y along rows only): each rectangle then only visits the rays of its image bounding
+    box, found by bisection instead of a test over every ray."""
     n_rays = rays.shape[0]
     best = np.full(n_rays, np.inf)
     index = np.full(n_rays, -1, dtype=np.int32)
@@ -121,6 +135,10 @@ def cast(
     best_b = np.zeros(n_rays)
     R = T_cam_world[:3, :3]
     all_rays = np.arange(n_rays)
+    if grid is not None:
+        rows, cols = grid
+        xs = rays[:cols, 0]
+        ys = rays[::cols, 1]
     for k, r in enumerate(rects):
         o = transform_points(T_cam_world, r.origin[None])[0]
         u, v = R @ r.u_axis, R @ r.v_axis
@@ -137,25 +155,32 @@ def cast(
         if np.all(corners[:, 2] > 1e-6):  # cull rays outside the rectangle's image bbox
             xy = corners[:, :2] / corners[:, 2:]
             lo, hi = xy.min(axis=0) - 1e-9, xy.max(axis=0) + 1e-9
-            cand = np.nonzero(
-                (rays[:, 0] >= lo[0])
-                & (rays[:, 0] <= hi[0])
-                & (rays[:, 1] >= lo[1])
-                & (rays[:, 1] <= hi[1])
-            )[0]
+            if grid is not None:
+                c0, c1 = np.searchsorted(xs, lo[0]), np.searchsorted(xs, hi[0], "right")
+                r0, r1 = np.searchsorted(ys, lo[1]), np.searchsorted(ys, hi[1], "right")
+                if c0 >= c1 or r0 >= r1:
+                    continue
+                cand = (np.arange(r0, r1)[:, None] * cols + np.arange(c0, c1)[None]).ravel()
+            else:
+                cand = np.nonzero(
+                    (rays[:, 0] >= lo[0])
+                    & (rays[:, 0] <= hi[0])
+                    & (rays[:, 1] >= lo[1])
+                    & (rays[:, 1] <= hi[1])
+                )[0]
             if cand.size == 0:
                 continue
-        denom = rays[cand] @ n
+        rc = rays[cand]
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = on / denom
+            t = on / _dot3(rc, n)
         ok = (t > 1e-6) & (t < best[cand])
         if not np.any(ok):
             continue
         idx = cand[ok]
-        t_idx = on / (rays[idx] @ n)
-        p = rays[idx] * t_idx[:, None] - o
-        a = p @ u
-        b = p @ v
+        t_idx = t[ok]
+        p = rc[ok] * t_idx[:, None] - o
+        a = _dot3(p, u)
+        b = _dot3(p, v)
         inside = (a >= 0) & (a <= r.size_u) & (b >= 0) & (b <= r.size_v)
         idx = idx[inside]
         best[idx] = t_idx[inside]

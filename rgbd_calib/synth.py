@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from .board import BACK, FRONT, Board
 from .errors import ConfigError
 from .geometry import invert_transform, look_at, make_transform, rotvec_to_matrix
+from .parallel import process_context
 from .rig import CameraIntrinsics, Rig, save_rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
 from .yamlio import write_yaml
@@ -346,10 +347,10 @@ def render_background(scene: list[Rect], cam: SynthCamera, samples: int = 2) -> 
         for j in range(samples):
             du, dv = (i + 0.5) / samples - 0.5, (j + 0.5) / samples - 0.5
             rays = pixel_rays(K.K, (us + du).ravel(), (vs + dv).ravel())
-            hits = cast(scene, T_cam_world, rays)
+            hits = cast(scene, T_cam_world, rays, grid=us.shape)
             color += shade_scene(scene, hits, light, T_cam_world).reshape(color.shape)
     rays = pixel_rays(K.K, us.ravel(), vs.ravel())
-    depth = cast(scene, T_cam_world, rays).depth.reshape(K.height, K.width)
+    depth = cast(scene, T_cam_world, rays, grid=us.shape).depth.reshape(K.height, K.width)
     return _Background(color / samples**2, depth)
 
 
@@ -393,15 +394,17 @@ def render_board(
     light = T_cam_board[:3, :3].T @ (invert_transform(cam.T_world_cam)[:3, :3] @ LIGHT_DIR_WORLD)
     face_shade = np.array([0.55 + 0.45 * abs(r.normal @ light) for r in model.rects])
 
-    def trace(us: np.ndarray, vs: np.ndarray):
+    def trace(us: np.ndarray, vs: np.ndarray, grid=None, shade: bool = True):
         rays = pixel_rays(K.K, us, vs)
-        hits = cast(model.rects, T_cam_board, rays)
+        hits = cast(model.rects, T_cam_board, rays, grid=grid)
+        if not shade:
+            return hits, None
         refl = model.reflectance(hits.index, hits.a, hits.b)
         value = np.where(hits.index >= 0, refl * face_shade[np.maximum(hits.index, 0)], np.nan)
         return hits, value
 
     cv_, cu_ = np.mgrid[v0 : v1 + 2, u0 : u1 + 2].astype(float) - 0.5
-    hits_c, val_c = trace(cu_.ravel(), cv_.ravel())
+    hits_c, val_c = trace(cu_.ravel(), cv_.ravel(), grid=cu_.shape)
     key = np.where(hits_c.index >= 0, hits_c.index * 10 + (val_c * 8).round(), -1)
     key = key.reshape(cv_.shape)
     val_c = val_c.reshape(cv_.shape)
@@ -414,7 +417,7 @@ def render_board(
     region_depth_bg = bg.depth[v0 : v1 + 1, u0 : u1 + 1]
     # pixel-centre depth decides occlusion between the board and the static scene
     cvv, cuu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1].astype(float)
-    hits_p, _ = trace(cuu.ravel(), cvv.ravel())
+    hits_p, _ = trace(cuu.ravel(), cvv.ravel(), grid=cuu.shape, shade=False)
     z_board = hits_p.depth.reshape(cvv.shape)
     board_front = z_board < region_depth_bg
     uniform_board = same & (key[:-1, :-1] >= 0) & board_front
@@ -468,6 +471,7 @@ _WORKER: dict = {}
 
 
 def _init_worker(state: dict) -> None:
+    cv2.setNumThreads(1)  # one process per core already
     _WORKER.update(state)
     _WORKER["model"] = _BoardModel(state["board"])
 
@@ -540,7 +544,7 @@ def synthesize(
         if workers <= 1:
             backgrounds = [render_background(rig.scene, cam) for cam in rig.cameras]
         else:
-            with ProcessPoolExecutor(workers) as ex:
+            with ProcessPoolExecutor(workers, mp_context=process_context()) as ex:
                 backgrounds = list(
                     ex.map(render_background, [rig.scene] * len(rig.cameras), rig.cameras)
                 )
@@ -560,7 +564,9 @@ def synthesize(
                 if progress:
                     progress()
         else:
-            with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(state,)) as ex:
+            with ProcessPoolExecutor(
+                workers, mp_context=process_context(), initializer=_init_worker, initargs=(state,)
+            ) as ex:
                 for _ in ex.map(_render_frame, jobs, chunksize=1):
                     if progress:
                         progress()

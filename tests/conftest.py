@@ -37,3 +37,13 @@ def small_race(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth") / "race"
     params = SynthParams(depth_bias=0.005, drop_rate=0.1)
     return synthesize(out, "race", 3, 7, thesis_board(), params, workers=2)
+
+
+@pytest.fixture(scope="session")
+def small_line(tmp_path_factory):
+    """A small thesis-line rig (4 cameras, 1280x720, 6 frames) for end-to-end tests."""
+    from rgbd_calib.board import thesis_board
+    from rgbd_calib.synth import SynthParams, synthesize
+
+    out = tmp_path_factory.mktemp("synth") / "line"
+    return synthesize(out, "thesis-line", 6, 3, thesis_board(), SynthParams(), workers=2)

@@ -1,0 +1,149 @@
+"""End-to-end through the command line: outputs per formats.md, caching, bad input."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import yaml
+from conftest import CONFIGS, SHARED_DATA
+from typer.testing import CliRunner
+
+from rgbd_calib import __version__
+from rgbd_calib.cli import app
+from rgbd_calib.geometry import quaternion_xyzw_to_matrix, transform_error
+from rgbd_calib.synth import load_ground_truth
+
+runner = CliRunner()
+# noisy synthetic data (blur 0.6 px, 2 DN), only 6 frames: loose end-to-end bounds; the
+# acceptance bounds on 40-frame rigs are in test_accuracy.py
+E2E_MM, E2E_DEG = 1.0, 0.05
+
+
+def run(*args):
+    result = runner.invoke(app, [str(a) for a in args])
+    return result.exit_code, result.output
+
+
+def test_version_and_help():
+    code, out = run("--version")
+    assert code == 0 and __version__ in out
+    for cmd in ("board", "synth", "calibrate", "posegraph", "demo", "convert", "record"):
+        code, out = run(cmd, "--help")
+        assert code == 0 and "Usage" in out, cmd
+
+
+@pytest.fixture(scope="module")
+def calibrated(small_line, tmp_path_factory):
+    out = tmp_path_factory.mktemp("calib") / "out"
+    code, text = run("calibrate", small_line.path, "--board", CONFIGS / "board_thesis.yaml",
+                     "--out", out)
+    assert code == 0, text
+    return small_line, out
+
+
+def test_extrinsics_yaml_follows_the_contract(calibrated):
+    synth, out = calibrated
+    data = yaml.safe_load((out / "extrinsics.yaml").read_text())
+    gt = load_ground_truth(synth.path)
+    assert data["reference"] == gt.reference == "cam7"
+    assert set(data["cameras"]) == set(gt.T_ref_cam)
+    for name, cam in data["cameras"].items():
+        T = np.asarray(cam["T_ref_cam"])
+        np.testing.assert_allclose(cam["translation_m"], T[:3, 3])
+        np.testing.assert_allclose(quaternion_xyzw_to_matrix(cam["quaternion_xyzw"]), T[:3, :3],
+                                   atol=1e-9)
+        deg, mm = transform_error(T, gt.T_ref_cam[name])
+        assert mm < E2E_MM and deg < E2E_DEG, (name, mm, deg)
+        if name == "cam7":
+            np.testing.assert_allclose(T, np.eye(4), atol=1e-9)
+        else:
+            assert 0 < cam["sigma_translation_mm"] < 1 and 0 < cam["sigma_rotation_deg"] < 0.1
+    report = json.loads((out / "report.json").read_text())
+    assert report["cameras"]["cam8"]["views_used"] > 0
+    for name in ("camchain.yaml", "static_transforms.launch.py", "cameras.urdf", "Nodes.csv",
+                 "Edges.csv", "posegraph.g2o"):
+        assert (out / "exports" / name).stat().st_size > 0
+    assert yaml.safe_load((out / "config_resolved.yaml").read_text())["method"] == "bundle"
+
+
+def test_rerun_uses_the_detection_cache(calibrated):
+    from rgbd_calib.board import thesis_board
+    from rgbd_calib.calibrate import detect_dataset
+    from rgbd_calib.dataset import FolderDataset
+    from rgbd_calib.detection import DetectionConfig
+
+    synth, out = calibrated
+    ds = FolderDataset(synth.path)
+    counts = []
+    dets = detect_dataset(ds, thesis_board(), DetectionConfig(), out / "cache" / "detections.json",
+                          workers=1, progress=counts.append)
+    n_images = sum(len(fs.color) for fs in ds.frame_sets())
+    assert counts == [n_images] and len(dets) == n_images  # all from the cache, none detected
+    code, text = run("calibrate", synth.path, "--out", out, "--method", "posegraph")
+    assert code == 0, text
+    assert yaml.safe_load((out / "config_resolved.yaml").read_text())["method"] == "posegraph"
+
+
+def test_camera_that_never_shares_a_view_is_named(small_line, tmp_path):
+    data = tmp_path / "ds"
+    shutil.copytree(small_line.path, data)
+    for kind in ("color", "depth"):  # cam10's frames get stems no other camera has
+        for p in sorted((data / "cam10" / kind).iterdir()):
+            p.rename(p.with_name("9" + p.name[1:]))
+    code, text = run("calibrate", data, "--out", tmp_path / "out")
+    assert code == 0, text
+    assert "cam10" in text and "not calibrated" in text
+    cams = yaml.safe_load((tmp_path / "out" / "extrinsics.yaml").read_text())["cameras"]
+    assert set(cams) == {"cam7", "cam8", "cam9"}
+
+
+def test_wrong_board_fails_cleanly_and_keeps_earlier_result(calibrated, tmp_path):
+    synth, out = calibrated
+    keep = tmp_path / "out"
+    shutil.copytree(out, keep)
+    before = (keep / "extrinsics.yaml").read_bytes()
+    board = tmp_path / "other.yaml"
+    board.write_text("dictionary: DICT_5X5_100\nthickness: 0.005\ngrid: {rows: 2, cols: 2, "
+                     "marker_length: 0.05, separation: 0.01, front_first_id: 0}\n")
+    code, text = run("calibrate", synth.path, "--board", board, "--out", keep)
+    assert code == 2 and "no usable board view" in text and "Traceback" not in text
+    assert (keep / "extrinsics.yaml").read_bytes() == before
+    assert not any(p.name.startswith(".staging") for p in keep.iterdir())
+
+
+@pytest.mark.parametrize("setup, message", [
+    (lambda p: None, "dataset folder not found"),
+    (lambda p: p.mkdir(), "rig.yaml: missing"),
+    (lambda p: (p.mkdir(), shutil.copy(CONFIGS / "rig_thesis.yaml", p / "rig.yaml")),
+     "have no <camera>/color folder"),
+])
+def test_bad_datasets_fail_with_one_line(tmp_path, setup, message):
+    data = tmp_path / "ds"
+    setup(data)
+    code, text = run("calibrate", data, "--out", tmp_path / "out")
+    assert code == 2 and message in text and "Traceback" not in text
+    assert len(text.strip().splitlines()) == 1
+    assert not (tmp_path / "out" / "extrinsics.yaml").exists()
+
+
+def test_posegraph_command_on_thesis_data(tmp_path):
+    data = SHARED_DATA / "thesis-posegraph"
+    if not data.exists():
+        pytest.skip("shared thesis data not present")
+    code, text = run("posegraph", data / "Nodes.csv", data / "Edges.csv", "--out", tmp_path)
+    assert code == 0, text
+    cams = yaml.safe_load((tmp_path / "extrinsics.yaml").read_text())["cameras"]
+    assert list(cams) == ["cam7", "cam8", "cam9", "cam10"]
+    # cam8 sits about 0.4 m along -x of cam7 (thesis Table 4.3)
+    assert cams["cam8"]["translation_m"][0] == pytest.approx(-0.40, abs=0.03)
+
+
+def test_synth_and_board_commands(tmp_path):
+    code, text = run("synth", tmp_path / "s", "--layout", "moon")
+    assert code == 2 and "unknown layout" in text
+    code, text = run("synth", tmp_path / "s", "--resolution", "big")
+    assert code != 0 and "WIDTHxHEIGHT" in text
+    code, text = run("board", CONFIGS / "board_thesis.yaml", "--out", tmp_path / "b",
+                     "--dpi", "50")
+    assert code == 0 and (tmp_path / "b" / "board.pdf").exists()
