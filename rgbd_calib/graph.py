@@ -842,6 +842,18 @@ class BundleConfig(BaseModel):
 
 
 @dataclass(frozen=True)
+class RelativePose:
+    """A measured camera-to-camera pose ``T_b_a`` (maps camera a's points into camera b),
+    e.g. from registering their depth clouds, with its 6x6 information in GTSAM order
+    ``[rot, trans]`` for the right perturbation ``T_b_a @ Exp(xi)``."""
+
+    cam_a: str
+    cam_b: str
+    T_b_a: np.ndarray
+    information: np.ndarray
+
+
+@dataclass(frozen=True)
 class BundleResult:
     T_ref_cam: dict[str, np.ndarray]
     T_ref_board: dict[str, np.ndarray]
@@ -904,16 +916,20 @@ def _skew(v: np.ndarray) -> np.ndarray:
 def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray],
                   reference: str, init_T_ref_cam: dict[str, np.ndarray],
                   init_T_ref_board: dict[str, np.ndarray], config: BundleConfig = BundleConfig(),
-                  fixed_cameras: dict[str, np.ndarray] | None = None) -> BundleResult:
+                  fixed_cameras: dict[str, np.ndarray] | None = None,
+                  relative_poses: list[RelativePose] = ()) -> BundleResult:
     """Joint bundle adjustment of camera poses ``T_ref_cam`` and board poses ``T_ref_board``
-    on the marker corners (one GTSAM CustomFactor per marker and view, robust per marker).
+    on the marker corners (one GTSAM CustomFactor per marker and view, robust per marker),
+    optionally joined by camera-to-camera ``relative_poses`` (depth registration) as
+    ``BetweenFactorPose3`` with their own information: one joint graph, one set of marginals.
 
     Intrinsics are held fixed; the reference camera (and any ``fixed_cameras``) carry a tight
     prior. Marginal covariances come from the converged graph, scaled by the a-posteriori
     variance factor when ``config.estimate_sigma`` is on."""
     fixed = dict(fixed_cameras or {})
     fixed.setdefault(reference, np.eye(4))
-    cams = sorted({m.camera for m in measurements} | set(fixed))
+    cams = sorted({m.camera for m in measurements} | set(fixed)
+                  | {c for r in relative_poses for c in (r.cam_a, r.cam_b)})
     views = sorted({m.view for m in measurements})
     cam_key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
     view_key = {v: gtsam.symbol("b", i) for i, v in enumerate(views)}
@@ -939,6 +955,12 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)
         for c, T in fixed.items():
             graph.add(gtsam.PriorFactorPose3(cam_key[c], gtsam.Pose3(T), prior))
+        for rel in relative_poses:
+            # BetweenFactorPose3(b, a) predicts T_ref_b^-1 T_ref_a = T_b_a; its error is
+            # Logmap(T_b_a_measured^-1 T_b_a), the right perturbation the information is for
+            graph.add(gtsam.BetweenFactorPose3(
+                cam_key[rel.cam_b], cam_key[rel.cam_a], gtsam.Pose3(rel.T_b_a),
+                gtsam.noiseModel.Gaussian.Information(rel.information)))
         return graph
 
     values = gtsam.Values()
@@ -969,10 +991,18 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     rms = _marker_rms(active, values, cam_key, view_key, K)
     dof = max(8 * len(active) - 6 * (values.size() - len(fixed)), 1)
     sigma_hat = float(np.sqrt(np.sum(4 * rms**2) / dof))  # 4 corners x (du^2+dv^2)
-    scale = (sigma_hat / config.pixel_sigma) ** 2 if config.estimate_sigma else 1.0
-    # marginals on the plain Gaussian graph at the solution (inlier weights are 1 for Huber
-    # below k; outliers were removed above), so robust down-weighting does not inflate them
-    marg_graph = build(active, config.pixel_sigma, robust=False)
+    # marginals of the plain Gaussian graph at the solution, corners weighted by the
+    # a-posteriori sigma (Foerstner's variance factor) so that the relative-pose factors keep
+    # their own weight; inlier Huber weights are 1 and outliers were removed above
+    sigma_marg = max(sigma_hat, 1e-3) if config.estimate_sigma else config.pixel_sigma
+    if relative_poses and config.estimate_sigma:
+        # re-solve with the corners at their estimated noise, so that board and depth
+        # measurements are weighted against each other by their real uncertainties
+        graph = build(active, sigma_marg)
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        values = optimizer.optimize()
+        rms = _marker_rms(active, values, cam_key, view_key, K)
+    marg_graph = build(active, sigma_marg, robust=False)
     marginals = gtsam.Marginals(marg_graph, values)
     out_cam, cov, s_rot, s_trans = {}, {}, {}, {}
     for c in cams:
@@ -983,7 +1013,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         if c in fixed:
             C = np.zeros((6, 6))
         else:
-            C = marginals.marginalCovariance(cam_key[c]) * scale
+            C = marginals.marginalCovariance(cam_key[c])
         cov[c] = C
         s_rot[c], s_trans[c] = _sigmas_from_covariance(T, C)
     boards = {v: values.atPose3(view_key[v]).matrix() for v in views if values.exists(view_key[v])}
