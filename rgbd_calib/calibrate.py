@@ -286,6 +286,15 @@ def calibrate(
             for c in bundle.T_ref_cam
         }
         timings["bundle"] = time.perf_counter() - t0
+    for cam in pg.cameras:
+        if cam not in cameras and cam not in unconnected:
+            unconnected[cam] = (
+                "every board view linking it to the other cameras was rejected as an outlier; "
+                "check its intrinsics (rig.yaml) and frame synchronisation"
+            )
+    for cam in rig.names:
+        if cam not in cameras and cam not in unconnected:
+            unconnected[cam] = "not connected to the reference after outlier rejection"
     extrinsics = Extrinsics(
         reference, {c: cameras[c] for c in rig.names if c in cameras}, unconnected
     )

@@ -228,9 +228,7 @@ def calibrate(
 ) -> None:
     """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports."""
     from .board import load_board, thesis_board
-    from .calibrate import calibrate as run_calibration
     from .dataset import FolderDataset
-    from .outputs import write_outputs
     from .results import load_extrinsics
 
     cfg = _load_config(config, method=method, workers=workers)
@@ -240,6 +238,15 @@ def calibrate(
     if fix is not None:
         prior = load_extrinsics(fix)
         fixed = {n: c.T_ref_cam for n, c in prior.cameras.items() if n in ds.rig.cameras}
+    result = _calibrate_and_write(ds, b, cfg, out, fixed)
+    _print_summary(result, out)
+
+
+def _calibrate_and_write(ds, board, cfg, out: Path, fixed=None):
+    """Run the pipeline and write its outputs, with progress bars on every long step."""
+    from .calibrate import calibrate as run_calibration
+    from .outputs import write_outputs
+
     with progress_bar() as bar:
 
         def progress(label: str, total: int, done: int):
@@ -247,10 +254,10 @@ def calibrate(
             return lambda n=1: bar.advance(task, n)
 
         result = run_calibration(
-            ds, b, cfg, cache_dir=out / "cache", fixed_cameras=fixed, progress=progress
+            ds, board, cfg, cache_dir=out / "cache", fixed_cameras=fixed, progress=progress
         )
-    write_outputs(result, ds.rig, out)
-    _print_summary(result, out)
+        write_outputs(result, ds.rig, out, progress=progress)
+    return result
 
 
 def _print_summary(result, out: Path) -> None:
@@ -285,6 +292,23 @@ def _print_summary(result, out: Path) -> None:
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
     console.print(f"results in {out}/ (extrinsics.yaml, report.json, exports/)")
+
+
+@app.command()
+@user_errors
+def report(
+    out: Annotated[Path, typer.Argument(help="Output folder of an earlier calibrate run.")],
+) -> None:
+    """Rebuild report.html (and report.json) from the saved results of a calibration."""
+    from .report import rebuild_report
+
+    with progress_bar() as bar:
+        def progress(label: str, total: int, done: int):
+            task = bar.add_task(label, total=total, completed=done)
+            return lambda n=1: bar.advance(task, n)
+
+        path = rebuild_report(out, progress=progress)
+    console.print(f"report: {path}")
 
 
 @app.command()
@@ -334,10 +358,8 @@ def demo(
     import shutil
 
     from .board import thesis_board
-    from .calibrate import calibrate as run_calibration
     from .dataset import FolderDataset
     from .geometry import transform_error
-    from .outputs import write_outputs
     from .synth import SynthParams, load_ground_truth, synthesize
 
     dataset = out / "dataset"
@@ -356,14 +378,7 @@ def demo(
             progress=lambda: bar.advance(task),
         )
     ds = FolderDataset(dataset)
-    with progress_bar() as bar:
-
-        def progress(label: str, total: int, done: int):
-            task = bar.add_task(label, total=total, completed=done)
-            return lambda n=1: bar.advance(task, n)
-
-        result = run_calibration(ds, b, cache_dir=out / "calibration" / "cache", progress=progress)
-    write_outputs(result, ds.rig, out / "calibration")
+    result = _calibrate_and_write(ds, b, None, out / "calibration")
     _print_summary(result, out / "calibration")
     gt = load_ground_truth(dataset)
     from rich.table import Table

@@ -975,8 +975,9 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)
-    active = kept
     outliers: list[tuple[str, str, int, float]] = []
+    active, values = _reference_component(kept, values, cam_key, view_key, set(fixed),
+                                          relative_poses, reference)
     for _ in range(3):  # solve, drop markers far off, re-solve
         graph = build(active, config.pixel_sigma)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
@@ -988,6 +989,9 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         outliers += [(m.camera, m.view, m.marker_id, float(r))
                      for m, r, b in zip(active, rms, bad) if b]
         active = [m for m, b in zip(active, bad) if not b]
+        # removing outliers can cut a camera (or a view) off the reference: drop that part
+        active, values = _reference_component(active, values, cam_key, view_key, set(fixed),
+                                              relative_poses, reference)
     rms = _marker_rms(active, values, cam_key, view_key, K)
     dof = max(8 * len(active) - 6 * (values.size() - len(fixed)), 1)
     sigma_hat = float(np.sqrt(np.sum(4 * rms**2) / dof))  # 4 corners x (du^2+dv^2)
@@ -1020,6 +1024,41 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     residuals = [(m.camera, m.view, m.marker_id, float(r)) for m, r in zip(active, rms)]
     return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, outliers, sigma_hat,
                         optimizer.iterations(), graph.error(values))
+
+
+def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
+                         cam_key: dict, view_key: dict, fixed: set[str],
+                         relative_poses, reference: str):
+    """Keep the measurements and values connected to the reference camera (a camera or view
+    cut off from it has no determined pose: its marginals would be singular)."""
+    parent: dict[str, str] = {}
+
+    def find(x: str) -> str:
+        parent.setdefault(x, x)
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    def union(a: str, b: str) -> None:
+        parent[find(a)] = find(b)
+
+    for m in active:
+        union("c:" + m.camera, "v:" + m.view)
+    for r in relative_poses:
+        union("c:" + r.cam_a, "c:" + r.cam_b)
+    for c in fixed:  # fixed cameras are tied to the reference frame by their priors
+        union("c:" + c, "c:" + reference)
+    root = find("c:" + reference)
+    kept = [m for m in active if find("c:" + m.camera) == root]
+    sub = gtsam.Values()
+    for c, k in cam_key.items():
+        if values.exists(k) and find("c:" + c) == root:
+            sub.insert(k, values.atPose3(k))
+    for v, k in view_key.items():
+        if values.exists(k) and find("v:" + v) == root:
+            sub.insert(k, values.atPose3(k))
+    return kept, sub
 
 
 def _marker_rms(active, values, cam_key, view_key, K) -> np.ndarray:

@@ -5,9 +5,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rgbd_calib.geometry import (
-    invert_transform, is_rigid, look_at, make_transform, matrix_to_quaternion_xyzw,
-    matrix_to_rotvec, quaternion_xyzw_to_matrix, rotvec_to_matrix, transform_error,
-    transform_points)
+    invert_transform,
+    is_rigid,
+    look_at,
+    make_transform,
+    matrix_to_quaternion_xyzw,
+    matrix_to_rotvec,
+    quaternion_xyzw_to_matrix,
+    rotvec_to_matrix,
+    transform_error,
+    transform_points,
+)
 
 finite = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
 vec3 = st.tuples(finite, finite, finite).map(np.array)

@@ -10,8 +10,17 @@ from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.errors import ConfigError
 from rgbd_calib.geometry import invert_transform, is_rigid, transform_points
 from rgbd_calib.synth import (
-    SynthParams, _BoardModel, finish_color, finish_depth, load_ground_truth, make_rig,
-    marker_visibility, render_background, render_board, sample_board_poses)
+    SynthParams,
+    _BoardModel,
+    finish_color,
+    finish_depth,
+    load_ground_truth,
+    make_rig,
+    marker_visibility,
+    render_background,
+    render_board,
+    sample_board_poses,
+)
 
 MEAN_OFFSET_PX = 0.05  # issue 2: detected minus true corners, mean per axis, noise-free
 

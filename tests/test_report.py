@@ -1,0 +1,332 @@
+"""report.json schema, byte-identical rebuilds, and the warnings on a rig with known faults.
+
+One small synthetic race rig (10 frame sets) is calibrated twice: as rendered, and from a
+copy with two deliberate faults, a weak camera (all colour frames but one deleted) and a
+camera whose rig.yaml fx is 5 % too large.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from rgbd_calib.board import thesis_board
+from rgbd_calib.calibrate import CalibrationConfig, calibrate
+from rgbd_calib.dataset import FolderDataset
+from rgbd_calib.outputs import write_outputs
+from rgbd_calib.report import (
+    REPORT_SCHEMA_VERSION,
+    ReportError,
+    dump_report,
+    error_map,
+    finalize_report,
+    load_cloud,
+    pair_entry,
+    rebuild_report,
+    render_html,
+    schema_blocks,
+    schema_paths,
+    validate_report,
+)
+from rgbd_calib.synth import SynthParams, synthesize
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "report_schema.md"
+FX_ERROR = 1.05  # the wrong camera's fx in rig.yaml, relative to the true one
+FLAG_CODES = {"error", "warning"}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """(clean report folder, faulty report folder, weak camera, wrong-intrinsics camera)."""
+    base = tmp_path_factory.mktemp("report")
+    board = thesis_board()
+    ds_path = synthesize(base / "dataset", "race", 10, 3, board, SynthParams(), workers=2).path
+    ds = FolderDataset(ds_path)
+    clean = calibrate(ds, board)
+    write_outputs(clean, ds.rig, base / "clean")
+
+    views = Counter(o.camera for o in clean.observations)
+    ref = clean.extrinsics.reference
+    order = sorted(views, key=lambda c: (-views[c], c))
+    wrong = next(c for c in order if c != ref)
+    weak = next(c for c in order if c not in (ref, wrong) and views[c] >= 3)
+    used = {(r.camera, r.view) for r in clean.posegraph.residuals if r.used}
+    frames = [f for c, f in used if c == weak]
+    keep = max(frames, key=lambda f: (sum(1 for _, v in used if v == f), f))
+
+    faulty_ds = base / "faulty_dataset"
+    shutil.copytree(ds_path, faulty_ds)
+    for p in (faulty_ds / weak / "color").iterdir():
+        if p.stem != keep:
+            p.unlink()
+    rig = yaml.safe_load((faulty_ds / "rig.yaml").read_text())
+    rig["cameras"][wrong]["fx"] *= FX_ERROR
+    (faulty_ds / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False))
+    ds2 = FolderDataset(faulty_ds)
+    # posegraph: the bundle stage can fail outright on a camera with wrong intrinsics (a board
+    # view left with only that camera's rejected markers); the report is what is tested here
+    faulty = calibrate(ds2, board, CalibrationConfig(method="posegraph"))
+    write_outputs(faulty, ds2.rig, base / "faulty")
+    return base / "clean", base / "faulty", weak, wrong
+
+
+def _load(folder: Path) -> dict:
+    return json.loads((folder / "report.json").read_text())
+
+
+def _flagged(report: dict, codes: set[str]) -> dict[str, set[str]]:
+    """camera -> codes of error/warning findings naming it."""
+    out: dict[str, set[str]] = {}
+    for w in report["warnings"]:
+        if w["severity"] in FLAG_CODES and w["code"] in codes:
+            for c in w["cameras"]:
+                out.setdefault(c, set()).add(w["code"])
+    return out
+
+
+# ----------------------------------------------------------------------------- schema
+def test_reports_validate_against_the_schema(runs):
+    clean, faulty, *_ = runs
+    for folder in (clean, faulty):
+        report = _load(folder)
+        assert validate_report(report) == []
+        assert report["schema_version"] == REPORT_SCHEMA_VERSION
+        assert report["pairs"] == []
+        assert all(c["depth_scale_factor"] is None for c in report["cameras"].values())
+    assert "bundle" in _load(clean) and "bundle" not in _load(faulty)
+
+
+def test_validator_rejects_broken_reports(runs):
+    report = _load(runs[0])
+    cam = next(iter(report["cameras"]))
+    broken = json.loads(json.dumps(report))
+    del broken["summary"]["verdict"]
+    broken["cameras"][cam]["views_used"] = "many"
+    broken["views"][0]["edge_status"] = "maybe"
+    broken["board_views"][0]["T_ref_board"] = [[1, 0, 0]]
+    broken["surprise"] = 1
+    errors = "\n".join(validate_report(broken))
+    assert "summary.verdict: missing" in errors
+    assert f"cameras.{cam}.views_used: expected integer" in errors
+    assert "views[0].edge_status: 'maybe' not one of" in errors
+    assert "board_views[0].T_ref_board: expected matrix4" in errors
+    assert ".surprise: not in schema" in errors
+
+
+def _documented() -> tuple[dict[str, str], str]:
+    text = DOC.read_text()
+    rows = re.findall(r"^\| `([^`]+)` \| (.+?) \| [^|]* \| .* \|$", text, flags=re.M)
+    unescape = {"\\|": "|", "&lt;": "<", "&gt;": ">"}
+    types = {}
+    for key, typ in rows:
+        for a, b in unescape.items():
+            typ = typ.replace(a, b)
+        types[key] = typ.strip()
+    return types, text
+
+
+def test_schema_doc_matches_the_code():
+    documented, text = _documented()
+    code = schema_paths()
+    keys = {k: v for k, v in documented.items() if k not in schema_blocks()}
+    assert set(keys) == set(code), (
+        f"undocumented: {sorted(set(code) - set(keys))}; "
+        f"not in the schema: {sorted(set(keys) - set(code))}"
+    )
+    wrong = {k: (keys[k], code[k]) for k in code if keys[k] != code[k]}
+    assert not wrong, f"documented type differs from the code: {wrong}"
+    for block, fields in schema_blocks().items():
+        row = re.search(rf"^\| `{block}` \| (.*)$", text, flags=re.M)
+        assert row and all(f"`{f}`" in row.group(1) for f in fields), block
+    assert f"**Schema version: {REPORT_SCHEMA_VERSION}**" in text
+
+
+def test_every_warning_code_raised_is_documented(runs):
+    text = DOC.read_text()
+    codes = {w["code"] for f in runs[:2] for w in _load(f)["warnings"]}
+    assert codes, "the faulty rig raised no warning at all"
+    for code in codes:
+        assert f"| `{code}` |" in text, f"warning code {code} is not documented"
+
+
+# ----------------------------------------------------------------------------- rebuild
+def test_rebuild_reproduces_report_json_and_html(runs, tmp_path):
+    for folder in runs[:2]:
+        copy = tmp_path / folder.name
+        shutil.copytree(folder, copy)
+        json_before = (copy / "report.json").read_bytes()
+        html_before = (copy / "report.html").read_bytes()
+        (copy / "report.html").unlink()
+        assert rebuild_report(copy) == copy / "report.html"
+        assert (copy / "report.json").read_bytes() == json_before
+        assert (copy / "report.html").read_bytes() == html_before
+        report = json.loads(json_before)
+        assert finalize_report(json.loads(json_before)) == report
+        assert dump_report(report).encode() == json_before
+
+
+def test_rebuild_refuses_mismatched_or_missing_results(runs, tmp_path):
+    copy = tmp_path / "mismatch"
+    shutil.copytree(runs[0], copy)
+    ext = yaml.safe_load((copy / "extrinsics.yaml").read_text())
+    cam = next(c for c in ext["cameras"] if c != ext["reference"])
+    ext["cameras"][cam]["T_ref_cam"][0][3] += 0.01
+    (copy / "extrinsics.yaml").write_text(yaml.safe_dump(ext))
+    with pytest.raises(ReportError, match=f"camera {cam} differs"):
+        rebuild_report(copy)
+    with pytest.raises(ReportError, match="report.json: missing"):
+        rebuild_report(tmp_path / "nothing")
+
+
+def test_html_is_self_contained(runs):
+    page = (runs[0] / "report.html").read_text()
+    sources = re.findall(r"""\b(?:src|href)\s*=\s*["']([^"']*)""", page)
+    assert sources and all(s.startswith("data:image/png;base64,") for s in sources), sources
+    assert not re.search(r"https?://", page)
+    assert "<script src" not in page and "@import" not in page
+
+
+# ----------------------------------------------------------------------------- warnings
+def test_clean_rig_is_not_flagged(runs):
+    report = _load(runs[0])
+    assert report["summary"]["verdict"] != "poor"
+    assert report["summary"]["n_calibrated"] == report["summary"]["n_cameras"]
+    assert not _flagged(report, {"inconsistent_camera", "weak_camera", "not_calibrated"})
+    covis = np.asarray(report["covisibility"]["views"])
+    assert (covis == covis.T).all()
+    assert list(np.diag(covis)) == [
+        sum(1 for v in report["views"] if v["camera"] == c and v["edge_status"] == "used")
+        for c in report["covisibility"]["cameras"]
+    ]
+
+
+def test_faulty_rig_names_the_weak_and_the_wrong_camera(runs):
+    _, faulty, weak, wrong = runs
+    report = _load(faulty)
+    flagged = _flagged(report, {"inconsistent_camera", "weak_camera", "not_calibrated"})
+    assert "weak_camera" in flagged.get(weak, set()), report["warnings"]
+    assert "inconsistent_camera" in flagged.get(wrong, set()), report["warnings"]
+    assert set(flagged) == {weak, wrong}, f"others flagged too: {flagged}"
+    assert report["summary"]["verdict"] == "poor"
+    intrinsics = next(
+        w
+        for w in report["warnings"]
+        if w["code"] == "inconsistent_camera" and wrong in w["cameras"]
+    )
+    assert "intrinsics" in intrinsics["advice"] and wrong in intrinsics["advice"]
+    # the wrong camera's corners miss by far more than the rest of the rig's
+    cams = report["cameras"]
+    others = [
+        c["reprojection_all_px"]["p50"]
+        for n, c in cams.items()
+        if n != wrong and c["reprojection_all_px"]
+    ]
+    if cams[wrong]["reprojection_all_px"]:
+        assert cams[wrong]["reprojection_all_px"]["p50"] > 5 * max(others)
+    assert cams[weak]["views_used"] == 1
+    assert report["next_steps"], "a faulty rig must come with next steps"
+    page = (faulty / "report.html").read_text()
+    assert f"{weak} is weakly constrained" in page and "POOR" in page
+
+
+# ----------------------------------------------------------------------------- depth inputs
+def _write_ply(path: Path, points: np.ndarray, cams: np.ndarray, names: list[str]) -> None:
+    """A fused.ply as docs/formats.md and the depth stage write it."""
+    dtype = np.dtype(
+        [
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+            ("camera", "u1"),
+        ]
+    )
+    data = np.zeros(len(points), dtype)
+    data["x"], data["y"], data["z"] = points.T
+    data["red"], data["camera"] = 200, cams
+    header = ["ply", "format binary_little_endian 1.0"]
+    header += [f"comment camera {k} {n}" for k, n in enumerate(names)]
+    header += [
+        f"element vertex {len(points)}",
+        "property float x",
+        "property float y",
+        "property float z",
+        "property uchar red",
+        "property uchar green",
+        "property uchar blue",
+        "property uchar camera",
+        "end_header",
+    ]
+    path.write_bytes(("\n".join(header) + "\n").encode() + data.tobytes())
+
+
+def test_fused_ply_replaces_the_preview_cloud(runs, tmp_path, rng):
+    copy = tmp_path / "with_ply"
+    shutil.copytree(runs[0], copy)
+    report = _load(copy)
+    names = list(report["cameras"])[::-1]  # camera order of the PLY differs from the rig's
+    points = rng.uniform(-1, 1, (500, 3))
+    cams = rng.integers(0, len(names), 500)
+    _write_ply(copy / "fused.ply", points, cams, names)
+    cloud, why = load_cloud(report, copy)
+    assert cloud is not None and why == "" and cloud.source.startswith("fused.ply")
+    np.testing.assert_allclose(cloud.points, points.astype(np.float32), atol=1e-6)
+    rig_order = list(report["cameras"])
+    assert [rig_order[i] for i in cloud.camera] == [names[i] for i in cams]
+    rebuild_report(copy)
+    page = (copy / "report.html").read_text()
+    data = json.loads(re.search(r"id='viewer-data'>(.*?)</script>", page, re.S).group(1))
+    assert data["cloud"]["n"] == 500
+
+
+def test_no_depth_is_reported_gracefully(runs, tmp_path):
+    report = _load(runs[0])
+    report["dataset"]["path"] = str(tmp_path / "moved_away")
+    cloud, why = load_cloud(report, tmp_path)
+    assert cloud is None and "not available" in why
+    page = render_html(report, cloud, why)
+    assert "No depth" in page and "moved_away" in page
+
+
+def test_depth_pairs_show_error_maps_and_warnings(runs):
+    report = _load(runs[0])
+    a, b = list(report["cameras"])[:2]
+    uv = np.array([[5, 5], [6, 7], [40, 5], [40, 40]])
+    d_m = np.array([0.001, 0.003, -0.002, np.nan])
+    em = error_map(uv, d_m, 64, 48, cell_px=16)
+    assert (em["cols"], em["rows"]) == (4, 3)
+    assert em["values_mm"][0] == pytest.approx(2.0)  # median of 1 and 3 mm
+    assert em["values_mm"][2] == pytest.approx(-2.0)
+    assert em["values_mm"][2 * 4 + 2] is None  # NaN distance: no partner
+    report["pairs"] = [
+        pair_entry(
+            {
+                "cam_a": a,
+                "cam_b": b,
+                "fitness": 0.8,
+                "rmse_before_mm": 9.0,
+                "rmse_after_mm": 7.5,
+                "overlap_fraction": 0.4,
+                "error_map": em,
+                "T_b_a": [[1.0]],
+                "time_s": 1.0,
+            }
+        )
+    ]
+    report["cameras"][a]["depth_scale_factor"] = 1.006
+    report = finalize_report(report)
+    assert validate_report(report) == []
+    codes = {w["code"]: w for w in report["warnings"]}
+    assert a in codes["pair_rmse"]["cameras"] and b in codes["pair_rmse"]["cameras"]
+    assert codes["depth_scale"]["cameras"] == [a]
+    page = render_html(report, None, "no cloud in this test")
+    assert 'alt="overlap error maps"' in page and "7.50" in page
