@@ -27,6 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .board import Board
 from .dataset import FolderDataset, read_color_image
+from .depth import DepthConfig
 from .detection import DetectionConfig, MarkerDetections, detect_markers, limit_threads
 from .errors import CalibrationError
 from .graph import (
@@ -41,6 +42,7 @@ from .graph import (
 )
 from .parallel import process_context
 from .pose import BoardObservation, PoseConfig, RejectedView, estimate_board_pose, undistort_pixels
+from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
 from .results import CameraExtrinsics, Extrinsics
 from .yamlio import atomic_write_text
 
@@ -55,6 +57,11 @@ class CalibrationConfig(BaseModel):
     pose: PoseConfig = Field(default_factory=PoseConfig)
     graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
     bundle: BundleConfig = Field(default_factory=BundleConfig)
+    depth: DepthConfig = Field(default_factory=DepthConfig)
+    refine: Literal["auto", "colored-icp", "geometric", "none"] = Field(
+        "auto", description="depth refinement after the board solve: colored ICP, kiss-icp's "
+        "geometric ICP, or none; auto = colored-icp when the dataset has depth (bundle method "
+        "only)")
     method: Literal["bundle", "posegraph"] = Field(
         "bundle",
         description="final estimate: joint bundle adjustment on marker corners "
@@ -82,6 +89,8 @@ class CalibrationResult:
     detections_total: int
     timings_s: dict[str, float] = field(default_factory=dict)
     dataset_summary: dict[str, Any] = field(default_factory=dict)
+    depth: DepthRefinement | None = None
+    extrinsics_board_only: Extrinsics | None = None  # before depth refinement
 
 
 # ----------------------------------------------------------------------------- detection stage
@@ -256,6 +265,8 @@ def calibrate(
         )
 
     bundle = None
+    depth = None
+    board_only = None
     cameras = dict(pg.cameras)
     if config.method == "bundle":
         t0 = time.perf_counter()
@@ -286,6 +297,29 @@ def calibrate(
             for c in bundle.T_ref_cam
         }
         timings["bundle"] = time.perf_counter() - t0
+        refine = config.refine
+        if refine == "auto":
+            refine = "colored-icp" if any(dataset.has_depth(c) for c in cameras) else "none"
+        if refine != "none":
+            board_only = Extrinsics(reference, dict(cameras), dict(unconnected))
+            t0 = time.perf_counter()
+            T_cam = {c: e.T_ref_cam for c, e in cameras.items()}
+            depth = measure_depth(dataset, board, T_cam,
+                                  board_views_per_camera(observations, T_cam, bundle.T_ref_board),
+                                  bundle.T_ref_board, refine, config.depth, progress)
+            timings["depth"] = time.perf_counter() - t0
+            if depth.relative_poses:
+                t0 = time.perf_counter()
+                bundle = bundle_adjust(measurements, K, reference, T_cam, bundle.T_ref_board,
+                                       config.bundle, fixed_cameras, depth.relative_poses)
+                cameras = {c: CameraExtrinsics(c, bundle.T_ref_cam[c],
+                                               bundle.sigma_rotation_deg[c],
+                                               bundle.sigma_translation_mm[c],
+                                               bundle.covariance[c])
+                           for c in bundle.T_ref_cam}
+                timings["joint"] = time.perf_counter() - t0
+            depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},
+                                 config.depth)
     for cam in pg.cameras:
         if cam not in cameras and cam not in unconnected:
             unconnected[cam] = (
@@ -308,4 +342,6 @@ def calibrate(
         n_images,
         timings,
         dataset.summary().to_dict(),
+        depth,
+        board_only,
     )

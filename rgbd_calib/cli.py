@@ -218,6 +218,11 @@ def calibrate(
     workers: Annotated[
         int | None, typer.Option(help="Detection processes; default all cores.")
     ] = None,
+    refine: Annotated[
+        str | None,
+        typer.Option(help="Depth refinement: colored-icp (default when there is depth), "
+                     "geometric or none."),
+    ] = None,
     fix: Annotated[
         Path | None,
         typer.Option(
@@ -231,7 +236,7 @@ def calibrate(
     from .dataset import FolderDataset
     from .results import load_extrinsics
 
-    cfg = _load_config(config, method=method, workers=workers)
+    cfg = _load_config(config, method=method, workers=workers, refine=refine)
     b = load_board(board_file) if board_file else thesis_board()
     ds = FolderDataset(dataset)
     fixed = None
@@ -292,6 +297,48 @@ def _print_summary(result, out: Path) -> None:
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
     console.print(f"results in {out}/ (extrinsics.yaml, report.json, exports/)")
+
+
+@app.command()
+@user_errors
+def refine(
+    dataset: Annotated[Path, typer.Argument(help="Dataset folder with depth.")],
+    init: Annotated[Path, typer.Option("--init", help="extrinsics.yaml to start from "
+                                       "(hand-measured or an older calibration).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("refine_out"),
+    method: Annotated[str, typer.Option(help="colored-icp or geometric.")] = "colored-icp",
+) -> None:
+    """Depth-only refinement of existing extrinsics (no board needed in view)."""
+    import json
+
+    from .dataset import FolderDataset
+    from .depth import write_fused_ply
+    from .errors import ConfigError
+    from .refine import refine_extrinsics
+    from .results import load_extrinsics, write_extrinsics
+    from .yamlio import atomic_write_text, to_builtin
+
+    if method not in ("colored-icp", "geometric"):
+        raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
+    ds = FolderDataset(dataset)
+    init_ext = load_extrinsics(init)
+    with progress_bar() as bar:
+        def progress(label: str, total: int, done: int):
+            task = bar.add_task(label, total=total, completed=done)
+            return lambda n=1: bar.advance(task, n)
+
+        ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress)
+    out.mkdir(parents=True, exist_ok=True)
+    pts, cols, idx, names = depth.fused({c: e.T_ref_cam for c, e in ext.cameras.items()}, 0.005)
+    write_fused_ply(out / "fused.ply", pts, cols, idx, names)
+    atomic_write_text(out / "refine_report.json", json.dumps(to_builtin(
+        {"method": method, "init": str(init), "pairs": depth.pairs}), indent=1, default=str))
+    write_extrinsics(ext, out / "extrinsics.yaml")
+    for p in depth.pairs:
+        state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
+        console.print(f"{p['cam_a']} -> {p['cam_b']}: rmse {p['rmse_before_mm']:.2f} -> "
+                      f"{p['rmse_final_mm']:.2f} mm, {state}")
+    console.print(f"results in {out}/ (extrinsics.yaml, refine_report.json, fused.ply)")
 
 
 @app.command()

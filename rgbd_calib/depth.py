@@ -1111,6 +1111,49 @@ def _rmse_mm(matches: _Matches) -> float:
     return float(1000.0 * np.sqrt(np.mean(matches.residual**2)))
 
 
+def _common_surfaces(cloud_a: CameraCloud, cloud_b: CameraCloud, T_b_a0: np.ndarray,
+                     config: DepthConfig):
+    """Points of each cloud the other camera can see (in view, low noise, facing it), with
+    their normal fields; the selection is made once, at the initial ``T_b_a0``."""
+    T_a_b0 = invert_transform(T_b_a0)
+    # 1. what each camera can see of the other's cloud
+    keep_a = _in_view(cloud_b.intrinsics, transform_points(T_b_a0, cloud_a.points),
+                      config.crop_margin_px, 0.05, np.inf)
+    keep_b = _in_view(cloud_a.intrinsics, transform_points(T_a_b0, cloud_b.points),
+                      config.crop_margin_px, 0.05, np.inf)
+    keep_a &= cloud_a.sigma_z <= config.icp_max_sigma_z_m
+    keep_b &= cloud_b.sigma_z <= config.icp_max_sigma_z_m
+    normals_a = _NormalField(cloud_a.points[keep_a].astype(float), config.normal_voxel_m,
+                             config.normal_radius_m)
+    normals_b = _NormalField(cloud_b.points[keep_b].astype(float), config.normal_voxel_m,
+                             config.normal_radius_m)
+    # surfaces the other camera sees from behind (the far side of a rail, a post) or at a
+    # grazing angle are not common to both views: drop them
+    keep_a[keep_a] &= _faces_camera(cloud_a.points[keep_a], normals_a, T_b_a0,
+                                    config.max_incidence_deg)
+    keep_b[keep_b] &= _faces_camera(cloud_b.points[keep_b], normals_b, T_a_b0,
+                                    config.max_incidence_deg)
+    return keep_a, keep_b, normals_a, normals_b
+
+
+def pair_rmse_mm(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a_initial: np.ndarray,
+                 T_ref_b_initial: np.ndarray, T_ref_a: np.ndarray, T_ref_b: np.ndarray,
+                 config: DepthConfig | None = None) -> float:
+    """Point-to-plane RMSE (mm) of a pair at extrinsics ``T_ref_a``, ``T_ref_b``, measured
+    exactly as :func:`register_pair` reports ``rmse_before_mm`` / ``rmse_after_mm`` (same
+    common surfaces, chosen at the initial extrinsics; finest voxel; eval distance)."""
+    config = config or DepthConfig()
+    T_b_a0 = invert_transform(T_ref_b_initial) @ np.asarray(T_ref_a_initial, dtype=float)
+    keep_a, keep_b, normals_a, normals_b = _common_surfaces(cloud_a, cloud_b, T_b_a0, config)
+    voxel = config.voxel_schedule_m[-1]
+    src = _make_level(cloud_a, keep_a, voxel, normals_a)
+    tgt = _make_level(cloud_b, keep_b, voxel, normals_b)
+    if src.points.shape[0] == 0 or tgt.points.shape[0] < 3:
+        return float("nan")
+    T_b_a = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
+    return _rmse_mm(_match(src, tgt, cKDTree(tgt.points), T_b_a, config.eval_distance_m))
+
+
 def register_pair(
     cloud_a: CameraCloud,
     cloud_b: CameraCloud,
@@ -1139,28 +1182,11 @@ def register_pair(
                          "'geometric'")
     t_start = time.perf_counter()
     T_b_a0 = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
-    T_a_b0 = invert_transform(T_b_a0)
-    # 1. what each camera can see of the other's cloud
-    keep_a = _in_view(cloud_b.intrinsics, transform_points(T_b_a0, cloud_a.points),
-                      config.crop_margin_px, 0.05, np.inf)
-    keep_b = _in_view(cloud_a.intrinsics, transform_points(T_a_b0, cloud_b.points),
-                      config.crop_margin_px, 0.05, np.inf)
-    keep_a &= cloud_a.sigma_z <= config.icp_max_sigma_z_m
-    keep_b &= cloud_b.sigma_z <= config.icp_max_sigma_z_m
+    keep_a, keep_b, normals_a, normals_b = _common_surfaces(cloud_a, cloud_b, T_b_a0, config)
     T = T_b_a0.copy()
     finest: tuple[_Level, _Level] | None = None
     kiss = Registration(max_num_iterations=config.kiss_max_iterations,
                         convergence_criterion=1e-5, max_num_threads=0)
-    normals_a = _NormalField(cloud_a.points[keep_a].astype(float), config.normal_voxel_m,
-                             config.normal_radius_m)
-    normals_b = _NormalField(cloud_b.points[keep_b].astype(float), config.normal_voxel_m,
-                             config.normal_radius_m)
-    # surfaces the other camera sees from behind (the far side of a rail, a post) or at a
-    # grazing angle are not common to both views: drop them
-    keep_a[keep_a] &= _faces_camera(cloud_a.points[keep_a], normals_a, T_b_a0,
-                                    config.max_incidence_deg)
-    keep_b[keep_b] &= _faces_camera(cloud_b.points[keep_b], normals_b, T_a_b0,
-                                    config.max_incidence_deg)
     # 2. coarse to fine
     for voxel, iterations in zip(config.voxel_schedule_m, config.iterations):
         src = _make_level(cloud_a, keep_a, voxel, normals_a)

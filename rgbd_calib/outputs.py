@@ -22,6 +22,7 @@ import yaml
 
 from . import __version__
 from .calibrate import CalibrationResult
+from .depth import write_fused_ply
 from .exports import write_exports
 from .geometry import invert_transform
 from .report import (
@@ -349,6 +350,15 @@ def write_outputs(
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
     try:
+        if result.depth is not None:
+            pairs = pairs if pairs is not None else result.depth.pairs
+            depth_scale = depth_scale if depth_scale is not None else (
+                result.depth.depth_scale_dict())
+            if fused_ply is None and result.depth.clouds:
+                T_ref_cam = {c: e.T_ref_cam for c, e in result.extrinsics.cameras.items()}
+                pts, cols, idx, names = result.depth.fused(
+                    T_ref_cam, result.config.depth.fused_voxel_m)
+                write_fused_ply(stage / "fused.ply", pts, cols, idx, names)
         report = report_dict(result, rig, pairs, depth_scale)
         (stage / "report.json").write_text(dump_report(report))
         if fused_ply is not None:
@@ -360,7 +370,7 @@ def write_outputs(
         boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
         write_exports(result.extrinsics, stage, rig=rig, board_poses=boards)
         write_extrinsics(result.extrinsics, stage / "extrinsics.yaml")
-        if fused_ply is None:
+        if not (stage / "fused.ply").exists():
             (out_dir / "fused.ply").unlink(missing_ok=True)
         written = []
         for path in sorted(stage.rglob("*"), key=lambda p: p.name == "extrinsics.yaml"):

@@ -1,0 +1,182 @@
+"""Depth refinement stage: the RGB-D frames tighten the extrinsics.
+
+Steps (issue 4's design, one joint graph with the board):
+
+1. depth-scale bias per camera from the board face, against the calibrated board poses;
+2. a static cloud per camera (temporal median, board and moving things masked, scale
+   applied);
+3. overlapping camera pairs under the current extrinsics;
+4. pairwise registration (colored ICP, Park et al. ICCV 2017, or kiss-icp's geometric ICP)
+   with an information matrix; weak pairs rejected with a reason;
+5. the accepted pairs become relative-pose factors in the bundle adjustment (done by the
+   caller, :func:`rgbd_calib.calibrate.calibrate`, or :func:`refine_extrinsics` without a board).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
+
+import numpy as np
+
+from .board import Board
+from .dataset import FolderDataset
+from .depth import (
+    CameraCloud,
+    DepthConfig,
+    DepthScaleEstimate,
+    estimate_depth_scale,
+    find_overlapping_pairs,
+    fuse_clouds,
+    pair_rmse_mm,
+    register_pair,
+    static_cloud,
+)
+from .errors import CalibrationError
+from .geometry import invert_transform
+from .graph import BundleConfig, RelativePose, bundle_adjust
+from .results import CameraExtrinsics, Extrinsics
+
+RefineMethod = Literal["colored-icp", "geometric", "none"]
+
+
+@dataclass(frozen=True)
+class DepthRefinement:
+    """What the depth stage measured; ``pairs`` are report-ready dicts (see report schema)."""
+
+    method: str
+    depth_scales: dict[str, DepthScaleEstimate]
+    clouds: dict[str, CameraCloud]
+    pairs: list[dict[str, Any]]
+    relative_poses: list[RelativePose]
+    T_ref_cam_initial: dict[str, np.ndarray]  # extrinsics the pairs were registered from
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def depth_scale_dict(self) -> dict[str, dict[str, float]]:
+        return {c: {"factor": e.factor, "sigma": e.sigma} for c, e in self.depth_scales.items()}
+
+    def fused(self, T_ref_cam: dict[str, np.ndarray], voxel_m: float):
+        """``(points_ref, colors, camera_index, camera_names)`` at the given extrinsics."""
+        names = [c for c in self.clouds if c in T_ref_cam]
+        pts, cols, idx = fuse_clouds({c: self.clouds[c] for c in names},
+                                     {c: T_ref_cam[c] for c in names}, voxel_m)
+        return pts, cols, idx, names
+
+
+def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[str, np.ndarray],
+                  board_views: dict[str, dict[str, np.ndarray]] | None, T_ref_board:
+                  dict[str, np.ndarray] | None, method: RefineMethod,
+                  config: DepthConfig | None = None,
+                  progress: Callable[[str, int, int], Callable[[int], None]] | None = None,
+                  ) -> DepthRefinement:
+    """Run steps 1-4 for every calibrated camera that has depth.
+
+    ``board_views`` maps camera -> {frame: T_cam_board} of the views it saw (for the depth
+    scale); ``T_ref_board`` maps frame -> board pose (for masking the board). Both may be
+    None (refinement of an existing calibration without a board in view)."""
+    config = config or DepthConfig()
+    cams = [c for c in dataset.cameras if c in T_ref_cam and dataset.has_depth(c)]
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    scales: dict[str, DepthScaleEstimate] = {}
+    if board is not None and board_views:
+        tick = progress("depth scale per camera", len(cams), 0) if progress else None
+        for c in cams:
+            views = board_views.get(c, {})
+            if views:
+                try:
+                    scales[c] = estimate_depth_scale(dataset, c, views, board, config)
+                except CalibrationError:
+                    pass  # too few board pixels with depth: the factor stays 1
+            if tick:
+                tick(1)
+    timings["depth_scale"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    tick = progress("static clouds", len(cams), 0) if progress else None
+    clouds: dict[str, CameraCloud] = {}
+    for c in cams:
+        factor = scales[c].factor if c in scales else 1.0
+        clouds[c] = static_cloud(dataset, c, T_ref_board or {}, T_ref_cam[c], board, config,
+                                 depth_scale_factor=factor)
+        if tick:
+            tick(1)
+    timings["clouds"] = time.perf_counter() - t0
+
+    pairs: list[dict[str, Any]] = []
+    relative: list[RelativePose] = []
+    if method != "none" and len(clouds) >= 2:
+        t0 = time.perf_counter()
+        intrinsics = {c: dataset.rig.cameras[c] for c in clouds}
+        overlaps = find_overlapping_pairs(clouds, T_ref_cam, intrinsics, config)
+        tick = progress(f"registering pairs ({method})", len(overlaps), 0) if progress else None
+        for ov in overlaps:
+            reg = register_pair(clouds[ov.cam_a], clouds[ov.cam_b], T_ref_cam[ov.cam_a],
+                                T_ref_cam[ov.cam_b], method, config)
+            pairs.append({**ov.to_dict(), **reg.to_dict()})
+            if reg.accepted:
+                relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
+            if tick:
+                tick(1)
+        timings["registration"] = time.perf_counter() - t0
+    return DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings)
+
+
+def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
+                 config: DepthConfig | None = None) -> DepthRefinement:
+    """Add each pair's point-to-plane RMSE at the final extrinsics (``rmse_final_mm``), on
+    the same points and metric as its ``rmse_before_mm`` / ``rmse_after_mm``."""
+    pairs = []
+    for p in depth.pairs:
+        a, b = p["cam_a"], p["cam_b"]
+        final = None
+        if a in T_ref_cam and b in T_ref_cam:
+            final = pair_rmse_mm(depth.clouds[a], depth.clouds[b], depth.T_ref_cam_initial[a],
+                                 depth.T_ref_cam_initial[b], T_ref_cam[a], T_ref_cam[b], config)
+        pairs.append({**p, "rmse_final_mm": final})
+    return replace(depth, pairs=pairs)
+
+
+def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMethod =
+                      "colored-icp", config: DepthConfig | None = None,
+                      progress=None) -> tuple[Extrinsics, DepthRefinement]:
+    """Depth-only refinement of an existing calibration (no board in view): register the
+    overlapping pairs from ``init`` and solve a pose graph of the accepted pairs, the
+    reference held. Cameras in no accepted pair keep their initial pose (and sigma)."""
+    if method == "none":
+        raise CalibrationError("refine needs --method colored-icp or geometric")
+    T_init = {c: e.T_ref_cam for c, e in init.cameras.items() if c in dataset.rig.cameras}
+    if init.reference not in T_init:
+        raise CalibrationError(f"the reference camera {init.reference!r} of the initial "
+                               "extrinsics is not in the dataset's rig.yaml")
+    depth = measure_depth(dataset, None, T_init, None, None, method, config, progress)
+    if not depth.relative_poses:
+        raise CalibrationError(
+            f"{dataset.path}: no camera pair overlaps well enough to register "
+            f"({len(depth.pairs)} pairs tried); check the initial extrinsics and that the "
+            "cameras see common static surfaces")
+    res = bundle_adjust([], {c: dataset.rig.cameras[c].K for c in T_init}, init.reference,
+                        T_init, {}, BundleConfig(), relative_poses=depth.relative_poses)
+    cams = {}
+    for c, e in init.cameras.items():
+        if c in res.T_ref_cam:
+            cams[c] = CameraExtrinsics(c, res.T_ref_cam[c], res.sigma_rotation_deg[c],
+                                       res.sigma_translation_mm[c], res.covariance[c])
+        else:
+            cams[c] = e
+    out = Extrinsics(init.reference, cams, dict(init.unconnected))
+    return out, finish_pairs(depth, {c: e.T_ref_cam for c, e in cams.items()}, config)
+
+
+def board_views_per_camera(observations, T_ref_cam: dict[str, np.ndarray],
+                           T_ref_board: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
+    """camera -> {frame: T_cam_board} from the calibrated poses, for the views each camera
+    used (the board pose is the joint estimate, not the single-view PnP)."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for o in observations:
+        if o.camera in T_ref_cam and o.frame in T_ref_board:
+            out.setdefault(o.camera, {})[o.frame] = (invert_transform(T_ref_cam[o.camera])
+                                                     @ T_ref_board[o.frame])
+    return out
