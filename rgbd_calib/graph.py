@@ -956,6 +956,8 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         for c, T in fixed.items():
             graph.add(gtsam.PriorFactorPose3(cam_key[c], gtsam.Pose3(T), prior))
         for rel in relative_poses:
+            if rel.cam_a not in connected or rel.cam_b not in connected:
+                continue  # a pair cut off from the reference constrains nothing we solve
             # BetweenFactorPose3(b, a) predicts T_ref_b^-1 T_ref_a = T_b_a; its error is
             # Logmap(T_b_a_measured^-1 T_b_a), the right perturbation the information is for
             graph.add(gtsam.BetweenFactorPose3(
@@ -978,6 +980,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     outliers: list[tuple[str, str, int, float]] = []
     active, values = _reference_component(kept, values, cam_key, view_key, set(fixed),
                                           relative_poses, reference)
+    connected = {c for c in cams if values.exists(cam_key[c])}
     for _ in range(3):  # solve, drop markers far off, re-solve
         graph = build(active, config.pixel_sigma)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
@@ -992,6 +995,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         # removing outliers can cut a camera (or a view) off the reference: drop that part
         active, values = _reference_component(active, values, cam_key, view_key, set(fixed),
                                               relative_poses, reference)
+        connected = {c for c in cams if values.exists(cam_key[c])}
     rms = _marker_rms(active, values, cam_key, view_key, K)
     dof = max(8 * len(active) - 6 * (values.size() - len(fixed)), 1)
     sigma_hat = float(np.sqrt(np.sum(4 * rms**2) / dof))  # 4 corners x (du^2+dv^2)

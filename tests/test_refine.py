@@ -1,0 +1,119 @@
+"""Depth refinement (issue 4): scale bias, pair registration in the joint graph, refine CLI.
+
+Ground truth from the synthetic renders (D435 noise model, s = 0.08 px, B = 50 mm; colour
+blur 0.6 px, noise 2 DN)."""
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from rgbd_calib.board import thesis_board
+from rgbd_calib.calibrate import CalibrationConfig, calibrate
+from rgbd_calib.cli import app
+from rgbd_calib.dataset import FolderDataset
+from rgbd_calib.geometry import make_transform, rotvec_to_matrix, transform_error
+from rgbd_calib.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
+from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize
+
+SCALE_TOL = 0.001  # issue 4: depth-scale factor within 0.1 % (absolute)
+WEAK_GAIN = 0.30  # issue 4: refinement lowers the mean camera error by >= 30 % on weak data
+STRONG_RATIO, STRONG_MM = 0.10, 0.1  # ... and never worsens a camera by > 10 % (or 0.1 mm)
+
+
+def errors(ext, gt):
+    return {c: transform_error(e.T_ref_cam, gt.T_ref_cam[c]) for c, e in ext.cameras.items()}
+
+
+@pytest.fixture(scope="module")
+def biased_race(tmp_path_factory):
+    """Race rig, 8 frames, depth-scale bias up to +-0.6 % per camera."""
+    out = tmp_path_factory.mktemp("refine") / "race"
+    return synthesize(out, "race", 8, 5, thesis_board(), SynthParams(depth_bias=0.006),
+                      workers=2)
+
+
+@pytest.fixture(scope="module")
+def refined_small_race(biased_race):
+    result = calibrate(FolderDataset(biased_race.path), thesis_board(), CalibrationConfig())
+    return biased_race, result
+
+
+def test_depth_scale_bias_recovered(refined_small_race):
+    synth, result = refined_small_race
+    gt = load_ground_truth(synth.path)
+    assert result.depth is not None and result.depth.depth_scales
+    for cam, est in result.depth.depth_scales.items():
+        assert abs(est.factor - gt.depth_scale_bias[cam]) < SCALE_TOL, cam
+        assert est.sigma > 0
+
+
+def test_pairs_are_reported_and_joined(refined_small_race):
+    _, result = refined_small_race
+    pairs = result.depth.pairs
+    assert pairs and any(p["accepted"] for p in pairs)
+    for p in pairs:
+        assert p["accepted"] or p["reason"]
+        if p["accepted"]:
+            assert np.isfinite(p["rmse_final_mm"]) and p["rmse_final_mm"] < 20
+    # the joint graph used the accepted pairs (one relative-pose factor each)
+    assert len(result.depth.relative_poses) == sum(p["accepted"] for p in pairs)
+
+
+def test_refine_command_recovers_a_perturbed_calibration(biased_race, tmp_path):
+    small_race = biased_race
+    gt = load_ground_truth(small_race.path)
+    rng = np.random.default_rng(3)
+    cams = {}
+    for c, T in gt.T_ref_cam.items():
+        if c != gt.reference:  # 2 cm / 2 deg off the truth
+            axis = rng.normal(size=3)
+            d = rng.normal(size=3)
+            T = T @ make_transform(rotvec_to_matrix(axis / np.linalg.norm(axis)
+                                                    * np.radians(2.0)),
+                                   d / np.linalg.norm(d) * 0.02)
+        cams[c] = CameraExtrinsics(c, T)
+    init = tmp_path / "init.yaml"
+    write_extrinsics(Extrinsics(gt.reference, cams), init)
+    result = CliRunner().invoke(app, ["refine", str(small_race.path), "--init", str(init),
+                                      "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    out = load_extrinsics(tmp_path / "out" / "extrinsics.yaml")
+    before = errors(load_extrinsics(init), gt)
+    after = errors(out, gt)
+    # the reference row (left0..3) shares floor, rails and walls: those cameras come back;
+    # measured (seed 5): 20 mm -> 1.7, 15.1, 5.2 mm. The facing row is only linked to it by
+    # floor-only overlaps, which are rejected, so it keeps its start (see docs/depth.md).
+    row = [c for c in after if c.startswith("left") and c != gt.reference]
+    assert np.median([after[c][1] for c in row]) < 0.5 * np.median([before[c][1] for c in row])
+    assert all(after[c][0] < before[c][0] for c in row)
+    report = json.loads((tmp_path / "out" / "refine_report.json").read_text())
+    for p in report["pairs"]:
+        if p["accepted"]:
+            assert p["rmse_final_mm"] <= p["rmse_before_mm"] + 0.5
+
+
+@pytest.mark.slow
+def test_refinement_helps_weak_board_data_and_never_hurts_strong(tmp_path_factory):
+    board = thesis_board()
+    root = tmp_path_factory.mktemp("refine")
+    weak = synthesize(root / "weak", "race", 6, 5, board, SynthParams(depth_bias=0.006))
+    strong = synthesize(root / "strong", "race", 40, 1, board, SynthParams(depth_bias=0.006))
+    for synth, check in ((weak, "weak"), (strong, "strong")):
+        gt = load_ground_truth(synth.path)
+        ds = FolderDataset(synth.path)
+        refined = calibrate(ds, board, CalibrationConfig(), cache_dir=root / check)
+        plain = calibrate(ds, board, CalibrationConfig(refine="none"), cache_dir=root / check)
+        e_ref, e_none = errors(refined.extrinsics, gt), errors(plain.extrinsics, gt)
+        cams = [c for c in e_ref if c != gt.reference]
+        for cam, est in refined.depth.depth_scales.items():
+            assert abs(est.factor - gt.depth_scale_bias[cam]) < SCALE_TOL
+        if check == "weak":
+            mean_ref = np.mean([e_ref[c][1] for c in cams])
+            mean_none = np.mean([e_none[c][1] for c in cams])
+            assert mean_ref <= (1 - WEAK_GAIN) * mean_none, (mean_ref, mean_none)
+        else:
+            for c in cams:
+                allowed = max(STRONG_RATIO * e_none[c][1], STRONG_MM)
+                assert e_ref[c][1] <= e_none[c][1] + allowed, (c, e_ref[c], e_none[c])
