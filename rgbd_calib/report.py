@@ -56,7 +56,10 @@ MARKER_MIN_PX = 0.3  # ... and above this: check that marker on the board
 COVERAGE_MIN = 0.35  # fraction of the image the board's views covered
 DISTANCE_SPREAD_MIN = 1.3  # max/min board distance over a camera's views
 TILT_SPREAD_MIN_DEG = 20.0  # range of board tilts seen by a camera
-PAIR_RMSE_MAX_MM = 5.0  # point-to-plane RMSE after ICP above this: pair disagrees
+PAIR_RMSE_MAX_MM = 15.0  # point-to-plane RMSE after ICP above this: depth itself is off
+# the joint extrinsics fit a pair worse than its own ICP did by more than this: the pair and
+# the rest of the calibration disagree (depth noise alone gives ~5 mm at 2 m on a D435)
+PAIR_FINAL_EXCESS_MM = 2.0
 PAIR_FITNESS_MIN = 0.3
 DEPTH_SCALE_TOL = 0.003  # |factor - 1| above this: the camera's depth needs its scale
 COVERAGE_GRID = (48, 27)  # sample points across, down, for the image coverage of a camera
@@ -163,6 +166,7 @@ PAIR_SCHEMA: dict[str, Any] = {
     "fitness": Nullable(N),
     "rmse_before_mm": Nullable(N),
     "rmse_after_mm": Nullable(N),
+    "rmse_final_mm": Nullable(N),
     "correction_deg": Nullable(N),
     "correction_mm": Nullable(N),
     "accepted": Nullable(B),
@@ -866,6 +870,18 @@ def _warnings(report: dict[str, Any]) -> list[dict[str, Any]]:
 
     for p in report["pairs"]:
         pair = [p["cam_a"], p["cam_b"]]
+        final, after = p.get("rmse_final_mm"), p["rmse_after_mm"]
+        if p["accepted"] and final is not None and after is not None and (
+                final > after + PAIR_FINAL_EXCESS_MM):
+            add(
+                "warning",
+                "pair_disagrees",
+                pair,
+                f"{p['cam_a']}-{p['cam_b']}: the final extrinsics fit their common surfaces "
+                f"{final:.1f} mm RMS, ICP alone {after:.1f} mm.",
+                f"The depth of {p['cam_a']}/{p['cam_b']} and the board disagree: check their "
+                "depth scale and that the scene did not move.",
+            )
         if p["rmse_after_mm"] is not None and p["rmse_after_mm"] > PAIR_RMSE_MAX_MM:
             add(
                 "warning",

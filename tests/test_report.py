@@ -49,7 +49,7 @@ def runs(tmp_path_factory):
     board = thesis_board()
     ds_path = synthesize(base / "dataset", "race", 10, 3, board, SynthParams(), workers=2).path
     ds = FolderDataset(ds_path)
-    clean = calibrate(ds, board)
+    clean = calibrate(ds, board, CalibrationConfig(refine="none"))  # depth: test_refine.py
     write_outputs(clean, ds.rig, base / "clean")
 
     views = Counter(o.camera for o in clean.observations)
@@ -72,7 +72,7 @@ def runs(tmp_path_factory):
     ds2 = FolderDataset(faulty_ds)
     # posegraph: the bundle stage can fail outright on a camera with wrong intrinsics (a board
     # view left with only that camera's rejected markers); the report is what is tested here
-    faulty = calibrate(ds2, board, CalibrationConfig(method="posegraph"))
+    faulty = calibrate(ds2, board, CalibrationConfig(method="posegraph", refine="none"))
     write_outputs(faulty, ds2.rig, base / "faulty")
     return base / "clean", base / "faulty", weak, wrong
 
