@@ -313,8 +313,10 @@ def test_depth_pairs_show_error_maps_and_warnings(runs):
                 "cam_a": a,
                 "cam_b": b,
                 "fitness": 0.8,
-                "rmse_before_mm": 9.0,
-                "rmse_after_mm": 7.5,
+                "rmse_before_mm": 19.0,
+                "rmse_after_mm": 17.5,  # above PAIR_RMSE_MAX_MM: the depth itself is off
+                "rmse_final_mm": 20.0,  # > after + PAIR_FINAL_EXCESS_MM: disagrees
+                "accepted": True,
                 "overlap_fraction": 0.4,
                 "error_map": em,
                 "T_b_a": [[1.0]],
@@ -327,6 +329,7 @@ def test_depth_pairs_show_error_maps_and_warnings(runs):
     assert validate_report(report) == []
     codes = {w["code"]: w for w in report["warnings"]}
     assert a in codes["pair_rmse"]["cameras"] and b in codes["pair_rmse"]["cameras"]
+    assert codes["pair_disagrees"]["cameras"] == [a, b]
     assert codes["depth_scale"]["cameras"] == [a]
     page = render_html(report, None, "no cloud in this test")
-    assert 'alt="overlap error maps"' in page and "7.50" in page
+    assert 'alt="overlap error maps"' in page and "17.50" in page
