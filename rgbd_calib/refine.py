@@ -34,7 +34,7 @@ from .depth import (
     register_pair,
     static_cloud,
 )
-from .errors import CalibrationError
+from .errors import CalibrationError, DatasetError
 from .geometry import invert_transform
 from .graph import BundleConfig, RelativePose, bundle_adjust
 from .results import CameraExtrinsics, Extrinsics
@@ -88,8 +88,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             if views:
                 try:
                     scales[c] = estimate_depth_scale(dataset, c, views, board, config)
-                except CalibrationError:
-                    pass  # too few board pixels with depth: the factor stays 1
+                except (CalibrationError, DatasetError):
+                    pass  # too few board pixels with depth: the factor stays 1 (reported)
             if tick:
                 tick(1)
     timings["depth_scale"] = time.perf_counter() - t0
