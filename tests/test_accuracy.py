@@ -52,8 +52,11 @@ def errors(result, gt) -> dict[str, tuple[float, float, float, float]]:
     out = {}
     for c, e in result.extrinsics.cameras.items():
         if c != gt.reference:
-            out[c] = (*transform_error(e.T_ref_cam, gt.T_ref_cam[c]), e.sigma_rotation_deg,
-                      e.sigma_translation_mm)
+            out[c] = (
+                *transform_error(e.T_ref_cam, gt.T_ref_cam[c]),
+                e.sigma_rotation_deg,
+                e.sigma_translation_mm,
+            )
     return out
 
 
@@ -88,8 +91,7 @@ def test_bundle_with_edges_beats_thesis_method(line_results):
     assert worst_ours_mm * FAST_THESIS_FACTOR <= best_thesis_mm, (worst_ours_mm, best_thesis_mm)
     worst_ours_deg = max(e[0] for e in e_ours.values())
     best_thesis_deg = min(e[0] for e in e_thesis.values())
-    assert worst_ours_deg * FAST_THESIS_FACTOR <= best_thesis_deg, (worst_ours_deg,
-                                                                    best_thesis_deg)
+    assert worst_ours_deg * FAST_THESIS_FACTOR <= best_thesis_deg, (worst_ours_deg, best_thesis_deg)
 
 
 # ----------------------------------------------------------------------------- slow
@@ -104,8 +106,9 @@ def layout_results(tmp_path_factory):
             path = Path(reuse or "/nonexistent") / f"{layout}-f{SLOW_FRAMES}-s{SLOW_SEED}"
             if not (path / "ground_truth.yaml").is_file():
                 path = tmp_path_factory.mktemp("accuracy") / layout
-                synthesize(path, layout, SLOW_FRAMES, SLOW_SEED, thesis_board(), SynthParams(),
-                           workers=2)
+                synthesize(
+                    path, layout, SLOW_FRAMES, SLOW_SEED, thesis_board(), SynthParams(), workers=2
+                )
             result = calibrate(FolderDataset(path), thesis_board(), board_only())
             assert not result.extrinsics.unconnected, result.extrinsics.unconnected
             cache[layout] = errors(result, load_ground_truth(path))
@@ -127,8 +130,11 @@ def test_layout_within_issue_bounds(layout_results, layout):
 
 @pytest.mark.slow
 def test_claimed_sigmas_are_honest(layout_results):
-    ratios = [mm / sigma_mm for layout in BOUNDS for (_, mm, _, sigma_mm)
-              in layout_results(layout).values()]
+    ratios = [
+        mm / sigma_mm
+        for layout in BOUNDS
+        for (_, mm, _, sigma_mm) in layout_results(layout).values()
+    ]
     rms = float(np.sqrt(np.mean(np.square(ratios))))
     lo, hi = NORMALISED_RMS_RANGE
     assert lo <= rms <= hi, f"RMS translation error / sigma = {rms:.2f} over {len(ratios)} cameras"

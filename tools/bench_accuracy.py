@@ -78,10 +78,10 @@ METHODS = (
     Method("opencv-edges", "OpenCV calibrateMultiview, edge corners", "opencv", "edges"),
     Method("posegraph-subpix", "ours: pose graph, SUBPIX corners", "ours", "subpix", "posegraph"),
     Method("posegraph-edges", "ours: pose graph, edge corners", "ours", "edges", "posegraph"),
-    Method("bundle-subpix", "ours: bundle adjustment, SUBPIX corners", "ours", "subpix",
-           "bundle"),
-    Method("bundle-edges", "ours: bundle adjustment, edge corners (default)", "ours", "edges",
-           "bundle"),
+    Method("bundle-subpix", "ours: bundle adjustment, SUBPIX corners", "ours", "subpix", "bundle"),
+    Method(
+        "bundle-edges", "ours: bundle adjustment, edge corners (default)", "ours", "edges", "bundle"
+    ),
 )
 METHOD_BY_KEY = {m.key: m for m in METHODS}
 
@@ -91,8 +91,9 @@ def dataset_name(layout: str, frames: int, seed: int) -> str:
     return f"{layout}-f{frames}-s{seed}"
 
 
-def ensure_dataset(data: Path, layout: str, frames: int, seed: int, board: Board,
-                   workers: int) -> Path:
+def ensure_dataset(
+    data: Path, layout: str, frames: int, seed: int, board: Board, workers: int
+) -> Path:
     """The rendered set (synth defaults), rendering it when ``ground_truth.yaml`` is missing."""
     path = data / dataset_name(layout, frames, seed)
     if (path / "ground_truth.yaml").is_file():
@@ -105,22 +106,32 @@ def ensure_dataset(data: Path, layout: str, frames: int, seed: int, board: Board
 
 
 # ----------------------------------------------------------------------------- errors
-def camera_record(name: str, T_est: np.ndarray, T_true: np.ndarray,
-                  sigma_rotation_deg: float | None = None,
-                  sigma_translation_mm: float | None = None,
-                  covariance: np.ndarray | None = None) -> dict[str, Any]:
+def camera_record(
+    name: str,
+    T_est: np.ndarray,
+    T_true: np.ndarray,
+    sigma_rotation_deg: float | None = None,
+    sigma_translation_mm: float | None = None,
+    covariance: np.ndarray | None = None,
+) -> dict[str, Any]:
     """Error of one ``T_ref_cam`` (deg, mm) and, when the method claims one, its uncertainty.
 
     ``nees`` is ``xi^T C^-1 xi`` with ``T_true = T_est Exp(xi)``, ``xi = [omega, v]`` in the
     camera (body) frame, GTSAM's order, to first order in the (tiny) error."""
     rot_deg, trans_mm = transform_error(T_est, T_true)
-    rec: dict[str, Any] = {"camera": name, "rotation_deg": rot_deg, "translation_mm": trans_mm,
-                           "sigma_rotation_deg": _finite(sigma_rotation_deg),
-                           "sigma_translation_mm": _finite(sigma_translation_mm), "nees": None}
+    rec: dict[str, Any] = {
+        "camera": name,
+        "rotation_deg": rot_deg,
+        "translation_mm": trans_mm,
+        "sigma_rotation_deg": _finite(sigma_rotation_deg),
+        "sigma_translation_mm": _finite(sigma_translation_mm),
+        "nees": None,
+    }
     if covariance is not None and np.all(np.isfinite(covariance)) and np.any(covariance):
         R_est = T_est[:3, :3]
-        xi = np.concatenate([matrix_to_rotvec(R_est.T @ T_true[:3, :3]),
-                             R_est.T @ (T_true[:3, 3] - T_est[:3, 3])])
+        xi = np.concatenate(
+            [matrix_to_rotvec(R_est.T @ T_true[:3, :3]), R_est.T @ (T_true[:3, 3] - T_est[:3, 3])]
+        )
         try:
             rec["nees"] = float(xi @ np.linalg.solve(covariance, xi))
         except np.linalg.LinAlgError:
@@ -132,30 +143,48 @@ def _finite(x: float | None) -> float | None:
     return float(x) if x is not None and math.isfinite(x) and x > 0 else None
 
 
-def _run_ours(method: Method, dataset: FolderDataset, board: Board, cache: Path,
-              workers: int) -> tuple[dict[str, Any], dict[str, str], float]:
+def _run_ours(
+    method: Method, dataset: FolderDataset, board: Board, cache: Path, workers: int
+) -> tuple[dict[str, Any], dict[str, str], float]:
     # refine="none": the board-only calibration this benchmark is about (the default "auto"
     # adds the depth stage, colored ICP, on sets with depth)
-    config = CalibrationConfig(detection=DetectionConfig(refinement=method.refinement),
-                               method=method.final, workers=workers, refine="none")
+    config = CalibrationConfig(
+        detection=DetectionConfig(refinement=method.refinement),
+        method=method.final,
+        workers=workers,
+        refine="none",
+    )
     result = calibrate(dataset, board, config, cache_dir=cache)
     solve_s = sum(v for k, v in result.timings_s.items() if k != "detection")
     return dict(result.extrinsics.cameras), dict(result.extrinsics.unconnected), solve_s
 
 
-def run_method(method: Method, path: Path, board: Board, cache_root: Path,
-               workers: int) -> dict[str, Any]:
+def run_method(
+    method: Method, path: Path, board: Board, cache_root: Path, workers: int
+) -> dict[str, Any]:
     """One method on one rendered set; never raises (a failure is a record with a message)."""
     dataset = FolderDataset(path)
     gt = load_ground_truth(path)
     cache = cache_root / path.name / method.refinement
     cache.mkdir(parents=True, exist_ok=True)
-    rec: dict[str, Any] = {"method": method.key, "status": "ok", "message": "", "time_s": None,
-                           "rms_px": None, "cameras": [], "missing": {}}
+    rec: dict[str, Any] = {
+        "method": method.key,
+        "status": "ok",
+        "message": "",
+        "time_s": None,
+        "rms_px": None,
+        "cameras": [],
+        "missing": {},
+    }
     try:
         if method.kind == "opencv":
-            detections = detect_dataset(dataset, board, DetectionConfig(
-                refinement=method.refinement), cache / "detections.json", workers)
+            detections = detect_dataset(
+                dataset,
+                board,
+                DetectionConfig(refinement=method.refinement),
+                cache / "detections.json",
+                workers,
+            )
             t0 = time.perf_counter()
             mv = opencv_multiview(dataset, board, detections)
             rec["time_s"] = time.perf_counter() - t0
@@ -169,8 +198,10 @@ def run_method(method: Method, path: Path, board: Board, cache_root: Path,
                 rec["time_s"] = sum(v for k, v in result.timings_s.items() if k != "detection")
             else:
                 cams, missing, rec["time_s"] = _run_ours(method, dataset, board, cache, workers)
-            poses = {c: (e.T_ref_cam, e.sigma_rotation_deg, e.sigma_translation_mm,
-                         e.covariance) for c, e in cams.items()}
+            poses = {
+                c: (e.T_ref_cam, e.sigma_rotation_deg, e.sigma_translation_mm, e.covariance)
+                for c, e in cams.items()
+            }
     except Exception as exc:  # a peer (or a bug of ours) failing outright is a result
         rec["status"] = "failed"
         rec["message"] = f"{type(exc).__name__}: {exc}".splitlines()[0][:300]
@@ -185,15 +216,18 @@ def run_method(method: Method, path: Path, board: Board, cache_root: Path,
         rec["cameras"].append(camera_record(c, poses[c][0], gt.T_ref_cam[c], *poses[c][1:]))
     problems = []
     if rec["missing"]:
-        problems.append("not calibrated: " + ", ".join(f"{c} ({r})"
-                                                       for c, r in rec["missing"].items()))
+        problems.append(
+            "not calibrated: " + ", ".join(f"{c} ({r})" for c, r in rec["missing"].items())
+        )
     worst_mm = max((r["translation_mm"] for r in rec["cameras"]), default=0.0)
     worst_deg = max((r["rotation_deg"] for r in rec["cameras"]), default=0.0)
-    if (worst_mm > DIVERGED_MM or worst_deg > DIVERGED_DEG
-            or (rec["rms_px"] is not None and rec["rms_px"] > DIVERGED_RMS_PX)):
+    if (
+        worst_mm > DIVERGED_MM
+        or worst_deg > DIVERGED_DEG
+        or (rec["rms_px"] is not None and rec["rms_px"] > DIVERGED_RMS_PX)
+    ):
         rms = f"RMS {_px(rec['rms_px'])} px, " if rec["rms_px"] is not None else ""
-        problems.append(f"diverged: {rms}worst camera {worst_mm:.0f} mm / {worst_deg:.1f} deg "
-                        "off")
+        problems.append(f"diverged: {rms}worst camera {worst_mm:.0f} mm / {worst_deg:.1f} deg off")
     if problems:
         rec["status"] = "failed"
         rec["message"] = "; ".join(problems)
@@ -213,14 +247,16 @@ def summarise(runs: list[dict[str, Any]], layout: str | None, method: str) -> di
     cams = [c for r in ok for c in r["cameras"]]
     rot = [c["rotation_deg"] for c in cams]
     trans = [c["translation_mm"] for c in cams]
-    ratio_t = [c["translation_mm"] / c["sigma_translation_mm"] for c in cams
-               if c["sigma_translation_mm"]]
-    ratio_r = [c["rotation_deg"] / c["sigma_rotation_deg"] for c in cams
-               if c["sigma_rotation_deg"]]
+    ratio_t = [
+        c["translation_mm"] / c["sigma_translation_mm"] for c in cams if c["sigma_translation_mm"]
+    ]
+    ratio_r = [c["rotation_deg"] / c["sigma_rotation_deg"] for c in cams if c["sigma_rotation_deg"]]
     nees = [c["nees"] / 6.0 for c in cams if c["nees"] is not None]
     times = [r["time_s"] for r in ok if r["time_s"] is not None]
     return {
-        "runs": len(sel), "ok": len(ok), "cameras": len(cams),
+        "runs": len(sel),
+        "ok": len(ok),
+        "cameras": len(cams),
         "worst_rotation_deg": max(rot) if rot else None,
         "worst_translation_mm": max(trans) if trans else None,
         "median_rotation_deg": float(np.median(rot)) if rot else None,
@@ -250,15 +286,29 @@ def acceptance(runs: list[dict[str, Any]], layouts: list[str]) -> dict[str, Any]
     for layout in layouts:
         s = summarise(runs, layout, OURS)
         max_deg, max_mm = BOUNDS[layout]
-        ok = (s["runs"] > 0 and s["ok"] == s["runs"] and s["worst_rotation_deg"] is not None
-              and s["worst_rotation_deg"] <= max_deg and s["worst_translation_mm"] <= max_mm)
+        ok = (
+            s["runs"] > 0
+            and s["ok"] == s["runs"]
+            and s["worst_rotation_deg"] is not None
+            and s["worst_rotation_deg"] <= max_deg
+            and s["worst_translation_mm"] <= max_mm
+        )
         others = [summarise(runs, layout, m.key) for m in METHODS if m.kind != "ours"]
-        best = all(o["ok"] == 0 or o["ok"] < o["runs"] or (
-            o["worst_translation_mm"] >= s["worst_translation_mm"]
-            and o["worst_rotation_deg"] >= s["worst_rotation_deg"]
-            and o["median_translation_mm"] >= s["median_translation_mm"]
-            and o["median_rotation_deg"] >= s["median_rotation_deg"]) for o in others) \
-            if s["ok"] else False
+        best = (
+            all(
+                o["ok"] == 0
+                or o["ok"] < o["runs"]
+                or (
+                    o["worst_translation_mm"] >= s["worst_translation_mm"]
+                    and o["worst_rotation_deg"] >= s["worst_rotation_deg"]
+                    and o["median_translation_mm"] >= s["median_translation_mm"]
+                    and o["median_rotation_deg"] >= s["median_rotation_deg"]
+                )
+                for o in others
+            )
+            if s["ok"]
+            else False
+        )
         out["layouts"][layout] = {"within_bounds": ok, "most_accurate": best}
         out["passed"] &= ok and best
     total = summarise(runs, None, OURS)
@@ -266,8 +316,10 @@ def acceptance(runs: list[dict[str, Any]], layouts: list[str]) -> dict[str, Any]
     out["normalised_rms_translation"] = total["normalised_rms_translation"]
     out["normalised_rms_rotation"] = total["normalised_rms_rotation"]
     out["nees_rms"] = total["nees_rms"]
-    honest = (total["normalised_rms_translation"] is not None
-              and lo <= total["normalised_rms_translation"] <= hi)
+    honest = (
+        total["normalised_rms_translation"] is not None
+        and lo <= total["normalised_rms_translation"] <= hi
+    )
     out["honest_uncertainty"] = honest
     out["passed"] &= honest
     return out
@@ -292,13 +344,18 @@ def markdown(payload: dict[str, Any]) -> str:
     ]
     for layout in layouts:
         max_deg, max_mm = BOUNDS[layout]
-        n_cams = max((len(r["cameras"]) + len(r["missing"]) for r in runs
-                      if r["layout"] == layout), default=0)
-        lines += [f"### {layout} ({n_cams + 1} cameras; bound {max_deg} deg / {max_mm} mm "
-                  "on every camera)", "",
-                  "| method | runs ok | worst rot (deg) | worst trans (mm) | median rot (deg) "
-                  "| median trans (mm) | t/σt | r/σr | NEES | time (s) |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+        n_cams = max(
+            (len(r["cameras"]) + len(r["missing"]) for r in runs if r["layout"] == layout),
+            default=0,
+        )
+        lines += [
+            f"### {layout} ({n_cams + 1} cameras; bound {max_deg} deg / {max_mm} mm "
+            "on every camera)",
+            "",
+            "| method | runs ok | worst rot (deg) | worst trans (mm) | median rot (deg) "
+            "| median trans (mm) | t/σt | r/σr | NEES | time (s) |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
         notes = []
         for key in methods:
             s = summarise(runs, layout, key)
@@ -307,7 +364,7 @@ def markdown(payload: dict[str, Any]) -> str:
                 label = f"**{label}**"
             if s["ok"] == 0:
                 rms = [x for x in s["rms_px"] if x is not None]
-                rms_txt = (f", OpenCV RMS {_px(min(rms))}-{_px(max(rms))} px" if rms else "")
+                rms_txt = f", OpenCV RMS {_px(min(rms))}-{_px(max(rms))} px" if rms else ""
                 lines.append(f"| {label} | 0/{s['runs']} | failed{rms_txt} | | | | | | | |")
             else:
                 lines.append(
@@ -315,15 +372,20 @@ def markdown(payload: dict[str, Any]) -> str:
                     f"{_f(s['worst_translation_mm'])} | {_f(s['median_rotation_deg'], 4)} | "
                     f"{_f(s['median_translation_mm'])} | {_f(s['normalised_rms_translation'], 2)}"
                     f" | {_f(s['normalised_rms_rotation'], 2)} | {_f(s['nees_rms'], 2)} | "
-                    f"{_f(s['median_time_s'], 2)} |")
+                    f"{_f(s['median_time_s'], 2)} |"
+                )
             notes += [f"- {key}, {f}" for f in s["failures"]]
         lines.append("")
         if notes:
             lines += ["Failures:", "", *notes, ""]
     acc = payload.get("acceptance") or acceptance(runs, layouts)
-    lines += ["### Acceptance (issue 3), ours = bundle adjustment with edge corners", "",
-              "| layout | bound (deg / mm) | worst (deg / mm) | median (deg / mm) | within "
-              "bound | beats every peer |", "|---|---|---|---|---|---|"]
+    lines += [
+        "### Acceptance (issue 3), ours = bundle adjustment with edge corners",
+        "",
+        "| layout | bound (deg / mm) | worst (deg / mm) | median (deg / mm) | within "
+        "bound | beats every peer |",
+        "|---|---|---|---|---|---|",
+    ]
     for layout in layouts:
         s = summarise(runs, layout, OURS)
         a = acc["layouts"][layout]
@@ -331,13 +393,18 @@ def markdown(payload: dict[str, Any]) -> str:
             f"| {layout} | {BOUNDS[layout][0]} / {BOUNDS[layout][1]} | "
             f"{_f(s['worst_rotation_deg'], 4)} / {_f(s['worst_translation_mm'])} | "
             f"{_f(s['median_rotation_deg'], 4)} / {_f(s['median_translation_mm'])} | "
-            f"{'yes' if a['within_bounds'] else 'NO'} | {'yes' if a['most_accurate'] else 'NO'} |")
+            f"{'yes' if a['within_bounds'] else 'NO'} | {'yes' if a['most_accurate'] else 'NO'} |"
+        )
     lo, hi = NORMALISED_RMS_RANGE
-    lines += ["", f"Normalised error RMS over all layouts, seeds and cameras (ours): translation "
-              f"{_f(acc['normalised_rms_translation'], 2)}, rotation "
-              f"{_f(acc['normalised_rms_rotation'], 2)} (required {lo}-{hi} for translation); "
-              f"NEES {_f(acc['nees_rms'], 2)}. "
-              f"Overall: {'PASS' if acc['passed'] else 'FAIL'}.", ""]
+    lines += [
+        "",
+        f"Normalised error RMS over all layouts, seeds and cameras (ours): translation "
+        f"{_f(acc['normalised_rms_translation'], 2)}, rotation "
+        f"{_f(acc['normalised_rms_rotation'], 2)} (required {lo}-{hi} for translation); "
+        f"NEES {_f(acc['nees_rms'], 2)}. "
+        f"Overall: {'PASS' if acc['passed'] else 'FAIL'}.",
+        "",
+    ]
     for img in payload.get("images", []):
         lines.append(f"![{Path(img).stem}]({img})")
     return "\n".join(lines).rstrip() + "\n"
@@ -382,14 +449,20 @@ def plot(payload: dict[str, Any], img_dir: Path, rel_to: Path) -> list[str]:
             xs, rot, trans = [], [], []
             for r in ok:
                 for c in r["cameras"]:
-                    xs.append(x_of[(r["seed"], c["camera"])]
-                              + (k - (len(methods) - 1) / 2) * 0.7 / len(methods))
+                    xs.append(
+                        x_of[(r["seed"], c["camera"])]
+                        + (k - (len(methods) - 1) / 2) * 0.7 / len(methods)
+                    )
                     rot.append(max(c["rotation_deg"], 1e-5))
                     trans.append(max(c["translation_mm"], 1e-4))
             if not xs:
                 continue
-            style = dict(color=colours(k), label=key, s=28 if key == OURS else 16,
-                         marker="o" if key.startswith(("bundle", "posegraph")) else "^")
+            style = dict(
+                color=colours(k),
+                label=key,
+                s=28 if key == OURS else 16,
+                marker="o" if key.startswith(("bundle", "posegraph")) else "^",
+            )
             axes[0].scatter(xs, rot, **style)
             axes[1].scatter(xs, trans, **style)
         max_deg, max_mm = BOUNDS[layout]
@@ -411,17 +484,23 @@ def plot(payload: dict[str, Any], img_dir: Path, rel_to: Path) -> list[str]:
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for key, colour in (("bundle-edges", colours(0)), ("posegraph-edges", colours(1))):
-        cams = [c for r in runs if r["method"] == key and r["status"] == "ok"
-                for c in r["cameras"]]
-        rt = [c["translation_mm"] / c["sigma_translation_mm"] for c in cams
-              if c["sigma_translation_mm"]]
-        rr = [c["rotation_deg"] / c["sigma_rotation_deg"] for c in cams
-              if c["sigma_rotation_deg"]]
+        cams = [c for r in runs if r["method"] == key and r["status"] == "ok" for c in r["cameras"]]
+        rt = [
+            c["translation_mm"] / c["sigma_translation_mm"]
+            for c in cams
+            if c["sigma_translation_mm"]
+        ]
+        rr = [c["rotation_deg"] / c["sigma_rotation_deg"] for c in cams if c["sigma_rotation_deg"]]
         bins = np.linspace(0, 5, 26)
         for ax, vals in ((axes[0], rt), (axes[1], rr)):
             if vals:
-                ax.hist(np.clip(vals, 0, 5), bins=bins, alpha=0.5, color=colour,
-                        label=f"{key} (RMS {_rms(vals):.2f}, n={len(vals)})")
+                ax.hist(
+                    np.clip(vals, 0, 5),
+                    bins=bins,
+                    alpha=0.5,
+                    color=colour,
+                    label=f"{key} (RMS {_rms(vals):.2f}, n={len(vals)})",
+                )
     axes[0].set_xlabel("translation error / sigma_translation_mm")
     axes[1].set_xlabel("rotation error / sigma_rotation_deg")
     for ax in axes:
@@ -450,33 +529,55 @@ def _rounded(obj: Any) -> Any:
 
 
 def _machine() -> str:
-    return (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
-            f", {platform.system()}")
+    return (
+        f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+        f", {platform.system()}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, default=Path("bench_data"),
-                   help="folder of the rendered sets and detection caches (reused)")
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--data",
+        type=Path,
+        default=Path("bench_data"),
+        help="folder of the rendered sets and detection caches (reused)",
+    )
     p.add_argument("--layouts", nargs="+", default=list(LAYOUTS), choices=LAYOUTS)
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--frames", type=int, default=40, help="frame sets per rendered rig")
-    p.add_argument("--methods", nargs="+", default=[m.key for m in METHODS],
-                   choices=[m.key for m in METHODS])
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                   help="processes for rendering and detection")
-    p.add_argument("--json", type=Path, default=Path("docs/accuracy.json"),
-                   help="raw results (written)")
-    p.add_argument("--md", type=Path, default=None,
-                   help="markdown file for the tables (its generated block is replaced)")
+    p.add_argument(
+        "--methods", nargs="+", default=[m.key for m in METHODS], choices=[m.key for m in METHODS]
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="processes for rendering and detection",
+    )
+    p.add_argument(
+        "--json", type=Path, default=Path("docs/accuracy.json"), help="raw results (written)"
+    )
+    p.add_argument(
+        "--md",
+        type=Path,
+        default=None,
+        help="markdown file for the tables (its generated block is replaced)",
+    )
     p.add_argument("--img", type=Path, default=Path("docs/img"), help="folder for the plots")
     p.add_argument("--no-plots", action="store_true")
-    p.add_argument("--from-json", type=Path, default=None,
-                   help="re-make tables and plots from this JSON; run nothing")
+    p.add_argument(
+        "--from-json",
+        type=Path,
+        default=None,
+        help="re-make tables and plots from this JSON; run nothing",
+    )
     args = p.parse_args(argv)
-    command = "python tools/bench_accuracy.py " + " ".join(argv if argv is not None
-                                                           else sys.argv[1:])
+    command = "python tools/bench_accuracy.py " + " ".join(
+        argv if argv is not None else sys.argv[1:]
+    )
 
     if args.from_json:
         payload = json.loads(args.from_json.read_text())
@@ -489,23 +590,35 @@ def main(argv: list[str] | None = None) -> int:
                 path = ensure_dataset(args.data, layout, args.frames, seed, board, args.workers)
                 for key in args.methods:
                     t0 = time.perf_counter()
-                    rec = run_method(METHOD_BY_KEY[key], path, board, args.data / "cache",
-                                     args.workers)
+                    rec = run_method(
+                        METHOD_BY_KEY[key], path, board, args.data / "cache", args.workers
+                    )
                     rec.update(layout=layout, seed=seed, frames=args.frames, dataset=path.name)
                     runs.append(rec)
                     worst = max((c["translation_mm"] for c in rec["cameras"]), default=None)
-                    print(f"{layout:12s} seed {seed} {key:17s} {rec['status']:6s} worst "
-                          f"{_f(worst)} mm ({time.perf_counter() - t0:.1f} s) {rec['message']}",
-                          file=sys.stderr, flush=True)
+                    print(
+                        f"{layout:12s} seed {seed} {key:17s} {rec['status']:6s} worst "
+                        f"{_f(worst)} mm ({time.perf_counter() - t0:.1f} s) {rec['message']}",
+                        file=sys.stderr,
+                        flush=True,
+                    )
         import cv2
         import gtsam
 
         payload = {
-            "meta": {"command": command, "machine": _machine(), "layouts": args.layouts,
-                     "seeds": args.seeds, "frames": args.frames, "methods": args.methods,
-                     "board": board.name, "date": time.strftime("%Y-%m-%d"),
-                     "opencv": cv2.__version__, "gtsam": getattr(gtsam, "__version__", "?"),
-                     "bounds": BOUNDS},
+            "meta": {
+                "command": command,
+                "machine": _machine(),
+                "layouts": args.layouts,
+                "seeds": args.seeds,
+                "frames": args.frames,
+                "methods": args.methods,
+                "board": board.name,
+                "date": time.strftime("%Y-%m-%d"),
+                "opencv": cv2.__version__,
+                "gtsam": getattr(gtsam, "__version__", "?"),
+                "bounds": BOUNDS,
+            },
             "runs": runs,
         }
     layouts = [lay for lay in payload["meta"]["layouts"]]

@@ -47,6 +47,8 @@ STAGE_ORDER = ("detection", "pose", "pose_graph", "bundle", "depth", "joint")
 def _stages(rows: list[dict[str, Any]]) -> list[str]:
     found = {k for r in rows for k in r["stages_s"]}
     return [k for k in STAGE_ORDER if k in found] + sorted(found - set(STAGE_ORDER))
+
+
 LAYOUT, SEED = "thesis-line", 0
 
 
@@ -92,18 +94,29 @@ def run(path: Path, workers_list: list[int], repeats: int, refine: str) -> dict[
             t0 = time.perf_counter()
             result = calibrate(dataset, board, CalibrationConfig(workers=workers, refine=refine))
             calibrate_s = time.perf_counter() - t0
-            row = {"workers": workers, "repeat": rep, "images": n, "decode_s": decode_s,
-                   "calibrate_s": calibrate_s, "stages_s": dict(result.timings_s),
-                   "detection_images_per_s": n / result.timings_s["detection"],
-                   "decode_images_per_s": n / decode_s, "ratio": calibrate_s / decode_s,
-                   "load_before": load_before, "load_after": os.getloadavg()[0],
-                   "cameras": len(result.extrinsics.cameras),
-                   "observations": len(result.observations)}
+            row = {
+                "workers": workers,
+                "repeat": rep,
+                "images": n,
+                "decode_s": decode_s,
+                "calibrate_s": calibrate_s,
+                "stages_s": dict(result.timings_s),
+                "detection_images_per_s": n / result.timings_s["detection"],
+                "decode_images_per_s": n / decode_s,
+                "ratio": calibrate_s / decode_s,
+                "load_before": load_before,
+                "load_after": os.getloadavg()[0],
+                "cameras": len(result.extrinsics.cameras),
+                "observations": len(result.observations),
+            }
             rows.append(row)
-            print(f"workers {workers} run {rep}: decode {decode_s:.1f} s, calibrate "
-                  f"{calibrate_s:.1f} s (detection {result.timings_s['detection']:.1f} s), "
-                  f"ratio {row['ratio']:.2f}, load {load_before:.1f}->{row['load_after']:.1f}",
-                  file=sys.stderr, flush=True)
+            print(
+                f"workers {workers} run {rep}: decode {decode_s:.1f} s, calibrate "
+                f"{calibrate_s:.1f} s (detection {result.timings_s['detection']:.1f} s), "
+                f"ratio {row['ratio']:.2f}, load {load_before:.1f}->{row['load_after']:.1f}",
+                file=sys.stderr,
+                flush=True,
+            )
     return {"images": n, "rows": rows}
 
 
@@ -140,7 +153,8 @@ def markdown(payload: dict[str, Any]) -> str:
         "processes were competing).",
         "",
         "| workers | decode (s) | decode (img/s) | detection (img/s) | calibrate total (s) | "
-        + " | ".join(f"{s} (s)" for s in stages) + " | calibrate / decode | load |",
+        + " | ".join(f"{s} (s)" for s in stages)
+        + " | calibrate / decode | load |",
         "|---" * (7 + len(stages)) + "|",
     ]
     for w in meta["workers"]:
@@ -150,7 +164,8 @@ def markdown(payload: dict[str, Any]) -> str:
             f"{s['detection_images_per_s']:.1f} | {s['calibrate_s']:.1f} | "
             + " | ".join(f"{s[f'stage_{k}_s']:.1f}" for k in stages)
             + f" | {s['ratio']:.1f} ({s['ratio_min']:.1f}-{s['ratio_max']:.1f}) | "
-            f"{s['load']:.1f} |")
+            f"{s['load']:.1f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -170,19 +185,28 @@ def write_markdown(path: Path, body: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, default=Path("bench_data"),
-                   help="folder of the rendered set (reused)")
+    p.add_argument(
+        "--data", type=Path, default=Path("bench_data"), help="folder of the rendered set (reused)"
+    )
     p.add_argument("--frames", type=int, default=400)
     p.add_argument("--workers", nargs="+", type=int, default=[1, 2])
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--refine", default="none", choices=["none", "auto", "colored-icp",
-                                                        "geometric"],
-                   help="depth stage of the calibration (default: none, board only)")
+    p.add_argument(
+        "--refine",
+        default="none",
+        choices=["none", "auto", "colored-icp", "geometric"],
+        help="depth stage of the calibration (default: none, board only)",
+    )
     p.add_argument("--json", type=Path, default=Path("docs/speed.json"))
-    p.add_argument("--md", type=Path, default=None,
-                   help="markdown file whose Speed block is replaced (e.g. docs/benchmarks.md)")
-    p.add_argument("--from-json", type=Path, default=None,
-                   help="re-make the table from this JSON; run nothing")
+    p.add_argument(
+        "--md",
+        type=Path,
+        default=None,
+        help="markdown file whose Speed block is replaced (e.g. docs/benchmarks.md)",
+    )
+    p.add_argument(
+        "--from-json", type=Path, default=None, help="re-make the table from this JSON; run nothing"
+    )
     args = p.parse_args(argv)
     if args.from_json:
         payload = json.loads(args.from_json.read_text())
@@ -194,9 +218,13 @@ def main(argv: list[str] | None = None) -> int:
             + " ".join(argv if argv is not None else sys.argv[1:]),
             "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
             f"Python {platform.python_version()}, OpenCV {cv2.__version__}",
-            "date": time.strftime("%Y-%m-%d"), "frames": args.frames,
-            "workers": args.workers, "repeats": args.repeats, "dataset": str(path),
-            "refine": args.refine}
+            "date": time.strftime("%Y-%m-%d"),
+            "frames": args.frames,
+            "workers": args.workers,
+            "repeats": args.repeats,
+            "dataset": str(path),
+            "refine": args.refine,
+        }
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(payload, indent=1))
     body = markdown(payload)

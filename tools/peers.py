@@ -26,16 +26,16 @@ from rgbd_calib.graph import PoseGraphConfig
 def thesis_config(refinement: str = "none", workers: int | None = None) -> CalibrationConfig:
     return CalibrationConfig(
         detection=DetectionConfig(refinement=refinement),
-        graph=PoseGraphConfig(kernel="none", reject_outliers=False,
-                              estimate_default_sigmas=False),
+        graph=PoseGraphConfig(kernel="none", reject_outliers=False, estimate_default_sigmas=False),
         method="posegraph",
         edge_covariance=False,  # the thesis weighted every edge alike
         workers=workers,
     )
 
 
-def thesis_method(dataset: FolderDataset, board: Board, cache_dir: Path | None = None,
-                  workers: int | None = None) -> CalibrationResult:
+def thesis_method(
+    dataset: FolderDataset, board: Board, cache_dir: Path | None = None, workers: int | None = None
+) -> CalibrationResult:
     """Per-view PnP + plain pose graph. Its sigmas come from the fixed default edge noise
     (0.2 deg, 2 mm per edge), not from the data: the thesis reported none."""
     return calibrate(dataset, board, thesis_config(workers=workers), cache_dir=cache_dir)
@@ -51,9 +51,12 @@ class MultiviewResult:
     views: int  # camera-frame pairs passed in the detection mask
 
 
-def opencv_multiview(dataset: FolderDataset, board: Board,
-                     detections: dict[tuple[str, str], MarkerDetections],
-                     min_markers: int = 4) -> MultiviewResult:
+def opencv_multiview(
+    dataset: FolderDataset,
+    board: Board,
+    detections: dict[tuple[str, str], MarkerDetections],
+    min_markers: int = 4,
+) -> MultiviewResult:
     """``cv2.calibrateMultiview`` on the same detections as ours.
 
     Every marker corner of the (double-sided) board is one pattern point; corners a view does
@@ -79,7 +82,7 @@ def opencv_multiview(dataset: FolderDataset, board: Board,
                 for i, corners in zip(det.ids, det.corners_px):
                     k = index.get(int(i))
                     if k is not None:
-                        pts[4 * k:4 * k + 4] = corners
+                        pts[4 * k : 4 * k + 4] = corners
                 mask[ci, fi] = 1
             per_frame.append(pts)
         image_points.append(per_frame)
@@ -90,14 +93,26 @@ def opencv_multiview(dataset: FolderDataset, board: Board,
     models = np.zeros(len(cams), np.uint8)  # pinhole
     try:
         rms, Ks, dists, Rs, Ts = cv2.calibrateMultiview(
-            obj_points, image_points, sizes, mask, models, Ks, dists, None, None,
-            flags=cv2.CALIB_USE_INTRINSIC_GUESS)
+            obj_points,
+            image_points,
+            sizes,
+            mask,
+            models,
+            Ks,
+            dists,
+            None,
+            None,
+            flags=cv2.CALIB_USE_INTRINSIC_GUESS,
+        )
     except cv2.error as exc:
         lines = [s for s in str(exc).splitlines() if s.strip()]
         raise RuntimeError(f"calibrateMultiview raised: {lines[-1] if lines else exc}") from exc
-    T_cam_cam0 = {c: make_transform(cv2.Rodrigues(np.asarray(R, dtype=float))[0],
-                                    np.asarray(t, dtype=float).ravel())
-                  for c, R, t in zip(cams, Rs, Ts)}
+    T_cam_cam0 = {
+        c: make_transform(
+            cv2.Rodrigues(np.asarray(R, dtype=float))[0], np.asarray(t, dtype=float).ravel()
+        )
+        for c, R, t in zip(cams, Rs, Ts)
+    }
     T_ref_cam0 = T_cam_cam0[dataset.rig.reference]
     T_ref_cam = {c: T_ref_cam0 @ invert_transform(T_cam_cam0[c]) for c in cams}
     return MultiviewResult(T_ref_cam, float(rms), int(mask.sum()))
