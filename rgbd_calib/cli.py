@@ -7,6 +7,7 @@ Heavy imports happen inside the commands so ``--help`` stays fast. Every user mi
 from __future__ import annotations
 
 import functools
+import os
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -42,6 +43,14 @@ def main(
     """rgbd-calib: record a calibration set, run one command, trust the result."""
 
 
+def _error(message: str) -> None:
+    """Print one ``error:`` line (the message is text, never rich markup: paths and YAML
+    snippets may hold brackets)."""
+    from rich.markup import escape
+
+    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+
+
 def user_errors(fn):
     """Turn library errors into one clear line and a non-zero exit (no traceback)."""
 
@@ -50,20 +59,65 @@ def user_errors(fn):
         try:
             return fn(*args, **kwargs)
         except RgbdCalibError as exc:
-            console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            _error(" ".join(str(exc).split("\n")))
             raise typer.Exit(2) from None
         except PermissionError as exc:
+            _error(f"{exc.filename}: permission denied; choose a writable folder")
+            raise typer.Exit(2) from None
+        except OSError as exc:  # disk full, a file where a folder should be, ...
+            if exc.filename is None:
+                raise
+            _error(f"{exc.filename}: {exc.strerror or exc}; check the path and the free space")
+            raise typer.Exit(2) from None
+        except KeyboardInterrupt:
             console.print(
-                f"[bold red]error:[/] {exc.filename}: permission denied; choose a writable folder",
+                "[yellow]interrupted[/]: earlier results were left untouched; run the same "
+                "command again to finish",
                 highlight=False,
                 soft_wrap=True,
             )
-            raise typer.Exit(2) from None
-        except KeyboardInterrupt:
-            console.print("[yellow]interrupted[/]: earlier results were left untouched")
             raise typer.Exit(130) from None
 
     return wrapper
+
+
+def _check_output_folder(out: Path, option: str = "--out") -> None:
+    """Fail before any long step when ``out`` cannot become a folder: it is a file, or the
+    first existing folder above it is a file or not writable."""
+    from .errors import ConfigError
+
+    out = Path(out)
+    if out.exists():
+        if not out.is_dir():
+            raise ConfigError(f"{out}: {option} is a file, not a folder; choose a folder path")
+        parent = out
+    else:
+        parent = next((p for p in out.parents if p.exists()), Path("."))
+        if not parent.is_dir():
+            raise ConfigError(
+                f"{out}: cannot create {option} there because {parent} is a file; "
+                "choose another folder"
+            )
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{out}: {parent} is not writable; choose another {option} folder")
+
+
+def _workers_ignore_ctrl_c() -> None:
+    """Start the worker server with SIGINT ignored, so every pool worker inherits that and
+    Ctrl-C reaches only this process: it stops cleanly with one line, the workers do not
+    print their own tracebacks. (Python keeps SIGINT ignored in a child started with it
+    ignored; the forkserver hands its original disposition to each worker.)"""
+    import multiprocessing.forkserver
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def progress_bar():
@@ -119,6 +173,7 @@ def board(
     from .board import load_board
     from .printing import write_printable_board
 
+    _check_output_folder(out)
     b = load_board(board_file, fix_winding=fix_winding)
     result = write_printable_board(b, out, dpi=dpi, page=page)
     for path in result.files:
@@ -156,6 +211,8 @@ def synth(
     from .board import load_board, thesis_board
     from .synth import SynthParams, synthesize
 
+    _check_output_folder(out, "the output dataset folder")
+    _workers_ignore_ctrl_c()
     params = SynthParams(
         resolution=_parse_resolution(resolution),
         blur_sigma_px=blur,
@@ -196,7 +253,10 @@ def _load_config(path: Path | None, **overrides):
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(x) for x in err["loc"])
-        raise ConfigError(f"{path or 'options'}: {where}: {err['msg']}") from None
+        raise ConfigError(
+            f"{path or 'options'}: {where}: {err['msg']}; fix this setting "
+            "(config_resolved.yaml beside any result lists them all)"
+        ) from None
 
 
 @app.command()
@@ -236,15 +296,36 @@ def calibrate(
     from .dataset import FolderDataset
     from .results import load_extrinsics
 
+    _check_output_folder(out)
     cfg = _load_config(config, method=method, workers=workers, refine=refine)
     b = load_board(board_file) if board_file else thesis_board()
     ds = FolderDataset(dataset)
     fixed = None
     if fix is not None:
-        prior = load_extrinsics(fix)
+        prior = load_extrinsics(fix, check_redundant=True)
+        _check_fixed(prior, ds.rig, fix)
         fixed = {n: c.T_ref_cam for n, c in prior.cameras.items() if n in ds.rig.cameras}
+    ds.check_images()
+    _workers_ignore_ctrl_c()
     result = _calibrate_and_write(ds, b, cfg, out, fixed)
     _print_summary(result, out)
+
+
+def _check_fixed(prior, rig, path: Path) -> None:
+    """``--fix`` poses are in the prior's reference frame: it must be this rig's reference,
+    and at least one of its cameras must be in the dataset."""
+    from .errors import ConfigError
+
+    if prior.reference != rig.reference:
+        raise ConfigError(
+            f"{path}: its poses are relative to {prior.reference!r} but the dataset's rig.yaml "
+            f"uses reference {rig.reference!r}; set the same reference in rig.yaml"
+        )
+    if not any(n in rig.cameras and n != rig.reference for n in prior.cameras):
+        raise ConfigError(
+            f"{path}: none of its cameras ({', '.join(prior.cameras)}) besides the reference "
+            "is in the dataset; check the --fix file"
+        )
 
 
 def _calibrate_and_write(ds, board, cfg, out: Path, fixed=None):
@@ -320,8 +401,10 @@ def refine(
 
     if method not in ("colored-icp", "geometric"):
         raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
+    _check_output_folder(out)
     ds = FolderDataset(dataset)
-    init_ext = load_extrinsics(init)
+    ds.check_images()
+    init_ext = load_extrinsics(init, check_redundant=True)
     with progress_bar() as bar:
         def progress(label: str, total: int, done: int):
             task = bar.add_task(label, total=total, completed=done)
@@ -378,6 +461,7 @@ def posegraph(
         cfg = PoseGraphConfig(kernel=kernel, optimizer=optimizer)
     except ValidationError as exc:
         raise ConfigError(f"options: {exc.errors()[0]['msg']}") from None
+    _check_output_folder(out)
     run = run_posegraph(nodes, edges, cfg)
     write_posegraph_outputs(run, out)
     console.print(
@@ -409,6 +493,8 @@ def demo(
     from .geometry import transform_error
     from .synth import SynthParams, load_ground_truth, synthesize
 
+    _check_output_folder(out)
+    _workers_ignore_ctrl_c()
     dataset = out / "dataset"
     if dataset.exists():
         shutil.rmtree(dataset)
@@ -466,6 +552,7 @@ def convert(
     """Convert RealSense SDK recordings or ROS bags into the dataset folder form."""
     from .convert import cli_convert
 
+    _check_output_folder(out)
     cli_convert(sources, out, names.split(",") if names else None, sync_tolerance_ms)
 
 
@@ -492,6 +579,7 @@ def record(
     from .board import load_board, thesis_board
     from .record import cli_record
 
+    _check_output_folder(out)
     w, h = _parse_resolution(resolution)
     b = load_board(board_file) if board_file else thesis_board()
     cli_record(out, sets, (w, h, fps), hardware_sync, b, names.split(",") if names else None)

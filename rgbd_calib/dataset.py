@@ -8,7 +8,9 @@ with one line naming the file.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import struct
+import zlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,14 +55,16 @@ class FolderDataset:
 
     def __init__(self, path: Path, rig: Rig | None = None):
         self.path = Path(path)
+        if self.path.exists() and not self.path.is_dir():
+            raise DatasetError(f"{self.path}: is a file, not a dataset folder; check the path")
         if not self.path.is_dir():
             raise DatasetError(f"{self.path}: dataset folder not found; check the path")
         rig_path = self.path / "rig.yaml"
         if rig is None:
             if not rig_path.is_file():
                 raise DatasetError(
-                    f"{rig_path}: missing; every dataset needs a rig.yaml with "
-                    "the cameras' intrinsics (docs/formats.md)"
+                    f"{rig_path}: missing; add a rig.yaml with the cameras' intrinsics "
+                    "(docs/formats.md)"
                 )
             rig = load_rig(rig_path)
         self.rig = rig
@@ -84,18 +88,12 @@ class FolderDataset:
         self._depth: dict[str, dict[str, Path]] = {}
         for cam in rig.cameras:
             if not CAMERA_NAME.match(cam):
-                raise DatasetError(f"{self.path / cam}: invalid camera folder name")
-            self._color[cam] = {
-                p.stem: p
-                for p in sorted((self.path / cam / "color").iterdir())
-                if p.suffix.lower() in COLOR_SUFFIXES
-            }
+                raise DatasetError(
+                    f"{self.path / cam}: invalid camera folder name; use letters, digits, _ and -"
+                )
+            self._color[cam] = _index_images(self.path / cam / "color", COLOR_SUFFIXES)
             depth_dir = self.path / cam / "depth"
-            self._depth[cam] = (
-                {p.stem: p for p in sorted(depth_dir.iterdir()) if p.suffix.lower() == ".png"}
-                if depth_dir.is_dir()
-                else {}
-            )
+            self._depth[cam] = _index_images(depth_dir, (".png",)) if depth_dir.is_dir() else {}
         self.frames = sorted(set().union(*(set(c) for c in self._color.values())))
         if not self.frames:
             raise DatasetError(
@@ -133,6 +131,45 @@ class FolderDataset:
             depth = {c: self._depth[c][f] for c in self.cameras if f in self._depth[c]}
             yield FrameSet(f, color, depth)
 
+    def check_images(self, progress: Callable[[int], None] | None = None) -> None:
+        """Check every image's header against the contract before any long step runs.
+
+        Reads a few bytes per file (PNG: the IHDR chunk and the IEND trailer; JPEG: up to the
+        frame header): colour size = intrinsics, depth a 16-bit single-channel PNG of the same
+        size, no truncated PNG. Raises DatasetError naming the first offending file. Damage
+        inside the compressed data is only found when the image is decoded."""
+        for cam in self.cameras:
+            intr = self.rig.cameras[cam]
+            for path in self._color[cam].values():
+                info = image_header(path)
+                if (info.width, info.height) != (intr.width, intr.height):
+                    raise DatasetError(
+                        f"{path}: image is {info.width}x{info.height} but rig.yaml says "
+                        f"{intr.width}x{intr.height}; use the intrinsics of this resolution"
+                    )
+                if progress:
+                    progress(1)
+            for path in self._depth[cam].values():
+                info = image_header(path)
+                if info.kind != "png":
+                    raise DatasetError(
+                        f"{path}: depth must be a 16-bit single-channel PNG, got a "
+                        f"{info.kind.upper()} file; export raw depth counts (z16) as PNG"
+                    )
+                if info.bit_depth != 16 or info.channels != 1:
+                    raise DatasetError(
+                        f"{path}: depth must be a 16-bit single-channel PNG, got "
+                        f"{info.bit_depth}-bit, {info.channels} channel(s); export raw depth "
+                        "counts (z16) aligned to colour"
+                    )
+                if (info.width, info.height) != (intr.width, intr.height):
+                    raise DatasetError(
+                        f"{path}: depth is {info.width}x{info.height} but the colour "
+                        f"intrinsics say {intr.width}x{intr.height}; align depth to colour first"
+                    )
+                if progress:
+                    progress(1)
+
     def read_color(self, camera: str, frame: str, gray: bool = False) -> np.ndarray:
         path = self._color[camera].get(frame)
         if path is None:
@@ -149,11 +186,138 @@ class FolderDataset:
         return read_depth_image(path, intr.width, intr.height)
 
 
+def _index_images(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
+    """``{frame: path}`` of the images in ``folder``; hidden files (``.*``, e.g. macOS
+    ``._000001.png``) are skipped, two images of one frame are an error."""
+    out: dict[str, Path] = {}
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") or p.suffix.lower() not in suffixes or not p.is_file():
+            continue
+        if p.stem in out:
+            raise DatasetError(
+                f"{folder}: frame {p.stem} has two images ({out[p.stem].name}, {p.name}); "
+                "keep one of them"
+            )
+        out[p.stem] = p
+    return out
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the IEND chunk, always the last 12 bytes
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # colour type -> channels (3: palette)
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    kind: str  # "png" or "jpeg"
+    width: int
+    height: int
+    bit_depth: int
+    channels: int
+
+
+def _read(path: Path, size: int = -1) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read(size)
+    except OSError as exc:
+        raise DatasetError(
+            f"{path}: cannot be read ({exc.strerror or exc}); check the file and its permissions"
+        ) from None
+
+
+def image_header(path: Path) -> ImageHeader:
+    """Size, bit depth and channels of a PNG or JPEG from its first bytes (no decoding).
+
+    PNG files are also checked for their IEND trailer, so a truncated PNG fails here."""
+    head = _read(path, 1 << 16)
+    if head.startswith(PNG_SIGNATURE):
+        if len(head) < 33 or head[12:16] != b"IHDR":
+            raise DatasetError(f"{path}: corrupt PNG (no IHDR header); re-export or delete it")
+        width, height, depth, ctype = struct.unpack(">IIBB", head[16:26])
+        try:
+            with open(path, "rb") as f:
+                f.seek(-12, 2)
+                tail = f.read(12)
+        except OSError:
+            tail = b""
+        if tail != PNG_END:
+            raise DatasetError(
+                f"{path}: truncated PNG (the file ends before its IEND chunk); "
+                "re-export or delete it"
+            )
+        return ImageHeader("png", width, height, depth, _PNG_CHANNELS.get(ctype, 0))
+    if head.startswith(b"\xff\xd8"):
+        i = 2
+        while i + 9 < len(head):
+            if head[i] != 0xFF:
+                break
+            marker = head[i + 1]
+            if marker == 0xFF:  # fill byte
+                i += 1
+                continue
+            length = struct.unpack(">H", head[i + 2 : i + 4])[0]
+            if marker in _JPEG_SOF:
+                precision, height, width, comps = struct.unpack(">BHHB", head[i + 4 : i + 10])
+                return ImageHeader("jpeg", width, height, precision, comps)
+            i += 2 + length
+        raise DatasetError(f"{path}: corrupt JPEG (no frame header found); re-export or delete it")
+    what = "an empty file" if not head else "neither PNG nor JPEG"
+    raise DatasetError(f"{path}: {what}; re-export or delete it")
+
+
+def _decode(path: Path, flags: int, what: str) -> np.ndarray:
+    """Decode a PNG/JPEG after checking its structure in Python, so a damaged file gives one
+    DatasetError line (and no libpng/libjpeg/OpenCV chatter on stderr)."""
+    data = _read(path)
+    if data.startswith(PNG_SIGNATURE):
+        problem = _png_problem(data)
+    elif data.startswith(b"\xff\xd8"):
+        sos, eoi = data.rfind(b"\xff\xda"), data.rfind(b"\xff\xd9")
+        problem = None if sos > 0 and eoi > sos else "truncated JPEG (no end-of-image marker)"
+    else:
+        problem = "an empty file" if not data else "neither PNG nor JPEG"
+    if problem is None:
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        try:
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
+        if img is not None:
+            return img
+        problem = f"unreadable or corrupt {what}"
+    raise DatasetError(f"{path}: {problem}; re-export or delete it")
+
+
+def _png_problem(data: bytes) -> str | None:
+    """What is structurally wrong with a PNG (chunk lengths, CRCs, IEND), or None."""
+    i = len(PNG_SIGNATURE)
+    inflate = zlib.decompressobj()
+    while i + 12 <= len(data):
+        length = struct.unpack(">I", data[i : i + 4])[0]
+        kind = data[i + 4 : i + 8]
+        end = i + 12 + length
+        if end > len(data):
+            break
+        crc = struct.unpack(">I", data[end - 4 : end])[0]
+        if zlib.crc32(data[i + 4 : end - 4]) != crc:
+            return f"corrupt PNG (CRC error in a {kind.decode('latin-1')!r} chunk)"
+        if kind == b"IDAT":
+            try:  # libpng would print its own complaint to stderr; find it here instead
+                inflate.decompress(data[i + 8 : end - 4])
+            except zlib.error:
+                return "corrupt PNG (damaged compressed image data)"
+        if kind == b"IEND":
+            return None if inflate.eof else "corrupt PNG (its image data ends early)"
+        i = end
+    return "truncated PNG (the file ends before its IEND chunk)"
+
+
 def read_color_image(path: Path, width: int, height: int, gray: bool = False) -> np.ndarray:
     """Decode an 8-bit colour image and check its size against the intrinsics."""
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-    if img is None:
-        raise DatasetError(f"{path}: unreadable or corrupt image; re-export or delete it")
+    img = _decode(Path(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR, "image")
     if img.shape[:2] != (height, width):
         raise DatasetError(
             f"{path}: image is {img.shape[1]}x{img.shape[0]} but rig.yaml says "
@@ -164,9 +328,7 @@ def read_color_image(path: Path, width: int, height: int, gray: bool = False) ->
 
 def read_depth_image(path: Path, width: int, height: int) -> np.ndarray:
     """Decode a 16-bit single-channel depth PNG and check its size."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DatasetError(f"{path}: unreadable or corrupt depth image; re-export or delete it")
+    img = _decode(Path(path), cv2.IMREAD_UNCHANGED, "depth image")
     if img.dtype != np.uint16 or img.ndim != 2:
         kind = f"{img.dtype}, {1 if img.ndim == 2 else img.shape[2]} channel(s)"
         raise DatasetError(

@@ -10,7 +10,11 @@ import numpy as np
 
 from .errors import ConfigError
 from .geometry import is_rigid, matrix_to_quaternion_xyzw, orthonormalize
-from .yamlio import check_keys, matrix4, read_yaml_mapping, write_yaml
+from .yamlio import check_keys, matrix4, read_yaml_mapping, shown, write_yaml
+
+# translation_m / quaternion_xyzw may differ from T_ref_cam by rounding (hand-written files)
+REDUNDANT_TOL_M = 1e-4
+REDUNDANT_TOL_RAD = 1e-3
 
 
 @dataclass(frozen=True)
@@ -57,19 +61,24 @@ def write_extrinsics(extrinsics: Extrinsics, path: Path) -> None:
     write_yaml(path, extrinsics.to_dict())
 
 
-def load_extrinsics(path: Path) -> Extrinsics:
-    """Read an ``extrinsics.yaml`` (ours, or hand-written with at least ``T_ref_cam``)."""
+def load_extrinsics(path: Path, check_redundant: bool = False) -> Extrinsics:
+    """Read an ``extrinsics.yaml`` (ours, or hand-written with at least ``T_ref_cam``).
+
+    ``T_ref_cam`` is what is read; with ``check_redundant`` (files a user hands to the CLI) a
+    ``translation_m`` / ``quaternion_xyzw`` that disagrees with it is an error, not ignored."""
     path = Path(path)
     data = read_yaml_mapping(path, "extrinsics file")
     check_keys(data, {"reference", "cameras"}, str(path), required=("cameras",))
     cams = data["cameras"]
     if not isinstance(cams, dict) or not cams:
-        raise ConfigError(f"{path}: 'cameras' must be a non-empty mapping")
+        raise ConfigError(
+            f"{path}: 'cameras' must be a non-empty mapping; use the layout of docs/formats.md"
+        )
     out: dict[str, CameraExtrinsics] = {}
     for name, raw in cams.items():
-        where = f"{path}: cameras.{name}"
+        where = f"{path}: cameras.{shown(name)}"
         if not isinstance(raw, dict):
-            raise ConfigError(f"{where}: expected a mapping with T_ref_cam")
+            raise ConfigError(f"{where}: expected a mapping with T_ref_cam; add T_ref_cam")
         check_keys(
             raw,
             {
@@ -86,16 +95,66 @@ def load_extrinsics(path: Path) -> Extrinsics:
         if not is_rigid(T, atol=1e-4):
             raise ConfigError(
                 f"{where}.T_ref_cam is not a rigid transform (rotation not "
-                "orthonormal or last row not 0 0 0 1)"
+                "orthonormal or last row not 0 0 0 1); fix the matrix"
             )
         T[:3, :3] = orthonormalize(T[:3, :3])
+        if check_redundant:
+            _check_redundant(raw, T, where)
         out[str(name)] = CameraExtrinsics(
             str(name),
             T,
-            float(raw.get("sigma_rotation_deg", float("nan"))),
-            float(raw.get("sigma_translation_mm", float("nan"))),
+            _optional_float(raw.get("sigma_rotation_deg"), f"{where}.sigma_rotation_deg"),
+            _optional_float(raw.get("sigma_translation_mm"), f"{where}.sigma_translation_mm"),
         )
     reference = str(data.get("reference") or next(iter(out)))
     if reference not in out:
-        raise ConfigError(f"{path}: reference {reference!r} is not among the cameras")
+        raise ConfigError(
+            f"{path}: reference {reference!r} is not among the cameras; add it (identity)"
+        )
     return Extrinsics(reference, out)
+
+
+def _optional_float(value: Any, where: str) -> float:
+    """A number, or NaN when absent (``null``)."""
+    if value is None:
+        return float("nan")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{where}: expected a number, got {str(value)[:40]!r}; fix or remove it")
+    try:
+        return float(value)
+    except OverflowError:
+        raise ConfigError(f"{where}: number out of range; fix or remove it") from None
+
+
+def _check_redundant(raw: dict[str, Any], T: np.ndarray, where: str) -> None:
+    """``translation_m`` / ``quaternion_xyzw`` repeat ``T_ref_cam``; a hand edit of one but not
+    the other must not pass silently (``T_ref_cam`` is what is read)."""
+    if raw.get("translation_m") is not None:
+        t = _vector(raw["translation_m"], 3, f"{where}.translation_m")
+        if np.abs(t - T[:3, 3]).max() > REDUNDANT_TOL_M:
+            raise ConfigError(
+                f"{where}.translation_m {t.tolist()} disagrees with T_ref_cam's translation "
+                f"{T[:3, 3].tolist()}; edit both or remove translation_m"
+            )
+    if raw.get("quaternion_xyzw") is not None:
+        q = _vector(raw["quaternion_xyzw"], 4, f"{where}.quaternion_xyzw")
+        if not np.linalg.norm(q) > 0:
+            raise ConfigError(
+                f"{where}.quaternion_xyzw: a zero quaternion is no rotation; fix or remove it"
+            )
+        cos_half = abs(float(q @ matrix_to_quaternion_xyzw(T[:3, :3]))) / np.linalg.norm(q)
+        if 2.0 * np.arccos(min(cos_half, 1.0)) > REDUNDANT_TOL_RAD:
+            raise ConfigError(
+                f"{where}.quaternion_xyzw disagrees with T_ref_cam's rotation; "
+                "edit both or remove quaternion_xyzw"
+            )
+
+
+def _vector(value: Any, n: int, where: str) -> np.ndarray:
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        v = np.zeros(0)
+    if v.shape != (n,) or not np.all(np.isfinite(v)):
+        raise ConfigError(f"{where}: expected {n} finite numbers; fix or remove it")
+    return v

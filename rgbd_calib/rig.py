@@ -15,6 +15,8 @@ from .yamlio import check_keys, read_yaml_mapping, write_yaml
 
 CAMERA_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 _CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "distortion", "depth_scale"}
+_DIST_ADVICE = "give OpenCV's k1 k2 p1 p2 k3, e.g. [0, 0, 0, 0, 0]"
+_ADVICE = "copy the colour intrinsics of the recorded resolution (rs-enumerate-devices -c)"
 
 
 @dataclass(frozen=True)
@@ -94,19 +96,31 @@ class Rig:
         }
 
 
+def _show(value: Any) -> str:
+    """``repr`` for an error message, shortened (a YAML integer may have 400 digits)."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
 def _positive(value: Any, where: str, integer: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{where}: expected a number, got {value!r}")
-    if not math.isfinite(value) or value <= 0:
-        raise ConfigError(f"{where}: must be a positive finite number, got {value!r}")
+        raise ConfigError(f"{where}: expected a number, got {_show(value)}; write a plain number")
+    try:
+        finite = math.isfinite(value)
+    except OverflowError:  # an int too large for a float
+        finite = False
+    if not finite or value <= 0:
+        raise ConfigError(
+            f"{where}: must be a positive finite number, got {_show(value)}; {_ADVICE}"
+        )
     if integer and int(value) != value:
-        raise ConfigError(f"{where}: must be a whole number, got {value!r}")
+        raise ConfigError(f"{where}: must be a whole number, got {value!r}; fix it")
     return float(value)
 
 
 def parse_camera(raw: Any, where: str) -> CameraIntrinsics:
     if not isinstance(raw, dict):
-        raise ConfigError(f"{where}: expected a mapping of intrinsics")
+        raise ConfigError(f"{where}: expected a mapping of intrinsics; {_ADVICE}")
     check_keys(raw, _CAMERA_KEYS, where, required=("width", "height", "fx", "fy", "cx", "cy"))
     width = int(_positive(raw["width"], f"{where}.width", integer=True))
     height = int(_positive(raw["height"], f"{where}.height", integer=True))
@@ -122,14 +136,18 @@ def parse_camera(raw: Any, where: str) -> CameraIntrinsics:
     dist_raw = raw.get("distortion", [0.0] * 5)
     if dist_raw is None:
         dist_raw = [0.0] * 5
+    if not isinstance(dist_raw, (list, tuple)):
+        raise ConfigError(f"{where}.distortion: expected a list of numbers; {_DIST_ADVICE}")
     try:
         dist = tuple(float(v) for v in dist_raw)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}.distortion: expected a list of numbers") from exc
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ConfigError(
+            f"{where}.distortion: expected a list of numbers; {_DIST_ADVICE}"
+        ) from exc
     if len(dist) not in (4, 5, 8, 12, 14) or not all(math.isfinite(v) for v in dist):
         raise ConfigError(
             f"{where}.distortion: expected 4, 5, 8, 12 or 14 finite OpenCV coefficients "
-            f"(k1 k2 p1 p2 k3 ...), got {len(dist)}"
+            f"(k1 k2 p1 p2 k3 ...), got {len(dist)}; {_DIST_ADVICE}"
         )
     depth_scale = _positive(raw.get("depth_scale", 0.001), f"{where}.depth_scale")
     return CameraIntrinsics(width, height, fx, fy, cx, cy, dist, depth_scale)
@@ -143,21 +161,23 @@ def load_rig(path: Path) -> Rig:
     cams_raw = data["cameras"]
     if not isinstance(cams_raw, dict) or not cams_raw:
         raise ConfigError(
-            f"{path}: 'cameras' must be a non-empty mapping of camera name to intrinsics"
+            f"{path}: 'cameras' must be a non-empty mapping of camera name to intrinsics; "
+            "use the layout of docs/formats.md"
         )
     cameras: dict[str, CameraIntrinsics] = {}
     for name, raw in cams_raw.items():
         name = str(name)
         if not CAMERA_NAME.match(name):
             raise ConfigError(
-                f"{path}: camera name {name!r} may only use letters, digits, '_' and '-'"
+                f"{path}: camera name {name!r} may only use letters, digits, '_' and '-'; "
+                "rename the camera and its folder"
             )
         cameras[name] = parse_camera(raw, f"{path}: cameras.{name}")
     reference = str(data.get("reference") or next(iter(cameras)))
     if reference not in cameras:
         raise ConfigError(
             f"{path}: reference camera {reference!r} is not among the cameras "
-            f"({', '.join(cameras)})"
+            f"({', '.join(cameras)}); set reference to one of them"
         )
     return Rig(cameras=cameras, reference=reference, source=path)
 
