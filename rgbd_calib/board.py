@@ -148,16 +148,23 @@ def winding_sign(corners: np.ndarray, face: int) -> float:
 
 
 def _number(value: Any, where: str, positive: bool = True, allow_zero: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise BoardError(f"{where}: expected a finite number, got {value!r}")
+    try:
+        ok = (not isinstance(value, bool) and isinstance(value, (int, float))
+              and math.isfinite(float(value)))
+    except OverflowError:
+        ok = False
+    if not ok:
+        raise BoardError(f"{where}: expected a finite number, got {str(value)[:40]!r}")
     if positive and (value < 0 or (value == 0 and not allow_zero)):
         raise BoardError(f"{where}: must be positive, got {value!r}")
     return float(value)
 
 
 def _int(value: Any, where: str, minimum: int = 0) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise BoardError(f"{where}: expected a whole number >= {minimum}, got {value!r}")
+    if (isinstance(value, bool) or not isinstance(value, int) or value < minimum
+            or value >= 2**31):
+        raise BoardError(f"{where}: expected a whole number >= {minimum}, got "
+                         f"{str(value)[:40]!r}")
     return int(value)
 
 
@@ -363,9 +370,13 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
     ids, corners = [], []
     for key, value in markers.items():
         try:
+            if isinstance(key, bool) or (isinstance(key, float) and not key.is_integer()):
+                raise ValueError("not a whole number")
             mid = int(key)
+            if not 0 <= mid < 2**31:
+                raise ValueError("id out of range")
             c = np.asarray(value, dtype=float)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise BoardError(
                 f"{where}: marker {key!r}: expected an integer id and 4 corners of 3 numbers"
             ) from None
@@ -387,7 +398,7 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
         fix_winding=fix_winding or order == "front",
     )
     if panel is None:
-        m = float(data.get("margin", 0.0) or 0.0)
+        m = _number(data.get("margin", 0.0) or 0.0, f"{where}: margin", allow_zero=True)
         lo = corners_a.reshape(-1, 3).min(axis=0)
         hi = corners_a.reshape(-1, 3).max(axis=0)
         panel = (lo[0] - m, hi[0] + m, lo[1] - m, hi[1] + m)

@@ -179,14 +179,13 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     omega, v = xi[:3], xi[3:]
     theta = float(np.linalg.norm(omega))
     W = skew(omega)
-    if theta < 1e-8:
-        V = np.eye(3) + 0.5 * W
+    if theta < 1e-3:  # Taylor series: the closed form cancels catastrophically here
+        t2 = theta * theta
+        a, b = 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
     else:
-        V = (
-            np.eye(3)
-            + (1 - np.cos(theta)) / theta**2 * W
-            + (theta - np.sin(theta)) / theta**3 * (W @ W)
-        )
+        a = (1 - np.cos(theta)) / theta**2
+        b = (theta - np.sin(theta)) / theta**3
+    V = np.eye(3) + a * W + b * (W @ W)
     return make_transform(rotvec_to_matrix(omega), V @ v)
 
 

@@ -236,7 +236,7 @@ def test_board_round_trip(tmp_path, board, explicit):
     _same_board(load_board(tmp_path / "board.yaml"), board)
 
 
-# board.py still lets numbers beyond float/int64 range escape (test_board_crashers, xfail):
+# numbers beyond float/int64 range are covered by test_board_crashers;
 # this search keeps to int64 so that it looks for anything else
 board_leaf = (st.none() | st.booleans() | st.integers(-(2**62), 2**62) | st.floats()
               | st.text(max_size=12) | st.just("[[x]"))
@@ -277,8 +277,6 @@ EXPLICIT = ("dictionary: DICT_4X4_100\nthickness: 0.0066\nmarkers:\n  {id}: [[0,
     pytest.param(EXPLICIT.format(id=1, z=0, extra="margin: abc\n"), id="explicit-margin-text"),
     pytest.param(EXPLICIT.format(id=1.5, z=0, extra=""), id="marker-id-1.5-truncated-to-1"),
 ])
-@pytest.mark.xfail(strict=True, reason="board.py: see the reply (OverflowError/ValueError "
-                   "escape load_board; a marker id 1.5 silently becomes 1)")
 def test_board_crashers(tmp_path, text):
     path = tmp_path / "board.yaml"
     path.write_text(text)
