@@ -9,6 +9,7 @@ rejected with an RgbdCalibError (a one-line user error), never another exception
 from __future__ import annotations
 
 import functools
+import time
 from pathlib import Path
 
 import cv2
@@ -70,10 +71,9 @@ garbage = st.recursive(
 )
 
 
-def replace_somewhere(data, draw, values=None):
+def replace_somewhere(data, draw):
     """``data`` (nested dicts/lists) with one value, at a random path, replaced by garbage
     (or one garbage key added to a mapping)."""
-    values = garbage if values is None else values
     node = data
     while True:
         if isinstance(node, dict) and node:
@@ -85,9 +85,9 @@ def replace_somewhere(data, draw, values=None):
         child = node[key]
         if not isinstance(child, (dict, list)) or not child or draw(st.booleans()):
             if isinstance(node, dict) and draw(st.integers(0, 4)) == 0:
-                node[draw(st.text(min_size=1, max_size=6))] = draw(values)
+                node[draw(st.text(min_size=1, max_size=6))] = draw(garbage)
             else:
-                node[key] = draw(values)
+                node[key] = draw(garbage)
             return data
         node = child
 
@@ -236,18 +236,6 @@ def test_board_round_trip(tmp_path, board, explicit):
     _same_board(load_board(tmp_path / "board.yaml"), board)
 
 
-# numbers beyond float/int64 range are covered by test_board_crashers;
-# this search keeps to int64 so that it looks for anything else
-board_leaf = (st.none() | st.booleans() | st.integers(-(2**62), 2**62) | st.floats()
-              | st.text(max_size=12) | st.just("[[x]"))
-board_garbage = st.recursive(
-    board_leaf,
-    lambda inner: st.lists(inner, max_size=5)
-    | st.dictionaries(st.text(max_size=8) | st.integers(-5, 5), inner, max_size=5),
-    max_leaves=20,
-)
-
-
 @settings(max_examples=200, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.data())
@@ -258,9 +246,9 @@ def test_board_garbage_is_a_user_error(tmp_path, data):
                       board.panel, board.name)
     raw = yaml.safe_load(yaml.safe_dump(_plain(board.to_dict())))
     path = tmp_path / "board.yaml"
-    path.write_text(yaml.safe_dump(replace_somewhere(raw, data.draw, board_garbage)))
+    path.write_text(yaml.safe_dump(replace_somewhere(raw, data.draw)))
     assert_only_user_errors(load_board, path)
-    path.write_text(yaml.safe_dump(data.draw(board_garbage)))
+    path.write_text(yaml.safe_dump(data.draw(garbage)))
     assert_only_user_errors(load_board, path)
 
 
@@ -282,6 +270,19 @@ def test_board_crashers(tmp_path, text):
     path.write_text(text)
     with pytest.raises(RgbdCalibError):
         load_board(path)
+
+
+@pytest.mark.xfail(strict=True, reason="board.py builds the grid marker by marker before the id "
+                   "check (100000 x 100000 exhausts memory) and lists every bad id in the message")
+def test_grid_larger_than_its_dictionary_fails_fast(tmp_path):
+    path = tmp_path / "board.yaml"
+    path.write_text(GRID.replace("rows: 2, cols: 2", "rows: 1000, cols: 1000").format(
+        t=0.005, extra=""))
+    t0 = time.perf_counter()
+    with pytest.raises(RgbdCalibError) as err:
+        load_board(path)
+    assert time.perf_counter() - t0 < 0.2
+    assert len(str(err.value)) < 300, f"{len(str(err.value))} characters"
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -350,6 +351,7 @@ def test_look_at_is_rigid_and_looks_at_the_target(eye, target, up):
                                atol=1e-9)
 
 
+@settings(deadline=None)
 @given(st.tuples(finite, finite, finite), vec3)
 def test_se3_exp_matches_gtsam(omega, v):
     gtsam = pytest.importorskip("gtsam")
@@ -357,7 +359,7 @@ def test_se3_exp_matches_gtsam(omega, v):
     np.testing.assert_allclose(se3_exp(xi), gtsam.Pose3.Expmap(xi).matrix(), atol=1e-8)
 
 
-@settings(max_examples=100)
+@settings(max_examples=100, deadline=None)
 @given(st.lists(st.floats(-0.3, 0.3), min_size=5, max_size=5),
        st.lists(st.floats(-0.5, 0.5), min_size=6, max_size=6))
 def test_projection_matches_opencv(dist, xy):
