@@ -6,6 +6,7 @@ Heavy imports happen inside the commands so ``--help`` stays fast. Every user mi
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import sys
@@ -139,6 +140,19 @@ def progress_bar():
         console=console,
         disable=not sys.stderr.isatty(),
     )
+
+
+@contextlib.contextmanager
+def stage_progress():
+    """The library's progress protocol, ``progress(label, total, done) -> tick(n=1)``, as one
+    rich bar per stage."""
+    with progress_bar() as bar:
+
+        def progress(label: str, total: int, done: int):
+            task = bar.add_task(label, total=total, completed=done)
+            return lambda n=1: bar.advance(task, n)
+
+        yield progress
 
 
 def _parse_resolution(text: str | None) -> tuple[int, int] | None:
@@ -333,12 +347,7 @@ def _calibrate_and_write(ds, board, cfg, out: Path, fixed=None):
     from .calibrate import calibrate as run_calibration
     from .outputs import write_outputs
 
-    with progress_bar() as bar:
-
-        def progress(label: str, total: int, done: int):
-            task = bar.add_task(label, total=total, completed=done)
-            return lambda n=1: bar.advance(task, n)
-
+    with stage_progress() as progress:
         result = run_calibration(
             ds, board, cfg, cache_dir=out / "cache", fixed_cameras=fixed, progress=progress
         )
@@ -405,11 +414,7 @@ def refine(
     ds = FolderDataset(dataset)
     ds.check_images()
     init_ext = load_extrinsics(init, check_redundant=True)
-    with progress_bar() as bar:
-        def progress(label: str, total: int, done: int):
-            task = bar.add_task(label, total=total, completed=done)
-            return lambda n=1: bar.advance(task, n)
-
+    with stage_progress() as progress:
         ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress)
     out.mkdir(parents=True, exist_ok=True)
     pts, cols, idx, names = depth.fused({c: e.T_ref_cam for c, e in ext.cameras.items()}, 0.005)
@@ -432,11 +437,7 @@ def report(
     """Rebuild report.html (and report.json) from the saved results of a calibration."""
     from .report import rebuild_report
 
-    with progress_bar() as bar:
-        def progress(label: str, total: int, done: int):
-            task = bar.add_task(label, total=total, completed=done)
-            return lambda n=1: bar.advance(task, n)
-
+    with stage_progress() as progress:
         path = rebuild_report(out, progress=progress)
     console.print(f"report: {path}")
 
