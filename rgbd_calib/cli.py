@@ -200,7 +200,9 @@ def synth(
     out: Annotated[
         Path, typer.Argument(help="Output dataset folder (must not exist or be empty).")
     ],
-    layout: Annotated[str, typer.Option(help="thesis-line, race or ring.")] = "race",
+    layout: Annotated[
+        str, typer.Option(help="thesis-line, race, race16 (16 cameras, two tiers) or ring.")
+    ] = "race",
     frames: Annotated[int, typer.Option(help="Number of synchronised frame sets.")] = 40,
     seed: Annotated[int, typer.Option(help="Random seed (rig jitter, board motion, noise).")] = 0,
     resolution: Annotated[
@@ -294,8 +296,9 @@ def calibrate(
     ] = None,
     refine: Annotated[
         str | None,
-        typer.Option(help="Depth refinement: colored-icp (default when there is depth), "
-                     "geometric or none."),
+        typer.Option(
+            help="Depth refinement: colored-icp (default when there is depth), geometric or none."
+        ),
     ] = None,
     fix: Annotated[
         Path | None,
@@ -393,8 +396,12 @@ def _print_summary(result, out: Path) -> None:
 @user_errors
 def refine(
     dataset: Annotated[Path, typer.Argument(help="Dataset folder with depth.")],
-    init: Annotated[Path, typer.Option("--init", help="extrinsics.yaml to start from "
-                                       "(hand-measured or an older calibration).")],
+    init: Annotated[
+        Path,
+        typer.Option(
+            "--init", help="extrinsics.yaml to start from (hand-measured or an older calibration)."
+        ),
+    ],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("refine_out"),
     method: Annotated[str, typer.Option(help="colored-icp or geometric.")] = "colored-icp",
 ) -> None:
@@ -419,13 +426,21 @@ def refine(
     out.mkdir(parents=True, exist_ok=True)
     pts, cols, idx, names = depth.fused({c: e.T_ref_cam for c, e in ext.cameras.items()}, 0.005)
     write_fused_ply(out / "fused.ply", pts, cols, idx, names)
-    atomic_write_text(out / "refine_report.json", json.dumps(to_builtin(
-        {"method": method, "init": str(init), "pairs": depth.pairs}), indent=1, default=str))
+    atomic_write_text(
+        out / "refine_report.json",
+        json.dumps(
+            to_builtin({"method": method, "init": str(init), "pairs": depth.pairs}),
+            indent=1,
+            default=str,
+        ),
+    )
     write_extrinsics(ext, out / "extrinsics.yaml")
     for p in depth.pairs:
         state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
-        console.print(f"{p['cam_a']} -> {p['cam_b']}: rmse {p['rmse_before_mm']:.2f} -> "
-                      f"{p['rmse_final_mm']:.2f} mm, {state}")
+        console.print(
+            f"{p['cam_a']} -> {p['cam_b']}: rmse {p['rmse_before_mm']:.2f} -> "
+            f"{p['rmse_final_mm']:.2f} mm, {state}"
+        )
     console.print(f"results in {out}/ (extrinsics.yaml, refine_report.json, fused.ply)")
 
 
@@ -482,7 +497,9 @@ def posegraph(
 @user_errors
 def demo(
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("demo_out"),
-    layout: Annotated[str, typer.Option(help="thesis-line, race or ring.")] = "race",
+    layout: Annotated[
+        str, typer.Option(help="thesis-line, race, race16 (16 cameras, two tiers) or ring.")
+    ] = "race",
     frames: Annotated[int, typer.Option(help="Frame sets to render.")] = 16,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
 ) -> None:

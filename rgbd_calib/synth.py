@@ -30,7 +30,7 @@ from .rig import CameraIntrinsics, Rig, save_rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
 from .yamlio import write_yaml
 
-LAYOUTS = ("thesis-line", "race", "ring")
+LAYOUTS = ("thesis-line", "race", "race16", "ring")
 LIGHT_DIR_WORLD = np.array([0.3, -0.4, 0.87]) / np.linalg.norm([0.3, -0.4, 0.87])
 PAPER_WHITE, INK_BLACK, WOOD = 0.88, 0.07, 0.55
 
@@ -71,13 +71,15 @@ class SynthRig:
     workspace_lo: np.ndarray
     workspace_hi: np.ndarray
     facing: str = "camera"  # how board normals are chosen: towards a random camera
+    reference_index: int = 0  # the camera whose frame is the rig's reference
 
     @property
     def reference(self) -> str:
-        return self.cameras[0].name
+        return self.cameras[self.reference_index].name
 
     def T_ref_cam(self, cam: SynthCamera) -> np.ndarray:
-        return invert_transform(self.cameras[0].T_world_cam) @ cam.T_world_cam
+        T_world_ref = self.cameras[self.reference_index].T_world_cam
+        return invert_transform(T_world_ref) @ cam.T_world_cam
 
 
 # --------------------------------------------------------------------------- layouts
@@ -110,6 +112,29 @@ def _room(rng: np.random.Generator, half: float = 3.5, height: float = 3.0) -> l
     return rects
 
 
+def _race_rails(half_length: float) -> list[Rect]:
+    """Two rails on each side of a race along x (y = +-0.45 m) on posts every 0.9 m."""
+    rails: list[Rect] = []
+    for y in (-0.45, 0.45):
+        for z in (0.35, 0.75):
+            rails += box(
+                (-half_length, y - 0.02, z - 0.02),
+                (half_length, y + 0.02, z + 0.02),
+                (0.5, 0.52, 0.55),
+                300 + int(10 * z),
+                0.03,
+            )
+        for x in np.arange(-half_length + 0.2, half_length - 0.19, 0.9):
+            rails += box(
+                (x - 0.04, y - 0.04, 0.0),
+                (x + 0.04, y + 0.04, 0.85),
+                (0.45, 0.47, 0.5),
+                400,
+                0.03,
+            )
+    return rails
+
+
 def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
     """Camera poses, intrinsics, depth biases and scene of a named layout."""
     rng = np.random.default_rng(seed)
@@ -136,24 +161,24 @@ def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
                 eye = np.array([x, y, 1.75]) + rng.normal(0, 0.02, 3)
                 target = np.array([0.75 * x, 0.0, 1.15]) + rng.normal(0, 0.05, 3)
                 cams.append((f"{side}{k}", look_at(eye, target)))
-        for y in (-0.45, 0.45):
-            for z in (0.35, 0.75):
-                scene += box(
-                    (-2.0, y - 0.02, z - 0.02),
-                    (2.0, y + 0.02, z + 0.02),
-                    (0.5, 0.52, 0.55),
-                    300 + int(10 * z),
-                    0.03,
-                )
-            for x in np.arange(-1.8, 1.81, 0.9):
-                scene += box(
-                    (x - 0.04, y - 0.04, 0.0),
-                    (x + 0.04, y + 0.04, 0.85),
-                    (0.45, 0.47, 0.5),
-                    400,
-                    0.03,
-                )
+        scene += _race_rails(half_length=2.0)
         lo, hi = np.array([-0.95, -0.15, 0.95]), np.array([0.95, 0.15, 1.45])
+    elif layout == "race16":
+        # The seed's full rig: 16 cameras along a longer race, on both sides and in two tiers
+        # (an upper row looking down onto the back, a lower row looking across at the flank),
+        # so neighbours overlap along the race, facing cameras see opposite board faces and
+        # the tiers share views above each other.
+        default_res = (848, 480)
+        for side, y in (("left", -1.2), ("right", 1.2)):
+            for tier, z, aim_z in (("hi", 2.1, 1.05), ("lo", 1.35, 1.2)):
+                for k, x in enumerate((-1.35, -0.45, 0.45, 1.35)):
+                    eye = np.array([x, y * (0.95 if tier == "hi" else 1.0), z])
+                    target = np.array([0.85 * x, 0.0, aim_z]) + rng.normal(0, 0.05, 3)
+                    cams.append(
+                        (f"{side}_{tier}{k}", look_at(eye + rng.normal(0, 0.02, 3), target))
+                    )
+        scene += _race_rails(half_length=2.7)
+        lo, hi = np.array([-1.45, -0.15, 0.95]), np.array([1.45, 0.15, 1.5])
     elif layout == "ring":
         default_res = (1280, 720)
         n = params.cameras or 6
@@ -173,7 +198,9 @@ def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
             rng.uniform(-params.depth_bias, params.depth_bias) if params.depth_bias > 0 else 0.0
         )
         cameras.append(SynthCamera(name, _intrinsics(width, height, rng), T_world_cam, bias))
-    return SynthRig(layout, cameras, scene, lo, hi)
+    # race16: a central lower-tier camera (most views) rather than one at the race's end
+    reference = [c.name for c in cameras].index("left_lo1") if layout == "race16" else 0
+    return SynthRig(layout, cameras, scene, lo, hi, reference_index=reference)
 
 
 # --------------------------------------------------------------------------- board motion
@@ -570,7 +597,7 @@ def synthesize(
                 for _ in ex.map(_render_frame, jobs, chunksize=1):
                     if progress:
                         progress()
-        T_world_ref = rig.cameras[0].T_world_cam
+        T_world_ref = rig.cameras[rig.reference_index].T_world_cam
         T_ref_world = invert_transform(T_world_ref)
         write_yaml(
             tmp / "ground_truth.yaml",
