@@ -275,11 +275,45 @@ def _load_config(path: Path | None, **overrides):
         ) from None
 
 
+NAMES_OPTION = typer.Option(
+    help="Recordings only: comma-separated camera names, in source order "
+    "(default: serial / ROS namespace)."
+)
+SYNC_OPTION = typer.Option(
+    help="Recordings only: largest timestamp gap between cameras of one frame set (ms); "
+    "default half a frame period."
+)
+
+
+def _open_dataset(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms):
+    """A dataset folder as it is, or recordings converted once under OUT/cache/recordings
+    (with a progress bar and the per-camera frame counts of the conversion)."""
+    from .convert import cached_report, dataset_folder, print_report, rich_progress
+    from .dataset import FolderDataset
+
+    name_list = [n.strip() for n in names.split(",")] if names else None
+    with progress_bar() as bar:
+        folder = dataset_folder(
+            sources, out / "cache" / "recordings", name_list, sync_tolerance_ms, rich_progress(bar)
+        )
+    report = cached_report(folder)
+    if report is not None:
+        print_report(report, console)
+        console.print(f"recordings as a dataset folder: {folder}", highlight=False)
+    return FolderDataset(folder)
+
+
 @app.command()
 @user_errors
 def calibrate(
     dataset: Annotated[
-        Path, typer.Argument(help="Dataset folder (rig.yaml + <camera>/color, depth).")
+        list[Path],
+        typer.Argument(
+            help="Dataset folder (rig.yaml + <camera>/color, depth), or recordings: RealSense "
+            ".bag/.db3 files (one per camera) or ROS 1/ROS 2 bags, converted once into "
+            "OUT/cache/recordings.",
+            show_default=False,
+        ),
     ],
     board_file: Annotated[
         Path | None, typer.Option("--board", help="Board YAML; default: the thesis board.")
@@ -307,16 +341,17 @@ def calibrate(
             "hold its cameras fixed (adding cameras)."
         ),
     ] = None,
+    names: Annotated[str | None, NAMES_OPTION] = None,
+    sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
 ) -> None:
     """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports."""
     from .board import load_board, thesis_board
-    from .dataset import FolderDataset
     from .results import load_extrinsics
 
     _check_output_folder(out)
     cfg = _load_config(config, method=method, workers=workers, refine=refine)
     b = load_board(board_file) if board_file else thesis_board()
-    ds = FolderDataset(dataset)
+    ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     fixed = None
     if fix is not None:
         prior = load_extrinsics(fix, check_redundant=True)
@@ -395,7 +430,13 @@ def _print_summary(result, out: Path) -> None:
 @app.command()
 @user_errors
 def refine(
-    dataset: Annotated[Path, typer.Argument(help="Dataset folder with depth.")],
+    dataset: Annotated[
+        list[Path],
+        typer.Argument(
+            help="Dataset folder with depth, or recordings (as for calibrate).",
+            show_default=False,
+        ),
+    ],
     init: Annotated[
         Path,
         typer.Option(
@@ -404,11 +445,12 @@ def refine(
     ],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("refine_out"),
     method: Annotated[str, typer.Option(help="colored-icp or geometric.")] = "colored-icp",
+    names: Annotated[str | None, NAMES_OPTION] = None,
+    sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view)."""
     import json
 
-    from .dataset import FolderDataset
     from .depth import write_fused_ply
     from .errors import ConfigError
     from .refine import refine_extrinsics
@@ -418,7 +460,7 @@ def refine(
     if method not in ("colored-icp", "geometric"):
         raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
     _check_output_folder(out)
-    ds = FolderDataset(dataset)
+    ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     ds.check_images()
     init_ext = load_extrinsics(init, check_redundant=True)
     with stage_progress() as progress:

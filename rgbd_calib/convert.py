@@ -100,6 +100,20 @@ class ConversionReport:
             "notes": list(self.notes),
         }
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ConversionReport:
+        return cls(
+            out=Path(d["out"]),
+            cameras=list(d["cameras"]),
+            sync_reference=d["sync_reference"],
+            frames_written=int(d["frames_written"]),
+            sync_tolerance_ms=float(d["sync_tolerance_ms"]),
+            counts={c: CameraCounts(**n) for c, n in d["counts"].items()},
+            intrinsics_source=dict(d["intrinsics_source"]),
+            depth_source=dict(d["depth_source"]),
+            notes=list(d.get("notes", [])),
+        )
+
 
 # --------------------------------------------------------------------------- geometry
 def extrinsics_matrix(rotation: Sequence[float], translation: Sequence[float]) -> np.ndarray:
@@ -961,7 +975,8 @@ def convert_to_cache(
     """Folder form of a recording under ``cache_dir``, converted once.
 
     A second call returns the earlier conversion while every source's size and modification
-    time are unchanged; otherwise the cached folder is converted again."""
+    time are unchanged; otherwise the cached folder is converted again. The conversion's
+    report is kept beside it (:func:`cached_report`)."""
     sources = [Path(source)] if isinstance(source, (str, Path)) else [Path(s) for s in source]
     for src in sources:
         _check_source(src)
@@ -970,50 +985,87 @@ def convert_to_cache(
         json.dumps([e["path"] for e in stamp["sources"]] + stamp["names"]).encode()
     ).hexdigest()[:12]
     folder = Path(cache_dir) / f"{_sanitize(sources[0].stem)}-{key}"
-    marker = folder / CACHE_MARKER
-    if marker.is_file():
-        try:
-            if json.loads(marker.read_text(encoding="utf-8")) == stamp:
-                return folder
-        except (OSError, ValueError):
-            pass
+    if _read_marker(folder).get("source") == stamp:
+        return folder
     if folder.exists():
         shutil.rmtree(folder)
-    convert(sources, folder, names, sync_tolerance_ms, progress)
-    atomic_write_text(marker, json.dumps(stamp, indent=1))
+    report = convert(sources, folder, names, sync_tolerance_ms, progress)
+    atomic_write_text(
+        folder / CACHE_MARKER,
+        json.dumps({"source": stamp, "report": report.to_dict()}, indent=1),
+    )
     return folder
 
 
-# --------------------------------------------------------------------------- CLI helper
-def cli_convert(
+def _read_marker(folder: Path) -> dict[str, Any]:
+    try:
+        data = json.loads((Path(folder) / CACHE_MARKER).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def cached_report(folder: Path) -> ConversionReport | None:
+    """The report of the conversion that made ``folder`` in a cache; None for any other
+    folder (a dataset folder, say)."""
+    data = _read_marker(folder).get("report")
+    try:
+        return ConversionReport.from_dict(data) if isinstance(data, dict) else None
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def dataset_folder(
     sources: Sequence[Path],
-    out: Path,
+    cache_dir: Path,
     names: Sequence[str] | None = None,
     sync_tolerance_ms: float | None = None,
-) -> ConversionReport:
-    """Run :func:`convert` with a rich progress bar and print a table of the result."""
-    import sys
+    progress: Progress | None = None,
+) -> Path:
+    """The folder form to calibrate from: a dataset folder as it is, or recordings converted
+    once into ``cache_dir`` (see :func:`convert_to_cache`; converted again when a recording
+    changes).
 
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+    One source that is not a recording (no .bag/.db3/.mcap suffix, not a ROS 2 bag folder) is
+    taken as a dataset folder: :class:`FolderDataset` then names what is wrong with it.
+    ``names`` and ``sync_tolerance_ms`` apply to recordings only."""
+    sources = [Path(s) for s in sources]
+    if not sources:
+        raise ConfigError("give a dataset folder or at least one recording")
+    single = sources[0]
+    if len(sources) == 1 and not is_recording(single):
+        if names or sync_tolerance_ms is not None:
+            raise ConfigError(
+                f"{single}: --names and --sync-tolerance-ms apply to recordings, not to a "
+                "dataset folder; drop them (camera names come from its rig.yaml)"
+            )
+        return single
+    for src in sources:
+        if src.is_dir() and not is_recording(src):
+            raise DatasetError(
+                f"{src}: a dataset folder cannot be mixed with recordings; pass either one "
+                "dataset folder or only recordings"
+            )
+    return convert_to_cache(sources, cache_dir, names, sync_tolerance_ms, progress)
+
+
+# --------------------------------------------------------------------------- CLI helper
+def rich_progress(bar) -> Progress:
+    """:data:`Progress` shown as one task per description on a ``rich.progress.Progress``."""
+    tasks: dict[str, Any] = {}
+
+    def progress(description: str, done: int, total: int | None) -> None:
+        if description not in tasks:
+            tasks[description] = bar.add_task(description, total=total)
+        bar.update(tasks[description], completed=done, total=total)
+
+    return progress
+
+
+def print_report(report: ConversionReport, console) -> None:
+    """The per-camera counts of a conversion as a table, then its notes."""
     from rich.table import Table
 
-    console = Console(stderr=True)
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        console=console,
-        disable=not sys.stderr.isatty(),
-    ) as bar:
-        tasks: dict[str, Any] = {}
-
-        def progress(description: str, done: int, total: int | None) -> None:
-            if description not in tasks:
-                tasks[description] = bar.add_task(description, total=total)
-            bar.update(tasks[description], completed=done, total=total)
-
-        report = convert(sources, out, names, sync_tolerance_ms, progress)
     table = Table(
         title=f"{report.out}: {report.frames_written} frame sets "
         f"(sync tolerance {report.sync_tolerance_ms:.1f} ms)"
@@ -1034,4 +1086,28 @@ def cli_convert(
     console.print(table)
     for note in report.notes:
         console.print(f"[yellow]note:[/] {note}", highlight=False)
+
+
+def cli_convert(
+    sources: Sequence[Path],
+    out: Path,
+    names: Sequence[str] | None = None,
+    sync_tolerance_ms: float | None = None,
+) -> ConversionReport:
+    """Run :func:`convert` with a rich progress bar and print a table of the result."""
+    import sys
+
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    console = Console(stderr=True)
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        console=console,
+        disable=not sys.stderr.isatty(),
+    ) as bar:
+        report = convert(sources, out, names, sync_tolerance_ms, rich_progress(bar))
+    print_report(report, console)
     return report

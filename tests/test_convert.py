@@ -692,7 +692,113 @@ def test_recordings_without_common_time_are_refused(synth_rig, tmp_path):
     assert report.frames_written >= 1  # with a tolerance that bridges the offset it converts
 
 
-@pytest.mark.skip(reason="needs calibrate")
-def test_recordings_calibrate_to_the_folder_form_extrinsics():
-    """TODO(lead): calibrate the .db3 / ROS 1 / ROS 2 round trips above and assert the same
-    extrinsics as calibrating the synthetic folder form directly."""
+# --------------------------------------------------------------------------- calibrate
+CALIB_SAME_MM, CALIB_SAME_DEG = 0.01, 1e-4  # recordings vs folder form (SDK stores float32)
+
+
+@pytest.fixture(scope="module")
+def calib_rig(tmp_path_factory):
+    """A thesis-line rig (4 cameras, 6 frames, 640x360) that calibrates, and its folder-form
+    calibration (board only) to compare the recordings' with."""
+    from typer.testing import CliRunner
+
+    from rgbd_calib.board import thesis_board
+    from rgbd_calib.cli import app
+    from rgbd_calib.synth import SynthParams, synthesize
+
+    root = tmp_path_factory.mktemp("convert_calib")
+    ds = synthesize(
+        root / "line",
+        "thesis-line",
+        6,
+        3,
+        thesis_board(),
+        SynthParams(resolution=(640, 360), supersample=2),
+        workers=2,
+    )
+    result = CliRunner().invoke(
+        app, ["calibrate", str(ds.path), "--out", str(root / "folder"), "--refine", "none"]
+    )
+    assert result.exit_code == 0, result.output
+    folder = FolderDataset(ds.path)
+    cams = []
+    for name in folder.cameras:
+        frames = [(folder.read_color(name, f), folder.read_depth(name, f)) for f in folder.frames]
+        cams.append((name, folder.rig.cameras[name], frames))
+    return cams, root / "folder" / "extrinsics.yaml"
+
+
+def _calibrate_cli(sources, out: Path, *options: str):
+    from typer.testing import CliRunner
+
+    from rgbd_calib.cli import app
+
+    args = ["calibrate", *map(str, sources), "--out", str(out), "--refine", "none", *options]
+    return CliRunner().invoke(app, args)
+
+
+@pytest.mark.parametrize("kind", ["sdk-db3", "ros1", "ros2-sqlite3"])
+def test_recordings_calibrate_to_the_folder_form_extrinsics(calib_rig, tmp_path, kind):
+    """`calibrate` takes the recordings themselves (converted once into OUT/cache) and finds
+    the extrinsics it finds from the folder form of the same frames."""
+    from rgbd_calib.geometry import transform_error
+    from rgbd_calib.results import load_extrinsics
+
+    cams, folder_result = calib_rig
+    names = [name for name, _, _ in cams]
+    options: list[str] = []
+    if kind == "sdk-db3":
+        sources = []
+        for k, (name, intr, frames) in enumerate(cams):
+            sources.append(tmp_path / f"{name}.db3")
+            write_sdk_db3(sources[-1], f"80000{k}", intr, frames, _times(len(frames), 2.0 * k))
+        options = ["--names", ",".join(names)]
+    else:
+        ros = {
+            f"/{name}": {"color": intr, "frames": frames, "times_ms": _times(len(frames), 2.0 * k)}
+            for k, (name, intr, frames) in enumerate(cams)
+        }
+        sources = [tmp_path / ("rig.bag" if kind == "ros1" else "rig")]
+        write_ros_bag(sources[0], ros, ros1=kind == "ros1")
+    result = _calibrate_cli(sources, tmp_path / "out", *options)
+    assert result.exit_code == 0, result.output
+    assert "frame sets" in result.output  # the conversion's per-camera counts are shown
+    converted = list((tmp_path / "out" / "cache" / "recordings").iterdir())
+    assert len(converted) == 1 and FolderDataset(converted[0]).frames == [
+        f"{k:06d}" for k in range(len(cams[0][2]))
+    ]
+    ours, truth = (
+        load_extrinsics(tmp_path / "out" / "extrinsics.yaml"),
+        load_extrinsics(folder_result),
+    )
+    assert sorted(ours.cameras) == sorted(truth.cameras)
+    # ROS bags name their reference by namespace order (cam10 first): compare in the folder
+    # form's reference frame
+    T_ref_ours = invert_transform(ours.cameras[truth.reference].T_ref_cam)
+    for name, cam in truth.cameras.items():
+        T = T_ref_ours @ ours.cameras[name].T_ref_cam
+        rot_deg, trans_mm = transform_error(T, cam.T_ref_cam)
+        assert rot_deg < CALIB_SAME_DEG and trans_mm < CALIB_SAME_MM, (name, rot_deg, trans_mm)
+
+    # a second run converts nothing: the cached folder is reused as it is
+    marker = converted[0] / ".rgbd-calib-source.json"
+    before = marker.stat().st_mtime_ns
+    result = _calibrate_cli(sources, tmp_path / "out", *options)
+    assert result.exit_code == 0, result.output
+    assert marker.stat().st_mtime_ns == before
+
+
+def test_calibrate_refuses_a_folder_mixed_with_recordings(calib_rig, tmp_path):
+    cams, folder_result = calib_rig
+    name, intr, frames = cams[0]
+    write_ros_bag(
+        tmp_path / "one.bag",
+        {"/cam": {"color": intr, "frames": frames[:2], "times_ms": _times(2, 0.0)}},
+        ros1=True,
+    )
+    result = _calibrate_cli([tmp_path / "one.bag", folder_result.parent], tmp_path / "out")
+    assert result.exit_code == 2
+    assert "cannot be mixed with recordings" in result.output
+    result = _calibrate_cli([folder_result.parent], tmp_path / "out2", "--names", "a,b")
+    assert result.exit_code == 2 and "apply to recordings" in result.output
+    assert not (tmp_path / "out").exists() and not (tmp_path / "out2").exists()
