@@ -278,11 +278,13 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 
 def _gray_float(image: np.ndarray) -> np.ndarray:
-    """Grey image as float (no 8-bit rounding of the BGR -> grey conversion)."""
+    """Grey image for the edge fit: float for a BGR image (no 8-bit rounding of the BGR ->
+    grey conversion), else the uint8 grey image itself (the fit converts only the pixels it
+    reads, not the whole image)."""
     image = np.asarray(image)
     if image.ndim == 3 and image.shape[2] == 3:
         return image.astype(np.float32) @ np.array([0.114, 0.587, 0.299], dtype=np.float32)
-    return np.asarray(to_gray(image), dtype=np.float32)
+    return to_gray(image)
 
 
 def _refine_with_board(
@@ -512,11 +514,14 @@ def _fit_edge_lines(
         np.abs(bound[..., -1] - bound[..., 0]) > 1e-9, bound[..., -1] - bound[..., 0], 1.0
     )
     m_at0 = depth[..., 0] - m_slope * bound[..., 0]  # module width at the edge's midpoint
-    lo_b, hi_b = (
-        np.minimum(bound[..., :-1], bound[..., 1:]),
-        np.maximum(bound[..., :-1], bound[..., 1:]),
-    )
+    # The white data cells behind the border, sum_j white_j (Phi((s-a_j)/w) - Phi((s-b_j)/w))
+    # with [a_j, b_j] cell j's extent, telescope over the shared cell boundaries c_i:
+    # sum_i step_i Phi((s-c_i)/w), step_i = q_i - q_(i-1) with q_j = +-white_j (the sign of
+    # c_(j+1) - c_j: a cell's extent is (min, max) of its two boundaries) and q = 0 outside.
     cell_white = white[:, rc[..., 0], rc[..., 1]].astype(float)  # (M,4,bits)
+    q = cell_white * np.where(bound[..., 1:] >= bound[..., :-1], 1.0, -1.0)
+    pad = np.zeros((m, 4, 1))
+    step_at = np.concatenate([q, pad], axis=-1) - np.concatenate([pad, q], axis=-1)  # (M,4,B)
     module = np.clip(m_at0, 0.1, None)
     band = np.clip(config.edge_band_modules * module, *config.edge_band_px)
     margin = np.minimum(config.edge_corner_margin_px / length, 0.4)
@@ -572,20 +577,36 @@ def _fit_edge_lines(
     d0, tau = d0.reshape(m * 4, -1)[sel], tau.reshape(m * 4, -1)[sel]
     px_x = x.reshape(m * 4, -1)[sel].astype(np.intp)
     px_y = y.reshape(m * 4, -1)[sel].astype(np.intp)
-    values = gray[px_y, px_x]
+    values = gray[px_y, px_x].astype(np.float64)
     m_pix = np.clip(m_at0.reshape(-1)[edge_of] + m_slope.reshape(-1)[edge_of] * tau, 0.1, None)
     curved = intrinsics is not None and intrinsics.has_distortion
     tau_scale = np.maximum(0.5 * (tau_hi - tau_lo), 1.0)
     tn = tau / tau_scale.reshape(-1)[edge_of]  # normalised along-edge coordinate in [-1, 1]
-    sa = tau[:, None] - lo_b.reshape(n_edges, -1)[edge_of]  # (P,bits): s - a_j per data cell
-    sb = tau[:, None] - hi_b.reshape(n_edges, -1)[edge_of]
-    cw = cell_white.reshape(n_edges, -1)[edge_of]
+    # (pixel, boundary) pairs where the data cells change colour (step_i != 0): s - c_i and
+    # step_i, ordered by pixel
+    n_b = step_at.shape[-1]
+    pair = np.flatnonzero(step_at.reshape(n_edges, n_b)[edge_of] != 0)
+    pair_pix = pair // n_b
+    at_boundary = edge_of[pair_pix] * n_b + pair % n_b
+    pair_s = tau[pair_pix] - bound.reshape(-1)[at_boundary]
+    pair_step = step_at.reshape(-1)[at_boundary]
+    n_pix = tau.shape[0]
 
-    def per_marker(v: np.ndarray) -> np.ndarray:
-        return np.bincount(marker_of, v, minlength=m)
+    # the pixels are ordered by edge (hence by marker), and the pairs by pixel: per-edge or
+    # per-marker values spread to the pixels by np.repeat, sums per edge or marker are sums of
+    # contiguous segments (np.add.reduceat); both much faster than fancy indexing/np.bincount
+    edge_count = np.bincount(edge_of, minlength=n_edges)
+    marker_count = edge_count.reshape(m, 4).sum(axis=1)
+    pair_count = np.bincount(marker_of[pair_pix], minlength=m)
+    edge_sum = _segment_summer(edge_of, n_edges)
+    per_marker = _segment_summer(marker_of, m)
+    tn2 = tn**2
+
+    def at_pixels(per_marker_value: np.ndarray) -> np.ndarray:
+        return np.repeat(per_marker_value, marker_count)
 
     def per_edge(v: np.ndarray) -> np.ndarray:
-        return np.bincount(edge_of, v, minlength=n_edges).reshape(m, 4)
+        return edge_sum(v).reshape(m, 4)
 
     # Levenberg-Marquardt per marker: offset rho_k, angle theta_k (curvature kappa_k with lens
     # distortion) per edge, d = d0 - rho + theta*tn + kappa*tn^2, and a blur width w shared by
@@ -594,79 +615,84 @@ def _fit_edge_lines(
     # solved in closed form at every evaluation (variable projection): no initial guess needed.
     n_loc = 3 if curved else 2
     n_big = 4 * n_loc + 3
-    n_par = n_loc + 3
-    index = np.array(
-        [
-            [k * n_loc + i for i in range(n_loc)] + [4 * n_loc, 4 * n_loc + 1, 4 * n_loc + 2]
-            for k in range(4)
-        ]
-    )
+    upper, scatter = _normal_equation_layout(n_loc)
     w0, w_sigma = blur_prior
 
-    def evaluate(local: np.ndarray, width: np.ndarray, wt: np.ndarray, full: bool = False):
-        loc = local.reshape(n_edges, 3)[edge_of]
-        dist = d0 - loc[:, 0] + loc[:, 1] * tn + loc[:, 2] * tn**2
-        wd = width[marker_of]
+    def model(local: np.ndarray, width: np.ndarray):
+        """The basis (the blurred marker image, 0 on the ink and 1 on the quiet zone) at each
+        pixel and its derivatives by d and by w; independent of the pixel weights.
+
+        Only the cell boundaries within _FAR blur widths of a pixel need the Gaussian CDF:
+        further ones contribute exactly step_i (in front of the pixel) or 0 (behind it) in
+        double precision, and nothing to the derivative."""
+        rho, theta, kappa = (np.repeat(v, edge_count) for v in local.reshape(n_edges, 3).T)
+        dist = d0 - rho + theta * tn
+        if curved:  # kappa stays 0 otherwise
+            dist += kappa * tn2
+        wd = at_pixels(width)
         z = dist / wd
         e = -(dist + m_pix) / wd
-        alpha, beta = sa / wd[:, None], sb / wd[:, None]
-        behind = (cw * (ndtr(alpha) - ndtr(beta))).sum(-1)  # white data cells behind, at s
-        basis = ndtr(z) + ndtr(e) * behind
-        # closed-form weighted least squares of values = D + C * basis, per marker
+        g = pair_s / np.repeat(width, pair_count)
+        near = np.flatnonzero(np.abs(g) < _FAR)
+        gn, step_n = g[near], pair_step[near]
+        phi = np.where(g > 0.0, pair_step, 0.0)
+        phi[near] = step_n * ndtr(gn)
+        behind = np.bincount(pair_pix, phi, minlength=n_pix)  # white data cells behind, at s
+        behind_w = np.bincount(  # w * d behind / d w
+            pair_pix[near], -step_n * _pdf(gn) * gn, minlength=n_pix
+        )
+        phi_e = np.zeros_like(e)  # 0 where the data cells are > _FAR blur widths behind
+        live = np.flatnonzero(e > -_FAR)
+        phi_e[live] = ndtr(e[live])
+        basis = ndtr(z) + phi_e * behind
+        pz, pe = _pdf(z), _pdf(e)
+        d_dist = (pz - pe * behind) / wd  # d basis / d dist
+        d_width = (-pz * z - pe * e * behind + phi_e * behind_w) / wd
+        return basis, d_dist, d_width
+
+    def solve(basis: np.ndarray, width: np.ndarray, wt: np.ndarray):
+        """Closed-form weighted least squares of values = D + C * basis, per marker: the
+        cost (with the blur prior), the contrast C and the residuals."""
         sw, s1, s2 = per_marker(wt), per_marker(wt * basis), per_marker(wt * basis**2)
         sv, svb = per_marker(wt * values), per_marker(wt * values * basis)
         det = sw * s2 - s1 * s1
         contrast = (sw * svb - s1 * sv) / np.where(np.abs(det) > 1e-12, det, 1e-12)
         dark = (sv - contrast * s1) / np.maximum(sw, 1e-12)
-        resid = values - (dark[marker_of] + contrast[marker_of] * basis)
+        resid = values - (at_pixels(dark) + at_pixels(contrast) * basis)
         cost = per_marker(wt * resid**2) + ((width - w0) / w_sigma) ** 2
-        if not full:
-            return cost
-        pz, pe = _pdf(z), _pdf(e)
-        d_dist = (pz - pe * behind) / wd  # d basis / d dist
-        d_width = (
-            -pz * z
-            - pe * e * behind
-            + ndtr(e) * (cw * (-_pdf(alpha) * alpha + _pdf(beta) * beta)).sum(-1)
-        ) / wd
-        return cost, basis, contrast, resid, d_dist, d_width
+        return cost, contrast, resid
 
     local = np.zeros((m, 4, 3))  # rho, theta, kappa per edge
     width = np.full(m, w0)
     lam = np.full(m, 1e-3)
     weight = np.ones_like(values)
     eye = np.eye(n_big)
+    # the model at the current parameters is kept: after a rejected step it is unchanged, after
+    # an accepted one it is the trial's (one model evaluation per iteration)
+    basis, d_dist, d_width = model(local, width)
+    cost, contrast, resid = solve(basis, width, weight)
     for it in range(config.edge_iterations):
-        cost, basis, contrast, resid, d_dist, d_width = evaluate(local, width, weight, True)
         if it in (3, 6):  # reject outlier pixels (occlusion, stray texture) from then on
-            mad = np.zeros(n_edges)
-            inl = weight > 0
-            order = np.lexsort((np.abs(resid[inl]), edge_of[inl]))
-            counts = np.bincount(edge_of[inl], minlength=n_edges)
-            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-            has = counts > 0
-            mad[has] = np.abs(resid[inl])[order][starts[has] + counts[has] // 2]
-            limit = np.maximum(4.0 * 1.4826 * mad, 0.02 * np.abs(contrast).repeat(4) + 1.0)
-            weight = (np.abs(resid) <= limit[edge_of]).astype(float)
-            cost, basis, contrast, resid, d_dist, d_width = evaluate(local, width, weight, True)
-        g = contrast[marker_of] * d_dist
-        cols = [-g, g * tn, g * tn**2][:n_loc] + [
-            np.ones_like(g),
-            basis,
-            contrast[marker_of] * d_width,
-        ]
-        jtj_e = np.zeros((m, 4, n_par, n_par))
-        jtr_e = np.zeros((m, 4, n_par))
-        for a_i in range(n_par):
-            wa = weight * cols[a_i]
-            jtr_e[..., a_i] = per_edge(wa * resid)
-            for b_i in range(a_i, n_par):
-                jtj_e[..., a_i, b_i] = jtj_e[..., b_i, a_i] = per_edge(wa * cols[b_i])
-        jtj = np.zeros((m, n_big, n_big))
-        jtr = np.zeros((m, n_big))
-        for k in range(4):
-            jtj[:, index[k][:, None], index[k][None, :]] += jtj_e[:, k]
-            jtr[:, index[k]] += jtr_e[:, k]
+            limit = np.maximum(
+                4.0 * 1.4826 * _edge_medians(np.abs(resid), weight > 0, edge_of, n_edges),
+                0.02 * np.abs(contrast).repeat(4) + 1.0,
+            )
+            weight = (np.abs(resid) <= np.repeat(limit, edge_count)).astype(float)
+            cost, contrast, resid = solve(basis, width, weight)
+        c_pix = at_pixels(contrast)
+        g = c_pix * d_dist
+        # the Jacobian's columns for the pixel's own edge, then per-edge sums of the products
+        # of the columns (upper triangle) and of the columns with the residuals, placed into
+        # each marker's system by a constant 0/1 matrix (row by row: no (n_par^2, P) temporary)
+        cols = [-g, g * tn, g * tn2][:n_loc] + [np.ones_like(g), basis, c_pix * d_width]
+        wcols = [weight * c for c in cols]
+        sums = np.stack(
+            [edge_sum(wcols[a] * cols[b]) for a, b in zip(*upper)]
+            + [edge_sum(wc * resid) for wc in wcols]
+        )
+        normal_eq = sums.reshape(-1, m, 4).transpose(1, 2, 0).reshape(m, -1) @ scatter
+        jtj = normal_eq[:, : n_big * n_big].reshape(m, n_big, n_big)
+        jtr = normal_eq[:, n_big * n_big :]
         jtj[:, -1, -1] += 1.0 / w_sigma**2  # Gaussian prior on the blur width
         jtr[:, -1] += (w0 - width) / w_sigma**2
         diag = np.einsum("mii->mi", jtj)
@@ -676,11 +702,19 @@ def _fit_edge_lines(
         trial[..., :n_loc] += step[:, : 4 * n_loc].reshape(m, 4, n_loc)
         trial[..., 0] = np.clip(trial[..., 0], -band, band)
         trial_w = np.clip(width + step[:, -1], 0.15, 3.0)
-        better = evaluate(trial, trial_w, weight) < cost
+        t_basis, t_d_dist, t_d_width = model(trial, trial_w)
+        t_cost, t_contrast, t_resid = solve(t_basis, trial_w, weight)
+        better = t_cost < cost
         local = np.where(better[:, None, None], trial, local)
         width = np.where(better, trial_w, width)
         lam = np.where(better, lam / 3.0, lam * 4.0)
-    cost, basis, contrast, resid, _, _ = evaluate(local, width, weight, True)
+        cost = np.where(better, t_cost, cost)
+        contrast = np.where(better, t_contrast, contrast)
+        on = at_pixels(better)
+        basis = np.where(on, t_basis, basis)
+        d_dist = np.where(on, t_d_dist, d_dist)
+        d_width = np.where(on, t_d_width, d_width)
+        resid = np.where(on, t_resid, resid)
     rho, theta, kappa = np.moveaxis(local, -1, 0)
     n_in = per_edge(weight)
     rms = np.sqrt(per_edge(weight * resid**2) / np.maximum(n_in, 1))
@@ -714,6 +748,68 @@ def _fit_edge_lines(
     return nrm, np.einsum("mkj,mkj->mk", centre, nrm), ok, width
 
 
+def _segment_summer(group: np.ndarray, n: int):
+    """``f(v)`` = ``np.bincount(group, v, minlength=n)`` for a sorted ``group``."""
+    counts = np.bincount(group, minlength=n)
+    nonempty = counts > 0
+    starts = (np.cumsum(counts) - counts)[nonempty]
+
+    def total(v: np.ndarray) -> np.ndarray:
+        out = np.zeros(n)
+        if starts.size:
+            out[nonempty] = np.add.reduceat(v, starts)
+        return out
+
+    return total
+
+
+def _edge_medians(v: np.ndarray, use: np.ndarray, edge_of: np.ndarray, n_edges: int):
+    """Per edge, the upper median of ``v[use]`` (element ``count // 2`` of the edge's sorted
+    values; 0 without any) for pixels sorted by ``edge_of``."""
+    v, edge = v[use], edge_of[use]
+    counts = np.bincount(edge, minlength=n_edges)
+    out = np.zeros(n_edges)
+    if v.size == 0:
+        return out
+    starts = np.cumsum(counts) - counts
+    table = np.full((n_edges, int(counts.max())), np.inf)
+    table[edge, np.arange(v.size) - starts[edge]] = v
+    table.sort(axis=1)
+    has = counts > 0
+    out[has] = table[has, counts[has] // 2]
+    return out
+
+
+@lru_cache(maxsize=4)
+def _normal_equation_layout(n_loc: int) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """Where the per-edge sums go in a marker's normal equations.
+
+    A marker's parameters are ``n_loc`` per edge (edge ``k``: ``k*n_loc ...``) then the three
+    shared ones (D, C, w); a pixel's Jacobian row is non-zero only in its edge's ``n_loc`` and
+    the shared columns (``n_par = n_loc + 3``). Returns the upper-triangle index pairs of the
+    ``n_par`` columns and a 0/1 matrix mapping the per-edge sums, ordered (edge, products of
+    column pairs then column x residual), to ``J^T J`` (flat) followed by ``J^T r``."""
+    n_par, n_big = n_loc + 3, 4 * n_loc + 3
+    upper = np.triu_indices(n_par)
+    n_pairs = upper[0].size
+    scatter = np.zeros((4, n_pairs + n_par, n_big * n_big + n_big))
+    for k in range(4):
+        index = [k * n_loc + i for i in range(n_loc)] + [4 * n_loc + i for i in range(3)]
+        for p, (a, b) in enumerate(zip(*upper)):
+            scatter[k, p, index[a] * n_big + index[b]] = 1.0
+            scatter[k, p, index[b] * n_big + index[a]] = 1.0
+        for a in range(n_par):
+            scatter[k, n_pairs + a, n_big * n_big + index[a]] = 1.0
+    scatter = scatter.reshape(4 * (n_pairs + n_par), -1)
+    scatter.setflags(write=False)
+    upper[0].setflags(write=False)
+    upper[1].setflags(write=False)
+    return upper, scatter
+
+
+_FAR = 8.5  # |x| beyond which ndtr(x) is 0 or 1 to double precision (ndtr(-8.5) ~ 1e-17)
+
+
 def _pdf(x: np.ndarray) -> np.ndarray:
     return np.exp(-0.5 * x * x) * (1.0 / np.sqrt(2.0 * np.pi))
 
@@ -727,14 +823,17 @@ def refine_corners_edges(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Corners as intersections of lines fitted to the markers' outer edges.
 
-    ``gray`` is a float grey image, ``corners_px`` ``(N,4,2)`` the initial corners (ArUco
+    ``gray`` is a grey image (any real dtype; float keeps the BGR -> grey conversion
+    unrounded), ``corners_px`` ``(N,4,2)`` the initial corners (ArUco
     order), ``white`` ``(N,cells,cells)`` each marker's cells (True = white, border included;
     see :func:`marker_pattern`). Returns the corners and a ``(N,4)`` mask of the corners the
     edge fit set; the others keep their input position (marker too small, edge off the image
     or occluded, poor fit, grazing intersection, or a jump beyond ``max_corner_shift_px``).
     """
     config = config or DetectionConfig()
-    gray = np.asarray(gray, dtype=np.float64)
+    gray = np.asarray(gray)  # any real dtype: the edge fit converts the pixels it reads
+    if gray.dtype.kind not in "uif":
+        gray = gray.astype(np.float64)
     initial = np.asarray(corners_px, dtype=float)
     white = np.asarray(white, dtype=bool)
     n = initial.shape[0]
