@@ -1,22 +1,32 @@
-"""Speed benchmark: detection throughput and total calibration time against decoding alone.
+"""Speed benchmark: detection throughput and total calibration time against decoding alone,
+end-to-end time and peak memory of the command line.
 
     python tools/bench_speed.py --data bench_data --md docs/benchmarks.md
+    python tools/bench_speed.py --data bench_data --sets race16 --workers 2 --repeats 1 \
+        --md docs/benchmarks.md
 
-On a 4-camera x 400-frame 1280x720 synthetic set (thesis-line layout, rendered once and cached
-under ``--data``) and for each worker count, repeated ``--repeats`` times:
+Sets (rendered once with the synth defaults and cached under ``--data``; an existing render is
+reused): ``thesis``, the thesis-size set (4 cameras x 413 frames, 1280x720, thesis-line
+layout), and ``race16``, 16 cameras x 1000 frames at 848x480 (race16 layout). For each set and
+worker count, repeated ``--repeats`` times:
 
 - ``decode``: ``cv2.imread`` of every colour image (BGR, as a user would read them) in the
   same number of processes, started and chunked like the detection stage's pool (forkserver,
   4 images per task); the floor any pipeline that reads the PNGs has to pay;
-- ``calibrate``: ``rgbd_calib.calibrate`` end to end with the default config (edge corners,
-  bundle adjustment) and no detection cache; its detection stage gives the throughput.
-  ``--refine none`` (default here) leaves out the depth stage (colored ICP), which is not
-  part of the board calibration measured here; ``--refine auto`` includes it.
+- ``calibrate``: ``rgbd_calib.calibrate`` with the default config and no detection cache;
+  its detection stage gives the throughput. ``--refine none`` (default here) leaves out the
+  depth stage (colored ICP), which is not part of the board calibration measured here.
 
 The ratio calibrate / decode is taken within each repetition (same machine state), then the
 median over repetitions is reported. One untimed decode pass first puts the PNGs in the page
 cache, so both sides read from memory. The machine's load average is recorded with every
 run: on a shared machine other processes slow both sides alike, the ratio less so.
+
+Then once per set (``--no-end-to-end`` skips it): the command a user runs,
+``rgbd-calib calibrate DATASET --out TMP --workers W`` (defaults: depth stage included,
+report.html, fused.ply, exports), in a child process: wall time, its stage timings, and peak
+memory: the largest sum of the resident set sizes of the command and all its worker
+processes, sampled every 0.1 s (psutil), and the largest single process's peak (``ru_maxrss``).
 """
 
 from __future__ import annotations
@@ -25,14 +35,20 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import statistics
+import subprocess
 import sys
+import tempfile
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
+import psutil
 
 from rgbd_calib.board import thesis_board
 from rgbd_calib.calibrate import CalibrationConfig, calibrate
@@ -49,7 +65,24 @@ def _stages(rows: list[dict[str, Any]]) -> list[str]:
     return [k for k in STAGE_ORDER if k in found] + sorted(found - set(STAGE_ORDER))
 
 
-LAYOUT, SEED = "thesis-line", 0
+@dataclass(frozen=True)
+class BenchSet:
+    layout: str
+    cameras: int
+    frames: int
+    resolution: tuple[int, int]
+    seed: int = 0
+
+    def describe(self, frames: int) -> str:
+        w, h = self.resolution
+        return f"{self.cameras} cameras x {frames} frames, {w}x{h} PNG, {self.layout} layout"
+
+
+SETS = {
+    "thesis": BenchSet("thesis-line", 4, 413, (1280, 720)),  # the thesis's 413 frame sets
+    "race16": BenchSet("race16", 16, 1000, (848, 480)),
+}
+MEMORY_TARGET_MB = 2048.0  # issue 7: the 16 x 1000 set under 2 GB peak
 
 
 def _decode(path: str) -> int:
@@ -72,12 +105,107 @@ def decode_all(paths: list[str], workers: int) -> float:
     return time.perf_counter() - t0
 
 
-def ensure_dataset(data: Path, frames: int, workers: int) -> Path:
-    path = data / f"{LAYOUT}-f{frames}-s{SEED}"
+def ensure_dataset(data: Path, spec: BenchSet, frames: int, workers: int) -> Path:
+    path = data / f"{spec.layout}-f{frames}-s{spec.seed}"
     if not (path / "ground_truth.yaml").is_file():
         print(f"rendering {path} (once) ...", file=sys.stderr, flush=True)
-        synthesize(path, LAYOUT, frames, SEED, thesis_board(), SynthParams(), workers=workers)
+        t0 = time.perf_counter()
+        synthesize(
+            path, spec.layout, frames, spec.seed, thesis_board(), SynthParams(), workers=workers
+        )
+        print(f"  rendered in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
     return path
+
+
+class _TreeMemory:
+    """Peak of the summed RSS of a process and its descendants, sampled on a thread."""
+
+    def __init__(self, pid: int, period_s: float = 0.1):
+        self.root = psutil.Process(pid)
+        self.period_s = period_s
+        self.peak_bytes = 0
+        self.peak_processes = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+
+    def _sample(self) -> None:
+        while not self._stop.is_set():
+            try:
+                procs = [self.root, *self.root.children(recursive=True)]
+            except psutil.NoSuchProcess:
+                return
+            total = 0
+            for proc in procs:
+                try:
+                    total += proc.memory_info().rss
+                except psutil.Error:
+                    pass
+            if total > self.peak_bytes:
+                self.peak_bytes, self.peak_processes = total, len(procs)
+            self._stop.wait(self.period_s)
+
+    def __enter__(self) -> _TreeMemory:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def end_to_end(path: Path, workers: int, keep: Path | None = None) -> dict[str, Any]:
+    """``rgbd-calib calibrate`` as a user runs it, in a child process: time and peak memory."""
+    out_root = Path(tempfile.mkdtemp(prefix="bench_e2e_")) if keep is None else keep
+    out = out_root / "calibration"
+    cmd = [
+        sys.executable,
+        "-c",
+        "from rgbd_calib.cli import app; app()",
+        "calibrate",
+        str(path),
+        "--out",
+        str(out),
+        "--workers",
+        str(workers),
+    ]
+    load_before = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    with open(out_root / "calibrate.log", "w") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        with _TreeMemory(proc.pid) as memory:
+            code = proc.wait()
+    wall_s = time.perf_counter() - t0
+    # the largest peak of any one finished descendant (the waited command and its workers)
+    import resource
+
+    maxrss_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    if code != 0:
+        tail = (out_root / "calibrate.log").read_text()[-2000:]
+        raise RuntimeError(f"calibrate failed with exit {code}:\n{tail}")
+    report = json.loads((out / "report.json").read_text())
+    row = {
+        "workers": workers,
+        "wall_s": wall_s,
+        "peak_tree_rss_mb": memory.peak_bytes / 2**20,
+        "processes_at_peak": memory.peak_processes,
+        "max_single_process_rss_mb": maxrss_mb,
+        "stages_s": report.get("timings_s", {}),
+        "cameras_calibrated": report["summary"]["n_calibrated"],
+        "cameras": report["summary"]["n_cameras"],
+        "views_used": report["summary"]["n_views_used"],
+        "pairs_accepted": sum(1 for q in report.get("pairs", []) if q.get("accepted")),
+        "load_before": load_before,
+        "load_after": os.getloadavg()[0],
+    }
+    if keep is None:
+        shutil.rmtree(out_root, ignore_errors=True)
+    print(
+        f"end to end ({workers} workers): {wall_s:.0f} s, peak {row['peak_tree_rss_mb']:.0f} MB "
+        f"over {memory.peak_processes} processes",
+        file=sys.stderr,
+        flush=True,
+    )
+    return row
 
 
 def run(path: Path, workers_list: list[int], repeats: int, refine: str) -> dict[str, Any]:
@@ -138,35 +266,77 @@ def summary(rows: list[dict[str, Any]], workers: int) -> dict[str, float]:
     }
 
 
+def _set_markdown(name: str, block: dict[str, Any]) -> list[str]:
+    meta, rows = block["meta"], block["rows"]
+    spec = SETS.get(name, SETS["thesis"])
+    lines = [f"### {name}: {spec.describe(meta['frames'])}", ""]
+    if rows:
+        stages = _stages(rows)
+        lines += [
+            f"{block['images']} colour images; calibration = default config with refine="
+            f"{meta.get('refine', 'none')!r} (edge corners, bundle adjustment"
+            f"{', no depth stage' if meta.get('refine', 'none') == 'none' else ''}), no "
+            f"detection cache; medians of {meta['repeats']} run(s). The ratio is calibrate / "
+            "decode within each run (min-max in brackets). Load: the machine's 1-minute load "
+            "average before the runs (a shared 2-core machine; above 2 other processes were "
+            "competing).",
+            "",
+            "| workers | decode (s) | decode (img/s) | detection (img/s) | calibrate total (s) | "
+            + " | ".join(f"{s} (s)" for s in stages)
+            + " | calibrate / decode | load |",
+            "|---" * (7 + len(stages)) + "|",
+        ]
+        for w in meta["workers"]:
+            s = summary(rows, w)
+            if not s["runs"]:
+                continue
+            lines.append(
+                f"| {w} | {s['decode_s']:.1f} | {s['decode_images_per_s']:.0f} | "
+                f"{s['detection_images_per_s']:.1f} | {s['calibrate_s']:.1f} | "
+                + " | ".join(f"{s[f'stage_{k}_s']:.1f}" for k in stages)
+                + f" | {s['ratio']:.1f} ({s['ratio_min']:.1f}-{s['ratio_max']:.1f}) | "
+                f"{s['load']:.1f} |"
+            )
+        lines.append("")
+    for e in block.get("end_to_end", []):
+        st = e["stages_s"]
+        stage_text = ", ".join(f"{k} {v:.0f} s" for k, v in st.items())
+        verdict = (
+            "within" if e["peak_tree_rss_mb"] <= MEMORY_TARGET_MB else "ABOVE"
+        ) + f" the {MEMORY_TARGET_MB / 1024:.0f} GB target"
+        lines += [
+            f"End to end (`rgbd-calib calibrate DATASET --out OUT --workers {e['workers']}`, "
+            "defaults: depth stage, report, fused cloud, exports): "
+            f"**{e['wall_s']:.0f} s** wall ({stage_text}; the rest is reading the "
+            "dataset index, writing outputs and the report), "
+            f"**peak memory {e['peak_tree_rss_mb']:.0f} MB** summed over "
+            f"{e['processes_at_peak']} processes ({verdict}; largest single process "
+            f"{e['max_single_process_rss_mb']:.0f} MB); {e['cameras_calibrated']}/"
+            f"{e['cameras']} cameras calibrated from {e['views_used']} board views, "
+            f"{e['pairs_accepted']} depth pairs accepted; load "
+            f"{e['load_before']:.1f} -> {e['load_after']:.1f}.",
+            "",
+        ]
+    return lines
+
+
 def markdown(payload: dict[str, Any]) -> str:
-    meta, rows = payload["meta"], payload["rows"]
-    stages = _stages(rows)
+    meta = payload["meta"]
     lines = [
-        f"Generated by `{meta['command']}` on {meta['machine']} ({meta['date']}); "
-        f"{payload['images']} colour images (4 cameras x {meta['frames']} frames, 1280x720 "
-        f"PNG, thesis-line layout, seed {SEED}); calibration = default config with refine="
-        f"{meta.get('refine', 'none')!r} (edge corners, bundle adjustment"
-        f"{', no depth stage' if meta.get('refine', 'none') == 'none' else ''}), no "
-        f"detection cache; medians of {meta['repeats']} runs. The ratio is "
-        "calibrate / decode within each run (min-max in brackets). Load: the machine's "
-        "1-minute load average before the runs (a shared 2-core machine; above 2 other "
-        "processes were competing).",
+        f"Generated by `{meta['command']}` on {meta['machine']} ({meta['date']}).",
         "",
-        "| workers | decode (s) | decode (img/s) | detection (img/s) | calibrate total (s) | "
-        + " | ".join(f"{s} (s)" for s in stages)
-        + " | calibrate / decode | load |",
-        "|---" * (7 + len(stages)) + "|",
     ]
-    for w in meta["workers"]:
-        s = summary(rows, w)
-        lines.append(
-            f"| {w} | {s['decode_s']:.1f} | {s['decode_images_per_s']:.0f} | "
-            f"{s['detection_images_per_s']:.1f} | {s['calibrate_s']:.1f} | "
-            + " | ".join(f"{s[f'stage_{k}_s']:.1f}" for k in stages)
-            + f" | {s['ratio']:.1f} ({s['ratio_min']:.1f}-{s['ratio_max']:.1f}) | "
-            f"{s['load']:.1f} |"
-        )
-    return "\n".join(lines) + "\n"
+    for name, block in payload["sets"].items():
+        lines += _set_markdown(name, block)
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def _upgrade(payload: dict[str, Any]) -> dict[str, Any]:
+    """A JSON written before the sets existed: one thesis-line block."""
+    if "sets" in payload:
+        return payload
+    meta = dict(payload["meta"])
+    return {"meta": meta, "sets": {"thesis": {**payload, "meta": meta}}}
 
 
 def write_markdown(path: Path, body: str) -> None:
@@ -186,16 +356,25 @@ def write_markdown(path: Path, body: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument(
-        "--data", type=Path, default=Path("bench_data"), help="folder of the rendered set (reused)"
+        "--data", type=Path, default=Path("bench_data"), help="folder of the rendered sets (reused)"
     )
-    p.add_argument("--frames", type=int, default=400)
+    p.add_argument("--sets", nargs="+", default=["thesis"], choices=list(SETS))
+    p.add_argument(
+        "--frames", type=int, default=None, help="frames per set (default: the set's own)"
+    )
     p.add_argument("--workers", nargs="+", type=int, default=[1, 2])
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--repeats", type=int, default=3, help="calibrate/decode runs per worker count")
     p.add_argument(
         "--refine",
         default="none",
         choices=["none", "auto", "colored-icp", "geometric"],
-        help="depth stage of the calibration (default: none, board only)",
+        help="depth stage of the calibrate/decode runs (default: none, board only)",
+    )
+    p.add_argument(
+        "--no-end-to-end", action="store_true", help="skip the command-line run with memory"
+    )
+    p.add_argument(
+        "--keep", type=Path, default=None, help="keep the end-to-end outputs under this folder"
     )
     p.add_argument("--json", type=Path, default=Path("docs/speed.json"))
     p.add_argument(
@@ -205,26 +384,48 @@ def main(argv: list[str] | None = None) -> int:
         help="markdown file whose Speed block is replaced (e.g. docs/benchmarks.md)",
     )
     p.add_argument(
-        "--from-json", type=Path, default=None, help="re-make the table from this JSON; run nothing"
+        "--from-json",
+        type=Path,
+        default=None,
+        help="re-make the tables from this JSON; run nothing",
     )
     args = p.parse_args(argv)
     if args.from_json:
-        payload = json.loads(args.from_json.read_text())
+        payload = _upgrade(json.loads(args.from_json.read_text()))
     else:
-        path = ensure_dataset(args.data, args.frames, max(args.workers))
-        payload = run(path, args.workers, args.repeats, args.refine)
-        payload["meta"] = {
-            "command": "python tools/bench_speed.py "
-            + " ".join(argv if argv is not None else sys.argv[1:]),
-            "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
-            f"Python {platform.python_version()}, OpenCV {cv2.__version__}",
-            "date": time.strftime("%Y-%m-%d"),
-            "frames": args.frames,
-            "workers": args.workers,
-            "repeats": args.repeats,
-            "dataset": str(path),
-            "refine": args.refine,
+        payload = {
+            "meta": {
+                "command": "python tools/bench_speed.py "
+                + " ".join(argv if argv is not None else sys.argv[1:]),
+                "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
+                f"{psutil.virtual_memory().total / 2**30:.0f} GiB, "
+                f"Python {platform.python_version()}, OpenCV {cv2.__version__}",
+                "date": time.strftime("%Y-%m-%d"),
+            },
+            "sets": {},
         }
+        for name in args.sets:
+            spec = SETS[name]
+            frames = args.frames or spec.frames
+            path = ensure_dataset(args.data, spec, frames, max(args.workers))
+            block = (
+                run(path, args.workers, args.repeats, args.refine)
+                if args.repeats
+                else {"images": None, "rows": []}
+            )
+            block["meta"] = {
+                "frames": frames,
+                "workers": args.workers,
+                "repeats": args.repeats,
+                "dataset": str(path),
+                "refine": args.refine,
+            }
+            if not args.no_end_to_end:
+                keep = args.keep / name if args.keep else None
+                if keep:
+                    keep.mkdir(parents=True, exist_ok=True)
+                block["end_to_end"] = [end_to_end(path, max(args.workers), keep)]
+            payload["sets"][name] = block
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(payload, indent=1))
     body = markdown(payload)
