@@ -2183,6 +2183,9 @@ def rebuild_report(out_dir: Path, progress: Progress | None = None) -> Path:
         )
     try:
         report["schema_version"] = REPORT_SCHEMA_VERSION
+        for pair in report.get("pairs") or []:  # 1.1 added it; an older report has no value
+            if isinstance(pair, dict):
+                pair.setdefault("rmse_final_mm", None)
         report = finalize_report(report)
     except (KeyError, TypeError, ValueError) as exc:
         raise ReportError(

@@ -333,3 +333,33 @@ def test_depth_pairs_show_error_maps_and_warnings(runs):
     assert codes["depth_scale"]["cameras"] == [a]
     page = render_html(report, None, "no cloud in this test")
     assert 'alt="overlap error maps"' in page and "17.50" in page
+
+
+def test_rebuild_reads_a_report_from_before_rmse_final(runs, tmp_path):
+    """A 1.0 report's depth pairs have no ``rmse_final_mm`` (added in 1.1): the rebuild
+    fills it with null instead of refusing the report."""
+    copy = tmp_path / "old"
+    shutil.copytree(runs[0], copy)
+    report = _load(copy)
+    a, b = list(report["cameras"])[:2]
+    pair = pair_entry(
+        {
+            "cam_a": a,
+            "cam_b": b,
+            "fitness": 0.8,
+            "rmse_before_mm": 6.0,
+            "rmse_after_mm": 5.0,
+            "accepted": True,
+            "overlap_fraction": 0.4,
+            "T_b_a": [[1.0]],
+            "time_s": 1.0,
+        }
+    )
+    pair.pop("rmse_final_mm", None)
+    report["pairs"], report["schema_version"] = [pair], "1.0"
+    (copy / "report.json").write_text(json.dumps(report))
+    rebuild_report(copy)
+    rebuilt = _load(copy)
+    assert rebuilt["schema_version"] == REPORT_SCHEMA_VERSION
+    assert rebuilt["pairs"][0]["rmse_final_mm"] is None
+    assert validate_report(rebuilt) == []
