@@ -867,50 +867,156 @@ class BundleResult:
     final_error: float
 
 
+def _project(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
+             P_b: np.ndarray, jacobians: bool = True):
+    """Pinhole projection of board points ``P_b`` (N,3) through T_ref_cam and T_ref_board.
+
+    p_cam = T_ref_cam^-1 T_ref_board p_board = R_cb P_b + t_cb = z (x, y, 1), (u, v) =
+    (fx x + cx, fy y + cy). Returns the pixels (N,2) and, with ``jacobians``, d(u,v)/dxi
+    (N,2,6) for the camera and for the board, for right perturbations T <- T Exp([w, v])
+    (GTSAM's Pose3 convention, rotation first). dp_cam/dxi_cam = [[p_cam]x, -I] gives
+
+        du/dxi_cam = fx [x y, -(1 + x^2), y, -1/z, 0, x/z]
+        dv/dxi_cam = fy [1 + y^2, -x y, -x, 0, -1/z, y/z]
+
+    and, as Exp(-xi) T_cb = T_cb Exp(-Ad(T_cb^-1) xi), the board Jacobian is
+    J_board = -J_cam Ad(T_cb) with Ad(T) = [[R, 0], [[t]x R, R]] (equal to
+    d(u,v)/dp_cam R_cb [-[P_b]x, I])."""
+    R_rc, t_rc = T_ref_cam[:3, :3], T_ref_cam[:3, 3]
+    R_cb = R_rc.T @ T_ref_board[:3, :3]
+    t_cb = R_rc.T @ (T_ref_board[:3, 3] - t_rc)
+    p = P_b @ R_cb.T + t_cb  # (N,3) camera frame
+    fx, fy = K[0, 0], K[1, 1]
+    inv_z = 1.0 / p[:, 2]
+    x, y = p[:, 0] * inv_z, p[:, 1] * inv_z
+    uv = np.empty((len(p), 2))
+    uv[:, 0] = fx * x + K[0, 2]
+    uv[:, 1] = fy * y + K[1, 2]
+    if not jacobians:
+        return uv, None, None
+    xy = x * y
+    J_cam = np.zeros((len(p), 2, 6))
+    J_cam[:, 0, 0] = fx * xy
+    J_cam[:, 0, 1] = -fx * (1.0 + x * x)
+    J_cam[:, 0, 2] = fx * y
+    J_cam[:, 0, 3] = -fx * inv_z
+    J_cam[:, 0, 5] = fx * x * inv_z
+    J_cam[:, 1, 0] = fy * (1.0 + y * y)
+    J_cam[:, 1, 1] = -fy * xy
+    J_cam[:, 1, 2] = -fy * x
+    J_cam[:, 1, 4] = -fy * inv_z
+    J_cam[:, 1, 5] = fy * y * inv_z
+    minus_ad = np.zeros((6, 6))  # -Ad(T_cb)
+    minus_ad[:3, :3] = -R_cb
+    minus_ad[3:, 3:] = -R_cb
+    tx, ty, tz = t_cb
+    minus_ad[3:, :3] = -np.array([[0.0, -tz, ty], [tz, 0.0, -tx], [-ty, tx, 0.0]]) @ R_cb
+    J_board = J_cam @ minus_ad
+    return uv, J_cam, J_board
+
+
 def _projection_factor(noise, key_cam: int, key_board: int, K: np.ndarray,
                        object_points: np.ndarray, corners_px: np.ndarray):
-    """Reprojection of 4 board corners through two Pose3 keys, T_ref_cam and T_ref_board.
-
-    p_cam = T_ref_cam^-1 T_ref_board p_board; right perturbations T <- T Exp([w, v]) give
-    dp_cam/dxi_board = R_cam_board [-[p_b]x, I] and dp_cam/dxi_cam = [[p_cam]x, -I]
-    (GTSAM's Pose3 convention, rotation first)."""
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    measured = corners_px.reshape(-1)
-    P_b = object_points
+    """Reprojection of 4 board corners through two Pose3 keys, T_ref_cam and T_ref_board: the
+    8-dim residual [u0 - u0_meas, v0 - v0_meas, ..., v3 - v3_meas] with ``noise`` (see
+    :func:`_project`). :func:`bundle_adjust` uses :func:`_view_factor`, one per camera view."""
+    measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
+    P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
-        T_ref_cam = values.atPose3(key_cam).matrix()
-        T_ref_board = values.atPose3(key_board).matrix()
-        R_rc, t_rc = T_ref_cam[:3, :3], T_ref_cam[:3, 3]
-        R_cb = R_rc.T @ T_ref_board[:3, :3]
-        t_cb = R_rc.T @ (T_ref_board[:3, 3] - t_rc)
-        p = P_b @ R_cb.T + t_cb  # (4,3) camera frame
-        z = p[:, 2]
-        u = fx * p[:, 0] / z + cx
-        v = fy * p[:, 1] / z + cy
-        e = np.column_stack([u, v]).reshape(-1) - measured
+        uv, J_cam, J_board = _project(values.atPose3(key_cam).matrix(),
+                                      values.atPose3(key_board).matrix(), K, P_b, H is not None)
         if H is not None:
-            J_proj = np.zeros((4, 2, 3))
-            J_proj[:, 0, 0] = fx / z
-            J_proj[:, 0, 2] = -fx * p[:, 0] / z**2
-            J_proj[:, 1, 1] = fy / z
-            J_proj[:, 1, 2] = -fy * p[:, 1] / z**2
-            J_cam = np.zeros((4, 3, 6))
-            J_board = np.zeros((4, 3, 6))
-            for i in range(4):
-                J_cam[i, :, :3] = _skew(p[i])
-                J_cam[i, :, 3:] = -np.eye(3)
-                J_board[i, :, :3] = -R_cb @ _skew(P_b[i])
-                J_board[i, :, 3:] = R_cb
-            H[0] = np.einsum("nij,njk->nik", J_proj, J_cam).reshape(8, 6)
-            H[1] = np.einsum("nij,njk->nik", J_proj, J_board).reshape(8, 6)
-        return e
+            H[0] = J_cam.reshape(-1, 6)
+            H[1] = J_board.reshape(-1, 6)
+        return (uv - measured).reshape(-1)
 
     return gtsam.CustomFactor(noise, [key_cam, key_board], error)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+def _robust_weight_loss(kind: str, k: float, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weight w(d) and loss rho(d) of GTSAM's M-estimators at whitened norms ``d`` (vector).
+
+    Huber: w = 1 for d <= k else k/d; rho = d^2/2 for d <= k else k (d - k/2).
+    Cauchy: w = k^2 / (k^2 + d^2); rho = k^2/2 log(1 + d^2/k^2). 'none': w = 1, rho = d^2/2."""
+    if kind == "huber":
+        small = d <= k
+        w = np.where(small, 1.0, k / np.where(small, 1.0, d))
+        rho = np.where(small, d * d / 2, k * (d - k / 2))
+    elif kind == "cauchy":
+        k2 = k * k
+        w = k2 / (k2 + d * d)
+        rho = 0.5 * k2 * np.log(1.0 + d * d / k2)
+    else:
+        w, rho = np.ones_like(d), d * d / 2
+    return w, rho
+
+
+def _view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.ndarray,
+                 corners_px: np.ndarray, sigma: float, robust: str, robust_k: float):
+    """All markers of one camera view in one factor, each marker with its own robust kernel.
+
+    It reproduces, marker by marker, what a per-marker ``Robust(kernel, Isotropic(8, sigma))``
+    noise model does in GTSAM, so the optimiser sees the same cost and the same linear
+    systems. For marker m, r_m = (uv_m - uv_m_meas) / sigma (8-vector, whitened), d_m = |r_m|:
+
+    - cost: sum_m rho(d_m), GTSAM's ``Robust::loss``; the callback, called with ``H = None``
+      for an error evaluation, returns r_m * sqrt(2 rho(d_m)) / d_m so that the factor's
+      ``0.5 |e|^2`` under a unit noise model equals that sum;
+    - linearisation (iteratively re-weighted least squares, GTSAM's ``Robust::WhitenSystem``):
+      rows r_m and J_m / sigma scaled by sqrt(w(d_m)), with w the kernel weight at the
+      current point; w = 1 and rho = d^2/2 without a kernel (the plain Gaussian graph).
+
+    ``object_points`` (n,4,3), ``corners_px`` (n,4,2) undistorted pinhole pixels. The factor's
+    ``unwhitenedError`` is therefore the loss-scaled whitened residual, not pixels."""
+    n = len(object_points)
+    measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
+    P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
+    inv_sigma = 1.0 / sigma
+    plain = robust not in ("huber", "cauchy")
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
+        uv, J_cam, J_board = _project(values.atPose3(key_cam).matrix(),
+                                      values.atPose3(key_board).matrix(), K, P_b, H is not None)
+        r = ((uv - measured) * inv_sigma).reshape(n, 8)
+        if plain:
+            if H is not None:
+                H[0] = J_cam.reshape(-1, 6) * inv_sigma
+                H[1] = J_board.reshape(-1, 6) * inv_sigma
+            return r.reshape(-1)
+        d = np.sqrt(np.einsum("ij,ij->i", r, r))
+        w, rho = _robust_weight_loss(robust, robust_k, d)
+        if H is None:
+            scale = np.sqrt(2.0 * rho) / np.where(d > 0, d, 1.0)
+            return (r * np.where(d > 0, scale, 1.0)[:, None]).reshape(-1)
+        sw = np.repeat(np.sqrt(w), 8)[:, None]
+        H[0] = (J_cam.reshape(-1, 6) * inv_sigma) * sw
+        H[1] = (J_board.reshape(-1, 6) * inv_sigma) * sw
+        return r.reshape(-1) * sw[:, 0]
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), [key_cam, key_board], error)
+
+
+@dataclass(frozen=True)
+class _ViewGroup:
+    """The markers of one (camera, view): their indices in the active list and stacked data."""
+
+    camera: str
+    view: str
+    index: np.ndarray  # (n,) positions in the active measurement list
+    object_points: np.ndarray  # (n,4,3)
+    corners_px: np.ndarray  # (n,4,2)
+
+
+def _group_views(active: list[MarkerMeasurement]) -> list[_ViewGroup]:
+    """Group the measurements by (camera, view), in order of first appearance."""
+    members: dict[tuple[str, str], list[int]] = defaultdict(list)
+    for i, m in enumerate(active):
+        members[(m.camera, m.view)].append(i)
+    return [_ViewGroup(c, v, np.array(idx),
+                       np.stack([active[i].object_points for i in idx]).astype(float),
+                       np.stack([active[i].corners_px for i in idx]).astype(float))
+            for (c, v), idx in members.items()]
 
 
 def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray],
@@ -919,9 +1025,10 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
                   fixed_cameras: dict[str, np.ndarray] | None = None,
                   relative_poses: list[RelativePose] = ()) -> BundleResult:
     """Joint bundle adjustment of camera poses ``T_ref_cam`` and board poses ``T_ref_board``
-    on the marker corners (one GTSAM CustomFactor per marker and view, robust per marker),
-    optionally joined by camera-to-camera ``relative_poses`` (depth registration) as
-    ``BetweenFactorPose3`` with their own information: one joint graph, one set of marginals.
+    on the marker corners (one GTSAM CustomFactor per camera view holding all its markers,
+    robust per marker: :func:`_view_factor`), optionally joined by camera-to-camera
+    ``relative_poses`` (depth registration) as ``BetweenFactorPose3`` with their own
+    information: one joint graph, one set of marginals.
 
     Intrinsics are held fixed; the reference camera (and any ``fixed_cameras``) carry a tight
     prior. Marginal covariances come from the converged graph, scaled by the a-posteriori
@@ -935,23 +1042,13 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     view_key = {v: gtsam.symbol("b", i) for i, v in enumerate(views)}
     kept = [m for m in measurements if m.camera in init_T_ref_cam and m.view in init_T_ref_board]
 
-    def build(active: list[MarkerMeasurement], sigma: float,
+    def build(groups: list[_ViewGroup], sigma: float,
               robust: bool = True) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
-        base = gtsam.noiseModel.Isotropic.Sigma(8, sigma)
-        if not robust:
-            noise = base
-        elif config.robust == "huber":
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(config.robust_k), base)
-        elif config.robust == "cauchy":
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Cauchy.Create(config.robust_k), base)
-        else:
-            noise = base
-        for m in active:
-            graph.add(_projection_factor(noise, cam_key[m.camera], view_key[m.view], K[m.camera],
-                                         m.object_points, m.corners_px))
+        kind = config.robust if robust else "none"
+        for g in groups:
+            graph.add(_view_factor(cam_key[g.camera], view_key[g.view], K[g.camera],
+                                   g.object_points, g.corners_px, sigma, kind, config.robust_k))
         prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)
         for c, T in fixed.items():
             graph.add(gtsam.PriorFactorPose3(cam_key[c], gtsam.Pose3(T), prior))
@@ -982,10 +1079,11 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
                                           relative_poses, reference)
     connected = {c for c in cams if values.exists(cam_key[c])}
     for _ in range(3):  # solve, drop markers far off, re-solve
-        graph = build(active, config.pixel_sigma)
+        groups = _group_views(active)
+        graph = build(groups, config.pixel_sigma)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
-        rms = _marker_rms(active, values, cam_key, view_key, K)
+        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K)
         bad = rms > config.outlier_px
         if not np.any(bad):
             break
@@ -996,7 +1094,8 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         active, values = _reference_component(active, values, cam_key, view_key, set(fixed),
                                               relative_poses, reference)
         connected = {c for c in cams if values.exists(cam_key[c])}
-    rms = _marker_rms(active, values, cam_key, view_key, K)
+        groups = _group_views(active)
+        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K)
     dof = max(8 * len(active) - 6 * (values.size() - len(fixed)), 1)
     sigma_hat = float(np.sqrt(np.sum(4 * rms**2) / dof))  # 4 corners x (du^2+dv^2)
     # marginals of the plain Gaussian graph at the solution, corners weighted by the
@@ -1006,11 +1105,11 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     if relative_poses and config.estimate_sigma:
         # re-solve with the corners at their estimated noise, so that board and depth
         # measurements are weighted against each other by their real uncertainties
-        graph = build(active, sigma_marg)
+        graph = build(groups, sigma_marg)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
-        rms = _marker_rms(active, values, cam_key, view_key, K)
-    marg_graph = build(active, sigma_marg, robust=False)
+        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K)
+    marg_graph = build(groups, sigma_marg, robust=False)
     marginals = gtsam.Marginals(marg_graph, values)
     out_cam, cov, s_rot, s_trans = {}, {}, {}, {}
     for c in cams:
@@ -1025,7 +1124,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         cov[c] = C
         s_rot[c], s_trans[c] = _sigmas_from_covariance(T, C)
     boards = {v: values.atPose3(view_key[v]).matrix() for v in views if values.exists(view_key[v])}
-    residuals = [(m.camera, m.view, m.marker_id, float(r)) for m, r in zip(active, rms)]
+    residuals = [(m.camera, m.view, m.marker_id, r) for m, r in zip(active, rms.tolist())]
     return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, outliers, sigma_hat,
                         optimizer.iterations(), graph.error(values))
 
@@ -1047,14 +1146,15 @@ def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
     def union(a: str, b: str) -> None:
         parent[find(a)] = find(b)
 
-    for m in active:
-        union("c:" + m.camera, "v:" + m.view)
+    for camera, view in dict.fromkeys((m.camera, m.view) for m in active):
+        union("c:" + camera, "v:" + view)
     for r in relative_poses:
         union("c:" + r.cam_a, "c:" + r.cam_b)
     for c in fixed:  # fixed cameras are tied to the reference frame by their priors
         union("c:" + c, "c:" + reference)
     root = find("c:" + reference)
-    kept = [m for m in active if find("c:" + m.camera) == root]
+    cameras = {c for c in cam_key if find("c:" + c) == root}
+    kept = [m for m in active if m.camera in cameras]
     sub = gtsam.Values()
     for c, k in cam_key.items():
         if values.exists(k) and find("c:" + c) == root:
@@ -1065,19 +1165,15 @@ def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
     return kept, sub
 
 
-def _marker_rms(active, values, cam_key, view_key, K) -> np.ndarray:
-    out = np.empty(len(active))
-    cache: dict = {}
-    for i, m in enumerate(active):
-        key = (m.camera, m.view)
-        if key not in cache:
-            T_ref_cam = values.atPose3(cam_key[m.camera]).matrix()
-            T_ref_board = values.atPose3(view_key[m.view]).matrix()
-            cache[key] = np.linalg.inv(T_ref_cam) @ T_ref_board
-        T = cache[key]
-        p = m.object_points @ T[:3, :3].T + T[:3, 3]
-        Kc = K[m.camera]
-        uv = np.column_stack([Kc[0, 0] * p[:, 0] / p[:, 2] + Kc[0, 2],
-                              Kc[1, 1] * p[:, 1] / p[:, 2] + Kc[1, 2]])
-        out[i] = np.sqrt(np.mean(np.sum((uv - m.corners_px) ** 2, axis=1)))
+def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,
+                view_key: dict, K: dict) -> np.ndarray:
+    """RMS corner residual (px) of each of the ``n`` active markers at ``values``:
+    sqrt(mean over the 4 corners of |uv - uv_meas|^2), vectorised per camera view."""
+    out = np.empty(n)
+    for g in groups:
+        uv, _, _ = _project(values.atPose3(cam_key[g.camera]).matrix(),
+                            values.atPose3(view_key[g.view]).matrix(), K[g.camera],
+                            g.object_points.reshape(-1, 3), jacobians=False)
+        d2 = np.sum((uv.reshape(-1, 4, 2) - g.corners_px) ** 2, axis=2)
+        out[g.index] = np.sqrt(np.mean(d2, axis=1))
     return out
