@@ -318,8 +318,10 @@ def calibrate(
                                                bundle.covariance[c])
                            for c in bundle.T_ref_cam}
                 timings["joint"] = time.perf_counter() - t0
+            t0 = time.perf_counter()  # each pair's fit at the final extrinsics, error maps
             depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},
                                  config.depth)
+            timings["depth_check"] = time.perf_counter() - t0
     for cam in pg.cameras:
         if cam not in cameras and cam not in unconnected:
             unconnected[cam] = (
