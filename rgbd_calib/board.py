@@ -168,6 +168,19 @@ def _int(value: Any, where: str, minimum: int = 0) -> int:
     return int(value)
 
 
+MAX_LISTED_IDS = 10  # a one-line error lists at most this many ids
+
+
+def id_list(ids, total: int | None = None) -> str:
+    """``[1, 2, 3]``, or the first :data:`MAX_LISTED_IDS` and ``(N in all)`` for a long list
+    (``total`` when the ids given are only the first ones)."""
+    ids = [int(i) for i in ids]
+    total = len(ids) if total is None else total
+    if total <= MAX_LISTED_IDS:
+        return str(ids)
+    return f"[{', '.join(map(str, ids[:MAX_LISTED_IDS]))}, ...] ({total} in all)"
+
+
 def validate_markers(
     ids: np.ndarray,
     corners: np.ndarray,
@@ -183,13 +196,13 @@ def validate_markers(
     uniq, counts = np.unique(ids, return_counts=True)
     if np.any(counts > 1):
         raise BoardError(
-            f"{where}: duplicate marker id(s) {uniq[counts > 1].tolist()}; "
-            "every marker id may appear once"
+            f"{where}: duplicate marker id(s) {id_list(uniq[counts > 1])}; give each marker its "
+            "own id (grid: front_first_id and back_first_id must not overlap)"
         )
     bad = ids[(ids < 0) | (ids >= dict_size)]
     if bad.size:
         raise BoardError(
-            f"{where}: marker id(s) {bad.tolist()} outside the dictionary "
+            f"{where}: marker id(s) {id_list(bad)} outside the dictionary "
             f"(ids 0..{dict_size - 1}); use a larger dictionary or fix the ids"
         )
     z = corners[:, :, 2]
@@ -201,7 +214,7 @@ def validate_markers(
     off = ids[faces == 0]
     if off.size:
         raise BoardError(
-            f"{where}: marker(s) {off.tolist()} are not planar on the front face (z = 0) or the "
+            f"{where}: marker(s) {id_list(off)} are not planar on the front face (z = 0) or the "
             f"back face (z = -{thickness}); check their z coordinates and the thickness"
         )
     sides = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=-1)
@@ -212,7 +225,7 @@ def validate_markers(
     )
     if np.any(not_square):
         raise BoardError(
-            f"{where}: marker(s) {ids[not_square].tolist()} are not squares; "
+            f"{where}: marker(s) {id_list(ids[not_square])} are not squares; "
             "list the 4 corners of each marker in order around the square"
         )
     signs = np.array([winding_sign(c, f) for c, f in zip(corners, faces)])
@@ -220,7 +233,7 @@ def validate_markers(
     if np.any(mirrored):
         if not fix_winding:
             raise BoardError(
-                f"{where}: marker(s) {ids[mirrored].tolist()} are listed mirrored for their face "
+                f"{where}: marker(s) {id_list(ids[mirrored])} are listed mirrored for their face "
                 "(e.g. back-face corners in front-face order, as in the thesis Table 4.2); "
                 "list corners TL,TR,BR,BL as seen from outside the face, or set "
                 "corner_order: front / pass --fix-winding"
@@ -285,6 +298,35 @@ _TOP_KEYS = {
 _GRID_KEYS = {"rows", "cols", "marker_length", "separation", "front_first_id", "back_first_id"}
 
 
+def _check_grid_fits(
+    rows: int,
+    cols: int,
+    front_first_id: int,
+    back_first_id: int | None,
+    dictionary: str,
+    dict_size: int,
+    where: str,
+) -> None:
+    """Reject a grid with more markers than its dictionary has ids, or ids beyond it, before
+    it is built marker by marker (a 100000 x 100000 grid would exhaust memory)."""
+    per_face = rows * cols
+    firsts = [front_first_id] + ([] if back_first_id is None else [back_first_id])
+    if per_face * len(firsts) > dict_size:
+        faces = " on each of 2 faces" if len(firsts) == 2 else ""
+        raise BoardError(
+            f"{where}: grid: {rows} x {cols} markers{faces} ({per_face * len(firsts)} in all) but "
+            f"{dictionary} has only {dict_size} ids; use a larger dictionary or a smaller grid"
+        )
+    outside = [range(max(first, dict_size), first + per_face) for first in firsts]
+    total = sum(len(r) for r in outside)
+    if total:
+        shown = [i for r in outside for i in r[:MAX_LISTED_IDS]][:MAX_LISTED_IDS]
+        raise BoardError(
+            f"{where}: marker id(s) {id_list(shown, total)} outside the dictionary "
+            f"(ids 0..{dict_size - 1}); use a larger dictionary or fix the ids"
+        )
+
+
 def load_board(path: Path, fix_winding: bool = False) -> Board:
     """Load a board YAML in grid form or explicit form (see configs/board_thesis*.yaml).
 
@@ -335,15 +377,20 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
             raise BoardError(str(exc)) from None
         back = g.get("back_first_id")
         margin = data.get("margin")
+        rows = _int(g["rows"], f"{where}: grid.rows", 1)
+        cols = _int(g["cols"], f"{where}: grid.cols", 1)
+        front_id = _int(g["front_first_id"], f"{where}: grid.front_first_id")
+        back_id = None if back is None else _int(back, f"{where}: grid.back_first_id")
+        _check_grid_fits(rows, cols, front_id, back_id, dictionary, d.bytesList.shape[0], where)
         board = board_from_grid(
             dictionary,
-            _int(g["rows"], f"{where}: grid.rows", 1),
-            _int(g["cols"], f"{where}: grid.cols", 1),
+            rows,
+            cols,
             _number(g["marker_length"], f"{where}: grid.marker_length"),
             _number(g["separation"], f"{where}: grid.separation", allow_zero=True),
             thickness,
-            _int(g["front_first_id"], f"{where}: grid.front_first_id"),
-            None if back is None else _int(back, f"{where}: grid.back_first_id"),
+            front_id,
+            back_id,
             None if margin is None else _number(margin, f"{where}: margin", allow_zero=True),
             panel,
             name,
@@ -366,7 +413,10 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
         raise BoardError(f"{where}: corner_order must be 'detection' or 'front', got {order!r}")
     markers = data["markers"]
     if not isinstance(markers, dict) or not markers:
-        raise BoardError(f"{where}: markers must map marker id -> 4 corners [[x,y,z], ...]")
+        raise BoardError(
+            f"{where}: markers must map marker id -> 4 corners [[x,y,z], ...]; use the form of "
+            "configs/board_thesis_table42.yaml"
+        )
     ids, corners = [], []
     for key, value in markers.items():
         try:

@@ -250,6 +250,12 @@ def calibrate(
             f"{dataset.path}: the reference camera {reference!r} has no usable board view; "
             "record the board in its view or choose another reference in rig.yaml"
         )
+    reference_frames = {o.frame for o in observations if o.camera == reference}
+    if not any(o.camera != reference and o.frame in reference_frames for o in observations):
+        raise CalibrationError(  # before the pose graph, whose own error names no dataset
+            f"{dataset.path}: no camera shares a board view with the reference "
+            f"{reference!r}; move the board where two cameras see it at once"
+        )
     pg = calibrate_pose_graph(edges, reference, config.graph, fixed_cameras)
     timings["pose_graph"] = time.perf_counter() - t0
     unconnected = dict(pg.unconnected)

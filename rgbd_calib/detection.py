@@ -319,12 +319,14 @@ def detect_markers(
     """Detect the board's markers in a BGR or grey image (a pure function: safe to map over
     images in a process pool).
 
-    Steps: OpenCV's detector; markers it rejected but the board layout predicts are recovered
-    (``refine_with_board``); ids not on the board go to ``foreign_ids``; an id seen twice
+    Steps: OpenCV's detector; ids not on the board go to ``foreign_ids``; an id seen twice
     cannot be both on the rigid board, so every copy is dropped and the id recorded in
-    ``duplicate_ids``; then the corner refinement. With ``intrinsics`` that have lens
-    distortion, the edge fit bends with the distortion (a quadratic term per edge), fits its
-    lines in undistorted pixels and maps the corners back to distorted pixels.
+    ``duplicate_ids``; markers the detector rejected but the board layout predicts are
+    recovered (``refine_with_board``, fed only the unique on-board markers: a duplicated id
+    would spoil its board fit), and the duplicate rule is applied again to its output; then
+    the corner refinement. With ``intrinsics`` that have lens distortion, the edge fit bends
+    with the distortion (a quadratic term per edge), fits its lines in undistorted pixels and
+    maps the corners back to distorted pixels.
     """
     config = config or DetectionConfig()
     gray = to_gray(image)
@@ -332,6 +334,17 @@ def detect_markers(
     dictionary = aruco_dictionary(board.dictionary)
     detector = _detector(dictionary, config, size)
     corners, ids, rejected = detector.detectMarkers(gray)
+    foreign = duplicate = np.zeros(0, dtype=int)
+    if ids is not None and len(ids):
+        flat = np.asarray(ids, dtype=int).reshape(-1)
+        on_board = np.array([int(i) in board.index_of for i in flat], dtype=bool)
+        foreign = np.unique(flat[~on_board])
+        uniq, counts = np.unique(flat[on_board], return_counts=True)
+        duplicate = uniq[counts > 1]
+        keep = on_board & ~np.isin(flat, duplicate)
+        if not keep.all():  # else OpenCV's own output, untouched
+            corners = tuple(c for c, k in zip(corners, keep) if k)
+            ids = ids[keep]
     if ids is not None and len(ids) and config.refine_with_board:
         corners, ids = _refine_with_board(detector, dictionary, gray, board, corners, ids, rejected)
     if ids is None or len(ids) == 0:
@@ -340,18 +353,19 @@ def detect_markers(
             empty,
             np.zeros((0, 4, 2)),
             np.zeros((0, 4), bool),
-            empty,
-            empty,
+            foreign,
+            duplicate,
             size,
             config.refinement,
         )
     ids = np.asarray(ids, dtype=int).reshape(-1)
     corners_px = np.asarray(corners, dtype=float).reshape(-1, 4, 2)
+    # the refinement only adds board markers, but may add one twice or one dropped above
     on_board = np.array([int(i) in board.index_of for i in ids], dtype=bool)
-    foreign = np.unique(ids[~on_board])
+    foreign = np.union1d(foreign, ids[~on_board])
     ids, corners_px = ids[on_board], corners_px[on_board]
     uniq, counts = np.unique(ids, return_counts=True)
-    duplicate = uniq[counts > 1]
+    duplicate = np.union1d(duplicate, uniq[counts > 1])
     keep = ~np.isin(ids, duplicate)
     ids, corners_px = ids[keep], corners_px[keep]
     order = np.argsort(ids, kind="stable")
