@@ -354,6 +354,21 @@ def write_markdown(path: Path, body: str) -> None:
     path.write_text(text)
 
 
+def _merge(path: Path, payload: dict[str, Any]) -> dict[str, Any]:
+    """``payload`` merged into the results already in ``path``: the sets run now replace
+    theirs, the others are kept (so the sets can be run one command at a time)."""
+    try:
+        earlier = _upgrade(json.loads(path.read_text()))
+    except (OSError, ValueError, KeyError):
+        return payload
+    kept = {k: v for k, v in earlier["sets"].items() if k not in payload["sets"]}
+    if not kept:
+        return payload
+    meta = dict(payload["meta"])
+    meta["command"] = f"{earlier['meta']['command']}` then `{meta['command']}"
+    return {"meta": meta, "sets": {**kept, **payload["sets"]}}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument(
@@ -377,7 +392,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--keep", type=Path, default=None, help="keep the end-to-end outputs under this folder"
     )
-    p.add_argument("--json", type=Path, default=Path("docs/speed.json"))
+    p.add_argument(
+        "--json",
+        type=Path,
+        default=Path("docs/speed.json"),
+        help="results; sets already in it that were not run now are kept",
+    )
     p.add_argument(
         "--md",
         type=Path,
@@ -427,6 +447,7 @@ def main(argv: list[str] | None = None) -> int:
                     keep.mkdir(parents=True, exist_ok=True)
                 block["end_to_end"] = [end_to_end(path, max(args.workers), keep)]
             payload["sets"][name] = block
+        payload = _merge(args.json, payload)
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(payload, indent=1))
     body = markdown(payload)
