@@ -812,6 +812,11 @@ def test_ctrl_c_leaves_earlier_results_and_resumes(clean, tmp_path):
     detection pool works, once after detection (the cache is complete) while the pipeline
     goes on; then the same command again finishes from the detection cache."""
     w = workspace(clean, tmp_path, cache=False)
+    # eight copies of every frame set (new frame names), so that detection lasts long enough
+    # (seconds) for the first interrupt to land while the pool works
+    for png in sorted(w.ds.glob("*/*/*.png")):
+        for k in range(1, 8):
+            shutil.copy2(png, png.with_name(f"{int(png.stem) + 1000 * k:06d}.png"))
     n_images = sum(1 for _ in w.ds.glob("*/color/*.png"))
     args = [RGBD_CALIB, "calibrate", w.ds, "--out", w.out, "--refine", "none", "--workers", "2"]
 
@@ -827,10 +832,12 @@ def test_ctrl_c_leaves_earlier_results_and_resumes(clean, tmp_path):
                 proc.kill()
         return subprocess.CompletedProcess(args, proc.returncode, out, err)
 
-    # 1. during detection: the pool's workers exist (children of the forkserver); interrupt
-    # at once: the 24 images take well under a second once the workers run
+    # 1. during detection: the pool's workers exist (children of the forkserver)
     def pool_working(pid: int) -> bool:
-        return len(_descendants(pid)) >= 4  # forkserver, resource tracker, 2 workers
+        if len(_descendants(pid)) >= 4:  # forkserver, resource tracker, 2 workers
+            time.sleep(0.3)
+            return True
+        return False
 
     run1 = interrupted_run(pool_working)
     assert _cache_count(w.out) < n_images
