@@ -474,17 +474,31 @@ def _px(x: float) -> str:
 
 def peer_margin(runs: list[dict[str, Any]], layout: str) -> dict[str, Any]:
     """How many times smaller ours' worst-camera error is than the best peer's (thesis,
-    OpenCV; the peers that succeeded on every seed), in translation and rotation; ``None``
-    when ours has no result, ``inf`` when every peer failed."""
-    s = summarise(runs, layout, OURS)
-    peers = [summarise(runs, layout, m.key) for m in METHODS if m.kind != "ours"]
-    peers = [o for o in peers if o["runs"] and o["ok"] == o["runs"]]
+    OpenCV), in translation and rotation. Each peer is compared on the seeds where it
+    succeeded, against ours on those same seeds (a peer that leaves a camera uncalibrated on
+    one seed is still measured on the others); the best peer is the one closest to ours.
+    ``None`` when ours has no result, ``inf`` when every peer failed on every seed."""
     out: dict[str, Any] = {"translation": None, "rotation": None}
-    if not s["ok"]:
+    if not summarise(runs, layout, OURS)["ok"]:
         return out
-    for key, field in (("translation", "worst_translation_mm"), ("rotation", "worst_rotation_deg")):
-        best = min((o[field] for o in peers), default=math.inf)
-        out[key] = best / s[field] if s[field] > 0 else math.inf
+    ratios: dict[str, list[float]] = {"translation": [], "rotation": []}
+    for peer in (m.key for m in METHODS if m.kind != "ours"):
+        seeds = {
+            r["seed"]
+            for r in runs
+            if r["layout"] == layout and r["method"] == peer and r["status"] == "ok"
+        }
+        sub = [r for r in runs if r["layout"] == layout and r["seed"] in seeds]
+        o, s = summarise(sub, layout, peer), summarise(sub, layout, OURS)
+        if not seeds or not s["ok"]:
+            continue
+        for key, field in (
+            ("translation", "worst_translation_mm"),
+            ("rotation", "worst_rotation_deg"),
+        ):
+            ratios[key].append(o[field] / s[field] if s[field] > 0 else math.inf)
+    for key, values in ratios.items():
+        out[key] = min(values, default=math.inf)
     return out
 
 
