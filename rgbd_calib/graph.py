@@ -915,25 +915,6 @@ def _project(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
     return uv, J_cam, J_board
 
 
-def _projection_factor(noise, key_cam: int, key_board: int, K: np.ndarray,
-                       object_points: np.ndarray, corners_px: np.ndarray):
-    """Reprojection of 4 board corners through two Pose3 keys, T_ref_cam and T_ref_board: the
-    8-dim residual [u0 - u0_meas, v0 - v0_meas, ..., v3 - v3_meas] with ``noise`` (see
-    :func:`_project`). :func:`bundle_adjust` uses :func:`_view_factor`, one per camera view."""
-    measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
-    P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
-        uv, J_cam, J_board = _project(values.atPose3(key_cam).matrix(),
-                                      values.atPose3(key_board).matrix(), K, P_b, H is not None)
-        if H is not None:
-            H[0] = J_cam.reshape(-1, 6)
-            H[1] = J_board.reshape(-1, 6)
-        return (uv - measured).reshape(-1)
-
-    return gtsam.CustomFactor(noise, [key_cam, key_board], error)
-
-
 def _robust_weight_loss(kind: str, k: float, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weight w(d) and loss rho(d) of GTSAM's M-estimators at whitened norms ``d`` (vector).
 

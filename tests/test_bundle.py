@@ -13,7 +13,7 @@ from rgbd_calib.geometry import (
     rotvec_to_matrix,
     transform_error,
 )
-from rgbd_calib.graph import BundleConfig, MarkerMeasurement, _projection_factor, bundle_adjust
+from rgbd_calib.graph import BundleConfig, MarkerMeasurement, _view_factor, bundle_adjust
 
 K = np.array([[600.0, 0, 640], [0, 600.0, 360], [0, 0, 1]])
 
@@ -53,8 +53,8 @@ def perturb(T, rng, deg=1.0, m=0.02):
 def test_analytic_jacobians_match_numerical(rng):
     T_ref_cam, boards, meas = scene(rng, 2, 2)
     m = next(x for x in meas if x.camera == "c1")
-    f = _projection_factor(gtsam.noiseModel.Unit.Create(8), 0, 1, K, m.object_points,
-                           m.corners_px)
+    # the bundle's own factor, one marker, no kernel, sigma 1: residuals in pixels
+    f = _view_factor(0, 1, K, m.object_points[None], m.corners_px[None], 1.0, "none", 1.0)
     values = gtsam.Values()
     values.insert(0, gtsam.Pose3(T_ref_cam["c1"]))
     values.insert(1, gtsam.Pose3(boards[m.view]))
