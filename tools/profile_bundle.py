@@ -17,11 +17,8 @@ includes building the marker measurements) with either version patched in, inter
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -36,13 +33,8 @@ from rgbd_calib.board import thesis_board  # noqa: E402
 from rgbd_calib.dataset import FolderDataset  # noqa: E402
 from rgbd_calib.geometry import transform_error  # noqa: E402
 
-
-def load_module(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(f"rgbd_calib.{name}", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+sys.path.insert(0, str(ROOT / "tools"))
+from baseline import module_at  # noqa: E402
 
 
 def capture_inputs(data: Path, cache: Path) -> tuple[tuple, dict]:
@@ -148,12 +140,7 @@ def main() -> None:
     ap.add_argument("--calibrate", action="store_true",
                     help="also time whole calibrations (timings_s['bundle'])")
     opts = ap.parse_args()
-    text = subprocess.run(["git", "show", f"{opts.baseline_rev}:rgbd_calib/graph.py"],
-                          cwd=ROOT, check=True, capture_output=True, text=True).stdout
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "graph_baseline.py"
-        path.write_text(text)
-        old = load_module("graph_baseline", path)
+    old = module_at(opts.baseline_rev, "rgbd_calib/graph.py", "graph_baseline")
     for name in opts.sets:
         args, kwargs = capture_inputs(opts.data / name, opts.cache / name)
         times: dict[str, list[float]] = {"old": [], "new": []}

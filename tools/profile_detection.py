@@ -18,11 +18,8 @@ also compares the corners of both versions.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -34,6 +31,9 @@ sys.path.insert(0, str(ROOT))
 
 from rgbd_calib.board import thesis_board  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "tools"))
+from baseline import load_module, module_at  # noqa: E402
+
 SETS = {"1280x720": "thesis-line-f40-s0", "848x480": "race-f40-s0"}
 STAGES = ("_detector", "_refine_with_board", "_gray_float", "refine_corners_edges")
 LABELS = {
@@ -43,14 +43,6 @@ LABELS = {
     "refine_corners_edges": "edges",
     "_subpix_fallback": "subpix",
 }
-
-
-def load_module(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(f"rgbd_calib.{name}", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def instrument(mod) -> dict[str, float]:
@@ -86,19 +78,12 @@ def main() -> None:
     ap.add_argument("--check", action="store_true", help="compare corners old vs new")
     args = ap.parse_args()
     cv2.setNumThreads(1)
-    if args.baseline_file is None:
-        text = subprocess.run(
-            ["git", "show", f"{args.baseline_rev}:rgbd_calib/detection.py"],
-            cwd=ROOT,
-            check=True,
-            capture_output=True,
-            text=True,
-        ).stdout
-        tmp = Path(tempfile.mkdtemp()) / "detection_old.py"
-        tmp.write_text(text)
-        args.baseline_file = tmp
     versions = {
-        "old": load_module("_detection_old", args.baseline_file),
+        "old": (
+            load_module("_detection_old", args.baseline_file)
+            if args.baseline_file
+            else module_at(args.baseline_rev, "rgbd_calib/detection.py", "_detection_old")
+        ),
         "new": load_module("_detection_new", ROOT / "rgbd_calib" / "detection.py"),
     }
     acc = {k: instrument(m) for k, m in versions.items()}
