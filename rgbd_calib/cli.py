@@ -285,16 +285,24 @@ SYNC_OPTION = typer.Option(
 )
 
 
+def _name_list(names: str | None) -> list[str] | None:
+    """``--names a,b,c`` as a list (each name is checked where it is used)."""
+    return names.split(",") if names else None
+
+
 def _open_dataset(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms):
     """A dataset folder as it is, or recordings converted once under OUT/cache/recordings
     (with a progress bar and the per-camera frame counts of the conversion)."""
     from .convert import cached_report, dataset_folder, print_report, rich_progress
     from .dataset import FolderDataset
 
-    name_list = [n.strip() for n in names.split(",")] if names else None
     with progress_bar() as bar:
         folder = dataset_folder(
-            sources, out / "cache" / "recordings", name_list, sync_tolerance_ms, rich_progress(bar)
+            sources,
+            out / "cache" / "recordings",
+            _name_list(names),
+            sync_tolerance_ms,
+            rich_progress(bar),
         )
     report = cached_report(folder)
     if report is not None:
@@ -613,7 +621,7 @@ def convert(
     from .convert import cli_convert
 
     _check_output_folder(out)
-    cli_convert(sources, out, names.split(",") if names else None, sync_tolerance_ms)
+    cli_convert(sources, out, _name_list(names), sync_tolerance_ms)
 
 
 @app.command()
@@ -642,7 +650,7 @@ def record(
     _check_output_folder(out)
     w, h = _parse_resolution(resolution)
     b = load_board(board_file) if board_file else thesis_board()
-    cli_record(out, sets, (w, h, fps), hardware_sync, b, names.split(",") if names else None)
+    cli_record(out, sets, (w, h, fps), hardware_sync, b, _name_list(names))
 
 
 if __name__ == "__main__":  # pragma: no cover
