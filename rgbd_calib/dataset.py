@@ -142,11 +142,7 @@ class FolderDataset:
             intr = self.rig.cameras[cam]
             for path in self._color[cam].values():
                 info = image_header(path)
-                if (info.width, info.height) != (intr.width, intr.height):
-                    raise DatasetError(
-                        f"{path}: image is {info.width}x{info.height} but rig.yaml says "
-                        f"{intr.width}x{intr.height}; use the intrinsics of this resolution"
-                    )
+                _check_size(path, (info.width, info.height), intr.width, intr.height)
                 if progress:
                     progress(1)
             for path in self._depth[cam].values():
@@ -162,11 +158,9 @@ class FolderDataset:
                         f"{info.bit_depth}-bit, {info.channels} channel(s); export raw depth "
                         "counts (z16) aligned to colour"
                     )
-                if (info.width, info.height) != (intr.width, intr.height):
-                    raise DatasetError(
-                        f"{path}: depth is {info.width}x{info.height} but the colour "
-                        f"intrinsics say {intr.width}x{intr.height}; align depth to colour first"
-                    )
+                _check_size(
+                    path, (info.width, info.height), intr.width, intr.height, depth=True
+                )
                 if progress:
                     progress(1)
 
@@ -315,14 +309,27 @@ def _png_problem(data: bytes) -> str | None:
     return "truncated PNG (the file ends before its IEND chunk)"
 
 
+def _check_size(
+    path: Path, size: tuple[int, int], width: int, height: int, depth: bool = False
+) -> None:
+    """A colour image (or depth aligned to it) must have the intrinsics' ``width x height``."""
+    if tuple(size) == (width, height):
+        return
+    if depth:
+        raise DatasetError(
+            f"{path}: depth is {size[0]}x{size[1]} but the colour intrinsics say "
+            f"{width}x{height}; align depth to colour first"
+        )
+    raise DatasetError(
+        f"{path}: image is {size[0]}x{size[1]} but rig.yaml says {width}x{height}; "
+        "use the intrinsics of this resolution"
+    )
+
+
 def read_color_image(path: Path, width: int, height: int, gray: bool = False) -> np.ndarray:
     """Decode an 8-bit colour image and check its size against the intrinsics."""
     img = _decode(Path(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR, "image")
-    if img.shape[:2] != (height, width):
-        raise DatasetError(
-            f"{path}: image is {img.shape[1]}x{img.shape[0]} but rig.yaml says "
-            f"{width}x{height}; use the intrinsics of this resolution"
-        )
+    _check_size(path, (img.shape[1], img.shape[0]), width, height)
     return img
 
 
@@ -335,9 +342,5 @@ def read_depth_image(path: Path, width: int, height: int) -> np.ndarray:
             f"{path}: depth must be a 16-bit single-channel PNG, got {kind}; "
             "export raw depth counts (z16) aligned to colour"
         )
-    if img.shape != (height, width):
-        raise DatasetError(
-            f"{path}: depth is {img.shape[1]}x{img.shape[0]} but the colour "
-            f"intrinsics say {width}x{height}; align depth to colour first"
-        )
+    _check_size(path, (img.shape[1], img.shape[0]), width, height, depth=True)
     return img
