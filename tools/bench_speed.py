@@ -35,6 +35,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import shutil
 import statistics
 import subprocess
@@ -176,8 +177,6 @@ def end_to_end(path: Path, workers: int, keep: Path | None = None) -> dict[str, 
             code = proc.wait()
     wall_s = time.perf_counter() - t0
     # the largest peak of any one finished descendant (the waited command and its workers)
-    import resource
-
     maxrss_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
     if code != 0:
         tail = (out_root / "calibrate.log").read_text()[-2000:]
