@@ -873,7 +873,11 @@ def test_ctrl_c_leaves_earlier_results_and_resumes(clean, tmp_path):
     code, text = calibrate(w, "--workers", "2")
     assert code == 0, text
     timings = json.loads((w.out / "report.json").read_text())["timings_s"]
-    assert timings["detection"] < 0.1 * clean.detection_s, (timings, clean.detection_s)
+    # the resume reads the cache: per image at least 10x faster than the clean detection
+    # (the clean set has 1/8 of these images)
+    n_clean = sum(1 for _ in clean.dataset.glob("*/color/*.png"))
+    per_image = timings["detection"] / n_images
+    assert per_image < 0.1 * clean.detection_s / n_clean, (timings, clean.detection_s)
     check_result(w, ["cam7", "cam8", "cam9", "cam10"])
 
 
