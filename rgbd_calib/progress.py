@@ -1,0 +1,29 @@
+"""The library's one progress protocol (no imports beyond the standard library).
+
+A long-running library function takes ``progress: Progress | None``. For each stage it calls
+``tick = progress(label, total, done)`` once (``total`` may be None when unknown, ``done`` is
+the work already done, e.g. cached), then ``tick(n)`` after every ``n`` units of work. The CLI
+turns this into rich bars on a terminal and plain lines otherwise; the library never prints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
+Tick = Callable[[int], None]
+
+
+class Progress(Protocol):
+    def __call__(self, label: str, total: int | None, done: int = 0) -> Tick: ...
+
+
+def _no_tick(n: int = 1) -> None:
+    return None
+
+
+def start(progress: Progress | None, label: str, total: int | None, done: int = 0) -> Tick:
+    """``progress(label, total, done)``, or a tick that does nothing when there is no progress."""
+    if progress is None:
+        return _no_tick
+    return progress(label, total, done)
