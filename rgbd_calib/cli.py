@@ -6,10 +6,8 @@ Heavy imports happen inside the commands so ``--help`` stays fast. Every user mi
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import os
-import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -17,6 +15,7 @@ import typer
 from rich.console import Console
 
 from . import __version__
+from .console import console, progress_bar, stage_progress
 from .errors import RgbdCalibError
 
 app = typer.Typer(
@@ -26,7 +25,6 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     rich_markup_mode="rich",
 )
-console = Console(stderr=True)
 
 
 def _version(value: bool) -> None:
@@ -119,40 +117,6 @@ def _workers_ignore_ctrl_c() -> None:
         multiprocessing.forkserver.ensure_running()
     finally:
         signal.signal(signal.SIGINT, previous)
-
-
-def progress_bar():
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        disable=not sys.stderr.isatty(),
-    )
-
-
-@contextlib.contextmanager
-def stage_progress():
-    """The library's progress protocol, ``progress(label, total, done) -> tick(n=1)``, as one
-    rich bar per stage."""
-    with progress_bar() as bar:
-
-        def progress(label: str, total: int, done: int):
-            task = bar.add_task(label, total=total, completed=done)
-            return lambda n=1: bar.advance(task, n)
-
-        yield progress
 
 
 def _parse_resolution(text: str | None) -> tuple[int, int] | None:
@@ -293,20 +257,21 @@ def _name_list(names: str | None) -> list[str] | None:
 def _open_dataset(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms):
     """A dataset folder as it is, or recordings converted once under OUT/cache/recordings
     (with a progress bar and the per-camera frame counts of the conversion)."""
-    from .convert import cached_report, dataset_folder, print_report, rich_progress
+    from .console import print_conversion_report
+    from .convert import cached_report, dataset_folder
     from .dataset import FolderDataset
 
-    with progress_bar() as bar:
+    with stage_progress() as progress:
         folder = dataset_folder(
             sources,
             out / "cache" / "recordings",
             _name_list(names),
             sync_tolerance_ms,
-            rich_progress(bar),
+            progress,
         )
     report = cached_report(folder)
     if report is not None:
-        print_report(report, console)
+        print_conversion_report(report)
         console.print(f"recordings as a dataset folder: {folder}", highlight=False)
     return FolderDataset(folder)
 
@@ -618,7 +583,7 @@ def convert(
     ] = None,
 ) -> None:
     """Convert RealSense SDK recordings or ROS bags into the dataset folder form."""
-    from .convert import cli_convert
+    from .console import cli_convert
 
     _check_output_folder(out)
     cli_convert(sources, out, _name_list(names), sync_tolerance_ms)
@@ -645,7 +610,7 @@ def record(
 ) -> None:
     """Record colour + aligned depth from connected D435i cameras (Ctrl-C stops)."""
     from .board import load_board, thesis_board
-    from .record import cli_record
+    from .console import cli_record
 
     _check_output_folder(out)
     w, h = _parse_resolution(resolution)

@@ -28,7 +28,7 @@ import shutil
 import sqlite3
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from .errors import ConfigError, DatasetError
+from .progress import Progress, start
 from .rig import CAMERA_NAME, CameraIntrinsics, Rig, save_rig
 from .yamlio import atomic_write_text
 
@@ -45,8 +46,6 @@ ROS_DEPTH_SCALE = 0.001  # realsense-ros publishes 16UC1 depth in millimetres
 DEFAULT_FPS = 30.0  # frame rate assumed when a stream has a single frame
 CACHE_MARKER = ".rgbd-calib-source.json"
 PLAYBACK_END_IDLE_POLLS = 5  # 0.1 s polls without frames after playback stopped = the end
-
-Progress = Callable[[str, int, "int | None"], None]
 
 # realsense-ros topic suffixes below a camera namespace
 COLOR_TOPIC = "/color/image_raw"
@@ -407,6 +406,7 @@ def _read_sdk(path: Path, stager: _Stager, progress: Progress | None) -> _Camera
         )
         cam.fps = min(cam.fps, float(depth_profile.fps()))
     pair_tol_ms = 1000.0 / cam.fps  # a colour frame takes the nearest depth within one period
+    tick = start(progress, f"reading {path.name}", None)
 
     frames: queue.Queue = queue.Queue(maxsize=4)  # back-pressure: playback waits for us
     stopping = threading.Event()
@@ -431,8 +431,7 @@ def _read_sdk(path: Path, stager: _Stager, progress: Progress | None) -> _Camera
         t = color.get_timestamp()
         cam.timestamp_domain = str(color.get_frame_timestamp_domain()).split(".")[-1]
         cam.colors.append(_Frame(t, stager.put(_rs_color_to_bgr(color, str(path)))))
-        if progress:
-            progress(f"reading {path.name}", len(cam.colors), None)
+        tick(1)
         if depth is None or abs(depth.get_timestamp() - t) > pair_tol_ms:
             return
         if identity:
@@ -646,7 +645,7 @@ def _read_ros(path: Path, stager: _Stager, progress: Progress | None) -> list[_C
                 cam.depth_raw = True
                 cam.depth_source = f"{ns}{DEPTH_TOPIC} aligned by rgbd-calib"
         connections = [c for t in routes if t in by_topic for c in by_topic[t]]
-        done = 0
+        tick = start(progress, f"reading {path.name}", total)
         for con, t_ns, data in reader.messages(connections=connections):
             cam, kind = routes[con.topic]
             if kind == "color_info" and cam.intrinsics is not None:
@@ -676,9 +675,7 @@ def _read_ros(path: Path, stager: _Stager, progress: Progress | None) -> list[_C
                 frame = _Frame(_stamp_ms(msg, t_ns), stager.put(img))
                 (cam.depths if kind == "depth" else cam.colors).append(frame)
                 if kind == "color":
-                    done += 1
-                    if progress:
-                        progress(f"reading {path.name}", done, total)
+                    tick(1)
     finally:
         reader.close()
     for ns, cam in cams.items():
@@ -779,7 +776,8 @@ def convert(
     ``names`` renames the cameras, in the order they are found (sources in order, the
     cameras of one ROS bag in namespace order). ``sync_tolerance_ms`` is how far apart two
     cameras' frames may be and still form a set; default half the reference camera's frame
-    period. ``progress(description, done, total_or_None)`` is called per frame."""
+    period. ``progress`` (:mod:`rgbd_calib.progress`) has a stage per source read and one for
+    writing the frame sets."""
     out = Path(out)
     sources = [Path(s) for s in sources]
     if not sources:
@@ -884,6 +882,7 @@ def _write_sets(
         if c.depths:
             (tmp / c.name / "depth").mkdir(parents=True)
     matched = {c.name: 0 for c in cams}
+    tick = start(progress, "writing frame sets", len(sets))
     without_depth = {c.name: 0 for c in cams}
     for k, group in enumerate(sets):
         stem = f"{k:06d}"
@@ -910,8 +909,7 @@ def _write_sets(
                 _write_png(target, _align_staged(cam, depth.path))
             else:
                 shutil.copyfile(depth.path, target)  # a depth frame may serve two colours
-        if progress:
-            progress("writing frame sets", k + 1, len(sets))
+        tick(1)
     counts = {
         c.name: CameraCounts(
             frames_read=len(c.colors),
@@ -1047,67 +1045,3 @@ def dataset_folder(
                 "dataset folder or only recordings"
             )
     return convert_to_cache(sources, cache_dir, names, sync_tolerance_ms, progress)
-
-
-# --------------------------------------------------------------------------- CLI helper
-def rich_progress(bar) -> Progress:
-    """:data:`Progress` shown as one task per description on a ``rich.progress.Progress``."""
-    tasks: dict[str, Any] = {}
-
-    def progress(description: str, done: int, total: int | None) -> None:
-        if description not in tasks:
-            tasks[description] = bar.add_task(description, total=total)
-        bar.update(tasks[description], completed=done, total=total)
-
-    return progress
-
-
-def print_report(report: ConversionReport, console) -> None:
-    """The per-camera counts of a conversion as a table, then its notes."""
-    from rich.table import Table
-
-    table = Table(
-        title=f"{report.out}: {report.frames_written} frame sets "
-        f"(sync tolerance {report.sync_tolerance_ms:.1f} ms)"
-    )
-    for col in ("camera", "read", "matched", "unmatched", "dropped", "no depth", "depth"):
-        table.add_column(col, justify="right" if col not in ("camera", "depth") else "left")
-    for name in report.cameras:
-        c = report.counts[name]
-        table.add_row(
-            name,
-            str(c.frames_read),
-            str(c.matched),
-            str(c.unmatched),
-            str(c.dropped),
-            str(c.without_depth),
-            report.depth_source[name],
-        )
-    console.print(table)
-    for note in report.notes:
-        console.print(f"[yellow]note:[/] {note}", highlight=False)
-
-
-def cli_convert(
-    sources: Sequence[Path],
-    out: Path,
-    names: Sequence[str] | None = None,
-    sync_tolerance_ms: float | None = None,
-) -> ConversionReport:
-    """Run :func:`convert` with a rich progress bar and print a table of the result."""
-    import sys
-
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
-
-    console = Console(stderr=True)
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        console=console,
-        disable=not sys.stderr.isatty(),
-    ) as bar:
-        report = convert(sources, out, names, sync_tolerance_ms, rich_progress(bar))
-    print_report(report, console)
-    return report

@@ -11,6 +11,7 @@ import pytest
 
 import rgbd_calib.record as record_module
 from rgbd_calib.board import thesis_board
+from rgbd_calib.console import cli_record
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.errors import DatasetError
 from rgbd_calib.record import CapturedFrame, record
@@ -205,7 +206,7 @@ def test_refuses_a_non_empty_output_folder(board, rng, tmp_path):
 
 
 def test_cli_record_reports_what_it_wrote(board, rng, tmp_path, capsys):
-    report = record_module.cli_record(
+    report = cli_record(
         tmp_path / "set",
         n_sets=2,
         mode=(640, 360, 30),
