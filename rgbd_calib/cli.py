@@ -258,8 +258,8 @@ def _open_dataset(sources: list[Path], out: Path, names: str | None, sync_tolera
     """A dataset folder as it is, or recordings converted once under OUT/cache/recordings
     (with a progress bar and the per-camera frame counts of the conversion)."""
     from .console import print_conversion_report
-    from .convert import cached_report, dataset_folder
     from .dataset import FolderDataset
+    from .sources import cached_report, dataset_folder
 
     with stage_progress() as progress:
         folder = dataset_folder(

@@ -91,7 +91,7 @@ def cli_convert(
 ):
     """Run :func:`~rgbd_calib.sources.convert` with progress bars and print a table of the
     result."""
-    from .convert import convert
+    from .sources import convert
 
     with stage_progress() as progress:
         report = convert(sources, out, names, sync_tolerance_ms, progress)

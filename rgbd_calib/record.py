@@ -117,7 +117,7 @@ class _RealSenseStream:
             ci.fy,
             ci.ppx,
             ci.ppy,
-            tuple(float(c) for c in list(ci.coeffs)[:5]),  # k1 k2 p1 p2 k3, as convert.py
+            tuple(float(c) for c in list(ci.coeffs)[:5]),  # k1 k2 p1 p2 k3, as sources/align.py
             float(f"{depth_sensor.get_depth_scale():.7g}"),
         )
         self._align = rs.align(rs.stream.color)

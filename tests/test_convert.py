@@ -17,17 +17,17 @@ import cv2
 import numpy as np
 import pytest
 
-from rgbd_calib.convert import (
+from rgbd_calib.dataset import FolderDataset
+from rgbd_calib.errors import ConfigError, DatasetError
+from rgbd_calib.geometry import invert_transform, make_transform, rotvec_to_matrix
+from rgbd_calib.rig import CameraIntrinsics, load_rig
+from rgbd_calib.sources import (
     align_depth_to_color,
     convert,
     convert_to_cache,
     extrinsics_matrix,
     match_frames,
 )
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.errors import ConfigError, DatasetError
-from rgbd_calib.geometry import invert_transform, make_transform, rotvec_to_matrix
-from rgbd_calib.rig import CameraIntrinsics, load_rig
 
 REAL_BAG = (
     Path(__file__).resolve().parents[2]
@@ -591,7 +591,7 @@ def test_convert_to_cache_converts_once(synth_rig, tmp_path, monkeypatch):
     first = convert_to_cache(tmp_path / "one.bag", tmp_path / "cache")
     assert_same_frames(first, "camera", intr, frames)
 
-    import rgbd_calib.convert as convert_module
+    import rgbd_calib.sources.cache as convert_module
 
     calls = []
     real_convert = convert_module.convert

@@ -1,0 +1,126 @@
+"""The conversion cache: recordings converted once into a folder that calibrate reads.
+
+The folder holds a marker file with the sources' sizes and modification times and the
+conversion's report; a changed recording is converted again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError, DatasetError
+from ..progress import Progress
+from ..yamlio import atomic_write_text
+from .conversion import (
+    ConversionReport,
+    check_source,
+    convert,
+    is_recording,
+)
+from .staging import sanitize_name
+
+CACHE_MARKER = ".rgbd-calib-source.json"
+
+
+def _source_stamp(sources: Sequence[Path], names, sync_tolerance_ms) -> dict[str, Any]:
+    entries = []
+    for src in sources:
+        files = sorted(p for p in src.rglob("*") if p.is_file()) if src.is_dir() else [src]
+        stats = [p.stat() for p in files]
+        entries.append(
+            {
+                "path": str(src.resolve()),
+                "size": sum(s.st_size for s in stats),
+                "mtime_ns": max((s.st_mtime_ns for s in stats), default=0),
+            }
+        )
+    return {"sources": entries, "names": list(names or []), "sync_tolerance_ms": sync_tolerance_ms}
+
+
+def convert_to_cache(
+    source: Path | Sequence[Path],
+    cache_dir: Path,
+    names: Sequence[str] | None = None,
+    sync_tolerance_ms: float | None = None,
+    progress: Progress | None = None,
+) -> Path:
+    """Folder form of a recording under ``cache_dir``, converted once.
+
+    A second call returns the earlier conversion while every source's size and modification
+    time are unchanged; otherwise the cached folder is converted again. The conversion's
+    report is kept beside it (:func:`cached_report`)."""
+    sources = [Path(source)] if isinstance(source, (str, Path)) else [Path(s) for s in source]
+    for src in sources:
+        check_source(src)
+    stamp = _source_stamp(sources, names, sync_tolerance_ms)
+    key = hashlib.sha1(
+        json.dumps([e["path"] for e in stamp["sources"]] + stamp["names"]).encode()
+    ).hexdigest()[:12]
+    folder = Path(cache_dir) / f"{sanitize_name(sources[0].stem)}-{key}"
+    if _read_marker(folder).get("source") == stamp:
+        return folder
+    if folder.exists():
+        shutil.rmtree(folder)
+    report = convert(sources, folder, names, sync_tolerance_ms, progress)
+    atomic_write_text(
+        folder / CACHE_MARKER,
+        json.dumps({"source": stamp, "report": report.to_dict()}, indent=1),
+    )
+    return folder
+
+
+def _read_marker(folder: Path) -> dict[str, Any]:
+    try:
+        data = json.loads((Path(folder) / CACHE_MARKER).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def cached_report(folder: Path) -> ConversionReport | None:
+    """The report of the conversion that made ``folder`` in a cache; None for any other
+    folder (a dataset folder, say)."""
+    data = _read_marker(folder).get("report")
+    try:
+        return ConversionReport.from_dict(data) if isinstance(data, dict) else None
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def dataset_folder(
+    sources: Sequence[Path],
+    cache_dir: Path,
+    names: Sequence[str] | None = None,
+    sync_tolerance_ms: float | None = None,
+    progress: Progress | None = None,
+) -> Path:
+    """The folder form to calibrate from: a dataset folder as it is, or recordings converted
+    once into ``cache_dir`` (see :func:`convert_to_cache`; converted again when a recording
+    changes).
+
+    One source that is not a recording (no .bag/.db3/.mcap suffix, not a ROS 2 bag folder) is
+    taken as a dataset folder: :class:`FolderDataset` then names what is wrong with it.
+    ``names`` and ``sync_tolerance_ms`` apply to recordings only."""
+    sources = [Path(s) for s in sources]
+    if not sources:
+        raise ConfigError("give a dataset folder or at least one recording")
+    single = sources[0]
+    if len(sources) == 1 and not is_recording(single):
+        if names or sync_tolerance_ms is not None:
+            raise ConfigError(
+                f"{single}: --names and --sync-tolerance-ms apply to recordings, not to a "
+                "dataset folder; drop them (camera names come from its rig.yaml)"
+            )
+        return single
+    for src in sources:
+        if src.is_dir() and not is_recording(src):
+            raise DatasetError(
+                f"{src}: a dataset folder cannot be mixed with recordings; pass either one "
+                "dataset folder or only recordings"
+            )
+    return convert_to_cache(sources, cache_dir, names, sync_tolerance_ms, progress)
