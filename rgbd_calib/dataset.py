@@ -1,16 +1,25 @@
-"""The recorded RGB-D set in folder form (docs/formats.md), read lazily.
+"""The recorded RGB-D set in folder form (docs/formats.md): read lazily, written in one way.
 
 Only file names are indexed up front; images are decoded one at a time when asked for, so
 a set of any size streams through in constant memory. Every read checks what the contract
 promises (colour size = intrinsics, depth 16-bit single-channel of the same size) and fails
 with one line naming the file.
+
+:class:`FolderWriter` is the one writer of the form, for ``convert``, ``record`` and ``synth``:
+inside :func:`staged_folder` (a sibling renamed into place at the end) or set by set, each set
+renamed into place whole.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
+import signal
 import struct
+import threading
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +27,7 @@ import cv2
 import numpy as np
 
 from .errors import DatasetError
-from .rig import CAMERA_NAME, Rig, load_rig
+from .rig import CAMERA_NAME, Rig, load_rig, save_rig
 
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -158,9 +167,7 @@ class FolderDataset:
                         f"{info.bit_depth}-bit, {info.channels} channel(s); export raw depth "
                         "counts (z16) aligned to colour"
                     )
-                _check_size(
-                    path, (info.width, info.height), intr.width, intr.height, depth=True
-                )
+                _check_size(path, (info.width, info.height), intr.width, intr.height, depth=True)
                 if progress:
                     progress(1)
 
@@ -344,3 +351,105 @@ def read_depth_image(path: Path, width: int, height: int) -> np.ndarray:
         )
     _check_size(path, (img.shape[1], img.shape[0]), width, height, depth=True)
     return img
+
+
+# --------------------------------------------------------------------------- writing
+PNG_COMPRESSION = 1  # fastest zlib level: sets are large, written once and read a few times
+
+
+def encode_png(image: np.ndarray, where: Path | str) -> bytes:
+    """``image`` (8-bit colour or grey, 16-bit depth) as PNG bytes; ``where`` names the file
+    in the error."""
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
+    if not ok:
+        raise DatasetError(f"{where}: could not encode the image as PNG")
+    return buf.tobytes()
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    Path(path).write_bytes(encode_png(image, path))
+
+
+@contextmanager
+def staged_folder(out: Path) -> Iterator[Path]:
+    """A temporary sibling of ``out`` to write a dataset into, renamed to ``out`` (absent or
+    empty) when the block ends and deleted when it raises: ``out`` never holds half a set."""
+    out = Path(out)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        tmp.mkdir(parents=True)
+        yield tmp
+        if out.exists():
+            out.rmdir()
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+@contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold Ctrl-C back until the block is done (main thread only), then raise it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, _frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
+
+
+class FolderWriter:
+    """Writes the folder form: ``rig.yaml`` at once, then ``<camera>/color/<frame>.png`` and
+    ``<camera>/depth/<frame>.png`` (8-bit colour, 16-bit depth counts aligned to colour).
+
+    ``depth_cameras`` get a ``depth/`` folder (default: every camera). :meth:`write` puts one
+    image in place, for a folder that is published whole (:func:`staged_folder`);
+    :meth:`write_set` puts a whole set in place at once, for a folder read while it grows."""
+
+    def __init__(self, root: Path, rig: Rig, depth_cameras: Iterable[str] | None = None):
+        self.root = Path(root)
+        with_depth = set(rig.names if depth_cameras is None else depth_cameras)
+        for name in rig.names:
+            (self.root / name / "color").mkdir(parents=True, exist_ok=True)
+            if name in with_depth:
+                (self.root / name / "depth").mkdir(parents=True, exist_ok=True)
+        save_rig(rig, self.root / "rig.yaml")
+        self.sets_written = 0  # by write_set
+
+    def path(self, camera: str, kind: str, frame: str) -> Path:
+        """Where frame ``frame`` of ``camera`` goes; ``kind`` is "color" or "depth"."""
+        return self.root / camera / kind / f"{frame}.png"
+
+    def write(self, camera: str, kind: str, frame: str, image: np.ndarray) -> None:
+        write_png(self.path(camera, kind, frame), image)
+
+    def write_set(
+        self, frame: str, colors: dict[str, np.ndarray], depths: dict[str, np.ndarray]
+    ) -> None:
+        """One synchronised set, all of it or none: every file is written under a temporary
+        name first, then all are renamed with Ctrl-C held back (a Ctrl-C meanwhile is raised
+        once the set is complete and counted in :attr:`sets_written`)."""
+        staged: list[tuple[Path, Path]] = []
+        try:
+            for camera, color in colors.items():
+                parts = [("color", color)] + (
+                    [("depth", depths[camera])] if camera in depths else []
+                )
+                for kind, image in parts:
+                    final = self.path(camera, kind, frame)
+                    tmp = final.with_name(f".{frame}.png.tmp")  # not a .png: readers skip it
+                    staged.append((tmp, final))
+                    tmp.write_bytes(encode_png(image, final))
+            with _sigint_deferred():
+                for tmp, final in staged:
+                    os.replace(tmp, final)
+                self.sets_written += 1
+        finally:
+            for tmp, _ in staged:
+                tmp.unlink(missing_ok=True)

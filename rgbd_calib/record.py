@@ -2,8 +2,8 @@
 
 Each set is one colour + depth (aligned to colour) frame per camera, written in the folder
 form of docs/formats.md as it is captured. ``rig.yaml`` is written first, from the devices'
-factory intrinsics. A set's files are written under temporary names and renamed together,
-with Ctrl-C held back during the renames, so an interrupt never leaves half a set.
+factory intrinsics; each set is then put in place whole (:meth:`FolderWriter.write_set`), so
+an interrupt never leaves half a set.
 
 The device boundary is :class:`DeviceSource` (``serials()`` and ``open()``); the real one
 wraps ``rs.context``/``rs.pipeline``. Tests pass a fake source there.
@@ -11,12 +11,8 @@ wraps ``rs.context``/``rs.pipeline``. Tests pass a fake source there.
 
 from __future__ import annotations
 
-import os
 import shutil
-import signal
-import threading
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -24,8 +20,9 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from .dataset import FolderWriter
 from .errors import ConfigError, DatasetError
-from .rig import CAMERA_NAME, CameraIntrinsics, Rig, save_rig
+from .rig import CAMERA_NAME, CameraIntrinsics, Rig
 
 DEFAULT_MODE = (1280, 720, 30)  # width, height, fps: a D435i depth and colour mode
 HW_SYNC_MASTER, HW_SYNC_SLAVE = 1, 2  # rs.option.inter_cam_sync_mode values (D400)
@@ -197,49 +194,6 @@ class MarkerCounter:
         return 0 if ids is None else len({int(i) for i in np.ravel(ids)} & self._ids)
 
 
-@contextmanager
-def _sigint_deferred() -> Iterator[None]:
-    """Hold Ctrl-C back until the block is done (main thread only), then raise it."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, _frame: caught.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if caught:
-        raise KeyboardInterrupt
-
-
-def _encode_png(image: np.ndarray, where: str) -> bytes:
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise DatasetError(f"{where}: could not encode the image as PNG")
-    return buf.tobytes()
-
-
-def _stage_set(out: Path, stem: str, frames: dict[str, CapturedFrame]) -> list[tuple[Path, Path]]:
-    """Write one set's files under temporary names; returns (temporary, final) paths."""
-    staged: list[tuple[Path, Path]] = []
-    try:
-        for name, frame in frames.items():
-            parts = [("color", frame.color)]
-            if frame.depth is not None:
-                parts.append(("depth", frame.depth.astype(np.uint16, copy=False)))
-            for kind, image in parts:
-                final = out / name / kind / f"{stem}.png"
-                tmp = final.with_name(f".{stem}.png.tmp")  # not a .png: readers skip it
-                staged.append((tmp, final))
-                tmp.write_bytes(_encode_png(image, str(final)))
-    except BaseException:
-        for tmp, _ in staged:
-            tmp.unlink(missing_ok=True)
-        raise
-    return staged
-
-
 def _capture_set(
     streams: dict[str, CameraStream], fps: float, timeout_ms: int
 ) -> tuple[dict[str, CapturedFrame], float]:
@@ -278,6 +232,51 @@ def record(
     live marker count in :class:`RecordStatus`. Cameras are named by serial unless
     ``names`` (one per camera, in serial order) is given."""
     out = Path(out)
+    _check_request(out, n_sets, mode)
+    source = device_source if device_source is not None else RealSenseSource()
+    serials, cam_names = _camera_names(source, names)
+    count_markers = MarkerCounter(board) if board is not None else None
+
+    created = not out.exists()
+    streams: dict[str, CameraStream] = {}
+    writer: FolderWriter | None = None
+    interrupted = False
+    max_spread = 0.0
+    try:
+        _open_streams(source, serials, cam_names, mode, hardware_sync, streams)
+        # rig.yaml first, from the devices' factory intrinsics
+        rig = Rig({n: streams[n].intrinsics for n in cam_names}, cam_names[0])
+        writer = FolderWriter(out, rig)
+        while n_sets is None or writer.sets_written < n_sets:
+            frames, spread = _capture_set(streams, mode[2], timeout_ms)
+            stem = _write_set(writer, rig, frames)
+            max_spread = max(max_spread, spread)
+            if status_callback:
+                markers = {
+                    n: count_markers(f.color) if count_markers else -1 for n, f in frames.items()
+                }
+                status_callback(RecordStatus(writer.sets_written, stem, markers, spread))
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        _stop_streams(streams)
+        written = writer.sets_written if writer is not None else 0
+        if written == 0 and created and out.exists():
+            shutil.rmtree(out, ignore_errors=True)
+    notes = []
+    if not hardware_sync and len(cam_names) > 1:
+        notes.append(
+            f"cameras were free-running: frames of a set were up to {max_spread:.1f} ms "
+            "apart; keep the board still while recording or use --hardware-sync"
+        )
+    return RecordReport(
+        out, cam_names, written, interrupted, hardware_sync, tuple(mode), max_spread, notes
+    )
+
+
+def _check_request(out: Path, n_sets: int | None, mode: tuple[int, int, int]) -> None:
+    """Refuse a bad set count, capture mode or a non-empty output folder before any camera
+    is opened."""
     if n_sets is not None and n_sets < 1:
         raise ConfigError(f"--sets must be at least 1, got {n_sets}")
     width, height, fps = mode
@@ -287,7 +286,10 @@ def record(
         raise DatasetError(
             f"{out}: output folder exists and is not empty; choose a new folder or delete it"
         )
-    source = device_source if device_source is not None else RealSenseSource()
+
+
+def _camera_names(source: DeviceSource, names: Sequence[str] | None) -> tuple[list, list]:
+    """The connected cameras' serials (sorted) and their names (``names`` or the serials)."""
     serials = sorted(source.serials())
     if not serials:
         raise DatasetError(
@@ -303,63 +305,50 @@ def record(
     bad = [n for n in cam_names if not CAMERA_NAME.match(n)]
     if bad:
         raise ConfigError(f"--names: {bad[0]!r} may only use letters, digits, '_' and '-'")
-    count_markers = MarkerCounter(board) if board is not None else None
+    return serials, cam_names
 
-    created = not out.exists()
-    streams: dict[str, CameraStream] = {}
-    written = 0
-    interrupted = False
-    max_spread = 0.0
-    try:
-        for k, (serial, name) in enumerate(zip(serials, cam_names)):
-            sync_mode = 0 if not hardware_sync else (HW_SYNC_MASTER if k == 0 else HW_SYNC_SLAVE)
-            streams[name] = source.open(serial, mode, sync_mode)
-        for name in cam_names:
-            (out / name / "color").mkdir(parents=True, exist_ok=True)
-            (out / name / "depth").mkdir(parents=True, exist_ok=True)
-        save_rig(Rig({n: streams[n].intrinsics for n in cam_names}, cam_names[0]), out / "rig.yaml")
-        while n_sets is None or written < n_sets:
-            frames, spread = _capture_set(streams, fps, timeout_ms)
-            for name, frame in frames.items():
-                intr = streams[name].intrinsics
-                if frame.color.shape[:2] != (intr.height, intr.width):
-                    raise DatasetError(
-                        f"camera {name}: frame is {frame.color.shape[1]}x"
-                        f"{frame.color.shape[0]} but its intrinsics say "
-                        f"{intr.width}x{intr.height}"
-                    )
-            stem = f"{written:06d}"
-            staged = _stage_set(out, stem, frames)
-            try:
-                with _sigint_deferred():  # all of the set, or none of it
-                    for tmp, final in staged:
-                        os.replace(tmp, final)
-                    written += 1
-            finally:
-                for tmp, _ in staged:
-                    tmp.unlink(missing_ok=True)
-            max_spread = max(max_spread, spread)
-            if status_callback:
-                markers = {
-                    n: count_markers(f.color) if count_markers else -1 for n, f in frames.items()
-                }
-                status_callback(RecordStatus(written, stem, markers, spread))
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        for stream in streams.values():
-            try:
-                stream.stop()
-            except Exception:  # a camera unplugged mid-run must not hide the real error
-                pass
-        if written == 0 and created and out.exists():
-            shutil.rmtree(out, ignore_errors=True)
-    notes = []
-    if not hardware_sync and len(cam_names) > 1:
-        notes.append(
-            f"cameras were free-running: frames of a set were up to {max_spread:.1f} ms "
-            "apart; keep the board still while recording or use --hardware-sync"
-        )
-    return RecordReport(
-        out, cam_names, written, interrupted, hardware_sync, tuple(mode), max_spread, notes
+
+def _open_streams(
+    source: DeviceSource,
+    serials: list[str],
+    cam_names: list[str],
+    mode: tuple[int, int, int],
+    hardware_sync: bool,
+    streams: dict[str, CameraStream],
+) -> None:
+    """Open every camera into ``streams`` (filled as they open, so a failure stops the ones
+    already open); with ``hardware_sync`` the first is the master, the others slaves."""
+    for k, (serial, name) in enumerate(zip(serials, cam_names)):
+        sync_mode = 0 if not hardware_sync else (HW_SYNC_MASTER if k == 0 else HW_SYNC_SLAVE)
+        streams[name] = source.open(serial, mode, sync_mode)
+
+
+def _write_set(writer: FolderWriter, rig: Rig, frames: dict[str, CapturedFrame]) -> str:
+    """Check the frames' size against the rig and write them as the next set; its stem."""
+    for name, frame in frames.items():
+        intr = rig.cameras[name]
+        if frame.color.shape[:2] != (intr.height, intr.width):
+            raise DatasetError(
+                f"camera {name}: frame is {frame.color.shape[1]}x"
+                f"{frame.color.shape[0]} but its intrinsics say "
+                f"{intr.width}x{intr.height}"
+            )
+    stem = f"{writer.sets_written:06d}"
+    writer.write_set(
+        stem,
+        {n: f.color for n, f in frames.items()},
+        {
+            n: f.depth.astype(np.uint16, copy=False)
+            for n, f in frames.items()
+            if f.depth is not None
+        },
     )
+    return stem
+
+
+def _stop_streams(streams: dict[str, CameraStream]) -> None:
+    for stream in streams.values():
+        try:
+            stream.stop()
+        except Exception:  # a camera unplugged mid-run must not hide the real error
+            pass

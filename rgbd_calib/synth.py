@@ -7,13 +7,12 @@ are supersampled 8x8), lens blur and sensor noise. Depth is aligned to colour, w
 stereo noise model ``sigma_z = z^2 * s / (f * B)`` (Intel's depth-quality white paper, "RMS
 error"), a per-camera scale bias, 1-count quantisation, dropout and range limits.
 
-Pure numpy rendering; cv2 only filters and encodes images.
+Pure numpy rendering; cv2 only filters images. Written by :class:`~rgbd_calib.dataset.FolderWriter`.
 """
 
 from __future__ import annotations
 
 import os
-import shutil
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,10 +22,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .board import BACK, FRONT, Board
+from .dataset import FolderWriter, staged_folder
 from .errors import ConfigError
 from .geometry import invert_transform, look_at, make_transform, rotvec_to_matrix
 from .parallel import process_context
-from .rig import CameraIntrinsics, Rig, save_rig
+from .rig import CameraIntrinsics, Rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
 from .yamlio import write_yaml
 
@@ -507,7 +507,7 @@ def _render_frame(job: tuple[int, np.ndarray]) -> None:
     index, T_world_board = job
     rig: SynthRig = _WORKER["rig"]
     params: SynthParams = _WORKER["params"]
-    out: Path = _WORKER["out"]
+    writer: FolderWriter = _WORKER["writer"]
     frame = f"{index:06d}"
     for ci, cam in enumerate(rig.cameras):
         rng = np.random.default_rng([_WORKER["seed"], index, ci])
@@ -517,16 +517,8 @@ def _render_frame(job: tuple[int, np.ndarray]) -> None:
         color, depth = render_board(
             _WORKER["model"], cam, _WORKER["backgrounds"][ci], T_cam_board, params.supersample
         )
-        cv2.imwrite(
-            str(out / cam.name / "color" / f"{frame}.png"),
-            finish_color(color, params, rng),
-            [cv2.IMWRITE_PNG_COMPRESSION, 1],
-        )
-        cv2.imwrite(
-            str(out / cam.name / "depth" / f"{frame}.png"),
-            finish_depth(depth, cam, params, rng),
-            [cv2.IMWRITE_PNG_COMPRESSION, 1],
-        )
+        writer.write(cam.name, "color", frame, finish_color(color, params, rng))
+        writer.write(cam.name, "depth", frame, finish_depth(depth, cam, params, rng))
 
 
 @dataclass(frozen=True)
@@ -560,13 +552,8 @@ def synthesize(
     rig = make_rig(layout, seed, params)
     rng = np.random.default_rng(seed + 1)
     poses = sample_board_poses(rig, board, n_frames, rng)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        for cam in rig.cameras:
-            (tmp / cam.name / "color").mkdir(parents=True)
-            (tmp / cam.name / "depth").mkdir(parents=True)
-        save_rig(Rig({c.name: c.intrinsics for c in rig.cameras}, rig.reference), tmp / "rig.yaml")
+    with staged_folder(out) as tmp:
+        writer = FolderWriter(tmp, Rig({c.name: c.intrinsics for c in rig.cameras}, rig.reference))
         workers = workers or os.cpu_count() or 1
         if workers <= 1:
             backgrounds = [render_background(rig.scene, cam) for cam in rig.cameras]
@@ -578,7 +565,7 @@ def synthesize(
         state = {
             "rig": rig,
             "params": params,
-            "out": tmp,
+            "writer": writer,
             "seed": seed,
             "board": board,
             "backgrounds": backgrounds,
@@ -614,12 +601,6 @@ def synthesize(
                 },
             },
         )
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return SynthDataset(out, rig, poses)
 
 

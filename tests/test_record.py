@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+import rgbd_calib.dataset as dataset_module
 import rgbd_calib.record as record_module
 from rgbd_calib.board import thesis_board
 from rgbd_calib.console import cli_record
@@ -156,7 +157,7 @@ def test_ctrl_c_during_the_renames_finishes_the_set(board, rng, tmp_path, monkey
                 os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C arrives between two renames
         real_replace(src, dst)
 
-    monkeypatch.setattr(record_module.os, "replace", replace_then_sigint)
+    monkeypatch.setattr(dataset_module.os, "replace", replace_then_sigint)
     report = record(
         tmp_path / "set", n_sets=None, mode=(640, 360, 30), device_source=_fake_rig(board, rng)
     )

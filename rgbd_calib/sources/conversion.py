@@ -19,14 +19,15 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..dataset import FolderWriter, staged_folder
 from ..errors import ConfigError, DatasetError
 from ..progress import Progress, start
-from ..rig import CAMERA_NAME, CameraIntrinsics, Rig, save_rig
+from ..rig import CAMERA_NAME, CameraIntrinsics, Rig
 from .align import align_depth_to_color
 from .realsense import read_sdk
 from .ros import read_ros
-from .staging import StagedCamera, Stager, write_png
-from .sync import match_frames, median_period_ms, pair_depth
+from .staging import StagedCamera, Stager
+from .sync import clock_notes, match_cameras, pair_depth
 
 RECORDING_SUFFIXES = (".bag", ".db3", ".mcap")
 
@@ -178,10 +179,7 @@ def convert(
     for src in sources:
         check_source(src)
         kinds.append("sdk" if _is_sdk_recording(_topics(src)) else "ros")
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        tmp.mkdir(parents=True)
+    with staged_folder(out) as tmp:
         stager = Stager(tmp)
         cams: list[StagedCamera] = []
         for src, kind in zip(sources, kinds):
@@ -192,14 +190,6 @@ def convert(
         _assign_names(cams, names)
         report = _write_sets(cams, tmp, out, sync_tolerance_ms, progress)
         shutil.rmtree(stager.root)
-        # rig.yaml: the first camera found is the calibration's reference
-        save_rig(Rig({c.name: _with_scale(c) for c in cams}, cams[0].name), tmp / "rig.yaml")
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return report
 
 
@@ -235,67 +225,18 @@ def _assign_names(cams: list[StagedCamera], names: Sequence[str] | None) -> None
 
 def _write_sets(
     cams: list[StagedCamera],
-    tmp: Path,
+    root: Path,
     out: Path,
     sync_tolerance_ms: float | None,
     progress: Progress | None,
 ) -> ConversionReport:
-    """Pair, match and move staged frames into ``<camera>/{color,depth}/<frame>.png``."""
-    times = {c.name: np.array([f.t_ms for f in c.colors]) for c in cams}
-    reference = max(cams, key=lambda c: len(c.colors)).name
-    by_name = {c.name: c for c in cams}
-    if sync_tolerance_ms is None:
-        ref = by_name[reference]
-        sync_tolerance_ms = 0.5 * median_period_ms(times[reference], ref.fps)
-    sets = match_frames(times, sync_tolerance_ms)
-    if not sets:
-        raise DatasetError(
-            f"{', '.join(c.key for c in cams)}: no frames of different cameras lie within "
-            f"{sync_tolerance_ms:.1f} ms of each other; check that the recordings overlap in "
-            "time (global time enabled) or raise --sync-tolerance-ms"
-        )
-    depth_of = {c.name: pair_depth(c) for c in cams}
-    notes = []
-    domains = {c.timestamp_domain for c in cams}
-    if len(cams) > 1 and "hardware_clock" in domains:
-        notes.append(
-            "some recordings use the camera's hardware clock: timestamps of different "
-            "cameras share no common clock, so their matching may be wrong; enable "
-            "global time when recording"
-        )
-    for c in cams:
-        (tmp / c.name / "color").mkdir(parents=True)
-        if c.depths:
-            (tmp / c.name / "depth").mkdir(parents=True)
-    matched = {c.name: 0 for c in cams}
-    tick = start(progress, "writing frame sets", len(sets))
-    without_depth = {c.name: 0 for c in cams}
-    for k, group in enumerate(sets):
-        stem = f"{k:06d}"
-        for name, i in group.items():
-            cam = by_name[name]
-            assert cam.intrinsics is not None
-            color = cam.colors[i].path
-            img = cv2.imread(str(color), cv2.IMREAD_UNCHANGED)
-            if img is None or img.shape[:2] != (cam.intrinsics.height, cam.intrinsics.width):
-                shape = "unreadable" if img is None else f"{img.shape[1]}x{img.shape[0]}"
-                raise DatasetError(
-                    f"{cam.key}: colour frame is {shape} but its camera_info says "
-                    f"{cam.intrinsics.width}x{cam.intrinsics.height}; the recording is "
-                    "inconsistent"
-                )
-            os.replace(color, tmp / name / "color" / f"{stem}.png")
-            matched[name] += 1
-            depth = depth_of[name].get(i)
-            if depth is None:
-                without_depth[name] += 1
-                continue
-            target = tmp / name / "depth" / f"{stem}.png"
-            if cam.depth_raw:
-                write_png(target, _align_staged(cam, depth.path))
-            else:
-                shutil.copyfile(depth.path, target)  # a depth frame may serve two colours
-        tick(1)
+    """Match the cameras' staged frames into sets and write them, with rig.yaml, into the
+    folder form at ``root`` (renamed to ``out`` later)."""
+    reference, sync_tolerance_ms, sets = match_cameras(cams, sync_tolerance_ms)
+    # rig.yaml: the first camera found is the calibration's reference
+    rig = Rig({c.name: _with_scale(c) for c in cams}, cams[0].name)
+    writer = FolderWriter(root, rig, depth_cameras=[c.name for c in cams if c.depths])
+    matched, without_depth = _move_frames(cams, sets, writer, progress)
     counts = {
         c.name: CameraCounts(
             frames_read=len(c.colors),
@@ -315,8 +256,51 @@ def _write_sets(
         counts=counts,
         intrinsics_source={c.name: c.intrinsics_source for c in cams},
         depth_source={c.name: c.depth_source for c in cams},
-        notes=notes,
+        notes=clock_notes(cams),
     )
+
+
+def _move_frames(
+    cams: list[StagedCamera],
+    sets: list[dict[str, int]],
+    writer: FolderWriter,
+    progress: Progress | None,
+) -> tuple[dict[str, int], dict[str, int]]:
+    """Move each set's staged colour frames into place, each with its paired depth frame
+    (aligned here when raw). Per camera: colour frames written, and those without depth."""
+    by_name = {c.name: c for c in cams}
+    depth_of = {c.name: pair_depth(c) for c in cams}
+    matched = {c.name: 0 for c in cams}
+    without_depth = {c.name: 0 for c in cams}
+    tick = start(progress, "writing frame sets", len(sets))
+    for k, group in enumerate(sets):
+        stem = f"{k:06d}"
+        for name, i in group.items():
+            cam = by_name[name]
+            _check_color_size(cam, cam.colors[i].path)
+            os.replace(cam.colors[i].path, writer.path(name, "color", stem))
+            matched[name] += 1
+            depth = depth_of[name].get(i)
+            if depth is None:
+                without_depth[name] += 1
+            elif cam.depth_raw:
+                writer.write(name, "depth", stem, _align_staged(cam, depth.path))
+            else:  # copied, not moved: a depth frame may serve two colour frames
+                shutil.copyfile(depth.path, writer.path(name, "depth", stem))
+        tick(1)
+    return matched, without_depth
+
+
+def _check_color_size(cam: StagedCamera, path: Path) -> None:
+    assert cam.intrinsics is not None
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.shape[:2] != (cam.intrinsics.height, cam.intrinsics.width):
+        shape = "unreadable" if img is None else f"{img.shape[1]}x{img.shape[0]}"
+        raise DatasetError(
+            f"{cam.key}: colour frame is {shape} but its camera_info says "
+            f"{cam.intrinsics.width}x{cam.intrinsics.height}; the recording is "
+            "inconsistent"
+        )
 
 
 def _align_staged(cam: StagedCamera, path: Path) -> np.ndarray:

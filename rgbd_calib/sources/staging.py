@@ -10,10 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from ..errors import DatasetError
+from ..dataset import write_png
 from ..rig import CAMERA_NAME, CameraIntrinsics
 
 
@@ -55,13 +54,6 @@ class Stager:
         path = self.root / f"{self._n:08d}.png"
         write_png(path, image)
         return path
-
-
-def write_png(path: Path, image: np.ndarray) -> None:
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise DatasetError(f"{path}: could not encode the image as PNG")
-    path.write_bytes(buf.tobytes())
 
 
 def sanitize_name(name: str) -> str:

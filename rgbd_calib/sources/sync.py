@@ -6,6 +6,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from ..errors import DatasetError
 from .staging import StagedCamera, StagedFrame
 
 DEFAULT_FPS = 30.0  # frame rate assumed when a stream has a single frame
@@ -86,3 +87,34 @@ def match_frames(times_ms: dict[str, np.ndarray], tolerance_ms: float) -> list[d
                 remaining[c] = np.array([i for i in remaining[c] if i not in used[c]], dtype=int)
     sets.sort(key=lambda g: min(times_ms[c][i] for c, i in g.items()))
     return sets
+
+
+def match_cameras(
+    cams: list[StagedCamera], tolerance_ms: float | None
+) -> tuple[str, float, list[dict[str, int]]]:
+    """The cameras' colour frames as synchronised sets (:func:`match_frames`): the reference
+    camera (most frames), the tolerance used (default half its frame period) and the sets."""
+    times = {c.name: np.array([f.t_ms for f in c.colors]) for c in cams}
+    reference = max(cams, key=lambda c: len(c.colors))
+    if tolerance_ms is None:
+        tolerance_ms = 0.5 * median_period_ms(times[reference.name], reference.fps)
+    sets = match_frames(times, tolerance_ms)
+    if not sets:
+        raise DatasetError(
+            f"{', '.join(c.key for c in cams)}: no frames of different cameras lie within "
+            f"{tolerance_ms:.1f} ms of each other; check that the recordings overlap in "
+            "time (global time enabled) or raise --sync-tolerance-ms"
+        )
+    return reference.name, tolerance_ms, sets
+
+
+def clock_notes(cams: list[StagedCamera]) -> list[str]:
+    """A warning when cameras' timestamps may share no clock (so matching may be wrong)."""
+    domains = {c.timestamp_domain for c in cams}
+    if len(cams) > 1 and "hardware_clock" in domains:
+        return [
+            "some recordings use the camera's hardware clock: timestamps of different "
+            "cameras share no common clock, so their matching may be wrong; enable "
+            "global time when recording"
+        ]
+    return []
