@@ -56,12 +56,20 @@ def read_sdk(path: Path, stager: Stager, progress: Progress | None) -> StagedCam
         raise DatasetError(f"{path}: librealsense cannot play this recording ({exc})") from None
     playback = device.as_playback()
     playback.set_real_time(False)
-    serial = (
-        device.get_info(rs.camera_info.serial_number)
-        if device.supports(rs.camera_info.serial_number)
-        else path.stem
+    chosen = _choose_streams(rs, device, path)
+    cam, identity = _describe_camera(rs, device, chosen, path)
+    sink = _FrameSink(
+        rs, cam, stager, identity, path, start(progress, f"reading {path.name}", None)
     )
-    chosen: dict[Any, tuple[Any, Any]] = {}  # stream -> (sensor, profile)
+    _play(rs, playback, chosen, sink)
+    if not cam.colors:
+        raise DatasetError(f"{path}: recording holds no colour frames")
+    return cam
+
+
+def _choose_streams(rs, device, path: Path) -> dict[Any, tuple[Any, Any]]:
+    """The first colour and depth stream of the recording: stream -> (sensor, profile)."""
+    chosen: dict[Any, tuple[Any, Any]] = {}
     for sensor in device.query_sensors():
         for profile in sensor.get_stream_profiles():
             st = profile.stream_type()
@@ -71,6 +79,17 @@ def read_sdk(path: Path, stager: Stager, progress: Progress | None) -> StagedCam
         raise DatasetError(
             f"{path}: recording has no colour stream; record colour and depth together"
         )
+    return chosen
+
+
+def _describe_camera(rs, device, chosen, path: Path) -> tuple[StagedCamera, bool]:
+    """The camera named by its serial, with its colour intrinsics, depth scale and frame
+    rate; and whether its depth stream is already in colour geometry (no alignment)."""
+    serial = (
+        device.get_info(rs.camera_info.serial_number)
+        if device.supports(rs.camera_info.serial_number)
+        else path.stem
+    )
     color_profile = chosen[rs.stream.color][1].as_video_stream_profile()
     ci = color_profile.get_intrinsics()
     cam = StagedCamera(key=str(path), name=sanitize_name(serial))
@@ -102,9 +121,50 @@ def read_sdk(path: Path, stager: Stager, progress: Progress | None) -> StagedCam
             "depth stream already in colour geometry" if identity else "rs.align(rs.stream.color)"
         )
         cam.fps = min(cam.fps, float(depth_profile.fps()))
-    pair_tol_ms = 1000.0 / cam.fps  # a colour frame takes the nearest depth within one period
-    tick = start(progress, f"reading {path.name}", None)
+    return cam, identity
 
+
+class _FrameSink:
+    """Stages a colour frame and the nearest of the depth frames around it, aligned to
+    colour with rs.align (or as it is when depth is already in colour geometry)."""
+
+    def __init__(self, rs, cam: StagedCamera, stager: Stager, identity: bool, path: Path, tick):
+        self._cam, self._stager, self._identity, self._where = cam, stager, identity, str(path)
+        self._tick = tick
+        assert cam.fps is not None
+        self._pair_tol_ms = 1000.0 / cam.fps  # the nearest depth within one frame period
+        # rs.align takes a frameset: a processing block composes one from the chosen pair
+        pair: dict[str, Any] = {}
+        self._pair = pair
+        self._composer = rs.processing_block(
+            lambda _f, src: src.frame_ready(src.allocate_composite_frame([pair["d"], pair["c"]]))
+        )
+        self._composed = rs.frame_queue(2, keep_frames=True)
+        self._composer.start(self._composed)
+        self._align = rs.align(rs.stream.color)
+
+    def emit(self, color, depths) -> None:
+        """Stage ``color`` and, when one lies within a frame period, its nearest depth."""
+        cam = self._cam
+        t = color.get_timestamp()
+        depth = min(depths, key=lambda d: abs(d.get_timestamp() - t), default=None)
+        cam.timestamp_domain = str(color.get_frame_timestamp_domain()).split(".")[-1]
+        cam.colors.append(StagedFrame(t, self._stager.put(_rs_color_to_bgr(color, self._where))))
+        self._tick(1)
+        if depth is None or abs(depth.get_timestamp() - t) > self._pair_tol_ms:
+            return
+        if self._identity:
+            aligned = np.asanyarray(depth.get_data())
+        else:
+            self._pair["d"], self._pair["c"] = depth, color
+            self._composer.invoke(color)
+            frameset = self._composed.wait_for_frame(5000).as_frameset()
+            aligned = np.asanyarray(self._align.process(frameset).get_depth_frame().get_data())
+        cam.depths.append(StagedFrame(t, self._stager.put(aligned.astype(np.uint16, copy=False))))
+
+
+def _play(rs, playback, chosen, sink: _FrameSink) -> None:
+    """Play the recording to its end through the sensors' callbacks into ``sink``."""
     frames: queue.Queue = queue.Queue(maxsize=4)  # back-pressure: playback waits for us
     stopping = threading.Event()
 
@@ -115,34 +175,6 @@ def read_sdk(path: Path, stager: Stager, progress: Progress | None) -> StagedCam
                 return
             except queue.Full:
                 continue
-
-    pair: dict[str, Any] = {}
-    composer = rs.processing_block(
-        lambda _f, src: src.frame_ready(src.allocate_composite_frame([pair["d"], pair["c"]]))
-    )
-    composed = rs.frame_queue(2, keep_frames=True)
-    composer.start(composed)
-    align = rs.align(rs.stream.color)
-
-    def emit(color, depth) -> None:
-        t = color.get_timestamp()
-        cam.timestamp_domain = str(color.get_frame_timestamp_domain()).split(".")[-1]
-        cam.colors.append(StagedFrame(t, stager.put(_rs_color_to_bgr(color, str(path)))))
-        tick(1)
-        if depth is None or abs(depth.get_timestamp() - t) > pair_tol_ms:
-            return
-        if identity:
-            aligned = np.asanyarray(depth.get_data())
-        else:
-            pair["d"], pair["c"] = depth, color
-            composer.invoke(color)
-            frameset = composed.wait_for_frame(5000).as_frameset()
-            aligned = np.asanyarray(align.process(frameset).get_depth_frame().get_data())
-        cam.depths.append(StagedFrame(t, stager.put(aligned.astype(np.uint16, copy=False))))
-
-    def nearest(color, depths):
-        t = color.get_timestamp()
-        return min(depths, key=lambda d: abs(d.get_timestamp() - t), default=None)
 
     sensors = {id(s): s for s, _ in chosen.values()}
     opened = []
@@ -156,39 +188,7 @@ def read_sdk(path: Path, stager: Stager, progress: Progress | None) -> StagedCam
         for sensor in opened:
             sensor.start(on_frame)
         playback.resume()
-        recent_depths: deque = deque(maxlen=3)
-        pending: list = []
-        has_depth = rs.stream.depth in chosen
-        idle_after_stop = 0
-        while True:
-            try:
-                frame = frames.get(timeout=0.1)
-            except queue.Empty:
-                # playback reports "stopped" when its reader reaches the end of the file,
-                # possibly before the sensors have dispatched the last frames: wait a little
-                if playback.current_status() == rs.playback_status.stopped:
-                    idle_after_stop += 1
-                    if idle_after_stop >= PLAYBACK_END_IDLE_POLLS:
-                        break
-                continue
-            idle_after_stop = 0
-            if frame.get_profile().stream_type() == rs.stream.depth:
-                recent_depths.append(frame)
-                t_d = frame.get_timestamp()
-                while pending and pending[0].get_timestamp() <= t_d:
-                    c = pending.pop(0)
-                    emit(c, nearest(c, recent_depths))
-            elif not has_depth:
-                emit(frame, None)
-            else:
-                pending.append(frame)
-                if len(pending) > 4:  # depth stalled: do not hold colour frames forever
-                    c = pending.pop(0)
-                    emit(c, nearest(c, recent_depths))
-        for c in pending:
-            emit(c, nearest(c, recent_depths))
-        pending.clear()
-        recent_depths.clear()
+        _dispatch(rs, playback, frames, sink, has_depth=rs.stream.depth in chosen)
     finally:
         stopping.set()
         while not frames.empty():
@@ -199,6 +199,39 @@ def read_sdk(path: Path, stager: Stager, progress: Progress | None) -> StagedCam
                 sensor.close()
             except RuntimeError:
                 pass
-    if not cam.colors:
-        raise DatasetError(f"{path}: recording holds no colour frames")
-    return cam
+
+
+def _dispatch(rs, playback, frames: queue.Queue, sink: _FrameSink, has_depth: bool) -> None:
+    """Hand every colour frame to ``sink`` with the depth frames around it, until playback
+    ends. A colour frame waits for the next depth frame (at most 4 colour frames queue up),
+    so its nearest depth frame is known."""
+    recent_depths: deque = deque(maxlen=3)
+    pending: list = []
+    idle_after_stop = 0
+    while True:
+        try:
+            frame = frames.get(timeout=0.1)
+        except queue.Empty:
+            # playback reports "stopped" when its reader reaches the end of the file,
+            # possibly before the sensors have dispatched the last frames: wait a little
+            if playback.current_status() == rs.playback_status.stopped:
+                idle_after_stop += 1
+                if idle_after_stop >= PLAYBACK_END_IDLE_POLLS:
+                    break
+            continue
+        idle_after_stop = 0
+        if frame.get_profile().stream_type() == rs.stream.depth:
+            recent_depths.append(frame)
+            t_d = frame.get_timestamp()
+            while pending and pending[0].get_timestamp() <= t_d:
+                sink.emit(pending.pop(0), recent_depths)
+        elif not has_depth:
+            sink.emit(frame, ())
+        else:
+            pending.append(frame)
+            if len(pending) > 4:  # depth stalled: do not hold colour frames forever
+                sink.emit(pending.pop(0), recent_depths)
+    for c in pending:
+        sink.emit(c, recent_depths)
+    pending.clear()
+    recent_depths.clear()

@@ -136,38 +136,12 @@ def read_ros(path: Path, stager: Stager, progress: Progress | None) -> list[Stag
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise DatasetError(f"{path}: cannot open the bag ({first})") from None
     try:
-        by_topic = {}
+        by_topic: dict[str, list] = {}
         for con in reader.connections:
             by_topic.setdefault(con.topic, []).append(con)
-        namespaces = sorted(t[: -len(COLOR_TOPIC)] for t in by_topic if t.endswith(COLOR_TOPIC))
-        if not namespaces:
-            shown = ", ".join(sorted(by_topic)[:6]) or "none"
-            raise DatasetError(
-                f"{path}: no colour image topic (<camera>/color/image_raw) in the bag "
-                f"(topics: {shown}); record realsense-ros with colour enabled"
-            )
-        cams: dict[str, StagedCamera] = {}
-        routes: dict[str, tuple[StagedCamera, str]] = {}
-        total = 0
-        for ns, name in zip(namespaces, _namespace_names(namespaces)):
-            cam = StagedCamera(
-                key=f"{path.name}:{ns or '/'}", name=name, depth_scale=ROS_DEPTH_SCALE
-            )
-            cams[ns] = cam
-            routes[ns + COLOR_TOPIC] = (cam, "color")
-            routes[ns + COLOR_INFO_TOPIC] = (cam, "color_info")
-            total += sum(c.msgcount for c in by_topic[ns + COLOR_TOPIC])
-            aligned = by_topic.get(ns + ALIGNED_DEPTH_TOPIC, [])
-            if sum(c.msgcount for c in aligned):
-                routes[ns + ALIGNED_DEPTH_TOPIC] = (cam, "depth")
-                cam.depth_source = f"{ns}{ALIGNED_DEPTH_TOPIC}"
-            elif sum(c.msgcount for c in by_topic.get(ns + DEPTH_TOPIC, [])):
-                routes[ns + DEPTH_TOPIC] = (cam, "depth")
-                routes[ns + DEPTH_INFO_TOPIC] = (cam, "depth_info")
-                routes[ns + EXTRINSICS_TOPIC] = (cam, "extrinsics")
-                cam.depth_raw = True
-                cam.depth_source = f"{ns}{DEPTH_TOPIC} aligned by rgbd-calib"
+        cams, routes = _plan_cameras(path, by_topic)
         connections = [c for t in routes if t in by_topic for c in by_topic[t]]
+        total = sum(c.msgcount for ns in cams for c in by_topic[ns + COLOR_TOPIC])
         tick = start(progress, f"reading {path.name}", total)
         for con, t_ns, data in reader.messages(connections=connections):
             cam, kind = routes[con.topic]
@@ -182,25 +156,70 @@ def read_ros(path: Path, stager: Stager, progress: Progress | None) -> list[Stag
                 msg = reader.deserialize(data, con.msgtype)
             except Exception as exc:
                 raise DatasetError(f"{where}: undecodable message ({exc})") from None
-            if kind == "color_info":
-                cam.intrinsics = _ros_camera_info(msg, where)
-                cam.intrinsics_source = f"{con.topic} ({msg.distortion_model or 'plumb_bob'})"
-            elif kind == "depth_info":
-                cam.depth_intrinsics = _ros_camera_info(msg, where)
-            elif kind == "extrinsics":
-                cam.T_color_depth = extrinsics_matrix(msg.rotation, msg.translation)
-            else:
-                img, is_depth = _ros_image(msg, where)
-                if is_depth != (kind == "depth"):
-                    raise DatasetError(
-                        f"{where}: encoding {msg.encoding!r} does not fit a {kind} topic"
-                    )
-                frame = StagedFrame(_stamp_ms(msg, t_ns), stager.put(img))
-                (cam.depths if kind == "depth" else cam.colors).append(frame)
-                if kind == "color":
-                    tick(1)
+            _take_message(cam, kind, msg, t_ns, con.topic, stager, where)
+            if kind == "color":
+                tick(1)
     finally:
         reader.close()
+    _check_complete(path, cams)
+    return list(cams.values())
+
+
+def _plan_cameras(
+    path: Path, by_topic: dict[str, list]
+) -> tuple[dict[str, StagedCamera], dict[str, tuple[StagedCamera, str]]]:
+    """One camera per namespace with a colour topic, and which topics feed it as what
+    (``topic -> (camera, kind)``): aligned depth when the bag has it, else raw depth with
+    what aligning it needs."""
+    namespaces = sorted(t[: -len(COLOR_TOPIC)] for t in by_topic if t.endswith(COLOR_TOPIC))
+    if not namespaces:
+        shown = ", ".join(sorted(by_topic)[:6]) or "none"
+        raise DatasetError(
+            f"{path}: no colour image topic (<camera>/color/image_raw) in the bag "
+            f"(topics: {shown}); record realsense-ros with colour enabled"
+        )
+    cams: dict[str, StagedCamera] = {}
+    routes: dict[str, tuple[StagedCamera, str]] = {}
+    for ns, name in zip(namespaces, _namespace_names(namespaces)):
+        cam = StagedCamera(key=f"{path.name}:{ns or '/'}", name=name, depth_scale=ROS_DEPTH_SCALE)
+        cam.timestamp_domain = "ros header stamp"
+        cams[ns] = cam
+        routes[ns + COLOR_TOPIC] = (cam, "color")
+        routes[ns + COLOR_INFO_TOPIC] = (cam, "color_info")
+        aligned = by_topic.get(ns + ALIGNED_DEPTH_TOPIC, [])
+        if sum(c.msgcount for c in aligned):
+            routes[ns + ALIGNED_DEPTH_TOPIC] = (cam, "depth")
+            cam.depth_source = f"{ns}{ALIGNED_DEPTH_TOPIC}"
+        elif sum(c.msgcount for c in by_topic.get(ns + DEPTH_TOPIC, [])):
+            routes[ns + DEPTH_TOPIC] = (cam, "depth")
+            routes[ns + DEPTH_INFO_TOPIC] = (cam, "depth_info")
+            routes[ns + EXTRINSICS_TOPIC] = (cam, "extrinsics")
+            cam.depth_raw = True
+            cam.depth_source = f"{ns}{DEPTH_TOPIC} aligned by rgbd-calib"
+    return cams, routes
+
+
+def _take_message(
+    cam: StagedCamera, kind: str, msg, t_ns: int, topic: str, stager: Stager, where: str
+) -> None:
+    """Store a decoded message of ``kind`` (see :func:`_plan_cameras`) on its camera."""
+    if kind == "color_info":
+        cam.intrinsics = _ros_camera_info(msg, where)
+        cam.intrinsics_source = f"{topic} ({msg.distortion_model or 'plumb_bob'})"
+    elif kind == "depth_info":
+        cam.depth_intrinsics = _ros_camera_info(msg, where)
+    elif kind == "extrinsics":
+        cam.T_color_depth = extrinsics_matrix(msg.rotation, msg.translation)
+    else:
+        img, is_depth = _ros_image(msg, where)
+        if is_depth != (kind == "depth"):
+            raise DatasetError(f"{where}: encoding {msg.encoding!r} does not fit a {kind} topic")
+        frame = StagedFrame(_stamp_ms(msg, t_ns), stager.put(img))
+        (cam.depths if kind == "depth" else cam.colors).append(frame)
+
+
+def _check_complete(path: Path, cams: dict[str, StagedCamera]) -> None:
+    """Every camera needs its colour camera_info; raw depth also its own and the extrinsics."""
     for ns, cam in cams.items():
         if cam.intrinsics is None:
             raise DatasetError(
@@ -213,5 +232,3 @@ def read_ros(path: Path, stager: Stager, progress: Progress | None) -> list[Stag
                 f"{ns}{EXTRINSICS_TOPIC} to be aligned; record them, or enable "
                 "align_depth in realsense-ros"
             )
-        cam.timestamp_domain = "ros header stamp"
-    return list(cams.values())
