@@ -30,6 +30,7 @@ from .graph import (
     median_edge_residual,
 )
 from .posegraph_csv import camera_name, read_edges_csv, read_nodes_csv
+from .report.schema import finite_or_null
 from .results import Extrinsics, write_extrinsics
 from .yamlio import atomic_write_text, to_builtin, write_yaml
 
@@ -142,17 +143,6 @@ def run_posegraph(
     )
 
 
-def _finite_or_null(obj: Any) -> Any:
-    """NaN/inf -> None, so the report is strict JSON."""
-    if isinstance(obj, dict):
-        return {k: _finite_or_null(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_finite_or_null(v) for v in obj]
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj
-
-
 def write_posegraph_outputs(run: PosegraphRun, out_dir: Path) -> dict[str, Path]:
     """Write ``extrinsics.yaml``, ``posegraph_report.json``, ``posegraph_config.yaml`` (the
     resolved config) and ``exports/`` (edges the solution used, solved board poses) into
@@ -169,7 +159,7 @@ def write_posegraph_outputs(run: PosegraphRun, out_dir: Path) -> dict[str, Path]
         default_sigma_translation_mm=run.result.sigma_translation_mm_default,
     )
     paths["report"] = out_dir / REPORT_FILE
-    report = json.dumps(_finite_or_null(run.to_dict()), indent=2, allow_nan=False)
+    report = json.dumps(finite_or_null(run.to_dict()), indent=2, allow_nan=False)
     atomic_write_text(paths["report"], report + "\n")
     paths["config"] = out_dir / CONFIG_FILE
     write_yaml(paths["config"], run.config.model_dump())

@@ -1,0 +1,540 @@
+"""Builds the report dict: the primary numbers of a calibration result
+(:func:`report_dict`), then the sections derived from them (:func:`finalize_report`).
+
+    CalibrationResult --report_dict--> primary numbers (schema: docs/report_schema.md)
+        --finalize_report--> + co-visibility, coverage, summary, warnings, next steps
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .. import __version__
+from ..geometry import invert_transform
+from ..yamlio import to_builtin
+from .findings import findings
+from .numbers import histogram_edges_px, median_or_none, stats
+from .schema import (
+    COVERAGE_GRID,
+    PAIR_SCHEMA,
+    REGION_MIN,
+    REGIONS,
+    REPORT_SCHEMA_VERSION,
+    finite_or_null,
+)
+
+if TYPE_CHECKING:
+    from ..calibrate import CalibrationResult
+    from ..graph import BundleResult, PoseGraphResult
+    from ..rig import Rig
+
+FACE_NAMES = {1: "front", -1: "back", 0: "both"}
+
+
+# ----------------------------------------------------------------------------- primary numbers
+def report_dict(
+    result: CalibrationResult,
+    rig: Rig,
+    pairs: list[dict[str, Any]] | None = None,
+    depth_scale: dict[str, dict[str, float]] | None = None,
+) -> dict[str, Any]:
+    """Machine-readable quality metrics (schema documented in docs/report_schema.md).
+
+    ``pairs`` (one dict per registered camera pair: ``cam_a``, ``cam_b`` and any of the pair
+    keys of the schema, e.g. ``PairRegistration.to_dict()`` merged with
+    ``PairOverlap.to_dict()`` and an ``error_map`` from :func:`rgbd_calib.report.error_map`)
+    and ``depth_scale`` (camera -> ``{"factor", "sigma"}``) come from the depth stage; without
+    them those keys are empty / null."""
+    rows, boards = _final_marker_residuals(result, rig)
+    all_res = [r["rms"] for r in rows if r["rms"] is not None]
+    edges_px = histogram_edges_px(np.concatenate(all_res) if all_res else np.zeros(0))
+    depth_scale = depth_scale or {}
+    report: dict[str, Any] = {
+        "schema_version": REPORT_SCHEMA_VERSION,
+        "rgbd_calib_version": __version__,
+        "reference": result.extrinsics.reference,
+        "method": result.config.method,
+        "dataset": {
+            **result.dataset_summary,
+            "path": str(rig.source.parent.resolve()) if rig.source else None,
+        },
+        "board": _board_geometry(result),
+        "cameras": {
+            name: _camera_entry(result, rig, name, rows, edges_px, depth_scale.get(name) or {})
+            for name in rig.names
+        },
+        "unconnected": result.extrinsics.unconnected,
+        "pose_graph": _pose_graph_entry(result.posegraph),
+        "views": [_view_entry(r) for r in rows],
+        "board_views": _board_view_entries(rows, boards, rig.names),
+        "markers": _marker_entries(rows),
+        "reprojection_histogram_edges_px": edges_px.tolist(),
+        "dropped_views": [
+            {
+                "camera": r.camera,
+                "frame": r.frame,
+                "reason": r.reason,
+                "markers": int(r.n_markers),
+                "detail": r.detail,
+            }
+            for r in result.rejected
+        ],
+        "pairs": [pair_entry(p) for p in (pairs or [])],
+        "timings_s": result.timings_s,
+    }
+    if result.bundle is not None:
+        report["bundle"] = _bundle_entry(result.bundle)
+    return finalize_report(to_builtin(report))
+
+
+def _edge_status(edge: Any) -> str:
+    """How the final estimate treated a view's pose-graph edge (None: the view has none)."""
+    if edge is None:
+        return "unused"
+    if edge.stale:
+        return "stale"
+    if edge.outlier:
+        return "outlier"
+    return "used" if edge.used else "unused"
+
+
+def _final_marker_residuals(
+    result: CalibrationResult, rig: Rig
+) -> tuple[list[dict[str, Any]], dict[str, np.ndarray]]:
+    """Per observation: the RMS reprojection error (px) of each marker through the final
+    ``T_cam_board = inv(T_ref_cam) @ T_ref_board`` (the calibration's own prediction, lens
+    distortion included), and whether the final estimate used it."""
+    boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
+    cams = result.extrinsics.cameras
+    edge_of = {(r.camera, r.view): r for r in result.posegraph.residuals}
+    bundle_out = {(c, v, m) for c, v, m, _ in result.bundle.outliers} if result.bundle else set()
+    rows: list[dict[str, Any]] = []
+    for o in result.observations:
+        edge = edge_of.get((o.camera, o.frame))
+        status = _edge_status(edge)
+        row: dict[str, Any] = {
+            "obs": o,
+            "edge": edge,
+            "status": status,
+            "rms": None,
+            "used_markers": np.zeros(0, bool),
+        }
+        if o.camera in cams and o.frame in boards:
+            T_cam_board = invert_transform(cams[o.camera].T_ref_cam) @ boards[o.frame]
+            pts = o.object_points.reshape(-1, 3) @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+            uv = rig.cameras[o.camera].project(pts).reshape(-1, 4, 2)
+            row["rms"] = np.sqrt(np.mean(np.sum((uv - o.corners_px) ** 2, axis=-1), axis=-1))
+            row["used_markers"] = np.array(
+                [status == "used" and (o.camera, o.frame, int(m)) not in bundle_out for m in o.ids],
+                dtype=bool,
+            )
+        rows.append(row)
+    return rows, boards
+
+
+def _percentiles(values: list[float]) -> dict[str, float] | None:
+    """Existing 1.0 statistics block ``{rms, p50, p90, p99, max}`` (px), None when empty."""
+    if not values:
+        return None
+    v = np.asarray(values)
+    return {
+        "rms": float(np.sqrt(np.mean(v**2))),
+        "p50": float(np.median(v)),
+        "p90": float(np.percentile(v, 90)),
+        "p99": float(np.percentile(v, 99)),
+        "max": float(v.max()),
+    }
+
+
+def _camera_entry(
+    result: CalibrationResult,
+    rig: Rig,
+    name: str,
+    rows: list[dict[str, Any]],
+    edges_px: np.ndarray,
+    scale: dict[str, float],
+) -> dict[str, Any]:
+    """``cameras.<name>``: views, extrinsics (or why not), reprojection statistics and
+    histograms over ``edges_px``, depth scale ``{"factor", "sigma"}`` (may be empty)."""
+    obs = [o for o in result.observations if o.camera == name]
+    rej = [r for r in result.rejected if r.camera == name]
+    mine = [r for r in rows if r["obs"].camera == name and r["rms"] is not None]
+    used = np.concatenate([r["rms"][r["used_markers"]] for r in mine]) if mine else []
+    every = np.concatenate([r["rms"] for r in mine]) if mine else []
+    calibrated = name in result.extrinsics.cameras
+    entry: dict[str, Any] = {
+        "calibrated": calibrated,
+        "views_used": len(obs),
+        "views_dropped": len(rej),
+        "dropped_reasons": _count([r.reason for r in rej]),
+        "pnp_reprojection_rms_px": _percentiles([o.reprojection_rms_px for o in obs]),
+        "T_ref_cam": None,
+        "translation_m": None,
+        "quaternion_xyzw": None,
+        "sigma_rotation_deg": None,
+        "sigma_translation_mm": None,
+        "why_not": None,
+    }
+    if calibrated:
+        entry.update(result.extrinsics.cameras[name].to_dict())
+    else:
+        entry["why_not"] = result.extrinsics.unconnected.get(name, "unknown")
+    if result.bundle is not None:
+        res = [r[3] for r in result.bundle.residuals_px if r[0] == name]
+        entry["bundle_marker_rms_px"] = _percentiles(res)
+        entry["bundle_outlier_markers"] = sum(1 for r in result.bundle.outliers if r[0] == name)
+    entry.update(
+        {
+            "intrinsics": rig.cameras[name].to_dict(),
+            "reprojection_px": stats(used),
+            "reprojection_all_px": stats(every),
+            "reprojection_histogram": {
+                "used": np.histogram(np.clip(used, 0, edges_px[-1]), edges_px)[0].tolist(),
+                "excluded": np.histogram(np.clip(_excluded(mine), 0, edges_px[-1]), edges_px)[
+                    0
+                ].tolist(),
+            },
+            "edge_outliers": sum(
+                1 for r in rows if r["obs"].camera == name and r["status"] == "outlier"
+            ),
+            "depth_scale_factor": scale.get("factor"),
+            "depth_scale_sigma": scale.get("sigma"),
+        }
+    )
+    return entry
+
+
+def _excluded(rows: list[dict[str, Any]]) -> np.ndarray:
+    parts = [r["rms"][~r["used_markers"]] for r in rows]
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def _count(items: list[str]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for i in items:
+        out[i] = out.get(i, 0) + 1
+    return out
+
+
+def _view_entry(row: dict[str, Any]) -> dict[str, Any]:
+    o, edge, rms = row["obs"], row["edge"], row["rms"]
+    centre_cam = (
+        o.T_cam_board[:3, :3] @ o.object_points.reshape(-1, 3).mean(0) + o.T_cam_board[:3, 3]
+    )
+    normal_cam = o.T_cam_board[:3, :3] @ np.array([0.0, 0.0, float(o.face or 1)])
+    ray = centre_cam / np.linalg.norm(centre_cam)
+    tilt = float(np.degrees(np.arccos(np.clip(abs(float(normal_cam @ ray)), 0.0, 1.0))))
+    px = o.corners_px.reshape(-1, 2)
+    return {
+        "camera": o.camera,
+        "frame": o.frame,
+        "markers": int(o.n_markers),
+        "reprojection_rms_px": float(o.reprojection_rms_px),
+        "face": FACE_NAMES[int(o.face)],
+        "distance_m": float(np.linalg.norm(centre_cam)),
+        "tilt_deg": tilt,
+        "image_bbox_px": [
+            float(px[:, 0].min()),
+            float(px[:, 1].min()),
+            float(px[:, 0].max()),
+            float(px[:, 1].max()),
+        ],
+        "pnp_sigma_rotation_deg": o.sigma_rotation_deg,
+        "pnp_sigma_translation_mm": o.sigma_translation_mm,
+        "edge_status": row["status"],
+        "edge_translation_mm": None if edge is None else edge.translation_mm,
+        "edge_rotation_deg": None if edge is None else edge.rotation_deg,
+        "edge_whitened_norm": None if edge is None else edge.whitened_norm,
+        "final_reprojection_rms_px": None if rms is None else float(np.sqrt(np.mean(rms**2))),
+        "final_reprojection_max_px": None if rms is None else float(rms.max()),
+        "excluded_markers": int(np.sum(~row["used_markers"])) if rms is not None else None,
+    }
+
+
+def _board_geometry(result: CalibrationResult) -> dict[str, Any]:
+    """Extent of the markers the calibration saw, in the board frame (metres)."""
+    if not result.observations:
+        return {"markers_seen": 0, "extent_m": None, "thickness_m": None}
+    pts = np.concatenate([o.object_points.reshape(-1, 3) for o in result.observations])
+    ids = {int(i) for o in result.observations for i in o.ids}
+    return {
+        "markers_seen": len(ids),
+        "extent_m": [
+            float(pts[:, 0].min()),
+            float(pts[:, 0].max()),
+            float(pts[:, 1].min()),
+            float(pts[:, 1].max()),
+        ],
+        "thickness_m": float(max(-pts[:, 2].min(), 0.0)),
+    }
+
+
+def _pose_graph_entry(pg: PoseGraphResult) -> dict[str, Any]:
+    return {
+        "edges": len(pg.residuals),
+        "used": len(pg.used_edges),
+        "stale": len(pg.stale_edges),
+        "outliers": [
+            {
+                "camera": pg.residuals[i].camera,
+                "view": pg.residuals[i].view,
+                "whitened_norm": pg.residuals[i].whitened_norm,
+            }
+            for i in pg.outlier_edges
+        ],
+    }
+
+
+def _board_view_entries(
+    rows: list[dict[str, Any]], boards: dict[str, np.ndarray], names: list[str]
+) -> list[dict[str, Any]]:
+    """``board_views[]``: every solved board pose, the cameras whose edge the estimate used
+    and the RMS over those views' used markers."""
+    seen_by: dict[str, list[str]] = {}
+    view_px: dict[str, list[np.ndarray]] = {}
+    for r in rows:
+        if r["status"] == "used":
+            seen_by.setdefault(r["obs"].frame, []).append(r["obs"].camera)
+            if r["rms"] is not None and r["used_markers"].any():
+                view_px.setdefault(r["obs"].frame, []).append(r["rms"][r["used_markers"]])
+    return [
+        {
+            "frame": f,
+            "T_ref_board": np.asarray(T, float).tolist(),
+            "cameras": sorted(seen_by.get(f, []), key=names.index),
+            "final_reprojection_rms_px": (
+                float(np.sqrt(np.mean(np.concatenate(view_px[f]) ** 2))) if f in view_px else None
+            ),
+        }
+        for f, T in sorted(boards.items())
+    ]
+
+
+def _marker_entries(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``markers[]``: per marker id, the RMS and max of its used final reprojection errors."""
+    marker_rows: dict[int, list[float]] = {}
+    marker_face: dict[int, str] = {}
+    for r in rows:
+        if r["rms"] is None:
+            continue
+        o = r["obs"]
+        for mid, value, ok, z in zip(
+            o.ids, r["rms"], r["used_markers"], o.object_points[:, :, 2].mean(1)
+        ):
+            if ok:
+                marker_rows.setdefault(int(mid), []).append(float(value))
+                marker_face[int(mid)] = "back" if z < -1e-6 else "front"
+    return [
+        {
+            "id": m,
+            "face": marker_face[m],
+            "observations": len(v),
+            "rms_px": float(np.sqrt(np.mean(np.square(v)))),
+            "max_px": float(max(v)),
+        }
+        for m, v in sorted(marker_rows.items())
+    ]
+
+
+def _bundle_entry(bundle: BundleResult) -> dict[str, Any]:
+    return {
+        "pixel_sigma_estimated": bundle.pixel_sigma_estimated,
+        "iterations": bundle.iterations,
+        "markers": len(bundle.residuals_px),
+        "outlier_markers": [
+            {"camera": c, "view": v, "marker": m, "rms_px": r} for c, v, m, r in bundle.outliers
+        ],
+    }
+
+
+def pair_entry(pair: dict[str, Any]) -> dict[str, Any]:
+    """One ``pairs[]`` entry from a depth-stage dict (``PairRegistration.to_dict()`` merged
+    with ``PairOverlap.to_dict()`` and an ``error_map``): the schema's keys, null when absent."""
+    out: dict[str, Any] = {}
+    for key in PAIR_SCHEMA:
+        value = pair.get(key)
+        if isinstance(value, float) and not math.isfinite(value):
+            value = None
+        if isinstance(value, (np.generic,)):
+            value = value.item()
+        out[key] = value
+    out["cam_a"], out["cam_b"] = str(pair["cam_a"]), str(pair["cam_b"])
+    return out
+
+
+def error_map(
+    pixels_uv: np.ndarray, distance_m: np.ndarray, width: int, height: int, cell_px: int = 16
+) -> dict[str, Any]:
+    """Coarse overlap error map of camera a for ``pairs[].error_map``: the median signed
+    point-to-plane distance (mm) per ``cell_px`` image cell, from a's point pixels ``(N,2)``
+    ``(u, v)`` and their distances (m, NaN = no partner; e.g. ``depth.overlap_error``)."""
+    cols, rows = math.ceil(width / cell_px), math.ceil(height / cell_px)
+    uv = np.asarray(pixels_uv, dtype=int).reshape(-1, 2)
+    d = np.asarray(distance_m, dtype=float).reshape(-1)
+    ok = np.isfinite(d)
+    cell = (uv[ok, 1] // cell_px) * cols + uv[ok, 0] // cell_px
+    values: list[float | None] = [None] * (cols * rows)
+    for c in np.unique(cell):
+        values[int(c)] = float(np.median(d[ok][cell == c]) * 1000.0)
+    return {
+        "width": int(width),
+        "height": int(height),
+        "cols": cols,
+        "rows": rows,
+        "values_mm": values,
+    }
+
+
+# ----------------------------------------------------------------------------- derived sections
+def finalize_report(report: dict[str, Any]) -> dict[str, Any]:
+    """Add (or recompute) the derived sections of a report from its primary numbers:
+    ``summary``, ``covisibility``, ``cameras.*.coverage``, ``warnings`` and ``next_steps``.
+
+    Pure and idempotent: ``finalize_report(json.loads(dump_report(r))) == r`` for a finalized
+    ``r``, which is what makes a rebuilt ``report.json`` byte-identical."""
+    report = finite_or_null(report)
+    cams: dict[str, dict[str, Any]] = report["cameras"]
+    names = list(cams)
+    used_views = [v for v in report["views"] if v["edge_status"] == "used"]
+    covis = _covisibility(names, used_views)
+    report["covisibility"] = {"cameras": names, "views": covis.tolist()}
+    for name, cam in cams.items():
+        cam["coverage"] = _camera_coverage(name, cams, used_views, covis)
+    report["summary"] = _summary(report)
+    found = findings(report)
+    report["warnings"] = found
+    severities = {w["severity"] for w in found}
+    report["summary"]["verdict"] = (
+        "poor" if "error" in severities else "check" if "warning" in severities else "good"
+    )
+    report["next_steps"] = list(dict.fromkeys(w["advice"] for w in found if w["advice"]))
+    return report
+
+
+def _covisibility(names: list[str], used_views: list[dict[str, Any]]) -> np.ndarray:
+    """Board views both cameras contributed to the estimate, (n, n) in ``names`` order (the
+    diagonal: each camera's used views)."""
+    index = {c: i for i, c in enumerate(names)}
+    covis = np.zeros((len(names), len(names)), dtype=int)
+    by_frame: dict[str, list[str]] = {}
+    for v in used_views:
+        by_frame.setdefault(v["frame"], []).append(v["camera"])
+    for members in by_frame.values():
+        for a in members:
+            for b in members:
+                covis[index[a], index[b]] += 1
+    return covis
+
+
+def _camera_coverage(
+    name: str,
+    cams: dict[str, dict[str, Any]],
+    used_views: list[dict[str, Any]],
+    covis: np.ndarray,
+) -> dict[str, Any]:
+    """``cameras.<name>.coverage``: where, how far and how tilted the board was in the
+    camera's used views, and the calibrated camera it shares most views with."""
+    names = list(cams)
+    index = {c: i for i, c in enumerate(names)}
+    cam = cams[name]
+    mine = [v for v in used_views if v["camera"] == name]
+    fraction, missing = _coverage(mine, cam["intrinsics"]) if mine else (0.0, [])
+    shared = {
+        other: int(covis[index[name], index[other]])
+        for other in names
+        if other != name and cams[other]["calibrated"]
+    }
+    best = max(shared, key=lambda k: (shared[k], -index[k])) if shared else None
+    best = best if best and shared[best] > 0 else None
+    faces = {f: sum(1 for v in mine if v["face"] == f) for f in ("front", "back", "both")}
+    return {
+        "image_fraction": fraction,
+        "missing_regions": missing,
+        "distance_m": _range([v["distance_m"] for v in mine]),
+        "tilt_deg": _range([v["tilt_deg"] for v in mine]),
+        "faces": faces,
+        "max_shared_views": shared[best] if best else 0,
+        "best_partner": best,
+    }
+
+
+def _coverage(views: list[dict[str, Any]], intr: dict[str, Any]) -> tuple[float, list[str]]:
+    """Fraction of the image inside some used view's marker bounding box (on a grid of
+    sample points), and the 3x3 image regions less than REGION_MIN of which was covered."""
+    gx, gy = COVERAGE_GRID
+    w, h = intr["width"], intr["height"]
+    boxes = np.array([v["image_bbox_px"] for v in views], dtype=float).reshape(-1, 4)
+    u = (np.arange(gx) + 0.5) * w / gx
+    v = (np.arange(gy) + 0.5) * h / gy
+    uu, vv = np.meshgrid(u, v)
+    inside = np.zeros(uu.shape, dtype=bool)
+    for u0, v0, u1, v1 in boxes:
+        inside |= (u0 <= uu) & (uu <= u1) & (v0 <= vv) & (vv <= v1)
+    missing = [
+        REGIONS[j][i]
+        for j in range(3)
+        for i in range(3)
+        if inside[j * gy // 3 : (j + 1) * gy // 3, i * gx // 3 : (i + 1) * gx // 3].mean()
+        < REGION_MIN
+    ]
+    return float(inside.mean()), missing
+
+
+def _range(values: list[float]) -> dict[str, float] | None:
+    return {"min": float(min(values)), "max": float(max(values))} if values else None
+
+
+def _worst(values: dict[str, float | None]) -> dict[str, Any] | None:
+    vals = {k: v for k, v in values.items() if v is not None}
+    if not vals:
+        return None
+    cam = max(vals, key=lambda k: (vals[k], k))
+    return {"camera": cam, "value": vals[cam]}
+
+
+def _summary(report: dict[str, Any]) -> dict[str, Any]:
+    """``summary`` with verdict ``good``: :func:`finalize_report` sets the verdict from the
+    findings, which read this summary."""
+    cams = report["cameras"]
+    names = list(cams)
+    calibrated = [c for c in names if cams[c]["calibrated"]]
+    free = [c for c in calibrated if c != report["reference"]]
+    n_used = sum((cams[c]["reprojection_px"] or {}).get("n", 0) for c in names)
+    sq = sum(
+        (cams[c]["reprojection_px"] or {}).get("n", 0)
+        * (cams[c]["reprojection_px"] or {}).get("rms", 0.0) ** 2
+        for c in names
+    )
+    n_all = sum((cams[c]["reprojection_all_px"] or {}).get("n", 0) for c in names)
+    edges = [
+        v
+        for v in report["views"]
+        if v["edge_status"] == "used" and v["edge_translation_mm"] is not None
+    ]
+    return {
+        "verdict": "good",
+        "n_cameras": len(names),
+        "n_calibrated": len(calibrated),
+        "n_frames": int(report["dataset"].get("n_frames", 0)),
+        "n_board_views": len(report["board_views"]),
+        "n_views_used": len(report["views"]),
+        "n_views_dropped": len(report["dropped_views"]),
+        "n_markers_used": int(n_used),
+        "n_markers_excluded": int(n_all - n_used),
+        "n_outlier_edges": len(report["pose_graph"]["outliers"]),
+        "reprojection_rms_px": float(math.sqrt(sq / n_used)) if n_used else None,
+        "median_camera_reprojection_rms_px": median_or_none(
+            [(cams[c]["reprojection_px"] or {}).get("rms") for c in calibrated]
+        ),
+        "median_sigma_rotation_deg": median_or_none([cams[c]["sigma_rotation_deg"] for c in free]),
+        "median_sigma_translation_mm": median_or_none(
+            [cams[c]["sigma_translation_mm"] for c in free]
+        ),
+        "worst_sigma_rotation_deg": _worst({c: cams[c]["sigma_rotation_deg"] for c in free}),
+        "worst_sigma_translation_mm": _worst({c: cams[c]["sigma_translation_mm"] for c in free}),
+        "median_edge_translation_mm": median_or_none([v["edge_translation_mm"] for v in edges]),
+        "median_edge_rotation_deg": median_or_none([v["edge_rotation_deg"] for v in edges]),
+    }

@@ -1,0 +1,494 @@
+"""The findings (``report.json`` ``warnings``): one rule per warning code over a report's
+numbers, thresholds from :mod:`.schema`.
+
+A rule takes the report and the findings of the rules before it (a camera already found
+inconsistent or weak is not flagged again for what follows from that) and returns its own.
+:data:`RULES` runs them in a fixed order; :func:`findings` sorts the result by severity
+(stable, so the order within a severity is the rules' order).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from .numbers import fmt, median_or_none
+from .schema import (
+    COVERAGE_MIN,
+    DEPTH_SCALE_TOL,
+    DISTANCE_SPREAD_MIN,
+    DROP_ADVICE,
+    FEW_SHARED_VIEWS,
+    FEW_VIEWS,
+    FEW_VIEWS_FACTOR,
+    INCONSISTENT_FRACTION,
+    MARKER_FACTOR,
+    MARKER_MIN_PX,
+    PAIR_FINAL_EXCESS_MM,
+    PAIR_FITNESS_MIN,
+    PAIR_RMSE_MAX_MM,
+    REPROJECTION_FACTOR,
+    REPROJECTION_MIN_PX,
+    RIG_REPROJECTION_MAX_PX,
+    TILT_SPREAD_MIN_DEG,
+    WEAK_SIGMA_FACTOR,
+    WEAK_SIGMA_MIN_DEG,
+    WEAK_SIGMA_MIN_MM,
+)
+
+Finding = dict[str, Any]
+Rule = Callable[[dict[str, Any], list[Finding]], list[Finding]]
+SEVERITY_ORDER = {"error": 0, "warning": 1, "info": 2}
+
+
+def finding(severity: str, code: str, cameras: list[str], message: str, advice: str) -> Finding:
+    """One ``warnings[]`` entry."""
+    return {
+        "severity": severity,
+        "code": code,
+        "cameras": cameras,
+        "message": message,
+        "advice": advice,
+    }
+
+
+def _cameras_of(found: list[Finding], code: str) -> set[str]:
+    return {c for w in found if w["code"] == code for c in w["cameras"]}
+
+
+def _placement(report: dict[str, Any], earlier: list[Finding]) -> list[tuple[str, Any]]:
+    """The calibrated cameras not found inconsistent: those whose board placement counts."""
+    inconsistent = _cameras_of(earlier, "inconsistent_camera")
+    return [
+        (n, c) for n, c in report["cameras"].items() if c["calibrated"] and n not in inconsistent
+    ]
+
+
+# ----------------------------------------------------------------------------- cameras
+def not_calibrated(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    out = []
+    for name, cam in report["cameras"].items():
+        if cam["calibrated"]:
+            continue
+        partner = cam["coverage"]["best_partner"]
+        why = cam["why_not"]
+        all_out = bool(cam["edge_outliers"]) and cam["edge_outliers"] == cam["views_used"]
+        if why in (None, "unknown"):
+            why = (
+                f"all {cam['edge_outliers']} of its board views were rejected as outliers"
+                if all_out
+                else "the final estimate dropped it"
+            )
+        out.append(
+            finding(
+                "error",
+                "not_calibrated",
+                [name],
+                f"{name} was not calibrated: {why}.",
+                f"Fix {name}'s intrinsics or synchronisation (see the inconsistent_camera "
+                "finding) and re-run calibrate."
+                if all_out
+                else f"Record views where {name} and a calibrated neighbour"
+                f"{f' (e.g. {partner})' if partner else ''} see the board at the same time.",
+            )
+        )
+    return out
+
+
+def inconsistent_camera(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    cams = report["cameras"]
+    rig_p50 = median_or_none(
+        [(c["reprojection_all_px"] or {}).get("p50") for c in cams.values() if c["calibrated"]]
+    )
+    out = []
+    for name, cam in cams.items():
+        views = [v for v in report["views"] if v["camera"] == name]
+        parts = _inconsistencies(cam, views, rig_p50) if views else []
+        if parts:
+            out.append(
+                finding(
+                    "error",
+                    "inconsistent_camera",
+                    [name],
+                    f"{name}: " + "; ".join(parts) + ".",
+                    f"Check {name}'s intrinsics in rig.yaml (fx, fy, cx, cy and distortion for "
+                    "the recorded resolution), then its frame synchronisation; re-run calibrate.",
+                )
+            )
+    return out
+
+
+def _inconsistencies(
+    cam: dict[str, Any], views: list[dict[str, Any]], rig_p50: float | None
+) -> list[str]:
+    """Why a camera disagrees with the rig (empty: it does not): many outlier views, a
+    median reprojection error far above the rig's, many views whose corners fit no pose."""
+    n_out = cam["edge_outliers"]
+    p50 = (cam["reprojection_all_px"] or {}).get("p50")
+    bad_views = n_out >= 2 and n_out >= INCONSISTENT_FRACTION * max(len(views), 1)
+    bad_px = (
+        p50 is not None
+        and rig_p50 is not None
+        and p50 > REPROJECTION_MIN_PX
+        and p50 > REPROJECTION_FACTOR * rig_p50
+    )
+    dropped_rms = cam["dropped_reasons"].get("reprojection_rms", 0)
+    bad_pnp = dropped_rms >= 2 and dropped_rms >= INCONSISTENT_FRACTION * (
+        cam["views_used"] + cam["views_dropped"]
+    )
+    parts = []
+    if bad_views:
+        med = median_or_none(
+            [v["edge_translation_mm"] for v in views if v["edge_status"] == "outlier"]
+        )
+        parts.append(
+            f"{n_out} of its {len(views)} board views disagree with the rest "
+            f"of the rig (median {fmt(med, 1)} mm)"
+        )
+    if bad_px:
+        parts.append(
+            f"its board corners reproject {fmt(p50)} px off (median) through "
+            f"the calibrated poses, {p50 / rig_p50:.0f}x the rig's "
+            f"{fmt(rig_p50)} px"
+        )
+    if bad_pnp:
+        parts.append(f"{dropped_rms} views were dropped because their corners fit no pose")
+    return parts
+
+
+def weak_camera(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Cameras whose 1-sigma translation, else rotation, is far above the rig median."""
+    cams, summ = report["cameras"], report["summary"]
+    inconsistent = _cameras_of(earlier, "inconsistent_camera")
+    out: list[Finding] = []
+    for key, unit, floor in (
+        ("sigma_translation_mm", "mm", WEAK_SIGMA_MIN_MM),
+        ("sigma_rotation_deg", "deg", WEAK_SIGMA_MIN_DEG),
+    ):
+        med = summ["median_sigma_" + key.split("_", 1)[1]]
+        for name, cam in cams.items():
+            s = cam[key]
+            if (
+                s is None
+                or med is None
+                or name == report["reference"]
+                or name in inconsistent
+                or not (s > WEAK_SIGMA_FACTOR * med and s > floor)
+                or name in _cameras_of(out, "weak_camera")
+            ):
+                continue
+            cov = cam["coverage"]
+            partner = f" ({cov['best_partner']})" if cov["best_partner"] else ""
+            out.append(
+                finding(
+                    "warning",
+                    "weak_camera",
+                    [name],
+                    f"{name} is weakly constrained: 1-sigma {fmt(s, 3)} {unit}, "
+                    f"{s / med:.1f}x the rig median {fmt(med, 3)} {unit} "
+                    f"({cam['views_used']} board views used, at most {cov['max_shared_views']} "
+                    f"shared with one camera{partner}).",
+                    f"Record more board views for {name}, held where it and "
+                    f"{cov['best_partner'] or 'a calibrated neighbour'} see the board together.",
+                )
+            )
+    return out
+
+
+def few_views(report: dict[str, Any], name: str, cam: dict[str, Any]) -> Finding | None:
+    cams = report["cameras"]
+    views_median = median_or_none([c["views_used"] for c in cams.values() if c["calibrated"]]) or 0
+    if cam["views_used"] >= max(FEW_VIEWS, FEW_VIEWS_FACTOR * views_median):
+        return None
+    return finding(
+        "warning",
+        "few_views",
+        [name],
+        f"{name} has only {cam['views_used']} usable board views (rig median {views_median:.0f}).",
+        f"Show the board to {name} in more positions.",
+    )
+
+
+def weak_link(report: dict[str, Any], name: str, cam: dict[str, Any]) -> Finding | None:
+    cov = cam["coverage"]
+    if name == report["reference"] or cov["max_shared_views"] >= FEW_SHARED_VIEWS:
+        return None
+    return finding(
+        "warning",
+        "weak_link",
+        [name] + ([cov["best_partner"]] if cov["best_partner"] else []),
+        f"{name} shares at most {cov['max_shared_views']} board views with any other camera.",
+        f"Hold the board where {name} and "
+        f"{cov['best_partner'] or 'a neighbouring camera'} both see it.",
+    )
+
+
+CameraCheck = Callable[[dict[str, Any], str, dict[str, Any]], Finding | None]
+
+
+def each_sound_camera(*checks: CameraCheck) -> Rule:
+    """A rule applying ``checks`` in turn to each calibrated camera not already found
+    inconsistent or weak (a camera's findings stay together, in camera order)."""
+
+    def rule(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+        skip = _cameras_of(earlier, "inconsistent_camera") | _cameras_of(earlier, "weak_camera")
+        found = [
+            check(report, name, cam)
+            for name, cam in report["cameras"].items()
+            if cam["calibrated"] and name not in skip
+            for check in checks
+        ]
+        return [f for f in found if f is not None]
+
+    return rule
+
+
+# ----------------------------------------------------------------------------- board placement
+def board_coverage(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    low = [
+        (n, c["coverage"])
+        for n, c in _placement(report, earlier)
+        if c["coverage"]["image_fraction"] < COVERAGE_MIN and c["coverage"]["missing_regions"]
+    ]
+    if not low:
+        return []
+    regions: dict[str, int] = {}
+    for _, cov in low:
+        for r in cov["missing_regions"]:
+            regions[r] = regions.get(r, 0) + 1
+    common = sorted(regions, key=lambda r: -regions[r])[:3]
+    return [
+        finding(
+            "info",
+            "board_coverage",
+            [n for n, _ in low],
+            f"The board reached less than {COVERAGE_MIN:.0%} of the image of {len(low)} "
+            "camera(s): "
+            + ", ".join(f"{n} {cov['image_fraction']:.0%}" for n, cov in low)
+            + ". Corners near the image border constrain the pose best.",
+            "Next recording: also hold the board in the image regions it never reached "
+            f"(most often: {', '.join(common)}; per camera in 'Where to put the board next').",
+        )
+    ]
+
+
+def board_distance(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    narrow = [
+        (n, c["coverage"]["distance_m"])
+        for n, c in _placement(report, earlier)
+        if c["coverage"]["distance_m"]
+        and c["views_used"] >= 3
+        and c["coverage"]["distance_m"]["max"]
+        < DISTANCE_SPREAD_MIN * c["coverage"]["distance_m"]["min"]
+    ]
+    if not narrow:
+        return []
+    return [
+        finding(
+            "info",
+            "board_distance",
+            [n for n, _ in narrow],
+            "The board was at one distance only for "
+            + ", ".join(f"{n} ({d['min']:.2f}-{d['max']:.2f} m)" for n, d in narrow)
+            + ".",
+            "Also show the board nearer to and further from "
+            + ", ".join(n for n, _ in narrow)
+            + ".",
+        )
+    ]
+
+
+def board_tilt(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    flat = [
+        (n, c["coverage"]["tilt_deg"])
+        for n, c in _placement(report, earlier)
+        if c["coverage"]["tilt_deg"]
+        and c["views_used"] >= 3
+        and c["coverage"]["tilt_deg"]["max"] - c["coverage"]["tilt_deg"]["min"]
+        < TILT_SPREAD_MIN_DEG
+    ]
+    if not flat:
+        return []
+    return [
+        finding(
+            "info",
+            "board_tilt",
+            [n for n, _ in flat],
+            "The board's tilt barely varied for "
+            + ", ".join(f"{n} ({t['min']:.0f}-{t['max']:.0f} deg)" for n, t in flat)
+            + ".",
+            "Tilt the board 20-50 deg in different directions in front of "
+            + ", ".join(n for n, _ in flat)
+            + ".",
+        )
+    ]
+
+
+# ----------------------------------------------------------------------------- views, markers
+def outlier_views(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    inconsistent = _cameras_of(earlier, "inconsistent_camera")
+    outliers = [o for o in report["pose_graph"]["outliers"] if o["camera"] not in inconsistent]
+    if not outliers:
+        return []
+    listed = ", ".join(f"{o['camera']}/{o['view']}" for o in outliers[:8])
+    return [
+        finding(
+            "warning",
+            "outlier_views",
+            sorted({o["camera"] for o in outliers}),
+            f"{len(outliers)} board view(s) were rejected as pose-graph outliers: {listed}"
+            f"{' ...' if len(outliers) > 8 else ''}.",
+            "Look at those frames: motion blur, a camera out of sync, or a wrong detection.",
+        )
+    ]
+
+
+def marker(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    med_marker = median_or_none([m["rms_px"] for m in report["markers"]])
+    return [
+        finding(
+            "warning",
+            "marker",
+            [],
+            f"marker {m['id']} ({m['face']} face) reprojects {m['rms_px']:.2f} px RMS, "
+            f"{m['rms_px'] / med_marker:.0f}x the median marker.",
+            f"Check marker {m['id']} on the board: flat, not peeling, printed at scale "
+            "and placed where the board file says.",
+        )
+        for m in report["markers"]
+        if med_marker and m["rms_px"] > max(MARKER_FACTOR * med_marker, MARKER_MIN_PX)
+    ]
+
+
+def reprojection(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    rig_rms = report["summary"]["reprojection_rms_px"]
+    if rig_rms is None or rig_rms <= RIG_REPROJECTION_MAX_PX:
+        return []
+    return [
+        finding(
+            "warning",
+            "reprojection",
+            [],
+            f"the rig's reprojection RMS is {rig_rms:.2f} px (expected well below "
+            f"{RIG_REPROJECTION_MAX_PX} px).",
+            "Check the intrinsics in rig.yaml, the board's flatness and its printed scale.",
+        )
+    ]
+
+
+def dropped_views(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """One finding per drop reason, naming the cameras and counts."""
+    by_reason: dict[str, dict[str, int]] = {}
+    for d in report["dropped_views"]:
+        by_reason.setdefault(d["reason"], {})
+        by_reason[d["reason"]][d["camera"]] = by_reason[d["reason"]].get(d["camera"], 0) + 1
+    out = []
+    for reason, per in sorted(by_reason.items()):
+        total = sum(per.values())
+        where = ", ".join(f"{c} {n}" for c, n in sorted(per.items(), key=lambda kv: -kv[1]))
+        out.append(
+            finding(
+                "info",
+                "dropped_views",
+                sorted(per),
+                f"{total} view(s) dropped ({reason}): {where}.",
+                DROP_ADVICE.get(reason, "").capitalize() + ("." if reason in DROP_ADVICE else ""),
+            )
+        )
+    return out
+
+
+# ----------------------------------------------------------------------------- depth
+def pair_disagrees(p: dict[str, Any]) -> Finding | None:
+    final, after = p.get("rmse_final_mm"), p["rmse_after_mm"]
+    if not (
+        p["accepted"]
+        and final is not None
+        and after is not None
+        and (final > after + PAIR_FINAL_EXCESS_MM)
+    ):
+        return None
+    return finding(
+        "warning",
+        "pair_disagrees",
+        [p["cam_a"], p["cam_b"]],
+        f"{p['cam_a']}-{p['cam_b']}: the final extrinsics fit their common surfaces "
+        f"{final:.1f} mm RMS, ICP alone {after:.1f} mm.",
+        f"The depth of {p['cam_a']}/{p['cam_b']} and the board disagree: check their "
+        "depth scale and that the scene did not move.",
+    )
+
+
+def pair_rmse(p: dict[str, Any]) -> Finding | None:
+    if p["rmse_after_mm"] is None or p["rmse_after_mm"] <= PAIR_RMSE_MAX_MM:
+        return None
+    return finding(
+        "warning",
+        "pair_rmse",
+        [p["cam_a"], p["cam_b"]],
+        f"{p['cam_a']}-{p['cam_b']}: surfaces disagree by {p['rmse_after_mm']:.1f} mm "
+        "RMS after ICP.",
+        f"Check the depth of {p['cam_a']} and {p['cam_b']} (scale, temperature drift).",
+    )
+
+
+def pair_fitness(p: dict[str, Any]) -> Finding | None:
+    if p["fitness"] is None or p["fitness"] >= PAIR_FITNESS_MIN:
+        return None
+    return finding(
+        "info",
+        "pair_fitness",
+        [p["cam_a"], p["cam_b"]],
+        f"{p['cam_a']}-{p['cam_b']}: only {p['fitness']:.0%} of points overlap.",
+        "",
+    )
+
+
+def each_pair(*checks: Callable[[dict[str, Any]], Finding | None]) -> Rule:
+    """A rule applying ``checks`` in turn to each camera pair (a pair's findings together)."""
+
+    def rule(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+        found = [check(p) for p in report["pairs"] for check in checks]
+        return [f for f in found if f is not None]
+
+    return rule
+
+
+def depth_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    return [
+        finding(
+            "info",
+            "depth_scale",
+            [name],
+            f"{name}'s depth reads {100 * (f - 1):+.2f}% off the board's true distance.",
+            f"Divide {name}'s depth by {f:.4f} (or recalibrate its depth unit).",
+        )
+        for name, cam in report["cameras"].items()
+        if (f := cam["depth_scale_factor"]) is not None and abs(f - 1.0) > DEPTH_SCALE_TOL
+    ]
+
+
+RULES: tuple[Rule, ...] = (
+    not_calibrated,
+    inconsistent_camera,
+    weak_camera,
+    each_sound_camera(few_views, weak_link),
+    board_coverage,
+    board_distance,
+    board_tilt,
+    outlier_views,
+    marker,
+    reprojection,
+    dropped_views,
+    each_pair(pair_disagrees, pair_rmse, pair_fitness),
+    depth_scale,
+)
+
+
+def findings(report: dict[str, Any]) -> list[Finding]:
+    """Every rule of :data:`RULES` over a report with its ``summary`` and coverage, errors
+    first, then warnings, then infos."""
+    found: list[Finding] = []
+    for rule in RULES:
+        found += rule(report, found)
+    return sorted(found, key=lambda w: SEVERITY_ORDER[w["severity"]])
