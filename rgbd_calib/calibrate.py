@@ -15,8 +15,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import time
-from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,8 +40,10 @@ from .graph import (
 )
 from .parallel import process_context
 from .pose import BoardObservation, PoseConfig, RejectedView, estimate_board_pose, undistort_pixels
+from .progress import Progress, Tick, start, timed
 from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
-from .results import CameraExtrinsics, Extrinsics
+from .results import CameraExtrinsics, Extrinsics, cameras_from_solve
+from .rig import Rig
 from .yamlio import atomic_write_text
 
 CACHE_VERSION = 1
@@ -128,7 +128,7 @@ def detect_dataset(
     config: DetectionConfig,
     cache_path: Path | None = None,
     workers: int | None = None,
-    progress: Callable[[int], None] | None = None,
+    progress: Tick | None = None,
 ) -> dict[tuple[str, str], MarkerDetections]:
     """Detect markers in every colour image, in a process pool, reusing a cache.
 
@@ -205,31 +205,93 @@ def calibrate(
     config: CalibrationConfig | None = None,
     cache_dir: Path | None = None,
     fixed_cameras: dict[str, np.ndarray] | None = None,
-    progress: Callable[[str, int, int], Callable[[int], None]] | None = None,
+    progress: Progress | None = None,
 ) -> CalibrationResult:
     """Calibrate the extrinsics of every camera of ``dataset`` relative to its reference.
 
     ``fixed_cameras`` holds given cameras at ``T_ref_cam`` (adding a camera to a calibrated
     rig). Raises :class:`CalibrationError` when nothing can be calibrated."""
     config = config or CalibrationConfig()
-    timings: dict[str, float] = {}
     rig = dataset.rig
-    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
     n_images = sum(len(fs.color) for fs in dataset.frame_sets())
-    tick = progress("detecting markers", n_images, 0) if progress else None
-    cache = cache_dir / "detections.json" if cache_dir is not None else None
-    detections = detect_dataset(dataset, board, config.detection, cache, config.workers, tick)
-    timings["detection"] = time.perf_counter() - t0
+    # 1. markers in every colour image (cached, in parallel)
+    with timed(timings, "detection"):
+        tick = start(progress, "detecting markers", n_images)
+        cache = cache_dir / "detections.json" if cache_dir is not None else None
+        detections = detect_dataset(dataset, board, config.detection, cache, config.workers, tick)
+    # 2. one board pose per view (PnP, covariance, gates)
+    with timed(timings, "pose"):
+        observations, rejected = board_poses(detections, board, rig, config.pose)
+    _check_views(dataset, detections, observations, n_images)
+    # 3. robust pose graph over the views: initial extrinsics and board poses
+    with timed(timings, "pose_graph"):
+        pg = pose_graph(dataset, observations, config, fixed_cameras)
+    unconnected = _unconnected(rig.names, observations, pg.unconnected)
+    bundle, depth, board_only = None, None, None
+    cameras = dict(pg.cameras)
+    if config.method == "bundle":
+        # 4. bundle adjustment on the marker corners
+        with timed(timings, "bundle"):
+            measurements = marker_measurements(observations, pg, rig)
+            bundle = bundle_adjust(measurements, _camera_matrices(rig), rig.reference,
+                                   pg.T_ref_cam, pg.T_ref_board, config.bundle, fixed_cameras)
+        cameras = cameras_from_solve(bundle)
+        refine = _refine_method(config.refine, dataset, cameras)
+        if refine != "none":
+            # 5. depth: scale per camera, static clouds, pairwise registration
+            board_only = Extrinsics(rig.reference, dict(cameras), dict(unconnected))
+            T_ref_cam = {c: e.T_ref_cam for c, e in cameras.items()}
+            with timed(timings, "depth"):
+                views = board_views_per_camera(observations, T_ref_cam, bundle.T_ref_board)
+                depth = measure_depth(dataset, board, T_ref_cam, views, bundle.T_ref_board,
+                                      refine, config.depth, progress)
+            # 6. joint solve: corners and the accepted depth pairs
+            if depth.relative_poses:
+                with timed(timings, "joint"):
+                    bundle = bundle_adjust(measurements, _camera_matrices(rig), rig.reference,
+                                           T_ref_cam, bundle.T_ref_board, config.bundle,
+                                           fixed_cameras, depth.relative_poses)
+                cameras = cameras_from_solve(bundle)
+            # 7. checks: each pair's fit at the final extrinsics
+            with timed(timings, "depth_check"):
+                depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},
+                                     config.depth)
+    _explain_dropped(rig.names, pg.cameras, cameras, unconnected)
+    extrinsics = Extrinsics(
+        rig.reference, {c: cameras[c] for c in rig.names if c in cameras}, unconnected
+    )
+    return CalibrationResult(extrinsics, observations, rejected, pg, bundle, config, n_images,
+                             timings, dataset.summary().to_dict(), depth, board_only)
 
-    t0 = time.perf_counter()
+
+# ----------------------------------------------------------------------------- stages
+def board_poses(
+    detections: dict[tuple[str, str], MarkerDetections],
+    board: Board,
+    rig: Rig,
+    config: PoseConfig,
+) -> tuple[list[BoardObservation], list[RejectedView]]:
+    """The board pose of every view with markers, in (frame, camera) order, and the views the
+    gates rejected."""
     observations: list[BoardObservation] = []
     rejected: list[RejectedView] = []
     for (cam, frame), det in sorted(detections.items(), key=lambda kv: (kv[0][1], kv[0][0])):
         if len(det.ids) == 0:
             continue
-        out = estimate_board_pose(det, board, rig.cameras[cam], config.pose, cam, frame)
+        out = estimate_board_pose(det, board, rig.cameras[cam], config, cam, frame)
         (observations if isinstance(out, BoardObservation) else rejected).append(out)
-    timings["pose"] = time.perf_counter() - t0
+    return observations, rejected
+
+
+def _check_views(
+    dataset: FolderDataset,
+    detections: dict[tuple[str, str], MarkerDetections],
+    observations: list[BoardObservation],
+    n_images: int,
+) -> None:
+    """Stop with the reason when the views cannot link any camera to the reference (before the
+    pose graph, whose own errors name no dataset)."""
     if not observations:
         total = sum(len(d.ids) for d in detections.values())
         raise CalibrationError(
@@ -237,119 +299,97 @@ def calibrate(
             "detected); check that --board matches the printed board (dictionary, ids) and that "
             "the board is in view"
         )
-
-    t0 = time.perf_counter()
-    edges = [
-        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance if config.edge_covariance else None)
-        for o in observations
-    ]
-    reference = rig.reference
-    seen = {o.camera for o in observations}
-    if reference not in seen:
+    reference = dataset.rig.reference
+    if reference not in {o.camera for o in observations}:
         raise CalibrationError(
             f"{dataset.path}: the reference camera {reference!r} has no usable board view; "
             "record the board in its view or choose another reference in rig.yaml"
         )
     reference_frames = {o.frame for o in observations if o.camera == reference}
     if not any(o.camera != reference and o.frame in reference_frames for o in observations):
-        raise CalibrationError(  # before the pose graph, whose own error names no dataset
-            f"{dataset.path}: no camera shares a board view with the reference "
-            f"{reference!r}; move the board where two cameras see it at once"
-        )
-    pg = calibrate_pose_graph(edges, reference, config.graph, fixed_cameras)
-    timings["pose_graph"] = time.perf_counter() - t0
-    unconnected = dict(pg.unconnected)
-    for cam in rig.names:
-        if cam not in seen and cam not in unconnected:
-            unconnected[cam] = (
-                "no usable board view (board never detected, or every view was rejected)"
-            )
-    if len(pg.cameras) < 2:
-        raise CalibrationError(
-            f"{dataset.path}: no camera shares a board view with the reference "
-            f"{reference!r}; move the board where two cameras see it at once"
-        )
+        raise _no_shared_view(dataset)
 
-    bundle = None
-    depth = None
-    board_only = None
-    cameras = dict(pg.cameras)
-    if config.method == "bundle":
-        t0 = time.perf_counter()
-        measurements = []
-        stale_or_out = {
-            pg.residuals[i].view + "/" + pg.residuals[i].camera for i in pg.outlier_edges
-        }
-        for o in observations:
-            if o.camera not in pg.cameras or o.frame not in pg.T_ref_board:
-                continue
-            if f"{o.frame}/{o.camera}" in stale_or_out:
-                continue
-            px = undistort_pixels(o.corners_px, rig.cameras[o.camera])
-            for mid, c, P in zip(o.ids, px, o.object_points):
-                measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P))
-        K = {c: rig.cameras[c].K for c in rig.names}
-        bundle = bundle_adjust(
-            measurements, K, reference, pg.T_ref_cam, pg.T_ref_board, config.bundle, fixed_cameras
-        )
-        cameras = {
-            c: CameraExtrinsics(
-                c,
-                bundle.T_ref_cam[c],
-                bundle.sigma_rotation_deg[c],
-                bundle.sigma_translation_mm[c],
-                bundle.covariance[c],
-            )
-            for c in bundle.T_ref_cam
-        }
-        timings["bundle"] = time.perf_counter() - t0
-        refine = config.refine
-        if refine == "auto":
-            refine = "colored-icp" if any(dataset.has_depth(c) for c in cameras) else "none"
-        if refine != "none":
-            board_only = Extrinsics(reference, dict(cameras), dict(unconnected))
-            t0 = time.perf_counter()
-            T_cam = {c: e.T_ref_cam for c, e in cameras.items()}
-            depth = measure_depth(dataset, board, T_cam,
-                                  board_views_per_camera(observations, T_cam, bundle.T_ref_board),
-                                  bundle.T_ref_board, refine, config.depth, progress)
-            timings["depth"] = time.perf_counter() - t0
-            if depth.relative_poses:
-                t0 = time.perf_counter()
-                bundle = bundle_adjust(measurements, K, reference, T_cam, bundle.T_ref_board,
-                                       config.bundle, fixed_cameras, depth.relative_poses)
-                cameras = {c: CameraExtrinsics(c, bundle.T_ref_cam[c],
-                                               bundle.sigma_rotation_deg[c],
-                                               bundle.sigma_translation_mm[c],
-                                               bundle.covariance[c])
-                           for c in bundle.T_ref_cam}
-                timings["joint"] = time.perf_counter() - t0
-            t0 = time.perf_counter()  # each pair's fit at the final extrinsics, error maps
-            depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},
-                                 config.depth)
-            timings["depth_check"] = time.perf_counter() - t0
-    for cam in pg.cameras:
+
+def _no_shared_view(dataset: FolderDataset) -> CalibrationError:
+    return CalibrationError(
+        f"{dataset.path}: no camera shares a board view with the reference "
+        f"{dataset.rig.reference!r}; move the board where two cameras see it at once"
+    )
+
+
+def pose_graph(
+    dataset: FolderDataset,
+    observations: list[BoardObservation],
+    config: CalibrationConfig,
+    fixed_cameras: dict[str, np.ndarray] | None,
+) -> PoseGraphResult:
+    """The robust pose graph of the per-view board poses (edges weighted by their PnP
+    covariance unless ``config.edge_covariance`` is off)."""
+    edges = [
+        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance if config.edge_covariance else None)
+        for o in observations
+    ]
+    pg = calibrate_pose_graph(edges, dataset.rig.reference, config.graph, fixed_cameras)
+    if len(pg.cameras) < 2:
+        raise _no_shared_view(dataset)
+    return pg
+
+
+def _unconnected(
+    names: list[str], observations: list[BoardObservation], unconnected: dict[str, str]
+) -> dict[str, str]:
+    """The pose graph's unconnected cameras, plus every camera without a usable view."""
+    out = dict(unconnected)
+    seen = {o.camera for o in observations}
+    for cam in names:
+        if cam not in seen and cam not in out:
+            out[cam] = "no usable board view (board never detected, or every view was rejected)"
+    return out
+
+
+def marker_measurements(
+    observations: list[BoardObservation], pg: PoseGraphResult, rig: Rig
+) -> list[MarkerMeasurement]:
+    """The bundle adjustment's measurements: every marker of every view the pose graph kept
+    (its cameras and boards solved, the view not an outlier or stale edge), in undistorted
+    pinhole pixels."""
+    dropped = {pg.residuals[i].view + "/" + pg.residuals[i].camera for i in pg.outlier_edges}
+    measurements = []
+    for o in observations:
+        if o.camera not in pg.cameras or o.frame not in pg.T_ref_board:
+            continue
+        if f"{o.frame}/{o.camera}" in dropped:
+            continue
+        px = undistort_pixels(o.corners_px, rig.cameras[o.camera])
+        for mid, c, P in zip(o.ids, px, o.object_points):
+            measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P))
+    return measurements
+
+
+def _camera_matrices(rig: Rig) -> dict[str, np.ndarray]:
+    return {c: rig.cameras[c].K for c in rig.names}
+
+
+def _refine_method(refine: str, dataset: FolderDataset, cameras: dict[str, Any]) -> str:
+    """``auto`` is colored ICP when any calibrated camera has depth, else none."""
+    if refine == "auto":
+        return "colored-icp" if any(dataset.has_depth(c) for c in cameras) else "none"
+    return refine
+
+
+def _explain_dropped(
+    names: list[str],
+    graph_cameras: dict[str, Any],
+    cameras: dict[str, CameraExtrinsics],
+    unconnected: dict[str, str],
+) -> None:
+    """Give every camera that is not in the result a reason in ``unconnected``."""
+    for cam in graph_cameras:
         if cam not in cameras and cam not in unconnected:
             unconnected[cam] = (
                 "every board view linking it to the other cameras was rejected as an outlier; "
                 "check its intrinsics (rig.yaml) and frame synchronisation"
             )
-    for cam in rig.names:
+    for cam in names:
         if cam not in cameras and cam not in unconnected:
             unconnected[cam] = "not connected to the reference after outlier rejection"
-    extrinsics = Extrinsics(
-        reference, {c: cameras[c] for c in rig.names if c in cameras}, unconnected
-    )
-    return CalibrationResult(
-        extrinsics,
-        observations,
-        rejected,
-        pg,
-        bundle,
-        config,
-        n_images,
-        timings,
-        dataset.summary().to_dict(),
-        depth,
-        board_only,
-    )

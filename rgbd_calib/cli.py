@@ -422,13 +422,10 @@ def refine(
     sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view)."""
-    import json
-
-    from .depth import write_fused_ply
     from .errors import ConfigError
+    from .outputs import write_refine_outputs
     from .refine import refine_extrinsics
-    from .results import load_extrinsics, write_extrinsics
-    from .yamlio import atomic_write_text, to_builtin
+    from .results import load_extrinsics
 
     if method not in ("colored-icp", "geometric"):
         raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
@@ -438,18 +435,7 @@ def refine(
     init_ext = load_extrinsics(init, check_redundant=True)
     with stage_progress() as progress:
         ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress)
-    out.mkdir(parents=True, exist_ok=True)
-    pts, cols, idx, names = depth.fused({c: e.T_ref_cam for c, e in ext.cameras.items()}, 0.005)
-    write_fused_ply(out / "fused.ply", pts, cols, idx, names)
-    atomic_write_text(
-        out / "refine_report.json",
-        json.dumps(
-            to_builtin({"method": method, "init": str(init), "pairs": depth.pairs}),
-            indent=1,
-            default=str,
-        ),
-    )
-    write_extrinsics(ext, out / "extrinsics.yaml")
+    write_refine_outputs(ext, depth, out, method, init)
     for p in depth.pairs:
         state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
         console.print(
@@ -486,7 +472,8 @@ def posegraph(
 
     from .errors import ConfigError
     from .graph import PoseGraphConfig
-    from .posegraph_pipeline import run_posegraph, write_posegraph_outputs
+    from .outputs import write_posegraph_outputs
+    from .posegraph_pipeline import run_posegraph
 
     try:
         cfg = PoseGraphConfig(kernel=kernel, optimizer=optimizer)

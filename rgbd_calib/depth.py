@@ -6,7 +6,7 @@ Pipeline, one function per step::
     estimate_depth_scale  per camera: measured depth on the board face vs the calibrated pose
     find_overlapping_pairs  which cameras see common surfaces under the current extrinsics
     register_pair         colored ICP (Park et al. 2017) or kiss-icp, with a 6x6 information
-    fuse_clouds / write_fused_ply   all cameras in the reference frame, per-point camera index
+    fuse_clouds                     all cameras in the reference frame, per-point camera index
     overlap_error         point-to-plane distances between two cameras' clouds (report maps)
 
 Depth noise follows Intel's D435 model (Intel RealSense "Depth camera tuning / depth quality"
@@ -19,12 +19,9 @@ This is the only module that imports open3d and kiss_icp.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 import time
 from dataclasses import dataclass, replace
 from itertools import combinations
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -1333,81 +1330,3 @@ def fuse_clouds(
     if not pts:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=np.int32)
     return np.concatenate(pts), np.concatenate(cols), np.concatenate(idx)
-
-
-def _ply_dtype(n_cameras: int) -> np.dtype:
-    cam = "u1" if n_cameras <= 256 else "<u2"
-    return np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
-                     ("blue", "u1"), ("camera", cam)])
-
-
-def write_fused_ply(
-    path: Path,
-    points: np.ndarray,
-    colors: np.ndarray,
-    camera_index: np.ndarray,
-    camera_names: list[str],
-) -> None:
-    """Binary little-endian PLY: ``x y z`` float32 (m, reference frame), ``red green blue``
-    uchar and ``camera`` (uchar, or ushort beyond 256 cameras) indexing the header comments
-    ``comment camera <index> <name>``. Written atomically (temporary file + rename)."""
-    path = Path(path)
-    n = int(np.asarray(points).shape[0])
-    if len(colors) != n or len(camera_index) != n:
-        raise ValueError("points, colors and camera_index need the same length")
-    if len(camera_names) > 65536:
-        raise ValueError("at most 65536 cameras fit the camera property")
-    idx = np.asarray(camera_index)
-    if n and (idx.min() < 0 or idx.max() >= len(camera_names)):
-        raise ValueError("camera_index outside camera_names")
-    dtype = _ply_dtype(len(camera_names))
-    data = np.empty(n, dtype=dtype)
-    p = np.asarray(points, dtype=float)
-    data["x"], data["y"], data["z"] = p[:, 0], p[:, 1], p[:, 2]
-    rgb = np.clip(np.rint(np.asarray(colors, dtype=float) * 255.0), 0, 255).astype(np.uint8)
-    data["red"], data["green"], data["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    data["camera"] = idx
-    cam_type = "uchar" if dtype["camera"].itemsize == 1 else "ushort"
-    header = ["ply", "format binary_little_endian 1.0", "comment rgbd-calib fused cloud"]
-    header += [f"comment camera {k} {name}" for k, name in enumerate(camera_names)]
-    header += [f"element vertex {n}", "property float x", "property float y",
-               "property float z", "property uchar red", "property uchar green",
-               "property uchar blue", f"property {cam_type} camera", "end_header"]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(data.tobytes())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def read_fused_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
-    """Read a PLY written by :func:`write_fused_ply`: points, colours [0,1], camera index and
-    camera names."""
-    raw = Path(path).read_bytes()
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply\n") or end < 0:
-        raise DatasetError(f"{path}: not a PLY file")
-    header = raw[:end].decode("ascii").splitlines()
-    if "format binary_little_endian 1.0" not in header:
-        raise DatasetError(f"{path}: expected a binary little-endian PLY from rgbd-calib")
-    names: dict[int, str] = {}
-    n = 0
-    for line in header:
-        parts = line.split()
-        if parts[:2] == ["comment", "camera"] and len(parts) >= 4:
-            names[int(parts[2])] = " ".join(parts[3:])
-        elif parts[:2] == ["element", "vertex"]:
-            n = int(parts[2])
-    cams = [names[k] for k in sorted(names)]
-    wide = any(line.strip() == "property ushort camera" for line in header)
-    dtype = _ply_dtype(65536 if wide else 1)
-    data = np.frombuffer(raw, dtype=dtype, count=n, offset=end + len(b"end_header\n"))
-    points = np.column_stack([data["x"], data["y"], data["z"]]).astype(float)
-    colors = np.column_stack([data["red"], data["green"], data["blue"]]) / 255.0
-    return points, colors, data["camera"].astype(np.int32), cams

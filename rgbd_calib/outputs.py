@@ -11,23 +11,57 @@ from the saved folder alone.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
-from collections.abc import Callable
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from .calibrate import CalibrationResult
-from .depth import write_fused_ply
 from .exports import write_exports
-from .report import dump_report, report_dict, write_report_html
-from .results import write_extrinsics
+from .ply import write_fused_ply
+from .posegraph_pipeline import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
+from .progress import Progress
+from .refine import DepthRefinement
+from .report import dump_report, finite_or_null, report_dict, write_report_html
+from .results import Extrinsics, write_extrinsics
 from .rig import Rig
-from .yamlio import to_builtin
+from .yamlio import to_builtin, write_yaml
 
-Progress = Callable[[str, int, int], Callable[[int], None]]
+
+@contextmanager
+def staged(out_dir: Path, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
+    """A staging folder for one run's outputs; when the block ends without error every file
+    in it is renamed into ``out_dir`` (sub-folders kept), ``extrinsics.yaml`` last, and each
+    name in ``replaces`` that the run did not write is removed from ``out_dir`` (it would
+    belong to an older run). On an error ``out_dir`` is left exactly as it was."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stage = out_dir / f".staging-{os.getpid()}"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir()
+    try:
+        yield stage
+        for name in replaces:
+            if not (stage / name).exists():
+                (out_dir / name).unlink(missing_ok=True)
+        for path in sorted(stage.rglob("*"), key=lambda p: p.name == "extrinsics.yaml"):
+            if not path.is_dir():
+                target = out_dir / path.relative_to(stage)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(path, target)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def _written(stage: Path, out_dir: Path) -> list[Path]:
+    """The files of ``stage`` as they will stand in ``out_dir``, ``extrinsics.yaml`` last."""
+    files = sorted(stage.rglob("*"), key=lambda p: p.name == "extrinsics.yaml")
+    return [out_dir / p.relative_to(stage) for p in files if not p.is_dir()]
 
 
 def write_outputs(
@@ -45,11 +79,7 @@ def write_outputs(
     Without ``fused_ply`` an older ``out_dir/fused.ply`` is removed (it would belong to another
     run) and the report previews the cloud from the dataset's depth frames."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stage = out_dir / f".staging-{os.getpid()}"
-    shutil.rmtree(stage, ignore_errors=True)
-    stage.mkdir()
-    try:
+    with staged(out_dir, replaces=("fused.ply",)) as stage:
         if result.depth is not None:
             pairs = pairs if pairs is not None else result.depth.pairs
             depth_scale = depth_scale if depth_scale is not None else (
@@ -70,16 +100,57 @@ def write_outputs(
         boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
         write_exports(result.extrinsics, stage, rig=rig, board_poses=boards)
         write_extrinsics(result.extrinsics, stage / "extrinsics.yaml")
-        if not (stage / "fused.ply").exists():
-            (out_dir / "fused.ply").unlink(missing_ok=True)
-        written = []
-        for path in sorted(stage.rglob("*"), key=lambda p: p.name == "extrinsics.yaml"):
-            if path.is_dir():
-                continue
-            target = out_dir / path.relative_to(stage)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(path, target)
-            written.append(target)
-        return written
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
+        written = _written(stage, out_dir)
+    return written
+
+
+REFINE_REPORT = "refine_report.json"
+
+
+def write_refine_outputs(
+    extrinsics: Extrinsics,
+    depth: DepthRefinement,
+    out_dir: Path,
+    method: str,
+    init: Path,
+    fused_voxel_m: float = 0.005,
+) -> list[Path]:
+    """Write a depth-only refinement into ``out_dir``: ``fused.ply`` (at the refined
+    extrinsics), ``refine_report.json`` (method, starting file, every pair) and
+    ``extrinsics.yaml`` (last)."""
+    out_dir = Path(out_dir)
+    with staged(out_dir, replaces=("fused.ply",)) as stage:
+        T_ref_cam = {c: e.T_ref_cam for c, e in extrinsics.cameras.items()}
+        pts, cols, idx, names = depth.fused(T_ref_cam, fused_voxel_m)
+        write_fused_ply(stage / "fused.ply", pts, cols, idx, names)
+        report = {"method": method, "init": str(init), "pairs": depth.pairs}
+        (stage / REFINE_REPORT).write_text(json.dumps(to_builtin(report), indent=1, default=str))
+        write_extrinsics(extrinsics, stage / "extrinsics.yaml")
+        written = _written(stage, out_dir)
+    return written
+
+
+def write_posegraph_outputs(run: PosegraphRun, out_dir: Path) -> dict[str, Path]:
+    """Write ``extrinsics.yaml``, ``posegraph_report.json``, ``posegraph_config.yaml`` (the
+    resolved config) and ``exports/`` (edges the solution used, solved board poses) into
+    ``out_dir``; returns the written paths by kind. ``extrinsics.yaml`` is moved into place
+    last, so an interrupted run never leaves a fresh-looking result beside stale side files."""
+    out_dir = Path(out_dir)
+    with staged(out_dir) as stage:
+        used = [run.edges[i] for i in run.result.used_edges]
+        paths = write_exports(
+            run.extrinsics,
+            stage,
+            edges=used,
+            board_poses=run.result.T_ref_board,
+            default_sigma_rotation_deg=run.result.sigma_rotation_deg_default,
+            default_sigma_translation_mm=run.result.sigma_translation_mm_default,
+        )
+        paths["report"] = stage / POSEGRAPH_REPORT
+        report = json.dumps(finite_or_null(run.to_dict()), indent=2, allow_nan=False)
+        paths["report"].write_text(report + "\n")
+        paths["config"] = stage / POSEGRAPH_CONFIG
+        write_yaml(paths["config"], run.config.model_dump())
+        paths["extrinsics"] = stage / "extrinsics.yaml"
+        write_extrinsics(run.extrinsics, paths["extrinsics"])
+    return {kind: out_dir / p.relative_to(stage) for kind, p in paths.items()}

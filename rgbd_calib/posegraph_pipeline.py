@@ -1,7 +1,8 @@
 """Calibrate from the thesis's pose-graph CSVs: ``Nodes.csv`` + ``Edges.csv`` -> extrinsics.
 
 Library entry point of ``rgbd-calib posegraph NODES.csv EDGES.csv --out DIR``:
-:func:`run_posegraph` solves, :func:`write_posegraph_outputs` writes the results.
+:func:`run_posegraph` solves, :func:`rgbd_calib.outputs.write_posegraph_outputs` writes the
+results.
 
 Only the edges are measurements. From ``Nodes.csv`` only the reference is taken (the camera
 whose node is the identity, else the first camera): its camera guesses are hand measurements
@@ -11,7 +12,6 @@ and its board nodes one camera's view, so the initialisation is rebuilt from the
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 
 from .errors import CalibrationError
-from .exports import write_exports
 from .graph import (
     EdgeResidual,
     PoseEdge,
@@ -30,12 +29,11 @@ from .graph import (
     median_edge_residual,
 )
 from .posegraph_csv import camera_name, read_edges_csv, read_nodes_csv
-from .report.schema import finite_or_null
-from .results import Extrinsics, write_extrinsics
-from .yamlio import atomic_write_text, to_builtin, write_yaml
+from .results import Extrinsics
+from .yamlio import to_builtin
 
-REPORT_FILE = "posegraph_report.json"
-CONFIG_FILE = "posegraph_config.yaml"
+POSEGRAPH_REPORT = "posegraph_report.json"
+POSEGRAPH_CONFIG = "posegraph_config.yaml"
 
 
 @dataclass(frozen=True)
@@ -141,28 +139,3 @@ def run_posegraph(
         result,
         config,
     )
-
-
-def write_posegraph_outputs(run: PosegraphRun, out_dir: Path) -> dict[str, Path]:
-    """Write ``extrinsics.yaml``, ``posegraph_report.json``, ``posegraph_config.yaml`` (the
-    resolved config) and ``exports/`` (edges the solution used, solved board poses) into
-    ``out_dir``; returns the written paths. ``extrinsics.yaml`` is written last, so an
-    interrupted run never leaves a fresh-looking result beside stale side files."""
-    out_dir = Path(out_dir)
-    used = [run.edges[i] for i in run.result.used_edges]
-    paths = write_exports(
-        run.extrinsics,
-        out_dir,
-        edges=used,
-        board_poses=run.result.T_ref_board,
-        default_sigma_rotation_deg=run.result.sigma_rotation_deg_default,
-        default_sigma_translation_mm=run.result.sigma_translation_mm_default,
-    )
-    paths["report"] = out_dir / REPORT_FILE
-    report = json.dumps(finite_or_null(run.to_dict()), indent=2, allow_nan=False)
-    atomic_write_text(paths["report"], report + "\n")
-    paths["config"] = out_dir / CONFIG_FILE
-    write_yaml(paths["config"], run.config.model_dump())
-    paths["extrinsics"] = out_dir / "extrinsics.yaml"
-    write_extrinsics(run.extrinsics, paths["extrinsics"])
-    return paths

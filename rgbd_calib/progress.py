@@ -1,4 +1,4 @@
-"""The library's one progress protocol (no imports beyond the standard library).
+"""The library's one progress protocol, and stage timing (standard library only).
 
 A long-running library function takes ``progress: Progress | None``. For each stage it calls
 ``tick = progress(label, total, done)`` once (``total`` may be None when unknown, ``done`` is
@@ -8,7 +8,9 @@ turns this into rich bars on a terminal and plain lines otherwise; the library n
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Protocol
 
 Tick = Callable[[int], None]
@@ -27,3 +29,13 @@ def start(progress: Progress | None, label: str, total: int | None, done: int = 
     if progress is None:
         return _no_tick
     return progress(label, total, done)
+
+
+@contextmanager
+def timed(timings: dict[str, float], stage: str) -> Iterator[None]:
+    """Add the wall time (s) of the ``with`` block to ``timings[stage]``, also on an error."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - t0

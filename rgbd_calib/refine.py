@@ -14,8 +14,6 @@ Steps (issue 4's design, one joint graph with the board):
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
@@ -37,7 +35,8 @@ from .depth import (
 from .errors import CalibrationError, DatasetError
 from .geometry import invert_transform
 from .graph import BundleConfig, RelativePose, bundle_adjust
-from .results import CameraExtrinsics, Extrinsics
+from .progress import Progress, start, timed
+from .results import Extrinsics, cameras_from_solve
 
 RefineMethod = Literal["colored-icp", "geometric", "none"]
 
@@ -69,7 +68,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                   board_views: dict[str, dict[str, np.ndarray]] | None, T_ref_board:
                   dict[str, np.ndarray] | None, method: RefineMethod,
                   config: DepthConfig | None = None,
-                  progress: Callable[[str, int, int], Callable[[int], None]] | None = None,
+                  progress: Progress | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
 
@@ -79,48 +78,42 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     config = config or DepthConfig()
     cams = [c for c in dataset.cameras if c in T_ref_cam and dataset.has_depth(c)]
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
     scales: dict[str, DepthScaleEstimate] = {}
-    if board is not None and board_views:
-        tick = progress("depth scale per camera", len(cams), 0) if progress else None
-        for c in cams:
-            views = board_views.get(c, {})
-            if views:
-                try:
-                    scales[c] = estimate_depth_scale(dataset, c, views, board, config)
-                except (CalibrationError, DatasetError):
-                    pass  # too few board pixels with depth: the factor stays 1 (reported)
-            if tick:
+    with timed(timings, "depth_scale"):
+        if board is not None and board_views:
+            tick = start(progress, "depth scale per camera", len(cams))
+            for c in cams:
+                views = board_views.get(c, {})
+                if views:
+                    try:
+                        scales[c] = estimate_depth_scale(dataset, c, views, board, config)
+                    except (CalibrationError, DatasetError):
+                        pass  # too few board pixels with depth: the factor stays 1 (reported)
                 tick(1)
-    timings["depth_scale"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    tick = progress("static clouds", len(cams), 0) if progress else None
     clouds: dict[str, CameraCloud] = {}
-    for c in cams:
-        factor = scales[c].factor if c in scales else 1.0
-        clouds[c] = static_cloud(dataset, c, T_ref_board or {}, T_ref_cam[c], board, config,
-                                 depth_scale_factor=factor)
-        if tick:
+    with timed(timings, "clouds"):
+        tick = start(progress, "static clouds", len(cams))
+        for c in cams:
+            factor = scales[c].factor if c in scales else 1.0
+            clouds[c] = static_cloud(dataset, c, T_ref_board or {}, T_ref_cam[c], board, config,
+                                     depth_scale_factor=factor)
             tick(1)
-    timings["clouds"] = time.perf_counter() - t0
 
     pairs: list[dict[str, Any]] = []
     relative: list[RelativePose] = []
     if method != "none" and len(clouds) >= 2:
-        t0 = time.perf_counter()
-        intrinsics = {c: dataset.rig.cameras[c] for c in clouds}
-        overlaps = find_overlapping_pairs(clouds, T_ref_cam, intrinsics, config)
-        tick = progress(f"registering pairs ({method})", len(overlaps), 0) if progress else None
-        for ov in overlaps:
-            reg = register_pair(clouds[ov.cam_a], clouds[ov.cam_b], T_ref_cam[ov.cam_a],
-                                T_ref_cam[ov.cam_b], method, config)
-            pairs.append({**ov.to_dict(), **reg.to_dict()})
-            if reg.accepted:
-                relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
-            if tick:
+        with timed(timings, "registration"):
+            intrinsics = {c: dataset.rig.cameras[c] for c in clouds}
+            overlaps = find_overlapping_pairs(clouds, T_ref_cam, intrinsics, config)
+            tick = start(progress, f"registering pairs ({method})", len(overlaps))
+            for ov in overlaps:
+                reg = register_pair(clouds[ov.cam_a], clouds[ov.cam_b], T_ref_cam[ov.cam_a],
+                                    T_ref_cam[ov.cam_b], method, config)
+                pairs.append({**ov.to_dict(), **reg.to_dict()})
+                if reg.accepted:
+                    relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
                 tick(1)
-        timings["registration"] = time.perf_counter() - t0
     return DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings)
 
 
@@ -159,13 +152,8 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
             "cameras see common static surfaces")
     res = bundle_adjust([], {c: dataset.rig.cameras[c].K for c in T_init}, init.reference,
                         T_init, {}, BundleConfig(), relative_poses=depth.relative_poses)
-    cams = {}
-    for c, e in init.cameras.items():
-        if c in res.T_ref_cam:
-            cams[c] = CameraExtrinsics(c, res.T_ref_cam[c], res.sigma_rotation_deg[c],
-                                       res.sigma_translation_mm[c], res.covariance[c])
-        else:
-            cams[c] = e
+    solved = cameras_from_solve(res)
+    cams = {c: solved.get(c, e) for c, e in init.cameras.items()}
     out = Extrinsics(init.reference, cams, dict(init.unconnected))
     return out, finish_pairs(depth, {c: e.T_ref_cam for c, e in cams.items()}, config)
 

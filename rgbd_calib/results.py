@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -36,6 +36,29 @@ class CameraExtrinsics:
             "sigma_rotation_deg": float(self.sigma_rotation_deg),
             "sigma_translation_mm": float(self.sigma_translation_mm),
         }
+
+
+class Solve(Protocol):
+    """What a solve (bundle adjustment, pose graph of depth pairs) gives per camera."""
+
+    T_ref_cam: dict[str, np.ndarray]
+    sigma_rotation_deg: dict[str, float]
+    sigma_translation_mm: dict[str, float]
+    covariance: dict[str, np.ndarray]
+
+
+def cameras_from_solve(solve: Solve) -> dict[str, CameraExtrinsics]:
+    """One :class:`CameraExtrinsics` per camera of a solve, with its marginal sigmas."""
+    return {
+        c: CameraExtrinsics(
+            c,
+            solve.T_ref_cam[c],
+            solve.sigma_rotation_deg[c],
+            solve.sigma_translation_mm[c],
+            solve.covariance[c],
+        )
+        for c in solve.T_ref_cam
+    }
 
 
 @dataclass(frozen=True)

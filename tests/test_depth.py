@@ -21,6 +21,7 @@ from rgbd_calib.geometry import (
     transform_error,
     transform_points,
 )
+from rgbd_calib.ply import read_ply, write_fused_ply
 from rgbd_calib.synth import SynthParams, load_ground_truth, render_background, synthesize
 
 DEPTH_BIAS = 0.006  # max |relative depth-scale error| injected per camera
@@ -357,14 +358,14 @@ def test_fused_ply_round_trip_with_camera_index(line, line_clouds, tmp_path):
     assert set(np.unique(index)) == set(range(len(names)))
     assert points.shape[0] < sum(c.n_points for c in line_clouds.values())
     path = tmp_path / "fused.ply"
-    D.write_fused_ply(path, points, colors, index, names)
+    write_fused_ply(path, points, colors, index, names)
     assert [p.name for p in tmp_path.iterdir()] == ["fused.ply"]  # no temporary left
     header = path.read_bytes().split(b"end_header\n")[0].decode()
     assert "property uchar camera" in header and "comment camera 3 cam10" in header
-    p2, c2, i2, n2 = D.read_fused_ply(path)
+    p2, c2, i2, n2 = read_ply(path)
     assert n2 == names
     np.testing.assert_allclose(p2, points, atol=1e-6)
-    np.testing.assert_allclose(c2, colors, atol=0.5 / 255 + 1e-9)
+    np.testing.assert_allclose(c2 / 255.0, colors, atol=0.5 / 255 + 1e-9)
     np.testing.assert_array_equal(i2, index)
     # camera 0 is the reference: its fused points are its own cloud's voxel means, in place
     d, _ = cKDTree(line_clouds["cam7"].points).query(points[index == 0])
@@ -372,9 +373,9 @@ def test_fused_ply_round_trip_with_camera_index(line, line_clouds, tmp_path):
     # beyond 256 cameras the index is a ushort
     many = [f"c{k}" for k in range(300)]
     wide_index = np.arange(points.shape[0]) % 300
-    D.write_fused_ply(path, points, colors, wide_index, many)
+    write_fused_ply(path, points, colors, wide_index, many)
     assert b"property ushort camera" in path.read_bytes()[:8000]
-    _, _, i3, n3 = D.read_fused_ply(path)
+    _, _, i3, n3 = read_ply(path)
     assert n3 == many
     np.testing.assert_array_equal(i3, wide_index)
 

@@ -17,6 +17,7 @@ from rgbd_calib.geometry import (
     rotvec_to_matrix,
 )
 from rgbd_calib.graph import PoseEdge
+from rgbd_calib.outputs import write_posegraph_outputs
 from rgbd_calib.posegraph_csv import (
     camera_name,
     camera_node_id,
@@ -27,7 +28,7 @@ from rgbd_calib.posegraph_csv import (
     write_nodes_csv,
     write_optimised_camera_poses,
 )
-from rgbd_calib.posegraph_pipeline import run_posegraph, write_posegraph_outputs
+from rgbd_calib.posegraph_pipeline import run_posegraph
 from rgbd_calib.results import load_extrinsics
 
 THESIS = Path(__file__).resolve().parents[2] / "shared/data/thesis-posegraph"

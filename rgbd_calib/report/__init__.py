@@ -20,7 +20,7 @@ a preview cloud), ``layout`` (display frame, frusta), ``figures`` (matplotlib), 
 """
 
 from .build import error_map, finalize_report, pair_entry, report_dict
-from .cloud import Cloud, load_cloud, read_ply_cloud
+from .cloud import Cloud, load_cloud
 from .findings import RULES, findings
 from .html import render_html, write_report_html
 from .numbers import histogram_edges_px, stats
@@ -50,7 +50,6 @@ __all__ = [
     "histogram_edges_px",
     "load_cloud",
     "pair_entry",
-    "read_ply_cloud",
     "rebuild_report",
     "render_html",
     "report_dict",

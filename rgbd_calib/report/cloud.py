@@ -1,5 +1,5 @@
 """The point cloud the report shows: ``fused.ply`` from the depth stage when the folder has
-one (read by :func:`read_ply_cloud`, the package's one PLY reader), else a preview
+one (read by :func:`rgbd_calib.ply.read_ply`), else a preview
 back-projected from the dataset's depth frames.
 """
 
@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from .schema import ReportError
+from ..ply import read_ply
 
 MAX_VIEW_POINTS = 40000  # points in the 3D view and the static cloud figures
 PREVIEW_FRAMES = 5  # depth frames per camera in the preview cloud's temporal median
@@ -39,62 +39,6 @@ class Cloud:
         )
 
 
-def read_ply_cloud(
-    path: Path,
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, list[str]]:
-    """Points (N,3) float, RGB (N,3) uint8 or None, camera index (N,) or None and the camera
-    names (``comment camera <k> <name>``) of a binary little-endian PLY such as ``fused.ply``
-    (``x y z`` float, ``red green blue`` uchar, ``camera`` index). Numpy only."""
-    raw = Path(path).read_bytes()
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise ReportError(f"{path}: not a PLY file; delete it or re-run calibrate")
-    body = raw.index(b"\n", end) + 1
-    header = raw[:end].decode("ascii", "replace").splitlines()
-    if not any(h.strip() == "format binary_little_endian 1.0" for h in header):
-        raise ReportError(f"{path}: only binary little-endian PLY is supported")
-    types = {
-        "float": "<f4",
-        "float32": "<f4",
-        "double": "<f8",
-        "float64": "<f8",
-        "uchar": "u1",
-        "uint8": "u1",
-        "char": "i1",
-        "int8": "i1",
-        "ushort": "<u2",
-        "uint16": "<u2",
-        "short": "<i2",
-        "int16": "<i2",
-        "int": "<i4",
-        "int32": "<i4",
-        "uint": "<u4",
-        "uint32": "<u4",
-    }
-    fields, n, names, in_vertex = [], 0, {}, False
-    for line in header:
-        parts = line.split()
-        if parts[:2] == ["comment", "camera"] and len(parts) >= 4:
-            names[int(parts[2])] = " ".join(parts[3:])
-        elif parts[:1] == ["element"]:
-            in_vertex = parts[1] == "vertex"
-            n = int(parts[2]) if in_vertex else n
-        elif parts[:1] == ["property"] and in_vertex:
-            if parts[1] == "list" or parts[1] not in types:
-                raise ReportError(f"{path}: unsupported PLY property {line.strip()!r}")
-            fields.append((parts[2], types[parts[1]]))
-    data = np.frombuffer(raw, dtype=np.dtype(fields), count=n, offset=body)
-    points = np.column_stack([data["x"], data["y"], data["z"]]).astype(float)
-    keys = {f for f, _ in fields}
-    rgb = (
-        np.column_stack([data["red"], data["green"], data["blue"]]).astype(np.uint8)
-        if {"red", "green", "blue"} <= keys
-        else None
-    )
-    cam = data["camera"].astype(int) if "camera" in keys else None
-    return points, rgb, cam, [names[k] for k in sorted(names)]
-
-
 def _subsample(n: int, keep: int) -> np.ndarray:
     """Deterministic even subsample of ``range(n)`` to at most ``keep`` indices."""
     if n <= keep:
@@ -108,7 +52,7 @@ def load_cloud(report: dict[str, Any], folder: Path) -> tuple[Cloud | None, str]
     cams = [c for c, v in report["cameras"].items() if v["calibrated"]]
     ply = Path(folder) / "fused.ply"
     if ply.is_file():
-        points, rgb, cam, names = read_ply_cloud(ply)
+        points, rgb, cam, names = read_ply(ply)
         names = names or cams
         if cam is None:
             cam = np.zeros(len(points), dtype=int)
