@@ -36,10 +36,10 @@ from pydantic import BaseModel, Field, model_validator
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from .board import Board
+from .camera import CameraIntrinsics
 from .dataset import FolderDataset
 from .errors import DatasetError
 from .geometry import invert_transform, skew, transform_error, transform_points
-from .rig import CameraIntrinsics
 
 Method = Literal["colored-icp", "geometric"]
 INFORMATION_FRAME = (

@@ -27,7 +27,7 @@ from pydantic import BaseModel, Field, model_validator
 from scipy.special import ndtr
 
 from .board import Board, aruco_dictionary
-from .rig import CameraIntrinsics
+from .camera import CameraIntrinsics
 
 Refinement = Literal["edges", "subpix", "none", "contour"]
 _CV_REFINE = {

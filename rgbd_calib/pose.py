@@ -23,9 +23,9 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from .board import Board
+from .camera import CameraIntrinsics
 from .detection import MarkerDetections
 from .geometry import make_transform, rotation_angle_deg, rotvec_to_matrix, skew
-from .rig import CameraIntrinsics
 
 
 class PoseConfig(BaseModel, extra="forbid"):

@@ -24,8 +24,9 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from .camera import CameraIntrinsics
 from .errors import ConfigError, DatasetError
-from .rig import CAMERA_NAME, CameraIntrinsics, Rig, save_rig
+from .rig import CAMERA_NAME, Rig, save_rig
 
 DEFAULT_MODE = (1280, 720, 30)  # width, height, fps: a D435i depth and colour mode
 HW_SYNC_MASTER, HW_SYNC_SLAVE = 1, 2  # rs.option.inter_cam_sync_mode values (D400)

@@ -23,10 +23,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .board import BACK, FRONT, Board
+from .camera import CameraIntrinsics
 from .errors import ConfigError
 from .geometry import invert_transform, look_at, make_transform, rotvec_to_matrix
 from .parallel import process_context
-from .rig import CameraIntrinsics, Rig, save_rig
+from .rig import Rig, save_rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
 from .yamlio import write_yaml
 
