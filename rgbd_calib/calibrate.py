@@ -41,7 +41,7 @@ from .graph import (
     calibrate_pose_graph,
 )
 from .parallel import process_context
-from .pose import BoardObservation, PoseConfig, RejectedView, estimate_board_pose, undistort_pixels
+from .pose import BoardObservation, PoseConfig, RejectedView, estimate_board_pose
 from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
 from .results import CameraExtrinsics, Extrinsics
 from .yamlio import atomic_write_text
@@ -285,7 +285,7 @@ def calibrate(
                 continue
             if f"{o.frame}/{o.camera}" in stale_or_out:
                 continue
-            px = undistort_pixels(o.corners_px, rig.cameras[o.camera])
+            px = rig.cameras[o.camera].undistort_pixels(o.corners_px)
             for mid, c, P in zip(o.ids, px, o.object_points):
                 measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P))
         K = {c: rig.cameras[c].K for c in rig.names}

@@ -389,26 +389,6 @@ def _noise_focal(intr: CameraIntrinsics, config: DepthConfig) -> float:
     return config.depth_focal_px or intr.fx
 
 
-def normalized_rays(intr: CameraIntrinsics, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rays ``(N,3)`` with z = 1 through pixels ``(u, v)`` (pixel centres at integers), undoing
-    OpenCV's k1 k2 p1 p2 k3 distortion by fixed-point iteration (as cv2.undistortPoints)."""
-    xd = (np.asarray(u, dtype=float) - intr.cx) / intr.fx
-    yd = (np.asarray(v, dtype=float) - intr.cy) / intr.fy
-    x, y = xd.copy(), yd.copy()
-    if intr.has_distortion:
-        d = intr.dist
-        k1, k2, p1, p2 = d[:4]
-        k3 = d[4] if d.size > 4 else 0.0
-        for _ in range(20):
-            r2 = x * x + y * y
-            radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
-            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-            x = (xd - dx) / radial
-            y = (yd - dy) / radial
-    return np.column_stack([x, y, np.ones_like(x)])
-
-
 def _in_view(intr: CameraIntrinsics, points_cam: np.ndarray, margin_px: float,
              min_z: float, max_z: float) -> np.ndarray:
     """Which camera-frame points lie in the image (grown by ``margin_px``) and depth range."""
@@ -573,7 +553,7 @@ def static_cloud(
     # 5. back-projection
     vs, us = np.nonzero(keep)
     z = med[vs, us].astype(float)
-    points = normalized_rays(intr, us, vs) * z[:, None]
+    points = intr.rays(us, vs) * z[:, None]
     sigma_z = sigma1[vs, us] * np.sqrt(_MEDIAN_EFFICIENCY / n_in[vs, us])
     stats = CloudStats(
         n_frames=n,
@@ -687,7 +667,7 @@ def estimate_depth_scale(
         sub = raw[v0 : v1 + 1, u0 : u1 + 1]
         vs, us = np.nonzero(sub > 0)
         us, vs = us + u0, vs + v0
-        rays = normalized_rays(intr, us, vs)
+        rays = intr.rays(us, vs)
         # ray-plane intersection: z_true = (n . p0) / (n . ray) is the camera z-depth
         z_true = (n_c @ p0) / (rays @ n_c)
         hit_b = transform_points(invert_transform(T), rays * z_true[:, None])
