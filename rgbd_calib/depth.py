@@ -39,7 +39,7 @@ from .board import Board
 from .camera import CameraIntrinsics
 from .dataset import FolderDataset
 from .errors import DatasetError
-from .geometry import invert_transform, skew, transform_error, transform_points
+from .geometry import adjoint, invert_transform, skew, transform_error, transform_points
 
 Method = Literal["colored-icp", "geometric"]
 INFORMATION_FRAME = (
@@ -1031,17 +1031,6 @@ def photometric_information(matches: _Matches, src: _Level, tgt: _Level,
     return J.T @ J / variance
 
 
-def gtsam_adjoint(T: np.ndarray) -> np.ndarray:
-    """GTSAM ``Pose3::AdjointMap`` of ``T`` (4x4) in [rot, trans] order: ``[[R, 0], [t^ R, R]]``,
-    so that ``T Exp(xi) = Exp(Ad(T) xi) T``."""
-    R, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[3:, 3:] = R
-    A[3:, :3] = skew(t) @ R
-    return A
-
-
 def information_from_open3d(information_o3d: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
     """Convert Open3D's ``get_information_matrix_from_point_clouds(a, b, d, T_b_a)`` to the
     right-perturbation information of ``T_b_a`` in GTSAM order.
@@ -1050,7 +1039,7 @@ def information_from_open3d(information_o3d: np.ndarray, T_b_a: np.ndarray) -> n
     at the target points q: the information of ``[omega, t]`` of a *left* perturbation
     ``Exp(xi_L) T_b_a`` (b's frame), point-to-point, unit weights. With
     ``Exp(xi_L) T = T Exp(xi_R)``, ``xi_L = Ad(T) xi_R``, hence ``I_R = Ad(T)^T I_L Ad(T)``."""
-    A = gtsam_adjoint(np.asarray(T_b_a, dtype=float))
+    A = adjoint(T_b_a)
     return A.T @ np.asarray(information_o3d, dtype=float) @ A
 
 
