@@ -39,7 +39,7 @@ from .graph import (
     calibrate_pose_graph,
 )
 from .parallel import process_context
-from .pose import BoardObservation, PoseConfig, RejectedView, estimate_board_pose, undistort_pixels
+from .pose import BoardObservation, PoseConfig, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
 from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
 from .results import CameraExtrinsics, Extrinsics, cameras_from_solve
@@ -360,7 +360,7 @@ def marker_measurements(
             continue
         if f"{o.frame}/{o.camera}" in dropped:
             continue
-        px = undistort_pixels(o.corners_px, rig.cameras[o.camera])
+        px = rig.cameras[o.camera].undistort_pixels(o.corners_px)
         for mid, c, P in zip(o.ids, px, o.object_points):
             measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P))
     return measurements

@@ -33,10 +33,10 @@ from pydantic import BaseModel, Field, model_validator
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from .board import Board
+from .camera import CameraIntrinsics
 from .dataset import FolderDataset
 from .errors import DatasetError
-from .geometry import invert_transform, skew, transform_error, transform_points
-from .rig import CameraIntrinsics
+from .geometry import adjoint, invert_transform, skew, transform_error, transform_points
 
 Method = Literal["colored-icp", "geometric"]
 INFORMATION_FRAME = (
@@ -386,26 +386,6 @@ def _noise_focal(intr: CameraIntrinsics, config: DepthConfig) -> float:
     return config.depth_focal_px or intr.fx
 
 
-def normalized_rays(intr: CameraIntrinsics, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rays ``(N,3)`` with z = 1 through pixels ``(u, v)`` (pixel centres at integers), undoing
-    OpenCV's k1 k2 p1 p2 k3 distortion by fixed-point iteration (as cv2.undistortPoints)."""
-    xd = (np.asarray(u, dtype=float) - intr.cx) / intr.fx
-    yd = (np.asarray(v, dtype=float) - intr.cy) / intr.fy
-    x, y = xd.copy(), yd.copy()
-    if intr.has_distortion:
-        d = intr.dist
-        k1, k2, p1, p2 = d[:4]
-        k3 = d[4] if d.size > 4 else 0.0
-        for _ in range(20):
-            r2 = x * x + y * y
-            radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
-            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-            x = (xd - dx) / radial
-            y = (yd - dy) / radial
-    return np.column_stack([x, y, np.ones_like(x)])
-
-
 def _in_view(intr: CameraIntrinsics, points_cam: np.ndarray, margin_px: float,
              min_z: float, max_z: float) -> np.ndarray:
     """Which camera-frame points lie in the image (grown by ``margin_px``) and depth range."""
@@ -570,7 +550,7 @@ def static_cloud(
     # 5. back-projection
     vs, us = np.nonzero(keep)
     z = med[vs, us].astype(float)
-    points = normalized_rays(intr, us, vs) * z[:, None]
+    points = intr.rays(us, vs) * z[:, None]
     sigma_z = sigma1[vs, us] * np.sqrt(_MEDIAN_EFFICIENCY / n_in[vs, us])
     stats = CloudStats(
         n_frames=n,
@@ -684,7 +664,7 @@ def estimate_depth_scale(
         sub = raw[v0 : v1 + 1, u0 : u1 + 1]
         vs, us = np.nonzero(sub > 0)
         us, vs = us + u0, vs + v0
-        rays = normalized_rays(intr, us, vs)
+        rays = intr.rays(us, vs)
         # ray-plane intersection: z_true = (n . p0) / (n . ray) is the camera z-depth
         z_true = (n_c @ p0) / (rays @ n_c)
         hit_b = transform_points(invert_transform(T), rays * z_true[:, None])
@@ -1048,17 +1028,6 @@ def photometric_information(matches: _Matches, src: _Level, tgt: _Level,
     return J.T @ J / variance
 
 
-def gtsam_adjoint(T: np.ndarray) -> np.ndarray:
-    """GTSAM ``Pose3::AdjointMap`` of ``T`` (4x4) in [rot, trans] order: ``[[R, 0], [t^ R, R]]``,
-    so that ``T Exp(xi) = Exp(Ad(T) xi) T``."""
-    R, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[3:, 3:] = R
-    A[3:, :3] = skew(t) @ R
-    return A
-
-
 def information_from_open3d(information_o3d: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
     """Convert Open3D's ``get_information_matrix_from_point_clouds(a, b, d, T_b_a)`` to the
     right-perturbation information of ``T_b_a`` in GTSAM order.
@@ -1067,7 +1036,7 @@ def information_from_open3d(information_o3d: np.ndarray, T_b_a: np.ndarray) -> n
     at the target points q: the information of ``[omega, t]`` of a *left* perturbation
     ``Exp(xi_L) T_b_a`` (b's frame), point-to-point, unit weights. With
     ``Exp(xi_L) T = T Exp(xi_R)``, ``xi_L = Ad(T) xi_R``, hence ``I_R = Ad(T)^T I_L Ad(T)``."""
-    A = gtsam_adjoint(np.asarray(T_b_a, dtype=float))
+    A = adjoint(T_b_a)
     return A.T @ np.asarray(information_o3d, dtype=float) @ A
 
 

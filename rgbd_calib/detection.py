@@ -27,7 +27,7 @@ from pydantic import BaseModel, Field, model_validator
 from scipy.special import ndtr
 
 from .board import Board, aruco_dictionary
-from .rig import CameraIntrinsics
+from .camera import CameraIntrinsics
 
 Refinement = Literal["edges", "subpix", "none", "contour"]
 _CV_REFINE = {
@@ -410,27 +410,6 @@ def _subpix_fallback(
 
 
 # --------------------------------------------------------------------------- edge refinement
-def _undistort(points: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
-    """Distorted pixels ``(...,2)`` -> ideal pinhole pixels of the same camera."""
-    flat = points.reshape(-1, 1, 2).astype(np.float64)
-    out = cv2.undistortPoints(flat, intrinsics.K, intrinsics.dist, P=intrinsics.K)
-    return out.reshape(points.shape)
-
-
-def _distort(points: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
-    """Ideal pinhole pixels ``(...,2)`` -> distorted pixels."""
-    flat = points.reshape(-1, 2)
-    rays = np.column_stack(
-        [
-            (flat[:, 0] - intrinsics.cx) / intrinsics.fx,
-            (flat[:, 1] - intrinsics.cy) / intrinsics.fy,
-            np.ones(len(flat)),
-        ]
-    )
-    out, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), intrinsics.K, intrinsics.dist)
-    return out.reshape(points.shape)
-
-
 _UNIT_SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])  # TL TR BR BL, y down
 
 
@@ -753,7 +732,7 @@ def _fit_edge_lines(
         + off[..., None] * normal[..., None, :]
     )  # (M,4,3,2)
     if curved:
-        pts = _undistort(pts, intrinsics)
+        pts = intrinsics.undistort_pixels(pts)
     centre = pts.mean(axis=-2)
     direction = pts[..., 2, :] - pts[..., 0, :]
     direction /= np.maximum(np.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
@@ -882,7 +861,7 @@ def refine_corners_edges(
         y = (n_prev[..., 0] * rho - nrm[..., 0] * r_prev) / safe
         corner = np.stack([x, y], axis=-1)
         if intrinsics is not None and intrinsics.has_distortion:
-            corner = _distort(corner, intrinsics)
+            corner = intrinsics.distort_pixels(corner)
         shift = np.linalg.norm(corner - initial[sel], axis=-1)
         ok_corner = (
             ok_line

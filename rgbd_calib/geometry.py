@@ -38,8 +38,22 @@ def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> Array:
 
 
 def skew(v: ArrayLike) -> Array:
-    x, y, z = np.asarray(v, dtype=float).reshape(3)
+    x, y, z = np.asarray(v, dtype=float).reshape(3).tolist()
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def adjoint(T_a_b: ArrayLike) -> Array:
+    """Adjoint ``(6,6)`` of a rigid ``T_a_b`` (4x4) in GTSAM's ``Pose3::AdjointMap``
+    convention, twists ordered ``[omega (rad), v (m)]``: ``[[R, 0], [[t]x R, R]]``, so that
+    ``T Exp(xi) = Exp(adjoint(T) xi) T`` (a right perturbation in b's frame as a left one in
+    a's frame)."""
+    T_a_b = np.asarray(T_a_b, dtype=float)
+    R, t = T_a_b[:3, :3], T_a_b[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[3:, :3] = skew(t) @ R
+    return A
 
 
 def rotvec_to_matrix(rotvec: ArrayLike) -> Array:
@@ -94,10 +108,6 @@ def matrix_to_quaternion_xyzw(R: ArrayLike) -> Array:
     q = np.asarray(q)
     q /= np.linalg.norm(q)
     return q if q[3] >= 0 else -q
-
-
-def transform_from_quaternion(t: ArrayLike, q_xyzw: ArrayLike) -> Array:
-    return make_transform(quaternion_xyzw_to_matrix(q_xyzw), t)
 
 
 def rotation_angle_deg(R: ArrayLike) -> float:

@@ -33,8 +33,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.stats import chi2
 
+from .camera import pinhole_pose_jacobian, project_pinhole
 from .errors import CalibrationError
-from .geometry import invert_transform, orthonormalize, rotation_angle_deg
+from .geometry import adjoint, invert_transform, make_transform, orthonormalize, rotation_angle_deg
 from .results import CameraExtrinsics, Extrinsics
 
 # sqrt(chi2_6.ppf(0.99)): 99% of inlier 6-dof whitened residual norms lie below this.
@@ -871,47 +872,23 @@ def _project(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
              P_b: np.ndarray, jacobians: bool = True):
     """Pinhole projection of board points ``P_b`` (N,3) through T_ref_cam and T_ref_board.
 
-    p_cam = T_ref_cam^-1 T_ref_board p_board = R_cb P_b + t_cb = z (x, y, 1), (u, v) =
-    (fx x + cx, fy y + cy). Returns the pixels (N,2) and, with ``jacobians``, d(u,v)/dxi
-    (N,2,6) for the camera and for the board, for right perturbations T <- T Exp([w, v])
-    (GTSAM's Pose3 convention, rotation first). dp_cam/dxi_cam = [[p_cam]x, -I] gives
-
-        du/dxi_cam = fx [x y, -(1 + x^2), y, -1/z, 0, x/z]
-        dv/dxi_cam = fy [1 + y^2, -x y, -x, 0, -1/z, y/z]
-
-    and, as Exp(-xi) T_cb = T_cb Exp(-Ad(T_cb^-1) xi), the board Jacobian is
-    J_board = -J_cam Ad(T_cb) with Ad(T) = [[R, 0], [[t]x R, R]] (equal to
-    d(u,v)/dp_cam R_cb [-[P_b]x, I])."""
+    p_cam = T_ref_cam^-1 T_ref_board p_board = R_cb P_b + t_cb, projected by the camera model
+    (:mod:`rgbd_calib.camera`; the pixels are already undistorted). Returns the pixels (N,2)
+    and, with ``jacobians``, d(u,v)/dxi (N,2,6) for the camera and for the board, for right
+    perturbations T <- T Exp([w, v]) (GTSAM's Pose3 convention, rotation first): J_cam is
+    :func:`~rgbd_calib.camera.pinhole_pose_jacobian` (dp_cam/dxi_cam = [[p_cam]x, -I]) and,
+    as Exp(-xi) T_cb = T_cb Exp(-Ad(T_cb^-1) xi), the board Jacobian is
+    J_board = -J_cam Ad(T_cb) (equal to d(u,v)/dp_cam R_cb [-[P_b]x, I])."""
     R_rc, t_rc = T_ref_cam[:3, :3], T_ref_cam[:3, 3]
     R_cb = R_rc.T @ T_ref_board[:3, :3]
     t_cb = R_rc.T @ (T_ref_board[:3, 3] - t_rc)
     p = P_b @ R_cb.T + t_cb  # (N,3) camera frame
     fx, fy = K[0, 0], K[1, 1]
-    inv_z = 1.0 / p[:, 2]
-    x, y = p[:, 0] * inv_z, p[:, 1] * inv_z
-    uv = np.empty((len(p), 2))
-    uv[:, 0] = fx * x + K[0, 2]
-    uv[:, 1] = fy * y + K[1, 2]
+    uv = project_pinhole(p, fx, fy, K[0, 2], K[1, 2])
     if not jacobians:
         return uv, None, None
-    xy = x * y
-    J_cam = np.zeros((len(p), 2, 6))
-    J_cam[:, 0, 0] = fx * xy
-    J_cam[:, 0, 1] = -fx * (1.0 + x * x)
-    J_cam[:, 0, 2] = fx * y
-    J_cam[:, 0, 3] = -fx * inv_z
-    J_cam[:, 0, 5] = fx * x * inv_z
-    J_cam[:, 1, 0] = fy * (1.0 + y * y)
-    J_cam[:, 1, 1] = -fy * xy
-    J_cam[:, 1, 2] = -fy * x
-    J_cam[:, 1, 4] = -fy * inv_z
-    J_cam[:, 1, 5] = fy * y * inv_z
-    minus_ad = np.zeros((6, 6))  # -Ad(T_cb)
-    minus_ad[:3, :3] = -R_cb
-    minus_ad[3:, 3:] = -R_cb
-    tx, ty, tz = t_cb
-    minus_ad[3:, :3] = -np.array([[0.0, -tz, ty], [tz, 0.0, -tx], [-ty, tx, 0.0]]) @ R_cb
-    J_board = J_cam @ minus_ad
+    J_cam = pinhole_pose_jacobian(p, fx, fy)
+    J_board = J_cam @ -adjoint(make_transform(R_cb, t_cb))
     return uv, J_cam, J_board
 
 

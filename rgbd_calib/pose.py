@@ -23,9 +23,9 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from .board import Board
+from .camera import CameraIntrinsics
 from .detection import MarkerDetections
 from .geometry import make_transform, rotation_angle_deg, rotvec_to_matrix, skew
-from .rig import CameraIntrinsics
 
 
 class PoseConfig(BaseModel, extra="forbid"):
@@ -426,16 +426,3 @@ def estimate_board_pose(
         sigma,
         dropped,
     )
-
-
-def undistort_pixels(corners_px: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
-    """Pixels ``(..., 2)`` with the lens distortion removed, in the same pinhole camera
-    (``K``): what the bundle adjustment's pinhole projection factors expect."""
-    pts = np.asarray(corners_px, dtype=np.float64)
-    if not intrinsics.has_distortion:
-        return pts.copy()
-    flat = pts.reshape(-1, 1, 2)
-    K = intrinsics.K
-    out = cv2.undistortPointsIter(flat, K, intrinsics.dist, None, K,
-                                  (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10))
-    return out.reshape(pts.shape)

@@ -20,9 +20,10 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from .camera import CameraIntrinsics
 from .dataset import FolderWriter
 from .errors import ConfigError, DatasetError
-from .rig import CAMERA_NAME, CameraIntrinsics, Rig
+from .rig import CAMERA_NAME, Rig
 
 DEFAULT_MODE = (1280, 720, 30)  # width, height, fps: a D435i depth and colour mode
 HW_SYNC_MASTER, HW_SYNC_SLAVE = 1, 2  # rs.option.inter_cam_sync_mode values (D400)

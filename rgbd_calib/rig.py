@@ -1,4 +1,5 @@
-"""Camera intrinsics and the rig description (``rig.yaml``, docs/formats.md). Pure numpy."""
+"""The rig description (``rig.yaml``, docs/formats.md): cameras by name with their
+intrinsics (:class:`~rgbd_calib.camera.CameraIntrinsics`). Pure numpy."""
 
 from __future__ import annotations
 
@@ -8,8 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from .camera import DISTORTION_LENGTHS, CameraIntrinsics
 from .errors import ConfigError
 from .yamlio import check_keys, read_yaml_mapping, write_yaml
 
@@ -17,64 +17,6 @@ CAMERA_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 _CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "distortion", "depth_scale"}
 _DIST_ADVICE = "give OpenCV's k1 k2 p1 p2 k3, e.g. [0, 0, 0, 0, 0]"
 _ADVICE = "copy the colour intrinsics of the recorded resolution (rs-enumerate-devices -c)"
-
-
-@dataclass(frozen=True)
-class CameraIntrinsics:
-    """Pinhole + OpenCV distortion model of one colour sensor (depth is aligned to it)."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
-    depth_scale: float = 0.001  # metres per depth count
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def dist(self) -> np.ndarray:
-        return np.asarray(self.distortion, dtype=float)
-
-    @property
-    def has_distortion(self) -> bool:
-        return bool(np.any(self.dist != 0.0))
-
-    def project(self, points_cam: np.ndarray) -> np.ndarray:
-        """Project ``(N,3)`` camera-frame points (metres) to ``(N,2)`` pixels (no distortion
-        unless the model has some: then OpenCV's k1 k2 p1 p2 k3 model)."""
-        p = np.asarray(points_cam, dtype=float)
-        x = p[:, 0] / p[:, 2]
-        y = p[:, 1] / p[:, 2]
-        if self.has_distortion:
-            x, y = _distort(x, y, self.dist)
-        return np.column_stack([self.fx * x + self.cx, self.fy * y + self.cy])
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "width": self.width,
-            "height": self.height,
-            "fx": self.fx,
-            "fy": self.fy,
-            "cx": self.cx,
-            "cy": self.cy,
-            "distortion": list(self.distortion),
-            "depth_scale": self.depth_scale,
-        }
-
-
-def _distort(x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    k1, k2, p1, p2 = d[:4]
-    k3 = d[4] if d.size > 4 else 0.0
-    r2 = x * x + y * y
-    radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return xd, yd
 
 
 @dataclass(frozen=True)
@@ -144,7 +86,7 @@ def parse_camera(raw: Any, where: str) -> CameraIntrinsics:
         raise ConfigError(
             f"{where}.distortion: expected a list of numbers; {_DIST_ADVICE}"
         ) from exc
-    if len(dist) not in (4, 5, 8, 12, 14) or not all(math.isfinite(v) for v in dist):
+    if len(dist) not in DISTORTION_LENGTHS or not all(math.isfinite(v) for v in dist):
         raise ConfigError(
             f"{where}.distortion: expected 4, 5, 8, 12 or 14 finite OpenCV coefficients "
             f"(k1 k2 p1 p2 k3 ...), got {len(dist)}; {_DIST_ADVICE}"

@@ -22,11 +22,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .board import BACK, FRONT, Board
+from .camera import CameraIntrinsics
 from .dataset import FolderWriter, staged_folder
 from .errors import ConfigError
 from .geometry import invert_transform, look_at, make_transform, rotvec_to_matrix
 from .parallel import process_context
-from .rig import CameraIntrinsics, Rig
+from .rig import Rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
 from .yamlio import write_yaml
 

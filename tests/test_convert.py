@@ -17,10 +17,11 @@ import cv2
 import numpy as np
 import pytest
 
+from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.errors import ConfigError, DatasetError
 from rgbd_calib.geometry import invert_transform, make_transform, rotvec_to_matrix
-from rgbd_calib.rig import CameraIntrinsics, load_rig
+from rgbd_calib.rig import load_rig
 from rgbd_calib.sources import (
     align_depth_to_color,
     convert,

@@ -129,7 +129,7 @@ def test_static_cloud_is_the_scene_without_the_board_and_less_noisy(line, line_c
         assert np.abs(normalised).max() < MAX_POINT_Z, np.abs(normalised).max()
         assert 0.7 < normalised.std() < 1.3
         # back-projection: x, y follow z along the pixel ray
-        ray = D.normalized_rays(cam.intrinsics, u, v)
+        ray = cam.intrinsics.rays(u, v)
         np.testing.assert_allclose(cloud.points[:, :2], ray[:, :2] * cloud.points[:, 2:],
                                    atol=1e-5)
         # noise reduced vs a single frame (scene pixels of that frame)

@@ -20,6 +20,7 @@ import pytest
 
 from rgbd_calib import synth
 from rgbd_calib.board import BACK, FRONT, Board, load_board
+from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.detection import (
     DetectionConfig,
     MarkerDetections,
@@ -27,7 +28,6 @@ from rgbd_calib.detection import (
     marker_pattern,
 )
 from rgbd_calib.geometry import make_transform, rotvec_to_matrix, transform_points
-from rgbd_calib.rig import CameraIntrinsics
 from rgbd_calib.scene import rect
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

@@ -11,6 +11,7 @@ import pytest
 import yaml
 from conftest import assert_transforms_close
 
+from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.exports import (
     EXPORT_FILES,
     g2o_information,
@@ -32,7 +33,7 @@ from rgbd_calib.geometry import (
 from rgbd_calib.graph import PoseEdge
 from rgbd_calib.posegraph_csv import camera_node_id, read_edges_csv, read_nodes_csv
 from rgbd_calib.results import CameraExtrinsics, Extrinsics
-from rgbd_calib.rig import CameraIntrinsics, Rig
+from rgbd_calib.rig import Rig
 
 EXACT_MM = 1e-9
 EXACT_DEG = 1e-5  # arccos resolution of transform_error

@@ -1,10 +1,13 @@
 """Property tests of the rigid-body helpers (group axioms, round trips)."""
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.linalg import expm
 
 from rgbd_calib.geometry import (
+    adjoint,
     invert_transform,
     is_rigid,
     look_at,
@@ -13,6 +16,7 @@ from rgbd_calib.geometry import (
     matrix_to_rotvec,
     quaternion_xyzw_to_matrix,
     rotvec_to_matrix,
+    skew,
     transform_error,
     transform_points,
 )
@@ -64,3 +68,25 @@ def test_look_at_is_opencv_optical_frame():
     np.testing.assert_allclose(R[:, 2], [0, 1, 0], atol=1e-12)  # z forward
     np.testing.assert_allclose(R[:, 1], [0, 0, -1], atol=1e-12)  # y down
     np.testing.assert_allclose(R[:, 0], [1, 0, 0], atol=1e-12)  # x right
+
+
+def exp_se3(xi: np.ndarray) -> np.ndarray:
+    """``Exp([omega, v])`` by the matrix exponential of the twist (GTSAM's order)."""
+    twist = np.zeros((4, 4))
+    twist[:3, :3] = skew(xi[:3])
+    twist[:3, 3] = xi[3:]
+    return expm(twist)
+
+
+@settings(deadline=None)
+@given(transforms(), st.tuples(*[st.floats(-1, 1)] * 6).map(np.array))
+def test_adjoint_moves_a_right_perturbation_to_the_left(T_a_b, xi):
+    """T Exp(xi) = Exp(Ad(T) xi) T, the defining property of GTSAM's Pose3::AdjointMap."""
+    np.testing.assert_allclose(T_a_b @ exp_se3(xi), exp_se3(adjoint(T_a_b) @ xi) @ T_a_b,
+                               atol=1e-9)
+
+
+@given(transforms())
+def test_adjoint_is_gtsams(T_a_b):
+    gtsam = pytest.importorskip("gtsam")
+    np.testing.assert_allclose(adjoint(T_a_b), gtsam.Pose3(T_a_b).AdjointMap(), atol=1e-12)

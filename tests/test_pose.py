@@ -17,6 +17,7 @@ from scipy.linalg import expm
 
 from rgbd_calib import synth
 from rgbd_calib.board import BACK, FRONT, Board, load_board
+from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.detection import DetectionConfig, MarkerDetections, detect_markers
 from rgbd_calib.geometry import (
     invert_transform,
@@ -36,7 +37,6 @@ from rgbd_calib.pose import (
     reprojection_residuals,
     se3_exp,
 )
-from rgbd_calib.rig import CameraIntrinsics
 from rgbd_calib.scene import rect
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

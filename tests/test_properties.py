@@ -20,6 +20,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from rgbd_calib.board import Board, board_from_grid, load_board, save_board
+from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.errors import RgbdCalibError
 from rgbd_calib.geometry import (
     invert_transform,
@@ -37,7 +38,7 @@ from rgbd_calib.geometry import (
 )
 from rgbd_calib.pose import se3_exp
 from rgbd_calib.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
-from rgbd_calib.rig import CameraIntrinsics, Rig, load_rig, save_rig
+from rgbd_calib.rig import Rig, load_rig, save_rig
 
 # tmp_path is reused across examples: every example writes its own file first
 SETTINGS = settings(max_examples=60, deadline=None,

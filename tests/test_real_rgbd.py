@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
+from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.geometry import (
     look_at,
@@ -28,7 +29,6 @@ from rgbd_calib.geometry import (
 )
 from rgbd_calib.refine import refine_extrinsics
 from rgbd_calib.results import load_extrinsics
-from rgbd_calib.rig import CameraIntrinsics
 from rgbd_calib.scene import box, rect
 from rgbd_calib.synth import SynthCamera, load_ground_truth, render_background
 

@@ -12,11 +12,11 @@ import pytest
 import rgbd_calib.dataset as dataset_module
 import rgbd_calib.record as record_module
 from rgbd_calib.board import thesis_board
+from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.console import cli_record
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.errors import DatasetError
 from rgbd_calib.record import CapturedFrame, record
-from rgbd_calib.rig import CameraIntrinsics
 
 PERIOD_MS = 1000.0 / 30.0
 

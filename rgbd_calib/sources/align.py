@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 
+from ..camera import CameraIntrinsics
 from ..errors import DatasetError
-from ..rig import CameraIntrinsics
 
 
 def extrinsics_matrix(rotation: Sequence[float], translation: Sequence[float]) -> np.ndarray:
@@ -64,12 +63,7 @@ def align_depth_to_color(
 
     def corner_pixels(offset: float) -> np.ndarray:
         uv = np.column_stack([u + offset, v + offset]).astype(float)
-        if depth_intr.has_distortion:
-            xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), depth_intr.K, depth_intr.dist).reshape(
-                -1, 2
-            )
-        else:
-            xy = (uv - [depth_intr.cx, depth_intr.cy]) / [depth_intr.fx, depth_intr.fy]
+        xy = depth_intr.rays(uv[:, 0], uv[:, 1])[:, :2]
         p_depth = np.column_stack([xy * z[:, None], z])
         p_color = p_depth @ T_color_depth[:3, :3].T + T_color_depth[:3, 3]
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -19,10 +19,11 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..camera import CameraIntrinsics
 from ..dataset import FolderWriter, staged_folder
 from ..errors import ConfigError, DatasetError
 from ..progress import Progress, start
-from ..rig import CAMERA_NAME, CameraIntrinsics, Rig
+from ..rig import CAMERA_NAME, Rig
 from .align import align_depth_to_color
 from .realsense import read_sdk
 from .ros import read_ros

@@ -14,9 +14,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..camera import CameraIntrinsics
 from ..errors import DatasetError
 from ..progress import Progress, start
-from ..rig import CameraIntrinsics
 from .align import extrinsics_matrix
 from .staging import StagedCamera, StagedFrame, Stager, sanitize_name
 

@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..camera import CameraIntrinsics
 from ..dataset import write_png
-from ..rig import CAMERA_NAME, CameraIntrinsics
+from ..rig import CAMERA_NAME
 
 
 @dataclass
