@@ -36,7 +36,7 @@ from .board import Board
 from .camera import CameraIntrinsics
 from .dataset import FolderDataset
 from .errors import DatasetError
-from .geometry import adjoint, invert_transform, skew, transform_error, transform_points
+from .geometry import invert_transform, skew, transform_error, transform_points
 
 Method = Literal["colored-icp", "geometric"]
 INFORMATION_FRAME = (
@@ -353,24 +353,6 @@ class PairRegistration:
             "accepted": self.accepted,
             "reason": self.reason,
             "time_s": self.time_s,
-        }
-
-
-@dataclass(frozen=True)
-class PairCrossCheck:
-    """Colored ICP against the geometric (kiss-icp) registration of the same pair."""
-
-    colored: PairRegistration
-    geometric: PairRegistration
-    disagreement_deg: float
-    disagreement_mm: float
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "colored": self.colored.to_dict(),
-            "geometric": self.geometric.to_dict(),
-            "disagreement_deg": self.disagreement_deg,
-            "disagreement_mm": self.disagreement_mm,
         }
 
 
@@ -1028,29 +1010,6 @@ def photometric_information(matches: _Matches, src: _Level, tgt: _Level,
     return J.T @ J / variance
 
 
-def information_from_open3d(information_o3d: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
-    """Convert Open3D's ``get_information_matrix_from_point_clouds(a, b, d, T_b_a)`` to the
-    right-perturbation information of ``T_b_a`` in GTSAM order.
-
-    Open3D (``GetInformationMatrixFromPointClouds``) sums ``G^T G`` with ``G = [-[q]x, I]``
-    at the target points q: the information of ``[omega, t]`` of a *left* perturbation
-    ``Exp(xi_L) T_b_a`` (b's frame), point-to-point, unit weights. With
-    ``Exp(xi_L) T = T Exp(xi_R)``, ``xi_L = Ad(T) xi_R``, hence ``I_R = Ad(T)^T I_L Ad(T)``."""
-    A = adjoint(T_b_a)
-    return A.T @ np.asarray(information_o3d, dtype=float) @ A
-
-
-def open3d_information(points_a: np.ndarray, points_b: np.ndarray, max_distance_m: float,
-                       T_b_a: np.ndarray) -> np.ndarray:
-    """Open3D's ``get_information_matrix_from_point_clouds`` of a's points (N,3) against b's
-    under ``T_b_a``, as Open3D returns it (left perturbation in b, see
-    :func:`information_from_open3d` for the conversion)."""
-    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_a, float)))
-    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_b, float)))
-    return np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
-        source, target, max_distance_m, np.asarray(T_b_a, dtype=float)))
-
-
 def conditioning(information: np.ndarray, points_a: np.ndarray) -> float:
     """Smallest over largest eigenvalue of ``information`` (right perturbation of ``T_b_a``,
     [rot, trans]) re-expressed about the centroid ``c`` of the overlap ``points_a`` (a's frame)
@@ -1230,22 +1189,7 @@ def register_pair(
     )
 
 
-def cross_check_pair(
-    cloud_a: CameraCloud,
-    cloud_b: CameraCloud,
-    T_ref_a: np.ndarray,
-    T_ref_b: np.ndarray,
-    config: DepthConfig | None = None,
-) -> PairCrossCheck:
-    """Register a pair with colored ICP and with geometric ICP and report how far apart the
-    two ``T_b_a`` are (deg, mm)."""
-    colored = register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, "colored-icp", config)
-    geometric = register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, "geometric", config)
-    deg, mm = transform_error(colored.T_b_a, geometric.T_b_a)
-    return PairCrossCheck(colored, geometric, deg, mm)
 
-
-# --------------------------------------------------------------------------- overlap error
 def overlap_error(
     cloud_a: CameraCloud,
     cloud_b: CameraCloud,
