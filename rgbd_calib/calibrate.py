@@ -20,60 +20,30 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from .board import Board
+from .config import CalibrationConfig, DetectionConfig
 from .dataset import FolderDataset, read_color_image
-from .depth import DepthConfig
-from .detection import DetectionConfig, MarkerDetections, detect_markers, limit_threads
+from .detection import MarkerDetections, detect_markers, limit_threads
 from .errors import CalibrationError
 from .graph import (
-    BundleConfig,
     BundleResult,
     MarkerMeasurement,
     PoseEdge,
-    PoseGraphConfig,
     PoseGraphResult,
     bundle_adjust,
     calibrate_pose_graph,
 )
 from .parallel import process_context
-from .pose import BoardObservation, PoseConfig, RejectedView, estimate_board_pose, undistort_pixels
+from .pose import BoardObservation, RejectedView, estimate_board_pose, undistort_pixels
 from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
 from .results import CameraExtrinsics, Extrinsics
 from .yamlio import atomic_write_text
 
 CACHE_VERSION = 1
-
-
-class CalibrationConfig(BaseModel):
-    """Every setting of a calibration run; a YAML file may override any subset."""
-
-    model_config = ConfigDict(extra="forbid")
-    detection: DetectionConfig = Field(default_factory=DetectionConfig)
-    pose: PoseConfig = Field(default_factory=PoseConfig)
-    graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
-    bundle: BundleConfig = Field(default_factory=BundleConfig)
-    depth: DepthConfig = Field(default_factory=DepthConfig)
-    refine: Literal["auto", "colored-icp", "geometric", "none"] = Field(
-        "auto", description="depth refinement after the board solve: colored ICP, kiss-icp's "
-        "geometric ICP, or none; auto = colored-icp when the dataset has depth (bundle method "
-        "only)")
-    method: Literal["bundle", "posegraph"] = Field(
-        "bundle",
-        description="final estimate: joint bundle adjustment on marker corners "
-        "(initialised from the pose graph) or the pose graph alone (the thesis method)",
-    )
-    workers: int | None = Field(None, ge=1, description="detection processes; default: all cores")
-    edge_covariance: bool = Field(
-        True,
-        description="weight pose-graph edges by their PnP "
-        "covariance (off: one isotropic sigma for every edge, as the "
-        "thesis did)",
-    )
 
 
 @dataclass(frozen=True)

@@ -19,12 +19,12 @@ from typing import Any
 
 import numpy as np
 
+from .config import PoseGraphConfig
 from .errors import CalibrationError
 from .exports import write_exports
 from .graph import (
     EdgeResidual,
     PoseEdge,
-    PoseGraphConfig,
     PoseGraphResult,
     calibrate_pose_graph,
     median_edge_residual,

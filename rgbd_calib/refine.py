@@ -22,10 +22,10 @@ from typing import Any, Literal
 import numpy as np
 
 from .board import Board
+from .config import BundleConfig, DepthConfig
 from .dataset import FolderDataset
 from .depth import (
     CameraCloud,
-    DepthConfig,
     DepthScaleEstimate,
     estimate_depth_scale,
     find_overlapping_pairs,
@@ -36,7 +36,7 @@ from .depth import (
 )
 from .errors import CalibrationError, DatasetError
 from .geometry import invert_transform
-from .graph import BundleConfig, RelativePose, bundle_adjust
+from .graph import RelativePose, bundle_adjust
 from .results import CameraExtrinsics, Extrinsics
 
 RefineMethod = Literal["colored-icp", "geometric", "none"]

@@ -292,13 +292,6 @@ def test_default_sigmas_are_estimated_from_the_residuals(rng):
         assert_transforms_close(result.T_ref_cam[cam], T, atol_mm=ATOL_MM, atol_deg=ATOL_DEG)
 
 
-def test_config_rejects_unknown_keys():
-    with pytest.raises(ValueError):
-        PoseGraphConfig(kernal="huber")
-    with pytest.raises(ValueError):
-        PoseGraphConfig(kernel="welsch")
-
-
 # ---------------------------------------------------------------------------------------------
 # The thesis's real data (Nodes.csv / Edges.csv / optimised_camera_poses.csv)
 
