@@ -26,8 +26,8 @@ import numpy as np
 
 from .board import Board
 from .config import CalibrationConfig, DetectionConfig
-from .dataset import FolderDataset, read_color_image
-from .detection import MarkerDetections, detect_markers, limit_threads
+from .dataset import FolderDataset
+from .detection import MarkerDetections, detect_job, init_detector
 from .errors import CalibrationError
 from .graph import (
     BundleResult,
@@ -64,20 +64,6 @@ class CalibrationResult:
 
 
 # ----------------------------------------------------------------------------- detection stage
-_WORKER: dict[str, Any] = {}
-
-
-def _init_detector(board: Board, config: DetectionConfig, threads: int = 1) -> None:
-    limit_threads(threads)  # one process per core already
-    _WORKER["board"], _WORKER["config"] = board, config
-
-
-def _detect_job(job: tuple[str, str, str, int, int]) -> tuple[str, str, dict]:
-    camera, frame, path, width, height = job
-    gray = read_color_image(Path(path), width, height, gray=True)
-    return camera, frame, detect_markers(gray, _WORKER["board"], _WORKER["config"]).to_dict()
-
-
 def _fingerprint(board: Board, config: DetectionConfig) -> str:
     text = json.dumps(
         [board.to_dict(), board.corners.tolist(), config.model_dump(), CACHE_VERSION],
@@ -141,17 +127,17 @@ def detect_dataset(
     done_since_save = 0
     try:
         if workers <= 1 or len(jobs) < 8:
-            _init_detector(board, config, threads=-1)
-            iterator = map(_detect_job, jobs)
+            init_detector(board, config, threads=-1)
+            iterator = map(detect_job, jobs)
             executor = None
         else:
             executor = ProcessPoolExecutor(
                 workers,
                 mp_context=process_context(),
-                initializer=_init_detector,
+                initializer=init_detector,
                 initargs=(board, config),
             )
-            iterator = executor.map(_detect_job, jobs, chunksize=4)
+            iterator = executor.map(detect_job, jobs, chunksize=4)
         for cam, frame, det in iterator:
             results[(cam, frame)] = MarkerDetections.from_dict(det)
             done_since_save += 1

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -27,6 +28,7 @@ from scipy.special import ndtr
 
 from .board import Board, aruco_dictionary
 from .config import DetectionConfig
+from .dataset import read_color_image
 from .rig import CameraIntrinsics
 
 _CV_REFINE = {
@@ -764,3 +766,23 @@ def refine_corners_edges(
 def limit_threads(threads: int) -> None:
     """OpenCV's own thread pool size (1 inside worker processes, -1 = OpenCV's default)."""
     cv2.setNumThreads(threads)
+
+
+# --------------------------------------------------------------------------- process-pool worker
+# calibrate.detect_dataset runs these two in its pool. They live here, not in calibrate.py, so a
+# worker process imports the detection stage only (cv2), never graph (gtsam) or depth (open3d).
+_WORKER: dict[str, Any] = {}
+
+
+def init_detector(board: Board, config: DetectionConfig, threads: int = 1) -> None:
+    """Pool initializer: keep ``board`` and ``config`` for :func:`detect_job`."""
+    limit_threads(threads)  # one process per core already
+    _WORKER["board"], _WORKER["config"] = board, config
+
+
+def detect_job(job: tuple[str, str, str, int, int]) -> tuple[str, str, dict]:
+    """``(camera, frame, colour image path, width, height)`` -> ``(camera, frame,
+    MarkerDetections.to_dict())``, with the board and config of :func:`init_detector`."""
+    camera, frame, path, width, height = job
+    gray = read_color_image(Path(path), width, height, gray=True)
+    return camera, frame, detect_markers(gray, _WORKER["board"], _WORKER["config"]).to_dict()

@@ -90,3 +90,65 @@ def test_written_config_reads_back_unchanged(tmp_path):
     write_config(cfg, path)
     assert load_config(path) == cfg
     assert path.read_text().startswith("detection:\n")  # field order, as in the model
+
+
+# The child process of the test below: validate a config from YAML + overrides, then do what a
+# pool worker of calibrate.detect_dataset does (import the initializer and job it is given by
+# reference, run them on one image); print the marker ids found and the heavy modules loaded.
+_CHILD = """
+import importlib, json, sys
+from pathlib import Path
+
+from rgbd_calib.config import load_config
+
+config_path, image, width, height, *functions = sys.argv[1:]
+cfg = load_config(Path(config_path), method="posegraph", **{"detection.refinement": "subpix"})
+assert cfg.pose.min_markers == 2 and cfg.detection.refinement == "subpix", cfg
+
+from rgbd_calib.board import thesis_board
+
+init, job = (getattr(importlib.import_module(f.split(":")[0]), f.split(":")[1]) for f in functions)
+init(thesis_board(), cfg.detection)
+_, _, det = job(("cam0", "000000", image, int(width), int(height)))
+heavy = sorted(m for m in ("open3d", "kiss_icp", "gtsam") if m in sys.modules)
+print(json.dumps({"ids": det["ids"], "heavy": heavy}))
+"""
+
+
+def test_config_and_a_detection_worker_load_no_open3d_kiss_icp_or_gtsam(tmp_path):
+    """Validating a config and starting a detection worker must stay light: a worker imports
+    the module of the function the pool runs, so that module must not pull in graph/depth."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    import cv2
+    import numpy as np
+
+    from rgbd_calib import calibrate
+    from rgbd_calib.board import aruco_dictionary, thesis_board
+
+    board = thesis_board()
+    marker_id = int(board.ids[5])
+    image = np.full((360, 640), 255, np.uint8)
+    marker = cv2.aruco.generateImageMarker(aruco_dictionary(board.dictionary), marker_id, 120)
+    image[100:220, 250:370] = marker
+    image_path = tmp_path / "000000.png"
+    cv2.imwrite(str(image_path), cv2.GaussianBlur(image, (0, 0), 0.7))
+    config_path = tmp_path / "calib.yaml"
+    config_path.write_text("pose:\n  min_markers: 2\ndetection:\n  refinement: edges\n")
+    pool_functions = [calibrate.init_detector, calibrate.detect_job]  # what detect_dataset runs
+    refs = [f"{f.__module__}:{f.__qualname__}" for f in pool_functions]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    done = subprocess.run(
+        [sys.executable, "-c", _CHILD, str(config_path), str(image_path), "640", "360", *refs],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["ids"] == [marker_id]  # the job really ran
+    assert result["heavy"] == []
