@@ -32,7 +32,6 @@ from .errors import CalibrationError
 from .graph import (
     BundleResult,
     MarkerMeasurement,
-    PoseEdge,
     PoseGraphResult,
     bundle_adjust,
     calibrate_pose_graph,
@@ -40,7 +39,7 @@ from .graph import (
 from .parallel import process_context
 from .pose import BoardObservation, RejectedView, estimate_board_pose, undistort_pixels
 from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
-from .results import CameraExtrinsics, Extrinsics
+from .results import CameraExtrinsics, Extrinsics, PoseEdge
 from .yamlio import atomic_write_text
 
 CACHE_VERSION = 1

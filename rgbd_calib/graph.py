@@ -35,24 +35,11 @@ from scipy.stats import chi2
 from .config import BundleConfig, PoseGraphConfig
 from .errors import CalibrationError
 from .geometry import invert_transform, orthonormalize, rotation_angle_deg
-from .results import CameraExtrinsics, Extrinsics
+from .results import CameraExtrinsics, Extrinsics, PoseEdge
 
 # Median of a chi distribution with 3 dof: median |x| of an isotropic 3D Gaussian / sigma.
 _CHI3_MEDIAN = float(np.sqrt(chi2.ppf(0.5, 3)))
 REASON_NO_SHARED_VIEW = "shares no board view with any connected camera"
-
-
-@dataclass(frozen=True)
-class PoseEdge:
-    """One detection: board view ``view`` seen by ``camera`` as ``T_cam_board`` (4x4, metres).
-
-    ``covariance`` is 6x6 in GTSAM order ``[rot rad, trans m]``, in the body frame of the board
-    pose (a right perturbation ``T_cam_board @ Exp(xi)``); ``None`` = the config's default."""
-
-    camera: str
-    view: str
-    T_cam_board: np.ndarray
-    covariance: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -24,13 +24,12 @@ from .errors import CalibrationError
 from .exports import write_exports
 from .graph import (
     EdgeResidual,
-    PoseEdge,
     PoseGraphResult,
     calibrate_pose_graph,
     median_edge_residual,
 )
 from .posegraph_csv import camera_name, read_edges_csv, read_nodes_csv
-from .results import Extrinsics, write_extrinsics
+from .results import Extrinsics, PoseEdge, write_extrinsics
 from .yamlio import atomic_write_text, to_builtin, write_yaml
 
 REPORT_FILE = "posegraph_report.json"

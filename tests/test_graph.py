@@ -21,7 +21,6 @@ from rgbd_calib.geometry import (
 )
 from rgbd_calib.graph import (
     REASON_NO_SHARED_VIEW,
-    PoseEdge,
     PoseGraphConfig,
     calibrate_pose_graph,
     flag_stale_edges,
@@ -31,6 +30,7 @@ from rgbd_calib.graph import (
     robust_mean_pose,
     solve_pose_graph,
 )
+from rgbd_calib.results import PoseEdge
 
 THESIS = Path(__file__).resolve().parents[2] / "shared/data/thesis-posegraph"
 
