@@ -18,62 +18,31 @@ import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from .board import Board
-from .dataset import FolderDataset, read_color_image
-from .depth import DepthConfig
-from .detection import DetectionConfig, MarkerDetections, detect_markers, limit_threads
+from .config import CalibrationConfig, DetectionConfig, PoseConfig
+from .dataset import FolderDataset
+from .detection import MarkerDetections, detect_job, init_detector
 from .errors import CalibrationError
 from .graph import (
-    BundleConfig,
     BundleResult,
     MarkerMeasurement,
-    PoseEdge,
-    PoseGraphConfig,
     PoseGraphResult,
     bundle_adjust,
     calibrate_pose_graph,
 )
 from .parallel import process_context
-from .pose import BoardObservation, PoseConfig, RejectedView, estimate_board_pose
+from .pose import BoardObservation, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
 from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
-from .results import CameraExtrinsics, Extrinsics, cameras_from_solve
+from .results import CameraExtrinsics, Extrinsics, PoseEdge, cameras_from_solve
 from .rig import Rig
 from .yamlio import atomic_write_text
 
 CACHE_VERSION = 1
-
-
-class CalibrationConfig(BaseModel):
-    """Every setting of a calibration run; a YAML file may override any subset."""
-
-    model_config = ConfigDict(extra="forbid")
-    detection: DetectionConfig = Field(default_factory=DetectionConfig)
-    pose: PoseConfig = Field(default_factory=PoseConfig)
-    graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
-    bundle: BundleConfig = Field(default_factory=BundleConfig)
-    depth: DepthConfig = Field(default_factory=DepthConfig)
-    refine: Literal["auto", "colored-icp", "geometric", "none"] = Field(
-        "auto", description="depth refinement after the board solve: colored ICP, kiss-icp's "
-        "geometric ICP, or none; auto = colored-icp when the dataset has depth (bundle method "
-        "only)")
-    method: Literal["bundle", "posegraph"] = Field(
-        "bundle",
-        description="final estimate: joint bundle adjustment on marker corners "
-        "(initialised from the pose graph) or the pose graph alone (the thesis method)",
-    )
-    workers: int | None = Field(None, ge=1, description="detection processes; default: all cores")
-    edge_covariance: bool = Field(
-        True,
-        description="weight pose-graph edges by their PnP "
-        "covariance (off: one isotropic sigma for every edge, as the "
-        "thesis did)",
-    )
 
 
 @dataclass(frozen=True)
@@ -94,20 +63,6 @@ class CalibrationResult:
 
 
 # ----------------------------------------------------------------------------- detection stage
-_WORKER: dict[str, Any] = {}
-
-
-def _init_detector(board: Board, config: DetectionConfig, threads: int = 1) -> None:
-    limit_threads(threads)  # one process per core already
-    _WORKER["board"], _WORKER["config"] = board, config
-
-
-def _detect_job(job: tuple[str, str, str, int, int]) -> tuple[str, str, dict]:
-    camera, frame, path, width, height = job
-    gray = read_color_image(Path(path), width, height, gray=True)
-    return camera, frame, detect_markers(gray, _WORKER["board"], _WORKER["config"]).to_dict()
-
-
 def _fingerprint(board: Board, config: DetectionConfig) -> str:
     text = json.dumps(
         [board.to_dict(), board.corners.tolist(), config.model_dump(), CACHE_VERSION],
@@ -171,17 +126,17 @@ def detect_dataset(
     done_since_save = 0
     try:
         if workers <= 1 or len(jobs) < 8:
-            _init_detector(board, config, threads=-1)
-            iterator = map(_detect_job, jobs)
+            init_detector(board, config, threads=-1)
+            iterator = map(detect_job, jobs)
             executor = None
         else:
             executor = ProcessPoolExecutor(
                 workers,
                 mp_context=process_context(),
-                initializer=_init_detector,
+                initializer=init_detector,
                 initargs=(board, config),
             )
-            iterator = executor.map(_detect_job, jobs, chunksize=4)
+            iterator = executor.map(detect_job, jobs, chunksize=4)
         for cam, frame, det in iterator:
             results[(cam, frame)] = MarkerDetections.from_dict(det)
             done_since_save += 1

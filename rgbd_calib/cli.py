@@ -211,34 +211,6 @@ def synth(
     console.print(f"wrote {len(ds.rig.cameras)} cameras x {frames} frames to {ds.path}")
 
 
-def _load_config(path: Path | None, **overrides):
-    """CalibrationConfig from an optional YAML file (any subset of keys), then CLI overrides."""
-    from pydantic import ValidationError
-
-    from .calibrate import CalibrationConfig
-    from .errors import ConfigError
-    from .yamlio import read_yaml_mapping
-
-    data = read_yaml_mapping(path, "config file") if path else {}
-    for dotted, value in overrides.items():
-        if value is None:
-            continue
-        node = data
-        *parents, leaf = dotted.split(".")
-        for key in parents:
-            node = node.setdefault(key, {})
-        node[leaf] = value
-    try:
-        return CalibrationConfig.model_validate(data)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(x) for x in err["loc"])
-        raise ConfigError(
-            f"{path or 'options'}: {where}: {err['msg']}; fix this setting "
-            "(config_resolved.yaml beside any result lists them all)"
-        ) from None
-
-
 NAMES_OPTION = typer.Option(
     help="Recordings only: comma-separated camera names, in source order "
     "(default: serial / ROS namespace)."
@@ -319,10 +291,11 @@ def calibrate(
 ) -> None:
     """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports."""
     from .board import load_board, thesis_board
+    from .config import load_config
     from .results import load_extrinsics
 
     _check_output_folder(out)
-    cfg = _load_config(config, method=method, workers=workers, refine=refine)
+    cfg = load_config(config, method=method, workers=workers, refine=refine)
     b = load_board(board_file) if board_file else thesis_board()
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     fixed = None
@@ -470,8 +443,8 @@ def posegraph(
     """Robustly optimise a thesis-format pose graph (Nodes.csv / Edges.csv)."""
     from pydantic import ValidationError
 
+    from .config import PoseGraphConfig
     from .errors import ConfigError
-    from .graph import PoseGraphConfig
     from .outputs import write_posegraph_outputs
     from .posegraph_pipeline import run_posegraph
 

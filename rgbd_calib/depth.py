@@ -29,11 +29,11 @@ import open3d as o3d
 from kiss_icp.mapping import VoxelHashMap
 from kiss_icp.registration import Registration
 from kiss_icp.voxelization import voxel_down_sample
-from pydantic import BaseModel, Field, model_validator
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from .board import Board
 from .camera import CameraIntrinsics
+from .config import DepthConfig
 from .dataset import FolderDataset
 from .errors import DatasetError
 from .geometry import invert_transform, skew, transform_error, transform_points
@@ -45,144 +45,6 @@ INFORMATION_FRAME = (
     "T_b_a) uses exactly this tangent space)"
 )
 _MEDIAN_EFFICIENCY = math.pi / 2.0  # var(median of n Gaussian samples) ~ pi/2 * sigma^2 / n
-
-
-# --------------------------------------------------------------------------- config
-class DepthConfig(BaseModel, extra="forbid"):
-    """Settings of the depth stage (static clouds, depth-scale bias, overlap, ICP)."""
-
-    # static clouds
-    max_frames: int = Field(
-        15, ge=1, description="Frames per camera in the temporal median, sampled evenly over "
-        "the set; the stack is (max_frames, H, W) float32, so memory stays bounded.")
-    board_mask_margin_m: float = Field(
-        0.03, ge=0, description="The board's panel is grown by this margin (all sides and both "
-        "faces) before it is projected into a frame and masked out.")
-    board_mask_dilate_px: float = Field(
-        3.0, ge=0, description="Extra dilation of the projected board mask (px).")
-    motion_k: float = Field(
-        3.0, gt=0, description="A pixel whose depth spread over frames (1.4826 MAD) exceeds "
-        "motion_k single-frame sigma_z is moving and dropped.")
-    min_samples: int = Field(
-        3, ge=1, description="Fewest valid depth samples for a pixel of the median (capped by "
-        "the frames in which the board left it free, but at least 2 when 2 frames or more "
-        "were read).")
-    min_valid_fraction: float = Field(
-        0.5, ge=0, le=1, description="Fewest valid samples as a fraction of the frames in "
-        "which the pixel was not covered by the board (intermittent depth is dropped).")
-    min_range_m: float = Field(0.3, gt=0, description="Nearest depth kept (m).")
-    max_range_m: float = Field(4.0, gt=0, description="Farthest depth kept (m).")
-    edge_jump_sigmas: float | None = Field(
-        10.0, gt=0, description="Drop depth-edge pixels (flying pixels): a disparity (1/z) jump "
-        "to a 4-neighbour above this many single-frame disparity sigmas s/(f B). None keeps "
-        "them.")
-    subpixel_px: float = Field(
-        0.08, gt=0, description="D435 subpixel disparity error s (px) of the noise model.")
-    baseline_m: float = Field(0.050, gt=0, description="D435 stereo baseline B (m).")
-    depth_focal_px: float | None = Field(
-        None, gt=0, description="Focal length f (px) of the noise model; None: the colour fx "
-        "(depth is aligned to colour).")
-    # depth-scale bias
-    scale_face_margin_m: float = Field(
-        0.02, ge=0, description="Board-face pixels closer than this to the panel's outline are "
-        "not used for the depth scale (mixed edge pixels).")
-    scale_max_view_angle_deg: float = Field(
-        70.0, gt=0, lt=90, description="Frames that see the board face more obliquely are "
-        "skipped for the depth scale.")
-    scale_min_points: int = Field(
-        200, ge=10, description="Fewest board-face pixels for a frame to count.")
-    scale_huber_k: float = Field(
-        1.5, gt=0, description="Huber threshold (sigmas) of the per-pixel and per-frame fits.")
-    # overlap
-    overlap_voxel_m: float = Field(
-        0.05, gt=0, description="Voxel size of the clouds used to measure overlap.")
-    overlap_distance_m: float = Field(
-        0.05, gt=0, description="A point overlaps the other camera's cloud if a point of it "
-        "lies within this distance (allow for the extrinsics' current error).")
-    min_overlap: float = Field(
-        0.05, ge=0, le=1, description="Smallest overlap fraction (min over both directions) "
-        "for a pair to be registered.")
-    # registration
-    voxel_schedule_m: list[float] = Field(
-        [0.04, 0.02, 0.01], min_length=1, description="Coarse-to-fine voxel sizes of the "
-        "multi-scale ICP (m), strictly decreasing.")
-    iterations: list[int] = Field(
-        [50, 30, 14], min_length=1, description="ICP iterations per voxel level.")
-    normal_voxel_m: float = Field(
-        0.02, gt=0, description="Normals are estimated once per cloud on its voxel means of "
-        "this size and given to every level's points by nearest neighbour.")
-    normal_radius_m: float = Field(
-        0.08, gt=0, description="Radius of the normal estimation (m): large enough to average "
-        "the depth noise of far surfaces (D435 sigma_z grows with z^2).")
-    max_correspondence_factor: float = Field(
-        1.0, gt=0, description="Correspondence distance of each level in voxels of that level "
-        "(1.0 as in Open3D's multi-scale colored ICP example; 1.5 and 2.5 were less accurate "
-        "on the synthetic rigs).")
-    lambda_geometric: float = Field(
-        0.968, gt=0, le=1, description="Weight of the geometric term in colored ICP (Park et "
-        "al. 2017, the rest is the photometric term).")
-    icp_backend: Literal["legacy", "tensor"] = Field(
-        "legacy", description="Open3D API for colored ICP: 'legacy' (o3d.pipelines) or "
-        "'tensor' (o3d.t, level by level); same result within 0.001 deg / 0.05 mm on the "
-        "synthetic pairs, legacy 10-20% faster here: the levels are built once in numpy, so "
-        "the tensor API's speed-up does not show.")
-    kiss_kernel_factor: float = Field(
-        0.33, gt=0, description="Geometric ICP (kiss-icp): robust kernel scale in voxels of "
-        "the level.")
-    kiss_max_points_per_voxel: int = Field(
-        20, ge=1, description="Geometric ICP: points kept per voxel of kiss-icp's map.")
-    kiss_max_iterations: int = Field(100, ge=1, description="Geometric ICP: iterations per "
-                                     "level (kiss-icp stops earlier when converged).")
-    icp_max_sigma_z_m: float = Field(
-        0.015, gt=0, description="Registration uses only points whose depth sigma (of the "
-        "median, D435 model) is below this (m): unweighted ICP is spoiled by far, noisy points "
-        "(sigma_z grows with z^2; at 640x360 and 8 frames 0.015 m is reached near 2.5 m).")
-    max_incidence_deg: float = Field(
-        80.0, gt=0, le=90, description="Before ICP, points whose surface the other camera "
-        "would see from behind or more obliquely than this are dropped (thin rails and posts "
-        "seen from opposite sides are not common surfaces).")
-    crop_margin_px: float = Field(
-        20.0, ge=0, description="Before ICP each cloud is cropped to the other camera's view "
-        "under the initial guess, grown by this many pixels.")
-    eval_distance_m: float = Field(
-        0.05, gt=0, description="Correspondence distance of the point-to-plane RMSE reported "
-        "before and after registration.")
-    information_inflation: float = Field(
-        100.0, ge=1, description="Covariance multiplier on the ICP information. The raw "
-        "Gauss-Newton information only knows the depth noise; the errors left by colour, "
-        "sampling and normal biases were 3-50x its sigma (Mahalanobis) on the synthetic rigs "
-        "(640x360 to 848x480, 3-8 frames), so the default widens sigma 10x.")
-    min_correspondences: int = Field(500, ge=6, description="Reject a pair with fewer "
-                                     "correspondences at the finest level.")
-    min_fitness: float = Field(
-        0.3, ge=0, le=1, description="Reject a pair when fewer than this fraction of the "
-        "cropped source points find a correspondence at the finest level.")
-    max_rmse_mm: float = Field(
-        15.0, gt=0, description="Reject a pair whose point-to-plane RMSE after registration "
-        "exceeds this (mm).")
-    min_conditioning: float = Field(
-        0.02, ge=0, le=1, description="Reject a pair whose normalised information (Gelfand et "
-        "al. 2003; point-to-plane, plus the photometric term for colored ICP) has smallest / "
-        "largest eigenvalue below this: a direction the overlap does not constrain (a single "
-        "plane without texture). Measured: 0.02-0.12 for good pairs, < 0.001 for planes.")
-    max_correction_m: float = Field(
-        0.15, gt=0, description="Reject a registration that moved the pair by more than this "
-        "from the initial guess (m): a wrong local minimum.")
-    max_correction_deg: float = Field(10.0, gt=0, description="Same, rotation (deg).")
-    fused_voxel_m: float = Field(
-        0.005, ge=0, description="Voxel size of the fused cloud (per camera; 0 keeps all).")
-
-    @model_validator(mode="after")
-    def _check(self) -> DepthConfig:
-        if self.min_range_m >= self.max_range_m:
-            raise ValueError("min_range_m must be smaller than max_range_m")
-        if len(self.voxel_schedule_m) != len(self.iterations):
-            raise ValueError("voxel_schedule_m and iterations need one entry per level")
-        if any(b >= a for a, b in zip(self.voxel_schedule_m, self.voxel_schedule_m[1:])):
-            raise ValueError("voxel_schedule_m must be strictly decreasing")
-        if any(v <= 0 for v in self.voxel_schedule_m) or any(i < 1 for i in self.iterations):
-            raise ValueError("voxel sizes must be positive and iterations at least 1")
-        return self
 
 
 # --------------------------------------------------------------------------- results

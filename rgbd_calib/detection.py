@@ -19,158 +19,24 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Any, Literal
+from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, Field, model_validator
 from scipy.special import ndtr
 
 from .board import Board, aruco_dictionary
 from .camera import CameraIntrinsics
+from .config import DetectionConfig
+from .dataset import read_color_image
 
-Refinement = Literal["edges", "subpix", "none", "contour"]
 _CV_REFINE = {
     "edges": cv2.aruco.CORNER_REFINE_NONE,  # edge fit from the contour corners (fails less)
     "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
     "none": cv2.aruco.CORNER_REFINE_NONE,
     "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
 }
-
-
-class DetectionConfig(BaseModel, extra="forbid"):
-    """ArUco detection and corner refinement (the detection stage of the pipeline)."""
-
-    refinement: Refinement = Field(
-        "edges",
-        description="Corner refinement: 'edges' fits lines to the four outer marker "
-        "edges (unbiased; a corner it cannot fit gets OpenCV's SUBPIX refinement and "
-        "refined=False); 'subpix', 'none' and 'contour' are OpenCV's CORNER_REFINE_* methods "
-        "(biased 0.2-0.6 px towards the marker centre).",
-    )
-    min_marker_perimeter_px: float = Field(
-        40.0,
-        gt=0,
-        description="Smallest marker perimeter (px) the detector accepts; converted "
-        "to OpenCV's minMarkerPerimeterRate for each image size.",
-    )
-    error_correction_rate: float = Field(
-        0.6,
-        ge=0.0,
-        le=1.0,
-        description="OpenCV errorCorrectionRate: fraction of the "
-        "dictionary's correctable bits used. Lower it if foreign/stray ids appear.",
-    )
-    adaptive_thresh_win_size_min: int = Field(
-        3, ge=3, description="OpenCV adaptive threshold: smallest window (px)."
-    )
-    adaptive_thresh_win_size_max: int = Field(
-        23, ge=3, description="OpenCV adaptive threshold: largest window (px)."
-    )
-    adaptive_thresh_win_size_step: int = Field(
-        10, ge=1, description="OpenCV adaptive threshold: window step (px)."
-    )
-    subpix_win_size_px: int = Field(
-        5,
-        ge=1,
-        description="OpenCV cornerRefinementWinSize: upper bound of the SUBPIX half-window (px).",
-    )
-    subpix_relative_win_size: float = Field(
-        1.0,
-        gt=0,
-        description="OpenCV relativeCornerRefinmentWinSize: SUBPIX half-window as a "
-        "fraction of a marker module, capped by subpix_win_size_px. OpenCV's default 0.3 "
-        "shrinks the window to ~1 px on small markers (corner RMS ~0.8 px on the synthetic "
-        "renders); 1.0 measured best (~0.3 px RMS, ~0.2 px inward bias).",
-    )
-    subpix_max_iterations: int = Field(30, ge=1, description="SUBPIX iterations.")
-    subpix_min_accuracy_px: float = Field(0.01, gt=0, description="SUBPIX stopping accuracy.")
-    edge_span: tuple[float, float] = Field(
-        (0.15, 0.85),
-        description="Part of each edge sampled by the edge fit, as fractions of "
-        "its length from its first corner; keeps away from the blurred corners.",
-    )
-    edge_corner_margin_px: float = Field(
-        2.5,
-        ge=0,
-        description="Edge points stay at least this far (px) from either corner, "
-        "where blur mixes in the quiet zone beyond the corner (pulls points inwards); "
-        "tightens edge_span on small markers.",
-    )
-    edge_max_samples: int = Field(
-        48,
-        ge=4,
-        description="At most this many pixel columns along an edge enter its fit "
-        "(longer edges are subsampled).",
-    )
-    edge_band_modules: float = Field(
-        0.8,
-        gt=0,
-        le=1.0,
-        description="Half-width of the band of pixels fitted across an edge, "
-        "in marker modules: the black border is one module wide, the data cells behind it are "
-        "modelled, the quiet zone outside must be at least this wide.",
-    )
-    edge_band_px: tuple[float, float] = Field(
-        (1.0, 4.0), description="The band half-width in pixels is clipped to this range."
-    )
-    blur_prior_px: tuple[float, float] = Field(
-        (0.7, 0.3),
-        description="Prior (mean, sigma) of the Gaussian blur width (px) of the "
-        "edge model (pixel area and optics); later passes centre it on the image's median.",
-    )
-    edge_iterations: int = Field(
-        6, ge=3, le=30, description="Levenberg-Marquardt iterations of the edge model per pass."
-    )
-    max_edge_residual: float = Field(
-        0.08,
-        gt=0,
-        description="Largest RMS residual of an edge fit as a fraction of the "
-        "edge's contrast (occlusion or a wrong edge make it large).",
-    )
-    edge_passes: int = Field(
-        2,
-        ge=1,
-        le=5,
-        description="Edge-fit passes; each re-centres the band and the marker "
-        "layout on the previous corners (one pass leaves ~0.05 px of OpenCV's inward offset).",
-    )
-    min_edge_length_px: float = Field(
-        6.0, gt=0, description="Markers with a shorter side get OpenCV's SUBPIX corners."
-    )
-    min_edge_contrast: float = Field(
-        20.0, gt=0, description="Smallest bright-dark difference (grey levels) of a usable edge."
-    )
-    min_edge_inliers: float = Field(
-        0.5,
-        gt=0,
-        le=1,
-        description="Fraction of an edge's band pixels that must be in the "
-        "image and survive outlier rejection for its line to be used.",
-    )
-    max_corner_shift_px: float = Field(
-        3.0,
-        gt=0,
-        description="An edge-fitted corner further than this from OpenCV's corner "
-        "is rejected (the corner gets OpenCV's SUBPIX refinement and refined=False).",
-    )
-    refine_with_board: bool = Field(
-        True,
-        description="Run OpenCV's refineDetectedMarkers with the layout of the face seen "
-        "most to recover markers the detector rejected (measured on noisy synthetic renders: "
-        "+44 % markers at 848x480 'race', +9 % at 1280x720 'thesis-line', none wrong).",
-    )
-
-    @model_validator(mode="after")
-    def _check(self) -> DetectionConfig:
-        lo, hi = self.edge_span
-        if not 0.0 <= lo < hi <= 1.0:
-            raise ValueError("edge_span must satisfy 0 <= start < end <= 1")
-        if not 0 < self.edge_band_px[0] <= self.edge_band_px[1]:
-            raise ValueError("edge_band_px must be (min, max) with 0 < min <= max")
-        if self.adaptive_thresh_win_size_min > self.adaptive_thresh_win_size_max:
-            raise ValueError("adaptive_thresh_win_size_min must not exceed the max")
-        return self
 
 
 @dataclass(frozen=True, eq=False)
@@ -879,3 +745,23 @@ def refine_corners_edges(
 def limit_threads(threads: int) -> None:
     """OpenCV's own thread pool size (1 inside worker processes, -1 = OpenCV's default)."""
     cv2.setNumThreads(threads)
+
+
+# --------------------------------------------------------------------------- process-pool worker
+# calibrate.detect_dataset runs these two in its pool. They live here, not in calibrate.py, so a
+# worker process imports the detection stage only (cv2), never graph (gtsam) or depth (open3d).
+_WORKER: dict[str, Any] = {}
+
+
+def init_detector(board: Board, config: DetectionConfig, threads: int = 1) -> None:
+    """Pool initializer: keep ``board`` and ``config`` for :func:`detect_job`."""
+    limit_threads(threads)  # one process per core already
+    _WORKER["board"], _WORKER["config"] = board, config
+
+
+def detect_job(job: tuple[str, str, str, int, int]) -> tuple[str, str, dict]:
+    """``(camera, frame, colour image path, width, height)`` -> ``(camera, frame,
+    MarkerDetections.to_dict())``, with the board and config of :func:`init_detector`."""
+    camera, frame, path, width, height = job
+    gray = read_color_image(Path(path), width, height, gray=True)
+    return camera, frame, detect_markers(gray, _WORKER["board"], _WORKER["config"]).to_dict()

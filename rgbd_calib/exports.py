@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -23,12 +23,9 @@ import yaml
 
 from .geometry import invert_transform, matrix_to_quaternion_xyzw
 from .posegraph_csv import edges_csv_text, nodes_csv_text
-from .results import Extrinsics
+from .results import Extrinsics, PoseEdge
+from .rig import Rig
 from .yamlio import atomic_write_text, to_builtin
-
-if TYPE_CHECKING:
-    from .graph import PoseEdge
-    from .rig import Rig
 
 DEFAULT_FRAME = "{camera}_color_optical_frame"
 DEFAULT_TOPIC = "/{camera}/color/image_raw"

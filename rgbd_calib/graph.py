@@ -26,90 +26,21 @@ from __future__ import annotations
 
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import gtsam
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.stats import chi2
 
 from .camera import pinhole_pose_jacobian, project_pinhole
+from .config import BundleConfig, PoseGraphConfig
 from .errors import CalibrationError
 from .geometry import adjoint, invert_transform, make_transform, orthonormalize, rotation_angle_deg
-from .results import CameraExtrinsics, Extrinsics
+from .results import CameraExtrinsics, Extrinsics, PoseEdge
 
-# sqrt(chi2_6.ppf(0.99)): 99% of inlier 6-dof whitened residual norms lie below this.
-DEFAULT_KERNEL_THRESHOLD = 4.1
 # Median of a chi distribution with 3 dof: median |x| of an isotropic 3D Gaussian / sigma.
 _CHI3_MEDIAN = float(np.sqrt(chi2.ppf(0.5, 3)))
 REASON_NO_SHARED_VIEW = "shares no board view with any connected camera"
-
-
-class PoseGraphConfig(BaseModel):
-    """Settings of the pose-graph stage. Thresholds are in whitened units: the norm of the
-    6-dof edge residual divided by its sigma (Mahalanobis distance)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    kernel: Literal["huber", "cauchy", "tukey", "gm", "none"] = Field(
-        "cauchy",
-        description="Robust M-estimator on each edge ('gm' = Geman-McClure, "
-        "'none' = plain least squares).",
-    )
-    kernel_threshold: float = Field(
-        DEFAULT_KERNEL_THRESHOLD,
-        gt=0.0,
-        description="Kernel parameter k on the whitened 6-dof residual norm; also the outlier "
-        "flag threshold. 4.1 = sqrt(chi2_6 99%).",
-    )
-    optimizer: Literal["lm", "gnc"] = Field(
-        "lm",
-        description="First robust solve: Levenberg-Marquardt with the kernel from a "
-        "spanning-tree initialisation, or graduated non-convexity (GTSAM GncLMOptimizer).",
-    )
-    gnc_loss: Literal["gm", "tls"] = Field(
-        "gm", description="GNC surrogate loss (Geman-McClure or truncated least squares)."
-    )
-    reject_outliers: bool = Field(
-        True,
-        description="After the robust solve, drop edges above kernel_threshold and "
-        "re-solve until the inlier set is stable.",
-    )
-    max_reject_rounds: int = Field(4, ge=1, description="Cap on reject / re-solve rounds.")
-    exclude_stale: bool = Field(
-        True, description="Leave out edges that repeat the same camera's previous pose exactly."
-    )
-    default_sigma_rotation_deg: float = Field(
-        0.2, gt=0.0, description="1-sigma per rotation axis of an edge without covariance."
-    )
-    default_sigma_translation_mm: float = Field(
-        2.0, gt=0.0, description="1-sigma per translation axis of an edge without covariance."
-    )
-    estimate_default_sigmas: bool = Field(
-        True,
-        description="Re-estimate the two default sigmas from the median residuals of "
-        "the edges without covariance (robust variance-component estimate).",
-    )
-    prior_sigma: float = Field(
-        1e-6,
-        gt=0.0,
-        description="Sigma (rad and m) of the priors holding the reference and fixed cameras.",
-    )
-    max_iterations: int = Field(100, ge=1, description="Levenberg-Marquardt iteration cap.")
-    relative_error_tol: float = Field(1e-10, gt=0.0, description="LM relative error tolerance.")
-
-
-@dataclass(frozen=True)
-class PoseEdge:
-    """One detection: board view ``view`` seen by ``camera`` as ``T_cam_board`` (4x4, metres).
-
-    ``covariance`` is 6x6 in GTSAM order ``[rot rad, trans m]``, in the body frame of the board
-    pose (a right perturbation ``T_cam_board @ Exp(xi)``); ``None`` = the config's default."""
-
-    camera: str
-    view: str
-    T_cam_board: np.ndarray
-    covariance: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -823,23 +754,6 @@ class MarkerMeasurement:
     marker_id: int
     corners_px: np.ndarray  # (4,2), distortion already removed (pinhole pixels)
     object_points: np.ndarray  # (4,3) board frame, metres
-
-
-class BundleConfig(BaseModel):
-    """Joint bundle adjustment on marker corners (camera and board poses, intrinsics fixed)."""
-
-    model_config = ConfigDict(extra="forbid")
-    pixel_sigma: float = Field(0.25, gt=0, description="prior corner noise (px); re-estimated "
-                               "from the residuals after the solve when estimate_sigma is on")
-    estimate_sigma: bool = Field(True, description="scale marginals by the a-posteriori "
-                                 "variance factor (RSS / degrees of freedom)")
-    robust: Literal["huber", "cauchy", "none"] = "huber"
-    robust_k: float = Field(3.0, gt=0, description="kernel threshold on a marker's whitened "
-                            "residual norm")
-    outlier_px: float = Field(3.0, gt=0, description="a marker whose RMS corner residual after "
-                              "the solve exceeds this is reported as an outlier and dropped")
-    max_iterations: int = Field(100, ge=1)
-    relative_error_tol: float = 1e-10
 
 
 @dataclass(frozen=True)

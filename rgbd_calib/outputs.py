@@ -19,9 +19,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from .calibrate import CalibrationResult
+from .config import write_config
 from .exports import write_exports
 from .ply import write_fused_ply
 from .posegraph_pipeline import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
@@ -94,9 +93,7 @@ def write_outputs(
         if fused_ply is not None:
             shutil.copyfile(fused_ply, stage / "fused.ply")
         write_report_html(report, stage, progress=progress)
-        (stage / "config_resolved.yaml").write_text(
-            yaml.safe_dump(to_builtin(result.config.model_dump()), sort_keys=False)
-        )
+        write_config(result.config, stage / "config_resolved.yaml")
         boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
         write_exports(result.extrinsics, stage, rig=rig, board_poses=boards)
         write_extrinsics(result.extrinsics, stage / "extrinsics.yaml")

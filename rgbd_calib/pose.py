@@ -20,83 +20,12 @@ from typing import Any
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, Field
 
 from .board import Board
 from .camera import CameraIntrinsics
+from .config import PoseConfig
 from .detection import MarkerDetections
 from .geometry import make_transform, rotation_angle_deg, rotvec_to_matrix, skew
-
-
-class PoseConfig(BaseModel, extra="forbid"):
-    """Per-view PnP and its gates (the pose stage of the pipeline)."""
-
-    min_markers: int = Field(
-        4,
-        ge=1,
-        description="Fewest markers (4 corners each) a view needs. A stray detection "
-        "carrying a board id is only recognisable against a consistent majority (with 4, one "
-        "outlier faces 3); 1-3 markers also cover little of the board, leaving the planar flip "
-        "and the tilt weak (measured: 5-30 mm errors with SUBPIX corners at 1.5 m).",
-    )
-    max_reprojection_rms_px: float = Field(
-        1.0,
-        gt=0,
-        description="Reject a view whose RMS reprojection error (after dropping "
-        "outlier markers) is above this (px).",
-    )
-    max_ambiguity_ratio: float = Field(
-        0.6,
-        gt=0,
-        le=1,
-        description="Reject a view whose IPPE best/second-best reprojection "
-        "error ratio is above this (planar flip ambiguity: both poses explain the corners).",
-    )
-    ambiguity_min_angle_deg: float = Field(
-        2.0,
-        ge=0,
-        description="The ambiguity gate applies only when IPPE's two solutions are "
-        "this far apart: a board seen face-on has two nearly equal, nearly identical "
-        "solutions, which is no ambiguity.",
-    )
-    pixel_sigma_px: float | None = Field(
-        None,
-        gt=0,
-        description="Corner noise (px, 1-sigma per axis) for the covariance; None "
-        "estimates it per view from the residuals, s^2 = RSS / (2N - 6).",
-    )
-    min_pixel_sigma_px: float = Field(
-        0.01,
-        gt=0,
-        description="Floor of the estimated corner noise (px): a few corners fitting "
-        "too well must not make a view over-confident.",
-    )
-    sigma_prior_dof: float = Field(
-        4.0,
-        ge=0,
-        description="Pseudo degrees of freedom pulling the estimated marker-shift "
-        "noise towards the (larger) all-residual estimate; matters for views with few "
-        "markers (see _pose_covariance).",
-    )
-    outlier_factor: float = Field(
-        5.0,
-        gt=1,
-        description="A marker whose RMS reprojection error exceeds "
-        "max(outlier_factor * median marker error, outlier_min_px) is dropped, the pose "
-        "re-solved (worst marker first).",
-    )
-    outlier_min_px: float = Field(2.0, gt=0, description="See outlier_factor (px).")
-    allow_both_faces: bool = Field(
-        False,
-        description="Keep markers of both faces in one view. A camera cannot see both "
-        "faces of the board (they face opposite ways), so by default the face with fewer "
-        "markers is treated as wrong detections and dropped.",
-    )
-    use_unrefined_corners: bool = Field(
-        False,
-        description="With the 'edges' refinement, also use markers with a corner the "
-        "edge fit could not refine (those keep OpenCV's corner, ~0.5 px inward).",
-    )
 
 
 @dataclass(frozen=True, eq=False)

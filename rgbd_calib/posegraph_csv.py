@@ -16,16 +16,13 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import ConfigError
 from .geometry import make_transform, matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from .results import PoseEdge
 from .yamlio import atomic_write_text
-
-if TYPE_CHECKING:
-    from .graph import PoseEdge
 
 POSE_XYZW = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 POSE_WXYZ = ("tx", "ty", "tz", "qw", "qx", "qy", "qz")
@@ -165,8 +162,6 @@ def read_nodes_csv(path: Path) -> dict[str, np.ndarray]:
 def read_edges_csv(path: Path) -> list[PoseEdge]:
     """``Edges.csv`` -> edges in file order (order matters for stale-edge detection): camera
     ``cam<Cam>``, view ``<Node>``, ``T_cam_board`` (4x4, metres), no covariance."""
-    from .graph import PoseEdge  # here, so that writers and exports do not load gtsam
-
     return [
         PoseEdge(camera_name(cam), node, T)
         for _, (cam, node), T in _table(

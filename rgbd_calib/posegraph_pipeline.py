@@ -19,17 +19,16 @@ from typing import Any
 
 import numpy as np
 
+from .config import PoseGraphConfig
 from .errors import CalibrationError
 from .graph import (
     EdgeResidual,
-    PoseEdge,
-    PoseGraphConfig,
     PoseGraphResult,
     calibrate_pose_graph,
     median_edge_residual,
 )
 from .posegraph_csv import camera_name, read_edges_csv, read_nodes_csv
-from .results import Extrinsics
+from .results import Extrinsics, PoseEdge
 from .yamlio import to_builtin
 
 POSEGRAPH_REPORT = "posegraph_report.json"

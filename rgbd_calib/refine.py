@@ -20,10 +20,10 @@ from typing import Any, Literal
 import numpy as np
 
 from .board import Board
+from .config import BundleConfig, DepthConfig
 from .dataset import FolderDataset
 from .depth import (
     CameraCloud,
-    DepthConfig,
     DepthScaleEstimate,
     estimate_depth_scale,
     find_overlapping_pairs,
@@ -34,7 +34,7 @@ from .depth import (
 )
 from .errors import CalibrationError, DatasetError
 from .geometry import invert_transform
-from .graph import BundleConfig, RelativePose, bundle_adjust
+from .graph import RelativePose, bundle_adjust
 from .progress import Progress, start, timed
 from .results import Extrinsics, cameras_from_solve
 

@@ -1,4 +1,5 @@
-"""Typed calibration results and the ``extrinsics.yaml`` contract (docs/formats.md)."""
+"""Typed calibration data: the board-pose edges the solvers take, the results, and the
+``extrinsics.yaml`` contract (docs/formats.md)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,19 @@ from .yamlio import check_keys, matrix4, read_yaml_mapping, shown, write_yaml
 # translation_m / quaternion_xyzw may differ from T_ref_cam by rounding (hand-written files)
 REDUNDANT_TOL_M = 1e-4
 REDUNDANT_TOL_RAD = 1e-3
+
+
+@dataclass(frozen=True)
+class PoseEdge:
+    """One detection: board view ``view`` seen by ``camera`` as ``T_cam_board`` (4x4, metres).
+
+    ``covariance`` is 6x6 in GTSAM order ``[rot rad, trans m]``, in the body frame of the board
+    pose (a right perturbation ``T_cam_board @ Exp(xi)``); ``None`` = the config's default."""
+
+    camera: str
+    view: str
+    T_cam_board: np.ndarray
+    covariance: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

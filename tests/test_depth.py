@@ -8,7 +8,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from conftest import assert_transforms_close
-from pydantic import ValidationError
 from scipy.spatial import cKDTree
 
 from rgbd_calib import depth as D
@@ -401,14 +400,3 @@ def test_fused_ply_round_trip_with_camera_index(line, line_clouds, tmp_path):
     _, _, i3, n3 = read_ply(path)
     assert n3 == many
     np.testing.assert_array_equal(i3, wide_index)
-
-
-def test_config_rejects_unknown_keys_and_inconsistent_schedules():
-    with pytest.raises(ValidationError):
-        D.DepthConfig(max_frame=3)
-    with pytest.raises(ValidationError):
-        D.DepthConfig(voxel_schedule_m=[0.04, 0.02], iterations=[50, 30, 14])
-    with pytest.raises(ValidationError):
-        D.DepthConfig(voxel_schedule_m=[0.01, 0.02], iterations=[10, 10])
-    with pytest.raises(ValidationError):
-        D.DepthConfig(min_range_m=3.0, max_range_m=2.0)

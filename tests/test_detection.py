@@ -318,12 +318,3 @@ def test_detect_markers_runs_in_a_process_pool(board, rendered):
     with ProcessPoolExecutor(1) as pool:
         remote = list(pool.map(_detect_in_worker, [(img, fresh, config) for img, _, _ in images]))
     assert remote == local
-
-
-def test_config_rejects_unknown_and_inconsistent_fields():
-    with pytest.raises(ValueError):
-        DetectionConfig(refinement="apriltag")
-    with pytest.raises(ValueError):
-        DetectionConfig(edge_span=(0.8, 0.2))
-    with pytest.raises(ValueError):
-        DetectionConfig(unknown_option=1)

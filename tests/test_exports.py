@@ -30,9 +30,8 @@ from rgbd_calib.geometry import (
     quaternion_xyzw_to_matrix,
     rotvec_to_matrix,
 )
-from rgbd_calib.graph import PoseEdge
 from rgbd_calib.posegraph_csv import camera_node_id, read_edges_csv, read_nodes_csv
-from rgbd_calib.results import CameraExtrinsics, Extrinsics
+from rgbd_calib.results import CameraExtrinsics, Extrinsics, PoseEdge
 from rgbd_calib.rig import Rig
 
 EXACT_MM = 1e-9

@@ -16,7 +16,6 @@ from rgbd_calib.geometry import (
     quaternion_xyzw_to_matrix,
     rotvec_to_matrix,
 )
-from rgbd_calib.graph import PoseEdge
 from rgbd_calib.outputs import write_posegraph_outputs
 from rgbd_calib.posegraph_csv import (
     camera_name,
@@ -29,7 +28,7 @@ from rgbd_calib.posegraph_csv import (
     write_optimised_camera_poses,
 )
 from rgbd_calib.posegraph_pipeline import run_posegraph
-from rgbd_calib.results import load_extrinsics
+from rgbd_calib.results import PoseEdge, load_extrinsics
 
 THESIS = Path(__file__).resolve().parents[2] / "shared/data/thesis-posegraph"
 

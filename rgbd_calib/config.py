@@ -1,0 +1,613 @@
+"""Every setting of a calibration run: one pydantic model per stage, combined in
+:class:`CalibrationConfig`, and the YAML config file (:func:`load_config`, :func:`write_config`).
+
+A YAML file may override any subset of the settings; unknown keys are errors (``extra="forbid"``),
+so field names and defaults here are the user-facing config format (``config_resolved.yaml``
+beside every result lists them all).
+
+Imports pydantic and yaml only: validating a config (in the CLI, or in a detection worker that
+receives one) must not load cv2, gtsam, open3d or kiss_icp (tests/test_config.py checks this).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .errors import ConfigError
+from .yamlio import read_yaml_mapping, to_builtin
+
+Refinement = Literal["edges", "subpix", "none", "contour"]
+
+# sqrt(chi2_6.ppf(0.99)): 99% of inlier 6-dof whitened residual norms lie below this.
+DEFAULT_KERNEL_THRESHOLD = 4.1
+
+
+# ----------------------------------------------------------------------------- detection
+class DetectionConfig(BaseModel, extra="forbid"):
+    """ArUco detection and corner refinement (the detection stage of the pipeline)."""
+
+    refinement: Refinement = Field(
+        "edges",
+        description="Corner refinement: 'edges' fits lines to the four outer marker "
+        "edges (unbiased; a corner it cannot fit gets OpenCV's SUBPIX refinement and "
+        "refined=False); 'subpix', 'none' and 'contour' are OpenCV's CORNER_REFINE_* methods "
+        "(biased 0.2-0.6 px towards the marker centre).",
+    )
+    min_marker_perimeter_px: float = Field(
+        40.0,
+        gt=0,
+        description="Smallest marker perimeter (px) the detector accepts; converted "
+        "to OpenCV's minMarkerPerimeterRate for each image size.",
+    )
+    error_correction_rate: float = Field(
+        0.6,
+        ge=0.0,
+        le=1.0,
+        description="OpenCV errorCorrectionRate: fraction of the "
+        "dictionary's correctable bits used. Lower it if foreign/stray ids appear.",
+    )
+    adaptive_thresh_win_size_min: int = Field(
+        3, ge=3, description="OpenCV adaptive threshold: smallest window (px)."
+    )
+    adaptive_thresh_win_size_max: int = Field(
+        23, ge=3, description="OpenCV adaptive threshold: largest window (px)."
+    )
+    adaptive_thresh_win_size_step: int = Field(
+        10, ge=1, description="OpenCV adaptive threshold: window step (px)."
+    )
+    subpix_win_size_px: int = Field(
+        5,
+        ge=1,
+        description="OpenCV cornerRefinementWinSize: upper bound of the SUBPIX half-window (px).",
+    )
+    subpix_relative_win_size: float = Field(
+        1.0,
+        gt=0,
+        description="OpenCV relativeCornerRefinmentWinSize: SUBPIX half-window as a "
+        "fraction of a marker module, capped by subpix_win_size_px. OpenCV's default 0.3 "
+        "shrinks the window to ~1 px on small markers (corner RMS ~0.8 px on the synthetic "
+        "renders); 1.0 measured best (~0.3 px RMS, ~0.2 px inward bias).",
+    )
+    subpix_max_iterations: int = Field(30, ge=1, description="SUBPIX iterations.")
+    subpix_min_accuracy_px: float = Field(0.01, gt=0, description="SUBPIX stopping accuracy.")
+    edge_span: tuple[float, float] = Field(
+        (0.15, 0.85),
+        description="Part of each edge sampled by the edge fit, as fractions of "
+        "its length from its first corner; keeps away from the blurred corners.",
+    )
+    edge_corner_margin_px: float = Field(
+        2.5,
+        ge=0,
+        description="Edge points stay at least this far (px) from either corner, "
+        "where blur mixes in the quiet zone beyond the corner (pulls points inwards); "
+        "tightens edge_span on small markers.",
+    )
+    edge_max_samples: int = Field(
+        48,
+        ge=4,
+        description="At most this many pixel columns along an edge enter its fit "
+        "(longer edges are subsampled).",
+    )
+    edge_band_modules: float = Field(
+        0.8,
+        gt=0,
+        le=1.0,
+        description="Half-width of the band of pixels fitted across an edge, "
+        "in marker modules: the black border is one module wide, the data cells behind it are "
+        "modelled, the quiet zone outside must be at least this wide.",
+    )
+    edge_band_px: tuple[float, float] = Field(
+        (1.0, 4.0), description="The band half-width in pixels is clipped to this range."
+    )
+    blur_prior_px: tuple[float, float] = Field(
+        (0.7, 0.3),
+        description="Prior (mean, sigma) of the Gaussian blur width (px) of the "
+        "edge model (pixel area and optics); later passes centre it on the image's median.",
+    )
+    edge_iterations: int = Field(
+        6, ge=3, le=30, description="Levenberg-Marquardt iterations of the edge model per pass."
+    )
+    max_edge_residual: float = Field(
+        0.08,
+        gt=0,
+        description="Largest RMS residual of an edge fit as a fraction of the "
+        "edge's contrast (occlusion or a wrong edge make it large).",
+    )
+    edge_passes: int = Field(
+        2,
+        ge=1,
+        le=5,
+        description="Edge-fit passes; each re-centres the band and the marker "
+        "layout on the previous corners (one pass leaves ~0.05 px of OpenCV's inward offset).",
+    )
+    min_edge_length_px: float = Field(
+        6.0, gt=0, description="Markers with a shorter side get OpenCV's SUBPIX corners."
+    )
+    min_edge_contrast: float = Field(
+        20.0, gt=0, description="Smallest bright-dark difference (grey levels) of a usable edge."
+    )
+    min_edge_inliers: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="Fraction of an edge's band pixels that must be in the "
+        "image and survive outlier rejection for its line to be used.",
+    )
+    max_corner_shift_px: float = Field(
+        3.0,
+        gt=0,
+        description="An edge-fitted corner further than this from OpenCV's corner "
+        "is rejected (the corner gets OpenCV's SUBPIX refinement and refined=False).",
+    )
+    refine_with_board: bool = Field(
+        True,
+        description="Run OpenCV's refineDetectedMarkers with the layout of the face seen "
+        "most to recover markers the detector rejected (measured on noisy synthetic renders: "
+        "+44 % markers at 848x480 'race', +9 % at 1280x720 'thesis-line', none wrong).",
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> DetectionConfig:
+        lo, hi = self.edge_span
+        if not 0.0 <= lo < hi <= 1.0:
+            raise ValueError("edge_span must satisfy 0 <= start < end <= 1")
+        if not 0 < self.edge_band_px[0] <= self.edge_band_px[1]:
+            raise ValueError("edge_band_px must be (min, max) with 0 < min <= max")
+        if self.adaptive_thresh_win_size_min > self.adaptive_thresh_win_size_max:
+            raise ValueError("adaptive_thresh_win_size_min must not exceed the max")
+        return self
+
+
+# ----------------------------------------------------------------------------- pose
+class PoseConfig(BaseModel, extra="forbid"):
+    """Per-view PnP and its gates (the pose stage of the pipeline)."""
+
+    min_markers: int = Field(
+        4,
+        ge=1,
+        description="Fewest markers (4 corners each) a view needs. A stray detection "
+        "carrying a board id is only recognisable against a consistent majority (with 4, one "
+        "outlier faces 3); 1-3 markers also cover little of the board, leaving the planar flip "
+        "and the tilt weak (measured: 5-30 mm errors with SUBPIX corners at 1.5 m).",
+    )
+    max_reprojection_rms_px: float = Field(
+        1.0,
+        gt=0,
+        description="Reject a view whose RMS reprojection error (after dropping "
+        "outlier markers) is above this (px).",
+    )
+    max_ambiguity_ratio: float = Field(
+        0.6,
+        gt=0,
+        le=1,
+        description="Reject a view whose IPPE best/second-best reprojection "
+        "error ratio is above this (planar flip ambiguity: both poses explain the corners).",
+    )
+    ambiguity_min_angle_deg: float = Field(
+        2.0,
+        ge=0,
+        description="The ambiguity gate applies only when IPPE's two solutions are "
+        "this far apart: a board seen face-on has two nearly equal, nearly identical "
+        "solutions, which is no ambiguity.",
+    )
+    pixel_sigma_px: float | None = Field(
+        None,
+        gt=0,
+        description="Corner noise (px, 1-sigma per axis) for the covariance; None "
+        "estimates it per view from the residuals, s^2 = RSS / (2N - 6).",
+    )
+    min_pixel_sigma_px: float = Field(
+        0.01,
+        gt=0,
+        description="Floor of the estimated corner noise (px): a few corners fitting "
+        "too well must not make a view over-confident.",
+    )
+    sigma_prior_dof: float = Field(
+        4.0,
+        ge=0,
+        description="Pseudo degrees of freedom pulling the estimated marker-shift "
+        "noise towards the (larger) all-residual estimate; matters for views with few "
+        "markers (see _pose_covariance).",
+    )
+    outlier_factor: float = Field(
+        5.0,
+        gt=1,
+        description="A marker whose RMS reprojection error exceeds "
+        "max(outlier_factor * median marker error, outlier_min_px) is dropped, the pose "
+        "re-solved (worst marker first).",
+    )
+    outlier_min_px: float = Field(2.0, gt=0, description="See outlier_factor (px).")
+    allow_both_faces: bool = Field(
+        False,
+        description="Keep markers of both faces in one view. A camera cannot see both "
+        "faces of the board (they face opposite ways), so by default the face with fewer "
+        "markers is treated as wrong detections and dropped.",
+    )
+    use_unrefined_corners: bool = Field(
+        False,
+        description="With the 'edges' refinement, also use markers with a corner the "
+        "edge fit could not refine (those keep OpenCV's corner, ~0.5 px inward).",
+    )
+
+
+# ----------------------------------------------------------------------------- graph
+class PoseGraphConfig(BaseModel):
+    """Settings of the pose-graph stage. Thresholds are in whitened units: the norm of the
+    6-dof edge residual divided by its sigma (Mahalanobis distance)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kernel: Literal["huber", "cauchy", "tukey", "gm", "none"] = Field(
+        "cauchy",
+        description="Robust M-estimator on each edge ('gm' = Geman-McClure, "
+        "'none' = plain least squares).",
+    )
+    kernel_threshold: float = Field(
+        DEFAULT_KERNEL_THRESHOLD,
+        gt=0.0,
+        description="Kernel parameter k on the whitened 6-dof residual norm; also the outlier "
+        "flag threshold. 4.1 = sqrt(chi2_6 99%).",
+    )
+    optimizer: Literal["lm", "gnc"] = Field(
+        "lm",
+        description="First robust solve: Levenberg-Marquardt with the kernel from a "
+        "spanning-tree initialisation, or graduated non-convexity (GTSAM GncLMOptimizer).",
+    )
+    gnc_loss: Literal["gm", "tls"] = Field(
+        "gm", description="GNC surrogate loss (Geman-McClure or truncated least squares)."
+    )
+    reject_outliers: bool = Field(
+        True,
+        description="After the robust solve, drop edges above kernel_threshold and "
+        "re-solve until the inlier set is stable.",
+    )
+    max_reject_rounds: int = Field(4, ge=1, description="Cap on reject / re-solve rounds.")
+    exclude_stale: bool = Field(
+        True, description="Leave out edges that repeat the same camera's previous pose exactly."
+    )
+    default_sigma_rotation_deg: float = Field(
+        0.2, gt=0.0, description="1-sigma per rotation axis of an edge without covariance."
+    )
+    default_sigma_translation_mm: float = Field(
+        2.0, gt=0.0, description="1-sigma per translation axis of an edge without covariance."
+    )
+    estimate_default_sigmas: bool = Field(
+        True,
+        description="Re-estimate the two default sigmas from the median residuals of "
+        "the edges without covariance (robust variance-component estimate).",
+    )
+    prior_sigma: float = Field(
+        1e-6,
+        gt=0.0,
+        description="Sigma (rad and m) of the priors holding the reference and fixed cameras.",
+    )
+    max_iterations: int = Field(100, ge=1, description="Levenberg-Marquardt iteration cap.")
+    relative_error_tol: float = Field(1e-10, gt=0.0, description="LM relative error tolerance.")
+
+
+class BundleConfig(BaseModel):
+    """Joint bundle adjustment on marker corners (camera and board poses, intrinsics fixed)."""
+
+    model_config = ConfigDict(extra="forbid")
+    pixel_sigma: float = Field(
+        0.25,
+        gt=0,
+        description="prior corner noise (px); re-estimated "
+        "from the residuals after the solve when estimate_sigma is on",
+    )
+    estimate_sigma: bool = Field(
+        True,
+        description="scale marginals by the a-posteriori "
+        "variance factor (RSS / degrees of freedom)",
+    )
+    robust: Literal["huber", "cauchy", "none"] = "huber"
+    robust_k: float = Field(
+        3.0, gt=0, description="kernel threshold on a marker's whitened residual norm"
+    )
+    outlier_px: float = Field(
+        3.0,
+        gt=0,
+        description="a marker whose RMS corner residual after "
+        "the solve exceeds this is reported as an outlier and dropped",
+    )
+    max_iterations: int = Field(100, ge=1)
+    relative_error_tol: float = 1e-10
+
+
+# ----------------------------------------------------------------------------- depth
+class DepthConfig(BaseModel, extra="forbid"):
+    """Settings of the depth stage (static clouds, depth-scale bias, overlap, ICP)."""
+
+    # static clouds
+    max_frames: int = Field(
+        15,
+        ge=1,
+        description="Frames per camera in the temporal median, sampled evenly over "
+        "the set; the stack is (max_frames, H, W) float32, so memory stays bounded.",
+    )
+    board_mask_margin_m: float = Field(
+        0.03,
+        ge=0,
+        description="The board's panel is grown by this margin (all sides and both "
+        "faces) before it is projected into a frame and masked out.",
+    )
+    board_mask_dilate_px: float = Field(
+        3.0, ge=0, description="Extra dilation of the projected board mask (px)."
+    )
+    motion_k: float = Field(
+        3.0,
+        gt=0,
+        description="A pixel whose depth spread over frames (1.4826 MAD) exceeds "
+        "motion_k single-frame sigma_z is moving and dropped.",
+    )
+    min_samples: int = Field(
+        3,
+        ge=1,
+        description="Fewest valid depth samples for a pixel of the median (capped by "
+        "the frames in which the board left it free, but at least 2 when 2 frames or more "
+        "were read).",
+    )
+    min_valid_fraction: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="Fewest valid samples as a fraction of the frames in "
+        "which the pixel was not covered by the board (intermittent depth is dropped).",
+    )
+    min_range_m: float = Field(0.3, gt=0, description="Nearest depth kept (m).")
+    max_range_m: float = Field(4.0, gt=0, description="Farthest depth kept (m).")
+    edge_jump_sigmas: float | None = Field(
+        10.0,
+        gt=0,
+        description="Drop depth-edge pixels (flying pixels): a disparity (1/z) jump "
+        "to a 4-neighbour above this many single-frame disparity sigmas s/(f B). None keeps "
+        "them.",
+    )
+    subpixel_px: float = Field(
+        0.08, gt=0, description="D435 subpixel disparity error s (px) of the noise model."
+    )
+    baseline_m: float = Field(0.050, gt=0, description="D435 stereo baseline B (m).")
+    depth_focal_px: float | None = Field(
+        None,
+        gt=0,
+        description="Focal length f (px) of the noise model; None: the colour fx "
+        "(depth is aligned to colour).",
+    )
+    # depth-scale bias
+    scale_face_margin_m: float = Field(
+        0.02,
+        ge=0,
+        description="Board-face pixels closer than this to the panel's outline are "
+        "not used for the depth scale (mixed edge pixels).",
+    )
+    scale_max_view_angle_deg: float = Field(
+        70.0,
+        gt=0,
+        lt=90,
+        description="Frames that see the board face more obliquely are "
+        "skipped for the depth scale.",
+    )
+    scale_min_points: int = Field(
+        200, ge=10, description="Fewest board-face pixels for a frame to count."
+    )
+    scale_huber_k: float = Field(
+        1.5, gt=0, description="Huber threshold (sigmas) of the per-pixel and per-frame fits."
+    )
+    # overlap
+    overlap_voxel_m: float = Field(
+        0.05, gt=0, description="Voxel size of the clouds used to measure overlap."
+    )
+    overlap_distance_m: float = Field(
+        0.05,
+        gt=0,
+        description="A point overlaps the other camera's cloud if a point of it "
+        "lies within this distance (allow for the extrinsics' current error).",
+    )
+    min_overlap: float = Field(
+        0.05,
+        ge=0,
+        le=1,
+        description="Smallest overlap fraction (min over both directions) "
+        "for a pair to be registered.",
+    )
+    # registration
+    voxel_schedule_m: list[float] = Field(
+        [0.04, 0.02, 0.01],
+        min_length=1,
+        description="Coarse-to-fine voxel sizes of the multi-scale ICP (m), strictly decreasing.",
+    )
+    iterations: list[int] = Field(
+        [50, 30, 14], min_length=1, description="ICP iterations per voxel level."
+    )
+    normal_voxel_m: float = Field(
+        0.02,
+        gt=0,
+        description="Normals are estimated once per cloud on its voxel means of "
+        "this size and given to every level's points by nearest neighbour.",
+    )
+    normal_radius_m: float = Field(
+        0.08,
+        gt=0,
+        description="Radius of the normal estimation (m): large enough to average "
+        "the depth noise of far surfaces (D435 sigma_z grows with z^2).",
+    )
+    max_correspondence_factor: float = Field(
+        1.0,
+        gt=0,
+        description="Correspondence distance of each level in voxels of that level "
+        "(1.0 as in Open3D's multi-scale colored ICP example; 1.5 and 2.5 were less accurate "
+        "on the synthetic rigs).",
+    )
+    lambda_geometric: float = Field(
+        0.968,
+        gt=0,
+        le=1,
+        description="Weight of the geometric term in colored ICP (Park et "
+        "al. 2017, the rest is the photometric term).",
+    )
+    icp_backend: Literal["legacy", "tensor"] = Field(
+        "legacy",
+        description="Open3D API for colored ICP: 'legacy' (o3d.pipelines) or "
+        "'tensor' (o3d.t, level by level); same result within 0.001 deg / 0.05 mm on the "
+        "synthetic pairs, legacy 10-20% faster here: the levels are built once in numpy, so "
+        "the tensor API's speed-up does not show.",
+    )
+    kiss_kernel_factor: float = Field(
+        0.33,
+        gt=0,
+        description="Geometric ICP (kiss-icp): robust kernel scale in voxels of the level.",
+    )
+    kiss_max_points_per_voxel: int = Field(
+        20, ge=1, description="Geometric ICP: points kept per voxel of kiss-icp's map."
+    )
+    kiss_max_iterations: int = Field(
+        100,
+        ge=1,
+        description="Geometric ICP: iterations per level (kiss-icp stops earlier when converged).",
+    )
+    icp_max_sigma_z_m: float = Field(
+        0.015,
+        gt=0,
+        description="Registration uses only points whose depth sigma (of the "
+        "median, D435 model) is below this (m): unweighted ICP is spoiled by far, noisy points "
+        "(sigma_z grows with z^2; at 640x360 and 8 frames 0.015 m is reached near 2.5 m).",
+    )
+    max_incidence_deg: float = Field(
+        80.0,
+        gt=0,
+        le=90,
+        description="Before ICP, points whose surface the other camera "
+        "would see from behind or more obliquely than this are dropped (thin rails and posts "
+        "seen from opposite sides are not common surfaces).",
+    )
+    crop_margin_px: float = Field(
+        20.0,
+        ge=0,
+        description="Before ICP each cloud is cropped to the other camera's view "
+        "under the initial guess, grown by this many pixels.",
+    )
+    eval_distance_m: float = Field(
+        0.05,
+        gt=0,
+        description="Correspondence distance of the point-to-plane RMSE reported "
+        "before and after registration.",
+    )
+    information_inflation: float = Field(
+        100.0,
+        ge=1,
+        description="Covariance multiplier on the ICP information. The raw "
+        "Gauss-Newton information only knows the depth noise; the errors left by colour, "
+        "sampling and normal biases were 3-50x its sigma (Mahalanobis) on the synthetic rigs "
+        "(640x360 to 848x480, 3-8 frames), so the default widens sigma 10x.",
+    )
+    min_correspondences: int = Field(
+        500, ge=6, description="Reject a pair with fewer correspondences at the finest level."
+    )
+    min_fitness: float = Field(
+        0.3,
+        ge=0,
+        le=1,
+        description="Reject a pair when fewer than this fraction of the "
+        "cropped source points find a correspondence at the finest level.",
+    )
+    max_rmse_mm: float = Field(
+        15.0,
+        gt=0,
+        description="Reject a pair whose point-to-plane RMSE after registration exceeds this (mm).",
+    )
+    min_conditioning: float = Field(
+        0.02,
+        ge=0,
+        le=1,
+        description="Reject a pair whose normalised information (Gelfand et "
+        "al. 2003; point-to-plane, plus the photometric term for colored ICP) has smallest / "
+        "largest eigenvalue below this: a direction the overlap does not constrain (a single "
+        "plane without texture). Measured: 0.02-0.12 for good pairs, < 0.001 for planes.",
+    )
+    max_correction_m: float = Field(
+        0.15,
+        gt=0,
+        description="Reject a registration that moved the pair by more than this "
+        "from the initial guess (m): a wrong local minimum.",
+    )
+    max_correction_deg: float = Field(10.0, gt=0, description="Same, rotation (deg).")
+    fused_voxel_m: float = Field(
+        0.005, ge=0, description="Voxel size of the fused cloud (per camera; 0 keeps all)."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> DepthConfig:
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError("min_range_m must be smaller than max_range_m")
+        if len(self.voxel_schedule_m) != len(self.iterations):
+            raise ValueError("voxel_schedule_m and iterations need one entry per level")
+        if any(b >= a for a, b in zip(self.voxel_schedule_m, self.voxel_schedule_m[1:])):
+            raise ValueError("voxel_schedule_m must be strictly decreasing")
+        if any(v <= 0 for v in self.voxel_schedule_m) or any(i < 1 for i in self.iterations):
+            raise ValueError("voxel sizes must be positive and iterations at least 1")
+        return self
+
+
+# ----------------------------------------------------------------------------- whole run
+class CalibrationConfig(BaseModel):
+    """Every setting of a calibration run; a YAML file may override any subset."""
+
+    model_config = ConfigDict(extra="forbid")
+    detection: DetectionConfig = Field(default_factory=DetectionConfig)
+    pose: PoseConfig = Field(default_factory=PoseConfig)
+    graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
+    bundle: BundleConfig = Field(default_factory=BundleConfig)
+    depth: DepthConfig = Field(default_factory=DepthConfig)
+    refine: Literal["auto", "colored-icp", "geometric", "none"] = Field(
+        "auto",
+        description="depth refinement after the board solve: colored ICP, kiss-icp's "
+        "geometric ICP, or none; auto = colored-icp when the dataset has depth (bundle method "
+        "only)",
+    )
+    method: Literal["bundle", "posegraph"] = Field(
+        "bundle",
+        description="final estimate: joint bundle adjustment on marker corners "
+        "(initialised from the pose graph) or the pose graph alone (the thesis method)",
+    )
+    workers: int | None = Field(None, ge=1, description="detection processes; default: all cores")
+    edge_covariance: bool = Field(
+        True,
+        description="weight pose-graph edges by their PnP "
+        "covariance (off: one isotropic sigma for every edge, as the "
+        "thesis did)",
+    )
+
+
+def load_config(path: Path | None, **overrides: Any) -> CalibrationConfig:
+    """CalibrationConfig from an optional YAML file (any subset of keys), then overrides.
+
+    ``overrides`` map dotted keys (``"graph.kernel"``) to values; ``None`` leaves a key alone.
+    Raises :class:`ConfigError` with one line naming the file, the setting and the fix."""
+    data = read_yaml_mapping(path, "config file") if path else {}
+    for dotted, value in overrides.items():
+        if value is None:
+            continue
+        node = data
+        *parents, leaf = dotted.split(".")
+        for key in parents:
+            node = node.setdefault(key, {})
+        node[leaf] = value
+    try:
+        return CalibrationConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise ConfigError(
+            f"{path or 'options'}: {where}: {err['msg']}; fix this setting "
+            "(config_resolved.yaml beside any result lists them all)"
+        ) from None
+
+
+def write_config(config: BaseModel, path: Path) -> None:
+    """Write the resolved ``config`` (every setting, defaults included) as YAML, in field order;
+    :func:`load_config` reads it back to the same config."""
+    Path(path).write_text(yaml.safe_dump(to_builtin(config.model_dump()), sort_keys=False))

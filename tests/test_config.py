@@ -1,0 +1,154 @@
+"""The config module: per-stage validation, YAML + overrides -> CalibrationConfig with one-line
+errors, and the resolved config written beside a result reading back unchanged."""
+
+from __future__ import annotations
+
+import pytest
+from pydantic import ValidationError
+
+from rgbd_calib.config import (
+    CalibrationConfig,
+    DepthConfig,
+    DetectionConfig,
+    PoseConfig,
+    PoseGraphConfig,
+    load_config,
+    write_config,
+)
+from rgbd_calib.errors import ConfigError
+
+
+def test_detection_config_rejects_unknown_and_inconsistent_fields():
+    with pytest.raises(ValueError):
+        DetectionConfig(refinement="apriltag")
+    with pytest.raises(ValueError):
+        DetectionConfig(edge_span=(0.8, 0.2))
+    with pytest.raises(ValueError):
+        DetectionConfig(unknown_option=1)
+
+
+def test_pose_graph_config_rejects_unknown_keys():
+    with pytest.raises(ValueError):
+        PoseGraphConfig(kernal="huber")
+    with pytest.raises(ValueError):
+        PoseGraphConfig(kernel="welsch")
+
+
+def test_depth_config_rejects_unknown_keys_and_inconsistent_schedules():
+    with pytest.raises(ValidationError):
+        DepthConfig(max_frame=3)
+    with pytest.raises(ValidationError):
+        DepthConfig(voxel_schedule_m=[0.04, 0.02], iterations=[50, 30, 14])
+    with pytest.raises(ValidationError):
+        DepthConfig(voxel_schedule_m=[0.01, 0.02], iterations=[10, 10])
+    with pytest.raises(ValidationError):
+        DepthConfig(min_range_m=3.0, max_range_m=2.0)
+
+
+def test_load_config_applies_the_yaml_then_the_overrides(tmp_path):
+    path = tmp_path / "calib.yaml"
+    path.write_text("method: posegraph\npose:\n  min_markers: 3\ngraph:\n  kernel: huber\n")
+    cfg = load_config(path, method="bundle", workers=None, **{"graph.kernel": "tukey"})
+    assert cfg.method == "bundle"  # an override beats the file
+    assert cfg.graph.kernel == "tukey"  # dotted override into a stage
+    assert cfg.pose.min_markers == 3  # the file beats the default
+    assert cfg.workers is None  # None leaves the setting alone
+    assert cfg.detection == DetectionConfig()
+    assert load_config(None) == CalibrationConfig()
+
+
+@pytest.mark.parametrize(
+    "text, setting",
+    [
+        ("pose:\n  min_marker: 3\n", "pose.min_marker"),
+        ("pose:\n  min_markers: 0\n", "pose.min_markers"),
+    ],
+)
+def test_load_config_errors_name_the_file_the_setting_and_the_fix(tmp_path, text, setting):
+    path = tmp_path / "calib.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    message = str(exc.value)
+    assert "\n" not in message
+    assert message.startswith(f"{path}: {setting}: ")
+    assert "fix this setting" in message
+    with pytest.raises(ConfigError, match=r"^options: workers: "):
+        load_config(None, workers=0)
+
+
+def test_written_config_reads_back_unchanged(tmp_path):
+    cfg = CalibrationConfig(
+        method="posegraph",
+        workers=3,
+        detection=DetectionConfig(refinement="subpix", edge_span=(0.2, 0.8)),
+        pose=PoseConfig(min_markers=2, pixel_sigma_px=0.3),
+        graph=PoseGraphConfig(kernel="huber"),
+        depth=DepthConfig(voxel_schedule_m=[0.05, 0.01], iterations=[20, 10]),
+    )
+    path = tmp_path / "config_resolved.yaml"
+    write_config(cfg, path)
+    assert load_config(path) == cfg
+    assert path.read_text().startswith("detection:\n")  # field order, as in the model
+
+
+# The child process of the test below: validate a config from YAML + overrides, then do what a
+# pool worker of calibrate.detect_dataset does (import the initializer and job it is given by
+# reference, run them on one image); print the marker ids found and the heavy modules loaded.
+_CHILD = """
+import importlib, json, sys
+from pathlib import Path
+
+from rgbd_calib.config import load_config
+
+config_path, image, width, height, *functions = sys.argv[1:]
+cfg = load_config(Path(config_path), method="posegraph", **{"detection.refinement": "subpix"})
+assert cfg.pose.min_markers == 2 and cfg.detection.refinement == "subpix", cfg
+
+from rgbd_calib.board import thesis_board
+
+init, job = (getattr(importlib.import_module(f.split(":")[0]), f.split(":")[1]) for f in functions)
+init(thesis_board(), cfg.detection)
+_, _, det = job(("cam0", "000000", image, int(width), int(height)))
+heavy = sorted(m for m in ("open3d", "kiss_icp", "gtsam") if m in sys.modules)
+print(json.dumps({"ids": det["ids"], "heavy": heavy}))
+"""
+
+
+def test_config_and_a_detection_worker_load_no_open3d_kiss_icp_or_gtsam(tmp_path):
+    """Validating a config and starting a detection worker must stay light: a worker imports
+    the module of the function the pool runs, so that module must not pull in graph/depth."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    import cv2
+    import numpy as np
+
+    from rgbd_calib import calibrate
+    from rgbd_calib.board import aruco_dictionary, thesis_board
+
+    board = thesis_board()
+    marker_id = int(board.ids[5])
+    image = np.full((360, 640), 255, np.uint8)
+    marker = cv2.aruco.generateImageMarker(aruco_dictionary(board.dictionary), marker_id, 120)
+    image[100:220, 250:370] = marker
+    image_path = tmp_path / "000000.png"
+    cv2.imwrite(str(image_path), cv2.GaussianBlur(image, (0, 0), 0.7))
+    config_path = tmp_path / "calib.yaml"
+    config_path.write_text("pose:\n  min_markers: 2\ndetection:\n  refinement: edges\n")
+    pool_functions = [calibrate.init_detector, calibrate.detect_job]  # what detect_dataset runs
+    refs = [f"{f.__module__}:{f.__qualname__}" for f in pool_functions]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    done = subprocess.run(
+        [sys.executable, "-c", _CHILD, str(config_path), str(image_path), "640", "360", *refs],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["ids"] == [marker_id]  # the job really ran
+    assert result["heavy"] == []
