@@ -17,7 +17,8 @@ import pytest
 from conftest import REPO
 
 from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import CalibrationConfig, calibrate
+from rgbd_calib.calibrate import calibrate
+from rgbd_calib.config import CalibrationConfig
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.geometry import transform_error
 from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize

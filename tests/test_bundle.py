@@ -6,6 +6,7 @@ import pytest
 from conftest import assert_transforms_close
 
 from rgbd_calib.board import thesis_board
+from rgbd_calib.config import BundleConfig
 from rgbd_calib.geometry import (
     invert_transform,
     look_at,
@@ -13,7 +14,7 @@ from rgbd_calib.geometry import (
     rotvec_to_matrix,
     transform_error,
 )
-from rgbd_calib.graph import BundleConfig, MarkerMeasurement, _view_factor, bundle_adjust
+from rgbd_calib.graph import MarkerMeasurement, _view_factor, bundle_adjust
 
 K = np.array([[600.0, 0, 640], [0, 600.0, 360], [0, 0, 1]])
 

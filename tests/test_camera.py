@@ -304,7 +304,8 @@ def test_calibration_of_distorted_images(distorted_line):
     distortion, undistorted corners into the bundle adjustment (the path that crashed on
     ``cv2.undistortPointsIter`` before the camera model)."""
     from rgbd_calib.board import thesis_board
-    from rgbd_calib.calibrate import CalibrationConfig, calibrate
+    from rgbd_calib.calibrate import calibrate
+    from rgbd_calib.config import CalibrationConfig
     from rgbd_calib.dataset import FolderDataset
     from rgbd_calib.geometry import transform_error
     from rgbd_calib.synth import load_ground_truth

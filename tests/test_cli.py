@@ -70,8 +70,8 @@ def test_extrinsics_yaml_follows_the_contract(calibrated):
 def test_rerun_uses_the_detection_cache(calibrated):
     from rgbd_calib.board import thesis_board
     from rgbd_calib.calibrate import detect_dataset
+    from rgbd_calib.config import DetectionConfig
     from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.detection import DetectionConfig
 
     synth, out = calibrated
     ds = FolderDataset(synth.path)

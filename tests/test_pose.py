@@ -18,7 +18,8 @@ from scipy.linalg import expm
 from rgbd_calib import synth
 from rgbd_calib.board import BACK, FRONT, Board, load_board
 from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.detection import DetectionConfig, MarkerDetections, detect_markers
+from rgbd_calib.config import DetectionConfig
+from rgbd_calib.detection import MarkerDetections, detect_markers
 from rgbd_calib.geometry import (
     invert_transform,
     make_transform,

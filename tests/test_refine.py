@@ -10,8 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import CalibrationConfig, calibrate
+from rgbd_calib.calibrate import calibrate
 from rgbd_calib.cli import app
+from rgbd_calib.config import CalibrationConfig
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.geometry import make_transform, rotvec_to_matrix, transform_error
 from rgbd_calib.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics

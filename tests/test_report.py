@@ -18,7 +18,8 @@ import pytest
 import yaml
 
 from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import CalibrationConfig, calibrate
+from rgbd_calib.calibrate import calibrate
+from rgbd_calib.config import CalibrationConfig
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.outputs import write_outputs
 from rgbd_calib.report import (

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import CalibrationConfig, calibrate
+from rgbd_calib.calibrate import calibrate
+from rgbd_calib.config import CalibrationConfig
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.outputs import write_outputs
 from rgbd_calib.report import dump_report, error_map, finalize_report, pair_entry, rebuild_report

@@ -884,8 +884,8 @@ def test_ctrl_c_leaves_earlier_results_and_resumes(clean, tmp_path):
 def test_interrupted_detection_keeps_what_it_detected(clean, tmp_path):
     """Library level: an interrupt after k images saves those k; the next run starts there."""
     from rgbd_calib.calibrate import detect_dataset
+    from rgbd_calib.config import DetectionConfig
     from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.detection import DetectionConfig
 
     ds = FolderDataset(clean.dataset)
     cache = tmp_path / "detections.json"

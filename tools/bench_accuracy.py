@@ -79,9 +79,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/peers.py
 from peers import opencv_multiview, thesis_method  # noqa: E402
 
 from rgbd_calib.board import Board, thesis_board  # noqa: E402
-from rgbd_calib.calibrate import CalibrationConfig, calibrate, detect_dataset  # noqa: E402
+from rgbd_calib.calibrate import calibrate, detect_dataset  # noqa: E402
+from rgbd_calib.config import (
+    CalibrationConfig,  # noqa: E402
+    DetectionConfig,  # noqa: E402
+)
 from rgbd_calib.dataset import FolderDataset  # noqa: E402
-from rgbd_calib.detection import DetectionConfig  # noqa: E402
 from rgbd_calib.geometry import matrix_to_rotvec, transform_error  # noqa: E402
 from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize  # noqa: E402
 from rgbd_calib.yamlio import atomic_write_text, read_yaml_mapping  # noqa: E402

@@ -52,7 +52,8 @@ import cv2
 import psutil
 
 from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import CalibrationConfig, calibrate
+from rgbd_calib.calibrate import calibrate
+from rgbd_calib.config import CalibrationConfig
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.parallel import process_context
 from rgbd_calib.synth import SynthParams, synthesize

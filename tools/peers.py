@@ -16,11 +16,11 @@ import cv2
 import numpy as np
 
 from rgbd_calib.board import Board
-from rgbd_calib.calibrate import CalibrationConfig, CalibrationResult, calibrate
+from rgbd_calib.calibrate import CalibrationResult, calibrate
+from rgbd_calib.config import CalibrationConfig, DetectionConfig, PoseGraphConfig
 from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.detection import DetectionConfig, MarkerDetections
+from rgbd_calib.detection import MarkerDetections
 from rgbd_calib.geometry import invert_transform, make_transform
-from rgbd_calib.graph import PoseGraphConfig
 
 
 def thesis_config(refinement: str = "none", workers: int | None = None) -> CalibrationConfig:
