@@ -333,13 +333,35 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
     ``fix_winding`` (or ``corner_order: front`` in the file) reorders mirrored markers instead
     of rejecting them."""
     path = Path(path)
+    where = str(path)
+    data = _read_board_mapping(path, where)
+    # the keys both forms share
+    dictionary = str(data["dictionary"])
+    try:
+        d = aruco_dictionary(dictionary)
+    except BoardError as exc:
+        raise BoardError(f"{where}: {exc}") from None
+    n_dict = d.bytesList.shape[0]
+    thickness = _number(data["thickness"], f"{where}: thickness", allow_zero=True)
+    name = str(data.get("name", path.stem))
+    panel = _panel(data.get("panel"), where)
+    # the form-specific part
+    if "grid" in data:
+        return _board_from_grid_form(data, dictionary, n_dict, thickness, panel, name, path, where)
+    return _board_from_explicit_form(
+        data, dictionary, n_dict, thickness, panel, name, path, where, fix_winding
+    )
+
+
+def _read_board_mapping(path: Path, where: str) -> dict:
+    """The board file's top-level mapping: known keys only, the required ones present, and
+    exactly one of the grid and explicit forms (every failure a BoardError)."""
     try:
         data = read_yaml_mapping(path, "board file")
     except BoardError:
         raise
     except ConfigError as exc:
         raise BoardError(str(exc)) from None
-    where = str(path)
     try:
         check_keys(data, _TOP_KEYS, where, required=("dictionary", "thickness"))
     except ConfigError as exc:
@@ -348,70 +370,118 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
         raise BoardError(
             f"{where}: give exactly one of 'grid' (grid form) or 'markers' (explicit form)"
         )
-    dictionary = str(data["dictionary"])
-    try:
-        d = aruco_dictionary(dictionary)
-    except BoardError as exc:
-        raise BoardError(f"{where}: {exc}") from None
-    thickness = _number(data["thickness"], f"{where}: thickness", allow_zero=True)
-    name = str(data.get("name", path.stem))
-    panel = data.get("panel")
-    if panel is not None:
-        if not (isinstance(panel, list) and len(panel) == 4):
-            raise BoardError(f"{where}: panel must be [xmin, xmax, ymin, ymax] in metres")
-        panel = tuple(_number(v, f"{where}: panel", positive=False) for v in panel)
-        if panel[0] >= panel[1] or panel[2] >= panel[3]:
-            raise BoardError(f"{where}: panel must be [xmin, xmax, ymin, ymax] with min < max")
-    if "grid" in data:
-        g = data["grid"]
-        if not isinstance(g, dict):
-            raise BoardError(f"{where}: grid must be a mapping")
-        try:
-            check_keys(
-                g,
-                _GRID_KEYS,
-                f"{where}: grid",
-                required=("rows", "cols", "marker_length", "separation", "front_first_id"),
-            )
-        except ConfigError as exc:
-            raise BoardError(str(exc)) from None
-        back = g.get("back_first_id")
-        margin = data.get("margin")
-        rows = _int(g["rows"], f"{where}: grid.rows", 1)
-        cols = _int(g["cols"], f"{where}: grid.cols", 1)
-        front_id = _int(g["front_first_id"], f"{where}: grid.front_first_id")
-        back_id = None if back is None else _int(back, f"{where}: grid.back_first_id")
-        _check_grid_fits(rows, cols, front_id, back_id, dictionary, d.bytesList.shape[0], where)
-        board = board_from_grid(
-            dictionary,
-            rows,
-            cols,
-            _number(g["marker_length"], f"{where}: grid.marker_length"),
-            _number(g["separation"], f"{where}: grid.separation", allow_zero=True),
-            thickness,
-            front_id,
-            back_id,
-            None if margin is None else _number(margin, f"{where}: margin", allow_zero=True),
-            panel,
-            name,
-            where,
-        )
-        return Board(
-            board.dictionary,
-            board.ids,
-            board.corners,
-            board.faces,
-            board.thickness,
-            board.panel,
-            board.name,
-            board.grid,
-            path,
-        )
+    return data
 
+
+def _panel(panel: Any, where: str) -> tuple[float, float, float, float] | None:
+    """The optional ``panel`` key: ``[xmin, xmax, ymin, ymax]`` in metres, min < max."""
+    if panel is None:
+        return None
+    if not (isinstance(panel, list) and len(panel) == 4):
+        raise BoardError(f"{where}: panel must be [xmin, xmax, ymin, ymax] in metres")
+    panel = tuple(_number(v, f"{where}: panel", positive=False) for v in panel)
+    if panel[0] >= panel[1] or panel[2] >= panel[3]:
+        raise BoardError(f"{where}: panel must be [xmin, xmax, ymin, ymax] with min < max")
+    return panel
+
+
+def _board_from_grid_form(
+    data: dict,
+    dictionary: str,
+    n_dict: int,
+    thickness: float,
+    panel: tuple[float, float, float, float] | None,
+    name: str,
+    path: Path,
+    where: str,
+) -> Board:
+    """The board of a grid-form file (the ``grid`` mapping and the optional ``margin``, m);
+    ``n_dict`` is the dictionary's marker count."""
+    g = data["grid"]
+    if not isinstance(g, dict):
+        raise BoardError(f"{where}: grid must be a mapping")
+    try:
+        check_keys(
+            g,
+            _GRID_KEYS,
+            f"{where}: grid",
+            required=("rows", "cols", "marker_length", "separation", "front_first_id"),
+        )
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    back = g.get("back_first_id")
+    margin = data.get("margin")
+    rows = _int(g["rows"], f"{where}: grid.rows", 1)
+    cols = _int(g["cols"], f"{where}: grid.cols", 1)
+    front_id = _int(g["front_first_id"], f"{where}: grid.front_first_id")
+    back_id = None if back is None else _int(back, f"{where}: grid.back_first_id")
+    _check_grid_fits(rows, cols, front_id, back_id, dictionary, n_dict, where)
+    board = board_from_grid(
+        dictionary,
+        rows,
+        cols,
+        _number(g["marker_length"], f"{where}: grid.marker_length"),
+        _number(g["separation"], f"{where}: grid.separation", allow_zero=True),
+        thickness,
+        front_id,
+        back_id,
+        None if margin is None else _number(margin, f"{where}: margin", allow_zero=True),
+        panel,
+        name,
+        where,
+    )
+    return Board(
+        board.dictionary,
+        board.ids,
+        board.corners,
+        board.faces,
+        board.thickness,
+        board.panel,
+        board.name,
+        board.grid,
+        path,
+    )
+
+
+def _board_from_explicit_form(
+    data: dict,
+    dictionary: str,
+    n_dict: int,
+    thickness: float,
+    panel: tuple[float, float, float, float] | None,
+    name: str,
+    path: Path,
+    where: str,
+    fix_winding: bool,
+) -> Board:
+    """The board of an explicit-form file (``markers``: id -> 4 corners in metres, the
+    optional ``corner_order`` and ``margin``); faces and winding checked by
+    :func:`validate_markers`, the panel defaulting to the corners' extent plus the margin."""
     order = data.get("corner_order", "detection")
     if order not in ("detection", "front"):
         raise BoardError(f"{where}: corner_order must be 'detection' or 'front', got {order!r}")
-    markers = data["markers"]
+    ids_a, corners_a = _explicit_markers(data["markers"], where)
+    corners_a, faces = validate_markers(
+        ids_a,
+        corners_a,
+        thickness,
+        n_dict,
+        where,
+        fix_winding=fix_winding or order == "front",
+    )
+    if panel is None:
+        m = _number(data.get("margin", 0.0) or 0.0, f"{where}: margin", allow_zero=True)
+        lo = corners_a.reshape(-1, 3).min(axis=0)
+        hi = corners_a.reshape(-1, 3).max(axis=0)
+        panel = (lo[0] - m, hi[0] + m, lo[1] - m, hi[1] + m)
+    return Board(
+        dictionary, ids_a, corners_a, faces, thickness, tuple(map(float, panel)), name, None, path
+    )
+
+
+def _explicit_markers(markers: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """The ``markers`` mapping as ids ``(N,)`` and corners ``(N,4,3)`` (m, file order):
+    whole-number ids in [0, 2^31), four finite 3-D corners each."""
     if not isinstance(markers, dict) or not markers:
         raise BoardError(
             f"{where}: markers must map marker id -> 4 corners [[x,y,z], ...]; use the form of "
@@ -437,24 +507,7 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
             )
         ids.append(mid)
         corners.append(c)
-    ids_a = np.asarray(ids, dtype=int)
-    corners_a = np.asarray(corners, dtype=float)
-    corners_a, faces = validate_markers(
-        ids_a,
-        corners_a,
-        thickness,
-        d.bytesList.shape[0],
-        where,
-        fix_winding=fix_winding or order == "front",
-    )
-    if panel is None:
-        m = _number(data.get("margin", 0.0) or 0.0, f"{where}: margin", allow_zero=True)
-        lo = corners_a.reshape(-1, 3).min(axis=0)
-        hi = corners_a.reshape(-1, 3).max(axis=0)
-        panel = (lo[0] - m, hi[0] + m, lo[1] - m, hi[1] + m)
-    return Board(
-        dictionary, ids_a, corners_a, faces, thickness, tuple(map(float, panel)), name, None, path
-    )
+    return np.asarray(ids, dtype=int), np.asarray(corners, dtype=float)
 
 
 def save_board(board: Board, path: Path) -> None:

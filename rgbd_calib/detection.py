@@ -346,8 +346,41 @@ def _fit_edge_lines(
     ``normal . x = rho`` on the line (undistorted pixels when ``intrinsics`` has distortion),
     a validity mask ``(M,4)`` and the fitted blur width per marker ``(M,)``.
     """
-    m = corners.shape[0]
-    cells = white.shape[-1]
+    # each edge's frame in the image, then the marker's layout seen through the current corners
+    frame = _edge_frames(corners)
+    layout = _edge_cell_layout(corners, white, frame)
+    # the band fitted across each edge and the span sampled along it
+    band, tau_lo, tau_hi = _edge_band(config, layout.m_at0, frame.length)
+    # the band's pixels as flat per-pixel arrays, ordered by edge
+    curved = intrinsics is not None and intrinsics.has_distortion
+    samples, n_expected, tau_scale = _edge_samples(
+        gray, frame, layout, band, tau_lo, tau_hi, config.edge_max_samples, curved
+    )
+    # the edge model fitted per marker
+    local, width, weight, contrast, resid = _fit_edge_models(
+        samples, band, blur_prior, config.edge_iterations
+    )
+    # which edges are usable
+    ok = _edge_fit_ok(samples, local, width, weight, contrast, resid, band, n_expected, config)
+    # the fitted edges as straight lines
+    nrm, rho = _edge_lines(local, frame, tau_scale, intrinsics if curved else None)
+    return nrm, rho, ok, width
+
+
+@dataclass(frozen=True, eq=False)
+class _EdgeFrame:
+    """Each marker edge ``k`` (corner ``k`` -> ``k+1``) in image pixels (as detected, i.e.
+    distorted): ``length`` ``(M,4)`` px, unit direction ``d`` and unit outward ``normal``
+    ``(M,4,2)`` (``(d, normal)`` right-handed), midpoint ``mid`` ``(M,4,2)`` px."""
+
+    length: np.ndarray
+    d: np.ndarray
+    normal: np.ndarray
+    mid: np.ndarray
+
+
+def _edge_frames(corners: np.ndarray) -> _EdgeFrame:
+    """The frame of each edge of markers with image corners ``corners`` ``(M,4,2)`` (px)."""
     vec = np.roll(corners, -1, axis=1) - corners
     length = np.linalg.norm(vec, axis=-1)  # (M,4)
     d = vec / length[..., None]
@@ -358,9 +391,29 @@ def _fit_edge_lines(
     normal = normal * np.where(outward == 0, 1.0, outward)[..., None]
     d = np.stack([-normal[..., 1], normal[..., 0]], axis=-1)  # (d, normal) right-handed
     mid = corners + 0.5 * vec
+    return _EdgeFrame(length, d, normal, mid)
 
-    # the marker's layout seen through the current corners: module width across each edge
-    # (linear along it) and the data cells' extents along it
+
+@dataclass(frozen=True, eq=False)
+class _CellLayout:
+    """The marker's cells seen along each edge through the current corners, in px of the
+    edge's frame: ``bound`` ``(M,4,cells-1)`` along-edge positions (from the midpoint) of the
+    cell boundaries, the module width across the edge ``m_at0 + m_slope * s`` (``(M,4)``, px
+    and px/px), and ``step_at`` ``(M,4,cells-1)`` the change of the data cells' whiteness at
+    each boundary (see :func:`_edge_cell_layout`)."""
+
+    bound: np.ndarray
+    m_at0: np.ndarray
+    m_slope: np.ndarray
+    step_at: np.ndarray
+
+
+def _edge_cell_layout(corners: np.ndarray, white: np.ndarray, frame: _EdgeFrame) -> _CellLayout:
+    """Module width across each edge (linear along it) and the data cells' extents along it,
+    from the homography of the unit square onto ``corners`` ``(M,4,2)`` (px)."""
+    m = corners.shape[0]
+    cells = white.shape[-1]
+    d, normal, mid = frame.d, frame.normal, frame.mid
     H = _homographies(corners)
     start, along, inward, rc = _edge_layout(cells)
     fr = np.arange(1, cells) / cells  # cell boundaries along the edge (the corner modules too)
@@ -381,13 +434,35 @@ def _fit_edge_lines(
     q = cell_white * np.where(bound[..., 1:] >= bound[..., :-1], 1.0, -1.0)
     pad = np.zeros((m, 4, 1))
     step_at = np.concatenate([q, pad], axis=-1) - np.concatenate([pad, q], axis=-1)  # (M,4,B)
+    return _CellLayout(bound, m_at0, m_slope, step_at)
+
+
+def _edge_band(config: DetectionConfig, m_at0: np.ndarray, length: np.ndarray):
+    """Per edge ``(M,4)``: the band half-width across it (px) and the sampled span along it,
+    ``tau_lo .. tau_hi`` (px from the midpoint), kept away from the corners."""
     module = np.clip(m_at0, 0.1, None)
     band = np.clip(config.edge_band_modules * module, *config.edge_band_px)
     margin = np.minimum(config.edge_corner_margin_px / length, 0.4)
     tau_lo = (np.maximum(config.edge_span[0], margin) - 0.5) * length  # span about the midpoint
     tau_hi = (np.minimum(config.edge_span[1], 1.0 - margin) - 0.5) * length
+    return band, tau_lo, tau_hi
 
-    # enumerate the band's pixels column by column along the edge's dominant image axis
+
+def _band_pixels(
+    image_shape: tuple[int, int],
+    frame: _EdgeFrame,
+    band: np.ndarray,
+    tau_lo: np.ndarray,
+    tau_hi: np.ndarray,
+    max_samples: int,
+):
+    """Candidate pixels of each edge's band, column by column along the edge's dominant image
+    axis (at most ``max_samples`` columns): integer pixel centres ``x``, ``y`` ``(M,4,S,R)``,
+    their distance ``d0`` across the edge (px, outwards positive) and ``tau`` along it (px
+    from the midpoint), the mask ``use`` of those in the band and the image, and
+    ``n_expected`` ``(M,4)`` the band's pixel count ignoring the image border."""
+    d, normal, mid = frame.d, frame.normal, frame.mid
+    m = d.shape[0]
     axis = (np.abs(d[..., 1]) > np.abs(d[..., 0])).astype(int)  # 0: x-major, 1: y-major
     other = 1 - axis
     d_major = np.take_along_axis(d, axis[..., None], -1)[..., 0]
@@ -396,7 +471,7 @@ def _fit_edge_lines(
     major_ends = np.take_along_axis(ends, np.repeat(axis[..., None, None], 2, -2), -1)[..., 0]
     c_lo = np.ceil(major_ends.min(-1))
     n_cols = np.maximum(np.floor(major_ends.max(-1)) - c_lo + 1, 0).astype(int)
-    stride = np.maximum(np.ceil(n_cols / config.edge_max_samples), 1).astype(int)
+    stride = np.maximum(np.ceil(n_cols / max_samples), 1).astype(int)
     n_used = np.ceil(n_cols / stride).astype(int)
     s_max = max(int(n_used.max()), 1)
     half_minor = band / np.maximum(np.abs(d_major), 1e-6)  # band extent along the minor axis
@@ -418,7 +493,7 @@ def _fit_edge_lines(
     rel_y = y - mid[..., 1, None, None]
     d0 = rel_x * normal[..., 0, None, None] + rel_y * normal[..., 1, None, None]
     tau = rel_x * d[..., 0, None, None] + rel_y * d[..., 1, None, None]
-    h_img, w_img = gray.shape
+    h_img, w_img = image_shape
     inside = (x >= 0) & (y >= 0) & (x <= w_img - 1) & (y <= h_img - 1)
     use = (
         (j < n_used[..., None])[..., None]
@@ -428,6 +503,61 @@ def _fit_edge_lines(
     )
     n_expected = use.reshape(m, 4, -1).sum(-1)
     use &= inside
+    return x, y, d0, tau, use, n_expected
+
+
+@dataclass(frozen=True, eq=False)
+class _EdgeSamples:
+    """The band pixels of all edges as flat arrays, ordered by edge (``m*4 + k``), hence by
+    marker, and the (pixel, cell boundary) pairs where the data cells change colour, ordered by
+    pixel. Per pixel: ``d0`` (px across the edge, outwards positive, from the current edge),
+    ``tn`` (along-edge position normalised to [-1, 1]) and ``tn2 = tn**2``, grey ``values``,
+    the module width ``m_pix`` (px). Per pair: its pixel ``pair_pix``, ``pair_s`` = s - c_i
+    (px) and ``pair_step`` = step_i. ``curved``: lens distortion (the edges get a curvature
+    term). Per-edge/per-marker values spread to the pixels by ``np.repeat`` with the counts;
+    sums per edge or marker are sums of contiguous segments (``edge_sum``, ``per_marker``)."""
+
+    m: int
+    curved: bool
+    edge_of: np.ndarray
+    d0: np.ndarray
+    tn: np.ndarray
+    tn2: np.ndarray
+    values: np.ndarray
+    m_pix: np.ndarray
+    pair_pix: np.ndarray
+    pair_s: np.ndarray
+    pair_step: np.ndarray
+    edge_count: np.ndarray
+    marker_count: np.ndarray
+    pair_count: np.ndarray
+    edge_sum: Any
+    per_marker: Any
+
+    def at_pixels(self, per_marker_value: np.ndarray) -> np.ndarray:
+        return np.repeat(per_marker_value, self.marker_count)
+
+    def per_edge(self, v: np.ndarray) -> np.ndarray:
+        return self.edge_sum(v).reshape(self.m, 4)
+
+
+def _edge_samples(
+    gray: np.ndarray,
+    frame: _EdgeFrame,
+    layout: _CellLayout,
+    band: np.ndarray,
+    tau_lo: np.ndarray,
+    tau_hi: np.ndarray,
+    max_samples: int,
+    curved: bool,
+):
+    """The band's pixels of every edge (:func:`_band_pixels`) kept as :class:`_EdgeSamples`;
+    also ``n_expected`` ``(M,4)`` and the along-edge scale ``tau_scale`` ``(M,4)`` (px) of
+    ``tn``."""
+    m = frame.d.shape[0]
+    x, y, d0, tau, use, n_expected = _band_pixels(
+        gray.shape, frame, band, tau_lo, tau_hi, max_samples
+    )
     # keep only the band's pixels, as flat arrays with their edge (m*4 + k) and marker index
     sel = np.nonzero(use.reshape(m * 4, -1))
     edge_of = sel[0]
@@ -437,148 +567,212 @@ def _fit_edge_lines(
     px_x = x.reshape(m * 4, -1)[sel].astype(np.intp)
     px_y = y.reshape(m * 4, -1)[sel].astype(np.intp)
     values = gray[px_y, px_x].astype(np.float64)
+    m_at0, m_slope = layout.m_at0, layout.m_slope
     m_pix = np.clip(m_at0.reshape(-1)[edge_of] + m_slope.reshape(-1)[edge_of] * tau, 0.1, None)
-    curved = intrinsics is not None and intrinsics.has_distortion
     tau_scale = np.maximum(0.5 * (tau_hi - tau_lo), 1.0)
     tn = tau / tau_scale.reshape(-1)[edge_of]  # normalised along-edge coordinate in [-1, 1]
     # (pixel, boundary) pairs where the data cells change colour (step_i != 0): s - c_i and
     # step_i, ordered by pixel
+    step_at = layout.step_at
     n_b = step_at.shape[-1]
     pair = np.flatnonzero(step_at.reshape(n_edges, n_b)[edge_of] != 0)
     pair_pix = pair // n_b
     at_boundary = edge_of[pair_pix] * n_b + pair % n_b
-    pair_s = tau[pair_pix] - bound.reshape(-1)[at_boundary]
+    pair_s = tau[pair_pix] - layout.bound.reshape(-1)[at_boundary]
     pair_step = step_at.reshape(-1)[at_boundary]
-    n_pix = tau.shape[0]
-
     # the pixels are ordered by edge (hence by marker), and the pairs by pixel: per-edge or
     # per-marker values spread to the pixels by np.repeat, sums per edge or marker are sums of
     # contiguous segments (np.add.reduceat); both much faster than fancy indexing/np.bincount
     edge_count = np.bincount(edge_of, minlength=n_edges)
-    marker_count = edge_count.reshape(m, 4).sum(axis=1)
-    pair_count = np.bincount(marker_of[pair_pix], minlength=m)
-    edge_sum = _segment_summer(edge_of, n_edges)
-    per_marker = _segment_summer(marker_of, m)
-    tn2 = tn**2
+    samples = _EdgeSamples(
+        m=m,
+        curved=curved,
+        edge_of=edge_of,
+        d0=d0,
+        tn=tn,
+        tn2=tn**2,
+        values=values,
+        m_pix=m_pix,
+        pair_pix=pair_pix,
+        pair_s=pair_s,
+        pair_step=pair_step,
+        edge_count=edge_count,
+        marker_count=edge_count.reshape(m, 4).sum(axis=1),
+        pair_count=np.bincount(marker_of[pair_pix], minlength=m),
+        edge_sum=_segment_summer(edge_of, n_edges),
+        per_marker=_segment_summer(marker_of, m),
+    )
+    return samples, n_expected, tau_scale
 
-    def at_pixels(per_marker_value: np.ndarray) -> np.ndarray:
-        return np.repeat(per_marker_value, marker_count)
 
-    def per_edge(v: np.ndarray) -> np.ndarray:
-        return edge_sum(v).reshape(m, 4)
+def _edge_model(s: _EdgeSamples, local: np.ndarray, width: np.ndarray):
+    """The basis (the blurred marker image, 0 on the ink and 1 on the quiet zone) at each
+    pixel and its derivatives by d and by w (per px); independent of the pixel weights.
+    ``local`` ``(M,4,3)``: rho (px), theta, kappa (px per unit of ``tn``) per edge; ``width``
+    ``(M,)`` the blur width (px).
 
-    # Levenberg-Marquardt per marker: offset rho_k, angle theta_k (curvature kappa_k with lens
-    # distortion) per edge, d = d0 - rho + theta*tn + kappa*tn^2, and a blur width w shared by
-    # the four edges (an axis-aligned edge samples the step at a single sub-pixel phase and
-    # cannot tell its position from the blur on its own). D and C enter linearly and are
-    # solved in closed form at every evaluation (variable projection): no initial guess needed.
-    n_loc = 3 if curved else 2
+    Only the cell boundaries within _FAR blur widths of a pixel need the Gaussian CDF:
+    further ones contribute exactly step_i (in front of the pixel) or 0 (behind it) in
+    double precision, and nothing to the derivative."""
+    n_pix = s.d0.shape[0]
+    rho, theta, kappa = (np.repeat(v, s.edge_count) for v in local.reshape(4 * s.m, 3).T)
+    dist = s.d0 - rho + theta * s.tn
+    if s.curved:  # kappa stays 0 otherwise
+        dist += kappa * s.tn2
+    wd = s.at_pixels(width)
+    z = dist / wd
+    e = -(dist + s.m_pix) / wd
+    g = s.pair_s / np.repeat(width, s.pair_count)
+    near = np.flatnonzero(np.abs(g) < _FAR)
+    gn, step_n = g[near], s.pair_step[near]
+    phi = np.where(g > 0.0, s.pair_step, 0.0)
+    phi[near] = step_n * ndtr(gn)
+    behind = np.bincount(s.pair_pix, phi, minlength=n_pix)  # white data cells behind, at s
+    behind_w = np.bincount(  # w * d behind / d w
+        s.pair_pix[near], -step_n * _pdf(gn) * gn, minlength=n_pix
+    )
+    phi_e = np.zeros_like(e)  # 0 where the data cells are > _FAR blur widths behind
+    live = np.flatnonzero(e > -_FAR)
+    phi_e[live] = ndtr(e[live])
+    basis = ndtr(z) + phi_e * behind
+    pz, pe = _pdf(z), _pdf(e)
+    d_dist = (pz - pe * behind) / wd  # d basis / d dist
+    d_width = (-pz * z - pe * e * behind + phi_e * behind_w) / wd
+    return basis, d_dist, d_width
+
+
+def _edge_solve(
+    s: _EdgeSamples,
+    basis: np.ndarray,
+    width: np.ndarray,
+    wt: np.ndarray,
+    blur_prior: tuple[float, float],
+):
+    """Closed-form weighted least squares of values = D + C * basis, per marker: the
+    cost (with the blur prior on ``width``, px), the contrast C (grey levels) and the
+    residuals (grey levels, per pixel)."""
+    w0, w_sigma = blur_prior
+    per_marker, values = s.per_marker, s.values
+    sw, s1, s2 = per_marker(wt), per_marker(wt * basis), per_marker(wt * basis**2)
+    sv, svb = per_marker(wt * values), per_marker(wt * values * basis)
+    det = sw * s2 - s1 * s1
+    contrast = (sw * svb - s1 * sv) / np.where(np.abs(det) > 1e-12, det, 1e-12)
+    dark = (sv - contrast * s1) / np.maximum(sw, 1e-12)
+    resid = values - (s.at_pixels(dark) + s.at_pixels(contrast) * basis)
+    cost = per_marker(wt * resid**2) + ((width - w0) / w_sigma) ** 2
+    return cost, contrast, resid
+
+
+def _lm_step(
+    s: _EdgeSamples,
+    model: tuple[np.ndarray, np.ndarray, np.ndarray],
+    contrast: np.ndarray,
+    resid: np.ndarray,
+    weight: np.ndarray,
+    width: np.ndarray,
+    lam: np.ndarray,
+    blur_prior: tuple[float, float],
+) -> np.ndarray:
+    """One damped Gauss-Newton step ``(M, 4*n_loc+3)`` per marker: the ``n_loc`` edge
+    parameters of each edge (rho, theta[, kappa]), then D, C and the blur width (px)."""
+    basis, d_dist, d_width = model
+    w0, w_sigma = blur_prior
+    m, tn, tn2 = s.m, s.tn, s.tn2
+    n_loc = 3 if s.curved else 2
     n_big = 4 * n_loc + 3
     upper, scatter = _normal_equation_layout(n_loc)
-    w0, w_sigma = blur_prior
+    c_pix = s.at_pixels(contrast)
+    g = c_pix * d_dist
+    # the Jacobian's columns for the pixel's own edge, then per-edge sums of the products
+    # of the columns (upper triangle) and of the columns with the residuals, placed into
+    # each marker's system by a constant 0/1 matrix (row by row: no (n_par^2, P) temporary)
+    cols = [-g, g * tn, g * tn2][:n_loc] + [np.ones_like(g), basis, c_pix * d_width]
+    wcols = [weight * c for c in cols]
+    sums = np.stack(
+        [s.edge_sum(wcols[a] * cols[b]) for a, b in zip(*upper)]
+        + [s.edge_sum(wc * resid) for wc in wcols]
+    )
+    normal_eq = sums.reshape(-1, m, 4).transpose(1, 2, 0).reshape(m, -1) @ scatter
+    jtj = normal_eq[:, : n_big * n_big].reshape(m, n_big, n_big)
+    jtr = normal_eq[:, n_big * n_big :]
+    jtj[:, -1, -1] += 1.0 / w_sigma**2  # Gaussian prior on the blur width
+    jtr[:, -1] += (w0 - width) / w_sigma**2
+    diag = np.einsum("mii->mi", jtj)
+    damped = jtj + (lam[:, None] * diag + 1e-9)[..., None] * np.eye(n_big)
+    return np.nan_to_num(np.linalg.solve(damped, jtr[..., None])[..., 0])
 
-    def model(local: np.ndarray, width: np.ndarray):
-        """The basis (the blurred marker image, 0 on the ink and 1 on the quiet zone) at each
-        pixel and its derivatives by d and by w; independent of the pixel weights.
 
-        Only the cell boundaries within _FAR blur widths of a pixel need the Gaussian CDF:
-        further ones contribute exactly step_i (in front of the pixel) or 0 (behind it) in
-        double precision, and nothing to the derivative."""
-        rho, theta, kappa = (np.repeat(v, edge_count) for v in local.reshape(n_edges, 3).T)
-        dist = d0 - rho + theta * tn
-        if curved:  # kappa stays 0 otherwise
-            dist += kappa * tn2
-        wd = at_pixels(width)
-        z = dist / wd
-        e = -(dist + m_pix) / wd
-        g = pair_s / np.repeat(width, pair_count)
-        near = np.flatnonzero(np.abs(g) < _FAR)
-        gn, step_n = g[near], pair_step[near]
-        phi = np.where(g > 0.0, pair_step, 0.0)
-        phi[near] = step_n * ndtr(gn)
-        behind = np.bincount(pair_pix, phi, minlength=n_pix)  # white data cells behind, at s
-        behind_w = np.bincount(  # w * d behind / d w
-            pair_pix[near], -step_n * _pdf(gn) * gn, minlength=n_pix
-        )
-        phi_e = np.zeros_like(e)  # 0 where the data cells are > _FAR blur widths behind
-        live = np.flatnonzero(e > -_FAR)
-        phi_e[live] = ndtr(e[live])
-        basis = ndtr(z) + phi_e * behind
-        pz, pe = _pdf(z), _pdf(e)
-        d_dist = (pz - pe * behind) / wd  # d basis / d dist
-        d_width = (-pz * z - pe * e * behind + phi_e * behind_w) / wd
-        return basis, d_dist, d_width
-
-    def solve(basis: np.ndarray, width: np.ndarray, wt: np.ndarray):
-        """Closed-form weighted least squares of values = D + C * basis, per marker: the
-        cost (with the blur prior), the contrast C and the residuals."""
-        sw, s1, s2 = per_marker(wt), per_marker(wt * basis), per_marker(wt * basis**2)
-        sv, svb = per_marker(wt * values), per_marker(wt * values * basis)
-        det = sw * s2 - s1 * s1
-        contrast = (sw * svb - s1 * sv) / np.where(np.abs(det) > 1e-12, det, 1e-12)
-        dark = (sv - contrast * s1) / np.maximum(sw, 1e-12)
-        resid = values - (at_pixels(dark) + at_pixels(contrast) * basis)
-        cost = per_marker(wt * resid**2) + ((width - w0) / w_sigma) ** 2
-        return cost, contrast, resid
-
+def _fit_edge_models(
+    s: _EdgeSamples, band: np.ndarray, blur_prior: tuple[float, float], iterations: int
+):
+    """Levenberg-Marquardt per marker: offset rho_k (px), angle theta_k (curvature kappa_k
+    with lens distortion) per edge, d = d0 - rho + theta*tn + kappa*tn^2, and a blur width w
+    (px) shared by the four edges (an axis-aligned edge samples the step at a single sub-pixel
+    phase and cannot tell its position from the blur on its own). D and C enter linearly and
+    are solved in closed form at every evaluation (variable projection): no initial guess
+    needed. Returns ``local`` ``(M,4,3)``, ``width`` ``(M,)``, the pixel weights (0/1), the
+    contrast ``(M,)`` and the residuals per pixel (grey levels)."""
+    m, n_loc = s.m, 3 if s.curved else 2
+    w0 = blur_prior[0]
     local = np.zeros((m, 4, 3))  # rho, theta, kappa per edge
     width = np.full(m, w0)
     lam = np.full(m, 1e-3)
-    weight = np.ones_like(values)
-    eye = np.eye(n_big)
+    weight = np.ones_like(s.values)
     # the model at the current parameters is kept: after a rejected step it is unchanged, after
     # an accepted one it is the trial's (one model evaluation per iteration)
-    basis, d_dist, d_width = model(local, width)
-    cost, contrast, resid = solve(basis, width, weight)
-    for it in range(config.edge_iterations):
+    basis, d_dist, d_width = _edge_model(s, local, width)
+    cost, contrast, resid = _edge_solve(s, basis, width, weight, blur_prior)
+    for it in range(iterations):
         if it in (3, 6):  # reject outlier pixels (occlusion, stray texture) from then on
             limit = np.maximum(
-                4.0 * 1.4826 * _edge_medians(np.abs(resid), weight > 0, edge_of, n_edges),
+                4.0 * 1.4826 * _edge_medians(np.abs(resid), weight > 0, s.edge_of, 4 * m),
                 0.02 * np.abs(contrast).repeat(4) + 1.0,
             )
-            weight = (np.abs(resid) <= np.repeat(limit, edge_count)).astype(float)
-            cost, contrast, resid = solve(basis, width, weight)
-        c_pix = at_pixels(contrast)
-        g = c_pix * d_dist
-        # the Jacobian's columns for the pixel's own edge, then per-edge sums of the products
-        # of the columns (upper triangle) and of the columns with the residuals, placed into
-        # each marker's system by a constant 0/1 matrix (row by row: no (n_par^2, P) temporary)
-        cols = [-g, g * tn, g * tn2][:n_loc] + [np.ones_like(g), basis, c_pix * d_width]
-        wcols = [weight * c for c in cols]
-        sums = np.stack(
-            [edge_sum(wcols[a] * cols[b]) for a, b in zip(*upper)]
-            + [edge_sum(wc * resid) for wc in wcols]
+            weight = (np.abs(resid) <= np.repeat(limit, s.edge_count)).astype(float)
+            cost, contrast, resid = _edge_solve(s, basis, width, weight, blur_prior)
+        step = _lm_step(
+            s, (basis, d_dist, d_width), contrast, resid, weight, width, lam, blur_prior
         )
-        normal_eq = sums.reshape(-1, m, 4).transpose(1, 2, 0).reshape(m, -1) @ scatter
-        jtj = normal_eq[:, : n_big * n_big].reshape(m, n_big, n_big)
-        jtr = normal_eq[:, n_big * n_big :]
-        jtj[:, -1, -1] += 1.0 / w_sigma**2  # Gaussian prior on the blur width
-        jtr[:, -1] += (w0 - width) / w_sigma**2
-        diag = np.einsum("mii->mi", jtj)
-        damped = jtj + (lam[:, None] * diag + 1e-9)[..., None] * eye
-        step = np.nan_to_num(np.linalg.solve(damped, jtr[..., None])[..., 0])
+        # the trial parameters, kept per marker where they lower the cost
         trial = local.copy()
         trial[..., :n_loc] += step[:, : 4 * n_loc].reshape(m, 4, n_loc)
         trial[..., 0] = np.clip(trial[..., 0], -band, band)
         trial_w = np.clip(width + step[:, -1], 0.15, 3.0)
-        t_basis, t_d_dist, t_d_width = model(trial, trial_w)
-        t_cost, t_contrast, t_resid = solve(t_basis, trial_w, weight)
+        t_basis, t_d_dist, t_d_width = _edge_model(s, trial, trial_w)
+        t_cost, t_contrast, t_resid = _edge_solve(s, t_basis, trial_w, weight, blur_prior)
         better = t_cost < cost
         local = np.where(better[:, None, None], trial, local)
         width = np.where(better, trial_w, width)
         lam = np.where(better, lam / 3.0, lam * 4.0)
         cost = np.where(better, t_cost, cost)
         contrast = np.where(better, t_contrast, contrast)
-        on = at_pixels(better)
+        on = s.at_pixels(better)
         basis = np.where(on, t_basis, basis)
         d_dist = np.where(on, t_d_dist, d_dist)
         d_width = np.where(on, t_d_width, d_width)
         resid = np.where(on, t_resid, resid)
-    rho, theta, kappa = np.moveaxis(local, -1, 0)
-    n_in = per_edge(weight)
-    rms = np.sqrt(per_edge(weight * resid**2) / np.maximum(n_in, 1))
+    return local, width, weight, contrast, resid
+
+
+def _edge_fit_ok(
+    s: _EdgeSamples,
+    local: np.ndarray,
+    width: np.ndarray,
+    weight: np.ndarray,
+    contrast: np.ndarray,
+    resid: np.ndarray,
+    band: np.ndarray,
+    n_expected: np.ndarray,
+    config: DetectionConfig,
+) -> np.ndarray:
+    """``(M,4)`` True where an edge's fit is usable: enough contrast (grey levels) and inlier
+    pixels, its offset inside the band (px), a plausible blur width (px) and a small RMS
+    residual relative to the contrast."""
+    rho = local[..., 0]
+    n_in = s.per_edge(weight)
+    rms = np.sqrt(s.per_edge(weight * resid**2) / np.maximum(n_in, 1))
     c = contrast[:, None]
-    ok = (
+    return (
         (c >= config.min_edge_contrast)
         & (n_in >= 6)
         & (n_in >= config.min_edge_inliers * n_expected)
@@ -587,24 +781,35 @@ def _fit_edge_lines(
         & (width[:, None] < 3.0)
         & (rms <= config.max_edge_residual * c)
     )
-    tau_scale = tau_scale[..., None]
 
-    # the fitted edge as points on it, then a straight line (in undistorted pixels if needed)
+
+def _edge_lines(
+    local: np.ndarray,
+    frame: _EdgeFrame,
+    tau_scale: np.ndarray,
+    intrinsics: CameraIntrinsics | None,
+):
+    """The fitted edges as points on them, then straight lines ``normal . x = rho``: unit
+    normals ``(M,4,2)`` (out of the marker) and ``rho`` ``(M,4)`` (px), in undistorted pixels
+    when ``intrinsics`` is given (only with lens distortion), else image pixels."""
+    rho, theta, kappa = np.moveaxis(local, -1, 0)
+    normal = frame.normal
+    tau_scale = tau_scale[..., None]
     tq = np.array([-1.0, 0.0, 1.0])
     off = rho[..., None] - theta[..., None] * tq - kappa[..., None] * tq**2  # d0 on the edge
     pts = (
-        mid[..., None, :]
-        + (tq[None, None, :, None] * tau_scale[..., None]) * d[..., None, :]
+        frame.mid[..., None, :]
+        + (tq[None, None, :, None] * tau_scale[..., None]) * frame.d[..., None, :]
         + off[..., None] * normal[..., None, :]
     )  # (M,4,3,2)
-    if curved:
+    if intrinsics is not None:
         pts = intrinsics.undistort_pixels(pts)
     centre = pts.mean(axis=-2)
     direction = pts[..., 2, :] - pts[..., 0, :]
     direction /= np.maximum(np.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
     nrm = np.stack([direction[..., 1], -direction[..., 0]], axis=-1)
     nrm *= np.where(np.einsum("mkj,mkj->mk", nrm, normal) < 0, -1.0, 1.0)[..., None]
-    return nrm, np.einsum("mkj,mkj->mk", centre, nrm), ok, width
+    return nrm, np.einsum("mkj,mkj->mk", centre, nrm)
 
 
 def _segment_summer(group: np.ndarray, n: int):
