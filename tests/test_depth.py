@@ -39,9 +39,6 @@ GEOMETRIC_ATOL_MM, GEOMETRIC_ATOL_DEG = 12.0, 0.45
 MAX_DISAGREEMENT_MM = 15.0
 
 
-# --------------------------------------------------------------------------- fixtures
-@pytest.fixture(scope="module")
-
 # ------------------------------------------------------------------ test helpers (Open3D side)
 def open3d_information(points_a, points_b, max_distance_m, T_b_a):
     """Open3D's ``get_information_matrix_from_point_clouds`` of a's points (N,3) against b's
@@ -64,6 +61,9 @@ def information_from_open3d(information_o3d, T_b_a):
     A = adjoint(T_b_a)
     return A.T @ np.asarray(information_o3d, dtype=float) @ A
 
+
+# --------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
 def line(tmp_path_factory):
     """thesis-line rig at 640x360, 8 frames, up to +-0.6 % depth-scale bias per camera."""
     out = tmp_path_factory.mktemp("depth") / "line"
