@@ -357,6 +357,11 @@ def board_print(board: Board, params: SynthParams) -> BoardPrint:
     scale = float(params.print_scale)
     dx_mm, dy_mm, rot_deg = params.glue
     thickness_m = board.thickness + params.thickness_error_mm / 1000.0
+    if not thickness_m > 0:
+        raise ConfigError(
+            f"--thickness-error {params.thickness_error_mm}: the board would be "
+            f"{thickness_m * 1000:g} mm thick; give a smaller error"
+        )
     if (dx_mm, dy_mm, rot_deg, params.thickness_error_mm) == (0, 0, 0, 0):
         return BoardPrint(thickness_m, scale)
     back = board.corners[board.faces == BACK].reshape(-1, 3)

@@ -364,6 +364,8 @@ def test_imperfection_settings_are_checked():
                 dict(distortion=(-2.0, 0.0, 0.0, 0.0, 0.0))):  # fmt: skip
         with pytest.raises(ConfigError):
             make_rig("ring", 0, SynthParams(resolution=(640, 360), cameras=2, **bad))
+    with pytest.raises(ConfigError, match="thickness"):
+        board_print(thesis_board(), SynthParams(thickness_error_mm=-7.0))
 
 
 def test_distortion_keeps_the_board_poses(ring_sets):
