@@ -186,8 +186,64 @@ def synth(
     drop_rate: Annotated[float, typer.Option(help="Probability a camera misses a frame.")] = 0.0,
     cameras: Annotated[int | None, typer.Option(help="Camera count (ring layout).")] = None,
     workers: Annotated[int | None, typer.Option(help="Processes; default all cores.")] = None,
+    distortion: Annotated[
+        tuple[float, float, float, float, float] | None,
+        typer.Option(
+            metavar="K1 K2 P1 P2 K3",
+            help="true lens distortion of every camera (OpenCV order), rendered "
+            "exactly per pixel ray; e.g. 0.1 -0.2 0.001 -0.001 0.05.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = None,
+    rig_distortion: Annotated[
+        str,
+        typer.Option(
+            help="What rig.yaml lists with --distortion: zeros (as the D435 colour stream "
+            "reports) or truth.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = "zeros",
+    intrinsics_error: Annotated[
+        tuple[float, float],
+        typer.Option(
+            metavar="F_PCT PX",
+            help="rig.yaml's fx, fy off by one factor within +-F_PCT % and cx, "
+            "cy each off by up to +-PX pixels (seeded); the images use the truth.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = (0.0, 0.0),
+    glue: Annotated[
+        tuple[float, float, float],
+        typer.Option(
+            metavar="DX_MM DY_MM ROT_DEG",
+            help="the back sheet rotated by ROT_DEG about the board normal "
+            "(through the back grid's centre) and shifted by DX_MM, DY_MM along the board's "
+            "x, y; the board file stays nominal.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = (0.0, 0.0, 0.0),
+    thickness_error: Annotated[
+        float,
+        typer.Option(
+            metavar="MM",
+            help="the panel is MM thicker (negative: thinner) than the board file.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = 0.0,
+    print_scale: Annotated[
+        float,
+        typer.Option(
+            metavar="S",
+            help="both faces printed S times the board file's size (scaled about "
+            "the board origin), e.g. 0.995; the board file stays nominal.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = 1.0,
 ) -> None:
-    """Render a synthetic RGB-D rig with ground truth (dataset folder + ground_truth.yaml)."""
+    """Render a synthetic RGB-D rig with ground truth (dataset folder + ground_truth.yaml).
+
+    By default the cameras are ideal and rig.yaml is exact; the imperfection options render
+    real-world errors and record their truth in ground_truth.yaml (docs/synthetic.md)."""
     from .board import load_board, thesis_board
     from .synth import SynthParams, synthesize
 
@@ -201,6 +257,12 @@ def synth(
         depth_dropout=depth_dropout,
         drop_rate=drop_rate,
         cameras=cameras,
+        distortion=distortion,
+        rig_distortion=rig_distortion,
+        intrinsics_error=intrinsics_error,
+        glue=glue,
+        thickness_error_mm=thickness_error,
+        print_scale=print_scale,
     )
     b = load_board(board_file) if board_file else thesis_board()
     with progress_bar() as bar:

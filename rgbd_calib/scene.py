@@ -1,9 +1,10 @@
 """A static textured 3D scene made of rectangles, ray-cast exactly (pure numpy).
 
-Used by the synthetic renderer (:mod:`rgbd_calib.synth`). Rays are given in a camera frame as
-``d = [(u - cx) / fx, (v - cy) / fy, 1]``, so the ray parameter ``t`` of a hit *is* the camera
-z-depth. Textures are procedural value noise, so neighbouring and facing cameras see the same
-surface detail (what colored ICP needs).
+Used by the synthetic renderer (:mod:`rgbd_calib.synth`). Rays are given in a camera frame with
+z = 1 (a pinhole's ``d = [(u - cx) / fx, (v - cy) / fy, 1]``, or a distorted lens's rays from
+:meth:`CameraIntrinsics.rays`), so the ray parameter ``t`` of a hit *is* the camera z-depth.
+Textures are procedural value noise, so neighbouring and facing cameras see the same surface
+detail (what colored ICP needs).
 """
 
 from __future__ import annotations

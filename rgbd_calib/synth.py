@@ -1,11 +1,19 @@
 """Synthetic RGB-D rigs with ground truth: layouts, board motion and rendering.
 
-A rig of pinhole cameras (no distortion) looks at a static textured scene (floor, walls,
-rails, boxes: :mod:`rgbd_calib.scene`) while the double-sided board moves through it. Colour
-is the exact board texture (area-averaged over each pixel: pixels whose four corners disagree
-are supersampled 8x8), lens blur and sensor noise. Depth is aligned to colour, with the D435
+A rig of cameras looks at a static textured scene (floor, walls, rails, boxes:
+:mod:`rgbd_calib.scene`) while the double-sided board moves through it. Colour is the exact
+board texture (area-averaged over each pixel: pixels whose four corners disagree are
+supersampled 8x8), lens blur and sensor noise. Depth is aligned to colour, with the D435
 stereo noise model ``sigma_z = z^2 * s / (f * B)`` (Intel's depth-quality white paper, "RMS
 error"), a per-camera scale bias, 1-count quantisation, dropout and range limits.
+
+By default the cameras are ideal pinholes whose ``rig.yaml`` intrinsics are exact and the
+board is exactly its board file. :class:`SynthParams` adds real-world imperfections
+(docs/synthetic.md): lens distortion, rendered exactly (every pixel and sub-pixel ray comes
+from the true camera model, :meth:`CameraIntrinsics.rays`, never a remap of a pinhole
+image), ``rig.yaml`` intrinsics that are off from the truth, a back sheet glued off its
+place, a thicker or thinner panel and a print at the wrong scale. ``ground_truth.yaml``
+records the truth of each.
 
 Pure numpy rendering; cv2 only filters images. Written by :class:`~rgbd_calib.dataset.FolderWriter`.
 """
@@ -14,7 +22,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -22,10 +30,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .board import BACK, FRONT, Board
-from .camera import CameraIntrinsics
+from .camera import DISTORTION_LENGTHS, CameraIntrinsics
 from .dataset import FolderWriter, staged_folder
 from .errors import ConfigError
-from .geometry import invert_transform, look_at, make_transform, rotvec_to_matrix
+from .geometry import (
+    invert_transform,
+    look_at,
+    make_transform,
+    rotvec_to_matrix,
+    transform_points,
+)
 from .parallel import process_context
 from .rig import Rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
@@ -34,6 +48,8 @@ from .yamlio import write_yaml
 LAYOUTS = ("thesis-line", "race", "race16", "ring")
 LIGHT_DIR_WORLD = np.array([0.3, -0.4, 0.87]) / np.linalg.norm([0.3, -0.4, 0.87])
 PAPER_WHITE, INK_BLACK, WOOD = 0.88, 0.07, 0.55
+RIG_DISTORTIONS = ("zeros", "truth")  # what rig.yaml lists under --distortion
+IMPERFECTION_STREAM = 0x5EED1  # rng stream of the rig.yaml intrinsics errors (seed, stream)
 
 
 @dataclass(frozen=True)
@@ -52,14 +68,49 @@ class SynthParams:
     drop_rate: float = 0.0  # probability that a camera misses a frame entirely
     supersample: int = 8
     cameras: int | None = None  # camera count (ring only)
+    # real-world imperfections (docs/synthetic.md); the defaults render the ideal rig
+    distortion: tuple[float, ...] | None = None  # true OpenCV k1 k2 p1 p2 k3 of every camera
+    rig_distortion: str = "zeros"  # rig.yaml lists "zeros" (as a D435 reports) or the "truth"
+    intrinsics_error: tuple[float, float] = (0.0, 0.0)  # rig.yaml: max |focal error| %, max px
+    glue: tuple[float, float, float] = (0.0, 0.0, 0.0)  # back sheet: dx mm, dy mm, rot deg
+    thickness_error_mm: float = 0.0  # true panel thickness minus the board file's
+    print_scale: float = 1.0  # printed size / board file size, both faces
+
+
+def check_params(params: SynthParams) -> None:
+    """Reject imperfection settings that cannot be rendered, naming the option."""
+    if params.distortion is not None and len(params.distortion) not in DISTORTION_LENGTHS:
+        raise ConfigError(
+            f"--distortion: {len(params.distortion)} coefficients; give OpenCV's k1 k2 p1 p2 k3"
+        )
+    if params.rig_distortion not in RIG_DISTORTIONS:
+        raise ConfigError(
+            f"--rig-distortion {params.rig_distortion!r}: choose {' or '.join(RIG_DISTORTIONS)}"
+        )
+    f_pct, px = params.intrinsics_error
+    if not (0 <= f_pct < 50 and px >= 0):
+        raise ConfigError(
+            f"--intrinsics-error {f_pct} {px}: give a focal error 0 <= F% < 50 and pixels >= 0"
+        )
+    if not (0.5 < params.print_scale < 2.0):
+        raise ConfigError(f"--print-scale {params.print_scale}: expected a factor near 1")
 
 
 @dataclass(frozen=True)
 class SynthCamera:
+    """One camera: ``intrinsics`` is the truth the images are rendered with (lens distortion
+    included); ``listed_intrinsics`` what its ``rig.yaml`` says (None: the truth)."""
+
     name: str
     intrinsics: CameraIntrinsics
     T_world_cam: np.ndarray
     depth_scale_bias: float = 1.0
+    listed_intrinsics: CameraIntrinsics | None = None
+
+    @property
+    def rig_intrinsics(self) -> CameraIntrinsics:
+        """The intrinsics written to ``rig.yaml``."""
+        return self.intrinsics if self.listed_intrinsics is None else self.listed_intrinsics
 
 
 @dataclass(frozen=True)
@@ -199,9 +250,130 @@ def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
             rng.uniform(-params.depth_bias, params.depth_bias) if params.depth_bias > 0 else 0.0
         )
         cameras.append(SynthCamera(name, _intrinsics(width, height, rng), T_world_cam, bias))
+    cameras = _camera_imperfections(cameras, seed, params)
     # race16: a central lower-tier camera (most views) rather than one at the race's end
     reference = [c.name for c in cameras].index("left_lo1") if layout == "race16" else 0
     return SynthRig(layout, cameras, scene, lo, hi, reference_index=reference)
+
+
+def _camera_imperfections(
+    cameras: list[SynthCamera], seed: int, params: SynthParams
+) -> list[SynthCamera]:
+    """True lens distortion and the intrinsics ``rig.yaml`` lists instead of the truth.
+
+    The true distortion is ``params.distortion`` for every camera. ``rig.yaml`` lists it or
+    zeros (``rig_distortion``), and focal lengths scaled by one factor ``1 + e`` (fx and fy
+    together: a focal error keeps the aspect ratio), ``e`` uniform in +-F % , and ``cx``, ``cy``
+    each shifted by a uniform +-PX pixels. The errors come from their own seeded stream (three
+    unit draws per camera), so the rig, the board motion and the noise stay those of the same
+    seed without them."""
+    check_params(params)
+    f_pct, px = params.intrinsics_error
+    unit = np.random.default_rng([seed, IMPERFECTION_STREAM]).uniform(-1, 1, (len(cameras), 3))
+    out = []
+    for cam, (e_f, e_cx, e_cy) in zip(cameras, unit):
+        truth = cam.intrinsics
+        if params.distortion is not None:
+            truth = replace(truth, distortion=tuple(float(d) for d in params.distortion))
+        listed = truth
+        if truth.has_distortion and params.rig_distortion == "zeros":
+            listed = replace(listed, distortion=(0.0,) * 5)
+        if f_pct > 0 or px > 0:
+            scale = 1.0 + e_f * f_pct / 100.0
+            listed = replace(
+                listed,
+                fx=truth.fx * scale,
+                fy=truth.fy * scale,
+                cx=truth.cx + e_cx * px,
+                cy=truth.cy + e_cy * px,
+            )
+        if truth.has_distortion:
+            _check_distortion(truth)
+        out.append(
+            replace(cam, intrinsics=truth, listed_intrinsics=None if listed is truth else listed)
+        )
+    return out
+
+
+def _check_distortion(K: CameraIntrinsics, step_px: int = 8) -> None:
+    """The lens model must map the image one-to-one (no fold inside it), or the per-pixel
+    rays are not the truth: every pixel's ray projects back onto it and the model's Jacobian
+    keeps its orientation."""
+    u = np.append(np.arange(-0.5, K.width - 0.5, step_px), K.width - 0.5)
+    v = np.append(np.arange(-0.5, K.height - 0.5, step_px), K.height - 0.5)
+    uu, vv = (a.ravel() for a in np.meshgrid(u, v))
+    rays = K.rays(uu, vv)
+    uv, J = K.project_jacobian(rays)
+    round_trip_px = np.max(np.abs(uv - np.column_stack([uu, vv])))
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    if not (round_trip_px < 1e-6 and np.all(det > 0)):
+        raise ConfigError(
+            f"--distortion {list(K.distortion)}: the lens model folds over inside the "
+            f"{K.width}x{K.height} image; give smaller coefficients"
+        )
+
+
+# --------------------------------------------------------------------------- the printed board
+@dataclass(frozen=True)
+class BoardPrint:
+    """The physical board against its board file (which stays nominal).
+
+    In the board frame (metres): a front-face corner ``p`` of the board file is really at
+    ``diag(S, S, 1) p`` and a back-face corner at ``T_front_back diag(S, S, 1) p``, with ``S``
+    the print scale. ``T_front_back`` maps the (scaled) board-file position of a back-sheet
+    point to where the back sheet really is: a rotation by ``rot`` about the board normal
+    (+z, counter-clockwise seen from the front) through the centre of the printed back-marker
+    grid, then the in-plane shift ``(dx, dy)`` and ``-(thickness_m - board.thickness)`` along
+    z. The panel is ``thickness_m`` thick (its back face at ``z = -thickness_m``)."""
+
+    thickness_m: float
+    print_scale: float = 1.0
+    T_front_back: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    @property
+    def is_nominal(self) -> bool:
+        return self.print_scale == 1.0 and bool(np.all(self.T_front_back == np.eye(4)))
+
+    def corners(self, board: Board) -> np.ndarray:
+        """True board-frame corners ``(M,4,3)`` (metres) of the board file's markers."""
+        scaled = board.corners * np.array([self.print_scale, self.print_scale, 1.0])
+        back = board.faces == BACK
+        scaled[back] = transform_points(self.T_front_back, scaled[back].reshape(-1, 3)).reshape(
+            -1, 4, 3
+        )
+        return scaled
+
+    def file_xy(self, face: int, xy: np.ndarray) -> np.ndarray:
+        """Board-file coordinates ``(N,2)`` of points ``xy`` (board frame, metres) on the true
+        ``face``: the inverse of :meth:`corners`, for the texture look-up."""
+        if face == BACK:
+            T_back_front = invert_transform(self.T_front_back)
+            xy = xy @ T_back_front[:2, :2].T + T_back_front[:2, 3]
+        return xy / self.print_scale
+
+
+def board_print(board: Board, params: SynthParams) -> BoardPrint:
+    """The :class:`BoardPrint` of ``params.glue``, ``thickness_error_mm`` and ``print_scale``."""
+    scale = float(params.print_scale)
+    dx_mm, dy_mm, rot_deg = params.glue
+    thickness_m = board.thickness + params.thickness_error_mm / 1000.0
+    if not thickness_m > 0:
+        raise ConfigError(
+            f"--thickness-error {params.thickness_error_mm}: the board would be "
+            f"{thickness_m * 1000:g} mm thick; give a smaller error"
+        )
+    if (dx_mm, dy_mm, rot_deg, params.thickness_error_mm) == (0, 0, 0, 0):
+        return BoardPrint(thickness_m, scale)
+    back = board.corners[board.faces == BACK].reshape(-1, 3)
+    if len(back):
+        centre_xy = scale * (back[:, :2].min(axis=0) + back[:, :2].max(axis=0)) / 2
+    else:
+        x0, x1, y0, y1 = board.panel
+        centre_xy = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+    R = rotvec_to_matrix([0.0, 0.0, np.radians(rot_deg)])
+    centre = np.array([centre_xy[0], centre_xy[1], 0.0])
+    shift = np.array([dx_mm / 1000.0, dy_mm / 1000.0, board.thickness - thickness_m])
+    return BoardPrint(thickness_m, scale, make_transform(R, centre - R @ centre + shift))
 
 
 # --------------------------------------------------------------------------- board motion
@@ -251,7 +423,15 @@ def sample_board_poses(
 
     The board centre is uniform in the workspace; its front normal points at a random camera
     (or away from it, showing the back), tilted by up to 35 deg and rolled by up to 25 deg, so
-    distance and obliquity vary from frame to frame."""
+    distance and obliquity vary from frame to frame. Visibility is judged with the nominal
+    board and the cameras' pinhole part, so a seed gives the same poses with or without the
+    imperfections of :class:`SynthParams`."""
+    pinholes = [
+        replace(c, intrinsics=replace(c.intrinsics, distortion=(0.0,) * 5))
+        if c.intrinsics.has_distortion
+        else c
+        for c in rig.cameras
+    ]
     centre_b = np.array(
         [
             (board.panel[0] + board.panel[1]) / 2,
@@ -284,7 +464,7 @@ def sample_board_poses(
         R = np.column_stack([x_axis, y_axis, z_axis])
         R = R @ rotvec_to_matrix([0, 0, np.radians(rng.uniform(-25, 25))])
         T_world_board = make_transform(R, c - R @ centre_b)
-        seen = [marker_visibility(board, k, T_world_board) for k in rig.cameras]
+        seen = [marker_visibility(board, k, T_world_board) for k in pinholes]
         if sum(s >= min_markers for s in seen) >= min_cameras:
             poses.append(T_world_board)
     return poses
@@ -293,17 +473,26 @@ def sample_board_poses(
 # --------------------------------------------------------------------------- rendering
 @dataclass
 class _BoardModel:
-    """The board as six rectangles in the board frame plus marker look-up per face."""
+    """The board as six rectangles in the board frame plus marker look-up per face.
+
+    ``printed`` (None: exactly the board file) is where the physical board's sheets and back
+    face really are; the markers are looked up in board-file coordinates through its inverse,
+    so a glued-off or scaled print stays as sharp as the nominal one."""
 
     board: Board
+    printed: BoardPrint | None = None
     rects: list[Rect] = field(init=False)
     trees: dict[int, cKDTree] = field(init=False)
     cells: dict[int, np.ndarray] = field(init=False)
 
+    @property
+    def thickness(self) -> float:
+        return self.board.thickness if self.printed is None else self.printed.thickness_m
+
     def __post_init__(self) -> None:
         b = self.board
         x0, x1, y0, y1 = b.panel
-        t = b.thickness
+        t = self.thickness
         w, h = x1 - x0, y1 - y0
         self.rects = [
             rect((x0, y0, 0), (w, 0, 0), (0, h, 0), (1, 1, 1), 0),  # front, normal +z
@@ -336,6 +525,8 @@ class _BoardModel:
                 if face == FRONT
                 else np.column_stack([x0 + b[sel], y0 + a[sel]])
             )
+            if self.printed is not None and not self.printed.is_nominal:
+                xy = self.printed.file_xy(face, xy)
             ids = self.board.ids[self.board.faces == face]
             corners = self.board.corners[self.board.faces == face][:, :, :2]
             k = min(2, len(ids))
@@ -361,36 +552,76 @@ class _BoardModel:
 class _Background:
     color: np.ndarray  # HxWx3 float BGR [0,1]
     depth: np.ndarray  # HxW metres (inf: no surface)
+    rays: np.ndarray | None = None  # HxWx3 pixel-centre rays of a distorted lens (z = 1)
+
+
+def camera_rays(K: CameraIntrinsics, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
+    """Camera-frame rays ``(N,3)`` with z = 1 through pixels ``(us, vs)`` of the true camera:
+    the lens model's converged undistortion (:meth:`CameraIntrinsics.rays`), or the pinhole
+    formula of earlier renders when the lens has no distortion (bit-identical images)."""
+    return K.rays(us, vs) if K.has_distortion else pixel_rays(K.K, us, vs)
+
+
+def _grid(K: CameraIntrinsics, shape: tuple[int, int]) -> tuple[int, int] | None:
+    """:func:`cast`'s row/column culling needs rays whose x varies along columns only and y
+    along rows only: true of a pinhole's pixel grid, not of a distorted one."""
+    return None if K.has_distortion else shape
 
 
 def render_background(scene: list[Rect], cam: SynthCamera, samples: int = 2) -> _Background:
     """Static scene seen by a camera: colour box-filtered over ``samples^2`` rays per pixel,
-    depth at pixel centres."""
+    depth (camera z of the hit, as an aligned D435 depth image stores it) at pixel centres."""
     K = cam.intrinsics
     T_cam_world = invert_transform(cam.T_world_cam)
     light = T_cam_world[:3, :3] @ LIGHT_DIR_WORLD
     vs, us = np.mgrid[0 : K.height, 0 : K.width].astype(float)
+    grid = _grid(K, us.shape)
     color = np.zeros((K.height, K.width, 3))
     for i in range(samples):
         for j in range(samples):
             du, dv = (i + 0.5) / samples - 0.5, (j + 0.5) / samples - 0.5
-            rays = pixel_rays(K.K, (us + du).ravel(), (vs + dv).ravel())
-            hits = cast(scene, T_cam_world, rays, grid=us.shape)
+            rays = camera_rays(K, (us + du).ravel(), (vs + dv).ravel())
+            hits = cast(scene, T_cam_world, rays, grid=grid)
             color += shade_scene(scene, hits, light, T_cam_world).reshape(color.shape)
-    rays = pixel_rays(K.K, us.ravel(), vs.ravel())
-    depth = cast(scene, T_cam_world, rays, grid=us.shape).depth.reshape(K.height, K.width)
-    return _Background(color / samples**2, depth)
+    rays = camera_rays(K, us.ravel(), vs.ravel())
+    depth = cast(scene, T_cam_world, rays, grid=grid).depth.reshape(K.height, K.width)
+    centre_rays = rays.reshape(K.height, K.width, 3) if K.has_distortion else None
+    return _Background(color / samples**2, depth, centre_rays)
 
 
-def _board_bbox(model: _BoardModel, K: CameraIntrinsics, T_cam_board: np.ndarray):
+def _board_bbox(model: _BoardModel, K: CameraIntrinsics, T_cam_board: np.ndarray, rays=None):
+    """Pixel box ``(u0, u1, v0, v1)`` that holds the board's image, or None.
+
+    Pinhole: the box of the projected panel corners. Distorted lens (its pixel-centre
+    ``rays``, HxWx3): straight edges image as curves, so it is the box of the pixels whose
+    ray falls in the ray-space box of the corners, 2 pixels wider (pixel corners and sub-pixel
+    samples reach half a pixel beyond a centre)."""
     x0, x1, y0, y1 = model.board.panel
-    t = model.board.thickness
+    t = model.thickness
     pts = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (0.0, -t)])
     pc = pts @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
     if np.all(pc[:, 2] <= 0.01):
         return None
     if np.any(pc[:, 2] <= 0.01):
         return 0, K.width - 1, 0, K.height - 1
+    if rays is not None:
+        xy = pc[:, :2] / pc[:, 2:]
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        inside = (
+            (rays[..., 0] >= lo[0])
+            & (rays[..., 0] <= hi[0])
+            & (rays[..., 1] >= lo[1])
+            & (rays[..., 1] <= hi[1])
+        )
+        rows, cols = np.nonzero(np.any(inside, axis=1))[0], np.nonzero(np.any(inside, axis=0))[0]
+        if rows.size == 0:
+            return None
+        return (
+            max(cols[0] - 2, 0),
+            min(cols[-1] + 2, K.width - 1),
+            max(rows[0] - 2, 0),
+            min(rows[-1] + 2, K.height - 1),
+        )
     uv = K.project(pc)
     u0 = max(int(np.floor(uv[:, 0].min())) - 1, 0)
     u1 = min(int(np.ceil(uv[:, 0].max())) + 1, K.width - 1)
@@ -411,20 +642,25 @@ def render_board(
     """Noise-free colour (HxWx3 float, BGR [0,1]) and depth (HxW metres) with the board.
 
     Exact area coverage: pixels whose four corners hit the same surface with the same
-    reflectance are uniform; the rest are averaged over ``supersample^2`` rays."""
+    reflectance are uniform; the rest are averaged over ``supersample^2`` rays. Every ray
+    (pixel corner, centre or sub-pixel sample) comes from the true camera model
+    (:func:`camera_rays`), so a distorted lens is rendered exactly, anti-aliasing included."""
     color = bg.color.copy()
     depth = bg.depth.copy()
     K = cam.intrinsics
-    box_ = _board_bbox(model, K, T_cam_board)
+    if K.has_distortion and bg.rays is None:
+        raise ValueError("render_board: a distorted camera needs render_background's rays")
+    box_ = _board_bbox(model, K, T_cam_board, bg.rays)
     if box_ is None:
         return color, depth
     u0, u1, v0, v1 = box_
     light = T_cam_board[:3, :3].T @ (invert_transform(cam.T_world_cam)[:3, :3] @ LIGHT_DIR_WORLD)
     face_shade = np.array([0.55 + 0.45 * abs(r.normal @ light) for r in model.rects])
 
-    def trace(us: np.ndarray, vs: np.ndarray, grid=None, shade: bool = True):
-        rays = pixel_rays(K.K, us, vs)
-        hits = cast(model.rects, T_cam_board, rays, grid=grid)
+    def trace(us: np.ndarray, vs: np.ndarray, grid=None, shade: bool = True, rays=None):
+        if rays is None:
+            rays = camera_rays(K, us, vs)
+        hits = cast(model.rects, T_cam_board, rays, grid=None if grid is None else _grid(K, grid))
         if not shade:
             return hits, None
         refl = model.reflectance(hits.index, hits.a, hits.b)
@@ -445,7 +681,8 @@ def render_board(
     region_depth_bg = bg.depth[v0 : v1 + 1, u0 : u1 + 1]
     # pixel-centre depth decides occlusion between the board and the static scene
     cvv, cuu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1].astype(float)
-    hits_p, _ = trace(cuu.ravel(), cvv.ravel(), grid=cuu.shape, shade=False)
+    centre_rays = None if bg.rays is None else bg.rays[v0 : v1 + 1, u0 : u1 + 1].reshape(-1, 3)
+    hits_p, _ = trace(cuu.ravel(), cvv.ravel(), grid=cuu.shape, shade=False, rays=centre_rays)
     z_board = hits_p.depth.reshape(cvv.shape)
     board_front = z_board < region_depth_bg
     uniform_board = same & (key[:-1, :-1] >= 0) & board_front
@@ -501,7 +738,7 @@ _WORKER: dict = {}
 def _init_worker(state: dict) -> None:
     cv2.setNumThreads(1)  # one process per core already
     _WORKER.update(state)
-    _WORKER["model"] = _BoardModel(state["board"])
+    _WORKER["model"] = _BoardModel(state["board"], state["printed"])
 
 
 def _render_frame(job: tuple[int, np.ndarray]) -> None:
@@ -542,7 +779,10 @@ def synthesize(
     """Render a rig into the folder form of docs/formats.md, with ``ground_truth.yaml``.
 
     Written into a temporary sibling folder and renamed into place at the end, so an
-    interrupted run never leaves a half-written dataset under ``out``."""
+    interrupted run never leaves a half-written dataset under ``out``. ``rig.yaml`` holds
+    what each camera's :attr:`SynthCamera.rig_intrinsics` says, the images are rendered with
+    the truth; ``board`` is the board file a user calibrates with, the physical board is its
+    :func:`board_print`."""
     out = Path(out)
     if n_frames < 1:
         raise ConfigError("--frames must be at least 1")
@@ -551,10 +791,13 @@ def synthesize(
             f"{out}: output folder exists and is not empty; choose a new folder or delete it"
         )
     rig = make_rig(layout, seed, params)
+    printed = board_print(board, params)
     rng = np.random.default_rng(seed + 1)
     poses = sample_board_poses(rig, board, n_frames, rng)
     with staged_folder(out) as tmp:
-        writer = FolderWriter(tmp, Rig({c.name: c.intrinsics for c in rig.cameras}, rig.reference))
+        writer = FolderWriter(
+            tmp, Rig({c.name: c.rig_intrinsics for c in rig.cameras}, rig.reference)
+        )
         workers = workers or os.cpu_count() or 1
         if workers <= 1:
             backgrounds = [render_background(rig.scene, cam) for cam in rig.cameras]
@@ -569,6 +812,7 @@ def synthesize(
             "writer": writer,
             "seed": seed,
             "board": board,
+            "printed": printed,
             "backgrounds": backgrounds,
         }
         jobs = list(enumerate(poses))
@@ -596,7 +840,13 @@ def synthesize(
                 "depth_scale_bias": {c.name: c.depth_scale_bias for c in rig.cameras},
                 "layout": layout,
                 "seed": seed,
-                "board": board.to_dict(),
+                "board": {
+                    **board.to_dict(),  # the board file, nominal
+                    "T_front_back": printed.T_front_back,
+                    "print_scale": printed.print_scale,
+                    "thickness_m": printed.thickness_m,
+                },
+                "intrinsics": {c.name: c.intrinsics.to_dict() for c in rig.cameras},
                 "params": {
                     k: (list(v) if isinstance(v, tuple) else v) for k, v in params.__dict__.items()
                 },
@@ -607,24 +857,50 @@ def synthesize(
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """``ground_truth.yaml`` of a synthetic set (never read by the calibration itself)."""
+    """``ground_truth.yaml`` of a synthetic set (never read by the calibration itself).
+
+    ``intrinsics`` are the true camera models the images were rendered with (empty for a set
+    written before they were recorded: its ``rig.yaml`` is then exact). ``T_front_back``,
+    ``print_scale`` and ``thickness_m`` (None: the board file's) describe the physical board
+    (:class:`BoardPrint`); absent, the board is exactly its board file."""
 
     reference: str
     T_ref_cam: dict[str, np.ndarray]
     T_ref_board: dict[str, np.ndarray]
     depth_scale_bias: dict[str, float]
+    intrinsics: dict[str, CameraIntrinsics] = field(default_factory=dict)
+    T_front_back: np.ndarray = field(default_factory=lambda: np.eye(4))
+    print_scale: float = 1.0
+    thickness_m: float | None = None
+
+    def board_print(self, board: Board) -> BoardPrint:
+        """The physical board of this set, for the board file ``board`` it was rendered with."""
+        thickness = board.thickness if self.thickness_m is None else self.thickness_m
+        return BoardPrint(thickness, self.print_scale, self.T_front_back)
 
 
 def load_ground_truth(path: Path) -> GroundTruth:
+    from .rig import parse_camera
     from .yamlio import matrix4, read_yaml_mapping
 
     path = Path(path)
     if path.is_dir():
         path = path / "ground_truth.yaml"
     data = read_yaml_mapping(path, "ground truth")
+    board = data.get("board") or {}
+    thickness = board.get("thickness_m")
     return GroundTruth(
         str(data["reference"]),
         {k: matrix4(v, f"{path}: T_ref_cam.{k}") for k, v in data["T_ref_cam"].items()},
         {str(k): matrix4(v, f"{path}: T_ref_board.{k}") for k, v in data["T_ref_board"].items()},
         {k: float(v) for k, v in data.get("depth_scale_bias", {}).items()},
+        {
+            str(k): parse_camera(v, f"{path}: intrinsics.{k}")
+            for k, v in (data.get("intrinsics") or {}).items()
+        },
+        matrix4(board["T_front_back"], f"{path}: board.T_front_back")
+        if "T_front_back" in board
+        else np.eye(4),
+        float(board.get("print_scale", 1.0)),
+        None if thickness is None else float(thickness),
     )
