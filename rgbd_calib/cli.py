@@ -15,7 +15,7 @@ import typer
 from rich.console import Console
 
 from . import __version__
-from .console import console, progress_bar, stage_progress
+from .console import console, stage_progress
 from .errors import RgbdCalibError
 
 app = typer.Typer(
@@ -265,11 +265,8 @@ def synth(
         print_scale=print_scale,
     )
     b = load_board(board_file) if board_file else thesis_board()
-    with progress_bar() as bar:
-        task = bar.add_task("rendering frame sets", total=frames)
-        ds = synthesize(
-            out, layout, frames, seed, b, params, workers, progress=lambda: bar.advance(task)
-        )
+    with stage_progress() as progress:
+        ds = synthesize(out, layout, frames, seed, b, params, workers, progress=progress)
     console.print(f"wrote {len(ds.rig.cameras)} cameras x {frames} frames to {ds.path}")
 
 
@@ -554,17 +551,9 @@ def demo(
     if dataset.exists():
         shutil.rmtree(dataset)
     b = thesis_board()
-    with progress_bar() as bar:
-        task = bar.add_task("rendering frame sets", total=frames)
-        synthesize(
-            dataset,
-            layout,
-            frames,
-            seed,
-            b,
-            SynthParams(depth_bias=0.004),
-            progress=lambda: bar.advance(task),
-        )
+    with stage_progress() as progress:
+        synthesize(dataset, layout, frames, seed, b, SynthParams(depth_bias=0.004),
+                   progress=progress)
     ds = FolderDataset(dataset)
     result = _calibrate_and_write(ds, b, None, out / "calibration")
     _print_summary(result, out / "calibration")

@@ -18,7 +18,7 @@ import signal
 import struct
 import threading
 import zlib
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from .errors import DatasetError
+from .progress import Tick
 from .rig import CAMERA_NAME, Rig, load_rig, save_rig
 
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -140,7 +141,7 @@ class FolderDataset:
             depth = {c: self._depth[c][f] for c in self.cameras if f in self._depth[c]}
             yield FrameSet(f, color, depth)
 
-    def check_images(self, progress: Callable[[int], None] | None = None) -> None:
+    def check_images(self, progress: Tick | None = None) -> None:
         """Check every image's header against the contract before any long step runs.
 
         Reads a few bytes per file (PNG: the IHDR chunk and the IEND trailer; JPEG: up to the

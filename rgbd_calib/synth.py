@@ -41,6 +41,7 @@ from .geometry import (
     transform_points,
 )
 from .parallel import process_context
+from .progress import Progress, start
 from .rig import Rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
 from .yamlio import write_yaml
@@ -774,7 +775,7 @@ def synthesize(
     board: Board,
     params: SynthParams = SynthParams(),
     workers: int | None = None,
-    progress=None,
+    progress: Progress | None = None,
 ) -> SynthDataset:
     """Render a rig into the folder form of docs/formats.md, with ``ground_truth.yaml``.
 
@@ -816,19 +817,18 @@ def synthesize(
             "backgrounds": backgrounds,
         }
         jobs = list(enumerate(poses))
+        tick = start(progress, "rendering frame sets", len(jobs))
         if workers <= 1:
             _init_worker(state)
             for job in jobs:
                 _render_frame(job)
-                if progress:
-                    progress()
+                tick(1)
         else:
             with ProcessPoolExecutor(
                 workers, mp_context=process_context(), initializer=_init_worker, initargs=(state,)
             ) as ex:
                 for _ in ex.map(_render_frame, jobs, chunksize=1):
-                    if progress:
-                        progress()
+                    tick(1)
         T_world_ref = rig.cameras[rig.reference_index].T_world_cam
         T_ref_world = invert_transform(T_world_ref)
         write_yaml(
