@@ -279,6 +279,13 @@ def calibrate(
             help="Depth refinement: colored-icp (default when there is depth), geometric or none."
         ),
     ] = None,
+    intrinsics: Annotated[
+        str | None,
+        typer.Option(
+            help="fixed (default): trust the rig.yaml intrinsics; refine: estimate them in "
+            "the bundle adjustment (writes rig_refined.yaml)."
+        ),
+    ] = None,
     fix: Annotated[
         Path | None,
         typer.Option(
@@ -295,7 +302,8 @@ def calibrate(
     from .results import load_extrinsics
 
     _check_output_folder(out)
-    cfg = load_config(config, method=method, workers=workers, refine=refine)
+    cfg = load_config(config, method=method, workers=workers, refine=refine,
+                      **{"bundle.intrinsics": intrinsics})
     b = load_board(board_file) if board_file else thesis_board()
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     fixed = None
