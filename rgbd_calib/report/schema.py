@@ -121,6 +121,10 @@ CAMERA_SCHEMA: dict[str, Any] = {
         "distortion": ListOf(N),
         "depth_scale": N,
     },
+    "intrinsics_refined?": MapOf(
+        "<param>",
+        {"prior": N, "refined": N, "sigma": Nullable(N), "change": N, "change_pct": Nullable(N)},
+    ),
     "reprojection_px": _STATS,
     "reprojection_all_px": _STATS,
     "reprojection_histogram": {"used": ListOf(INT), "excluded": ListOf(INT)},
