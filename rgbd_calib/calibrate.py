@@ -191,7 +191,7 @@ def calibrate(
         refine_intrinsics = config.bundle.intrinsics == "refine"
         with timed(timings, "bundle"):
             measurements = marker_measurements(observations, pg, rig,
-                                               undistort=not refine_intrinsics)
+                                               refined_intrinsics=refine_intrinsics)
             bundle = bundle_adjust(measurements, _camera_matrices(rig), rig.reference,
                                    pg.T_ref_cam, pg.T_ref_board, config.bundle, fixed_cameras,
                                    intrinsics=rig.cameras)
@@ -312,19 +312,29 @@ def _unconnected(
 
 
 def marker_measurements(
-    observations: list[BoardObservation], pg: PoseGraphResult, rig: Rig, undistort: bool = True
+    observations: list[BoardObservation], pg: PoseGraphResult, rig: Rig,
+    refined_intrinsics: bool = False,
 ) -> list[MarkerMeasurement]:
     """The bundle adjustment's measurements: every marker of every view the pose graph kept
     (its cameras and boards solved, the view not an outlier or stale edge), in undistorted
-    pinhole pixels (``undistort``, fixed intrinsics) or as detected (refined intrinsics)."""
-    dropped = {pg.residuals[i].view + "/" + pg.residuals[i].camera for i in pg.outlier_edges}
+    pinhole pixels.
+
+    With ``refined_intrinsics`` the pixels are the detected ones (the bundle adjustment
+    projects through the full model it refines) and the pose graph's outlier views are kept:
+    they were judged with the rig.yaml intrinsics, which refining assumes may be wrong (a
+    0.7 % focal error makes the per-view PnP poses of a camera disagree by 5-20 mm, and the
+    pose graph then flags every view of a camera); the bundle adjustment's per-marker kernel
+    and outlier test still remove bad markers."""
+    edges = pg.stale_edges if refined_intrinsics else pg.outlier_edges
+    dropped = {pg.residuals[i].view + "/" + pg.residuals[i].camera for i in edges}
     measurements = []
     for o in observations:
         if o.camera not in pg.cameras or o.frame not in pg.T_ref_board:
             continue
         if f"{o.frame}/{o.camera}" in dropped:
             continue
-        px = rig.cameras[o.camera].undistort_pixels(o.corners_px) if undistort else o.corners_px
+        px = o.corners_px if refined_intrinsics else (
+            rig.cameras[o.camera].undistort_pixels(o.corners_px))
         for mid, c, P in zip(o.ids, px, o.object_points):
             measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P))
     return measurements
