@@ -378,7 +378,8 @@ def _print_summary(result, out: Path) -> None:
     Console().print(table)
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
-    console.print(f"results in {out}/ (extrinsics.yaml, report.json, exports/)")
+    refined = ", rig_refined.yaml" if result.bundle is not None and result.bundle.intrinsics else ""
+    console.print(f"results in {out}/ (extrinsics.yaml, report.json, exports/{refined})")
 
 
 @app.command()

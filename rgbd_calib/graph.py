@@ -789,9 +789,11 @@ class BundleResult:
     iterations: int
     final_error: float
     # refined intrinsics only (config.intrinsics == "refine"): camera -> the refined model,
-    # and camera -> {parameter: marginal sigma} in the order of config.intrinsics_params
+    # camera -> {parameter: marginal sigma} and {parameter: prior sigma}, both in the order
+    # of config.intrinsics_params
     intrinsics: dict[str, CameraIntrinsics] = field(default_factory=dict)
     intrinsics_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
+    intrinsics_prior_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def _project(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
@@ -1169,8 +1171,10 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     refined = models(values) or {}
     sigma_intr = {c: dict(zip(names, np.sqrt(np.diag(
         marginals.marginalCovariance(intr_key[c]))).tolist())) for c in refined}
+    sigma_prior = {c: dict(zip(names, prior_intr[c].sigmas().tolist())) for c in refined}
     return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, outliers, sigma_hat,
-                        optimizer.iterations(), graph.error(values), refined, sigma_intr)
+                        optimizer.iterations(), graph.error(values), refined, sigma_intr,
+                        sigma_prior)
 
 
 def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,

@@ -245,7 +245,7 @@ def test_refined_rig_and_report_written(line_refined, tmp_path):
         assert list(block) == ["fx", "fy", "cx", "cy"]
         assert block["fx"]["prior"] == wrong.cameras[c].fx
         assert block["fx"]["change"] == pytest.approx(saved.cameras[c].fx - wrong.cameras[c].fx)
-        assert block["cx"]["sigma"] > 0
+        assert 0 < block["cx"]["sigma"] < block["cx"]["prior_sigma"] == 10.0
     # a later run without refined intrinsics into the same folder removes the stale file
     # (the same result with the intrinsics dropped: writing runs["fixed"], where only the
     # reference is calibrated, fails in report/figures.py fig_edges on a log axis without data)
@@ -255,3 +255,40 @@ def test_refined_rig_and_report_written(line_refined, tmp_path):
     assert not (tmp_path / "rig_refined.yaml").exists()
     assert "intrinsics_refined" not in json.loads((tmp_path / "report.json").read_text())[
         "cameras"][wrong.reference]
+
+
+def test_cli_intrinsics_option(small_line, tmp_path):
+    from typer.testing import CliRunner
+
+    from rgbd_calib.cli import app
+    from rgbd_calib.rig import load_rig
+
+    runner = CliRunner()
+    bad = runner.invoke(app, ["calibrate", str(small_line.path), "--out", str(tmp_path / "x"),
+                              "--intrinsics", "free"])
+    assert bad.exit_code == 2 and "bundle.intrinsics" in bad.output
+    assert "Traceback" not in bad.output
+    out = tmp_path / "out"
+    ok = runner.invoke(app, ["calibrate", str(small_line.path), "--out", str(out), "--refine",
+                             "none", "--workers", "2", "--intrinsics", "refine"])
+    assert ok.exit_code == 0, ok.output
+    assert "rig_refined.yaml" in ok.output
+    refined = load_rig(out / "rig_refined.yaml")
+    assert set(refined.cameras) == set(load_rig(small_line.path / "rig.yaml").cameras)
+    config = load_config(out / "config_resolved.yaml")
+    assert config.bundle.intrinsics == "refine"
+
+
+def test_unsupported_intrinsics_are_reported():
+    from rgbd_calib.report.findings import intrinsics_unsupported
+
+    def cam(**sigmas):
+        return {"intrinsics_refined": {p: {"sigma": s, "prior_sigma": prior}
+                                       for p, (s, prior) in sigmas.items()}}
+
+    report = {"cameras": {"a": cam(fx=(0.3, 6.0), k3=(0.09, 0.1)), "b": cam(fx=(0.3, 6.0)),
+                          "c": {}}}
+    (found,) = intrinsics_unsupported(report, [])
+    assert found["code"] == "intrinsics_unsupported" and found["cameras"] == ["a"]
+    assert "a: k3" in found["message"]
+    assert intrinsics_unsupported({"cameras": {"b": report["cameras"]["b"]}}, []) == []

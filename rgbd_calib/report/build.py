@@ -189,7 +189,8 @@ def _camera_entry(
         if name in result.bundle.intrinsics:
             entry["intrinsics_refined"] = intrinsics_change(
                 rig.cameras[name], result.bundle.intrinsics[name],
-                result.bundle.intrinsics_sigma.get(name, {}))
+                result.bundle.intrinsics_sigma.get(name, {}),
+                result.bundle.intrinsics_prior_sigma.get(name, {}))
     entry.update(
         {
             "intrinsics": rig.cameras[name].to_dict(),
@@ -219,10 +220,12 @@ def _final_model(result: CalibrationResult, rig: Rig, camera: str) -> Any:
     return rig.cameras[camera]
 
 
-def intrinsics_change(prior: Any, refined: Any, sigma: dict[str, float]) -> dict[str, Any]:
+def intrinsics_change(prior: Any, refined: Any, sigma: dict[str, float],
+                      prior_sigma: dict[str, float]) -> dict[str, Any]:
     """``cameras.<name>.intrinsics_refined``: per refined parameter its rig.yaml ``prior``,
-    ``refined`` value, marginal ``sigma``, ``change`` (refined - prior, px for fx fy cx cy)
-    and ``change_pct`` (percent of the prior; null when the prior is 0)."""
+    the prior's sigma ``prior_sigma``, the ``refined`` value, its marginal ``sigma``,
+    ``change`` (refined - prior, px for fx fy cx cy) and ``change_pct`` (percent of the
+    prior; null when the prior is 0)."""
     names = refined.parameter_names
     before = dict(zip(prior.parameter_names, (prior.fx, prior.fy, prior.cx, prior.cy,
                                               *prior.distortion)))
@@ -231,7 +234,8 @@ def intrinsics_change(prior: Any, refined: Any, sigma: dict[str, float]) -> dict
     out = {}
     for name in sigma:
         p, r = float(before.get(name, 0.0)), float(after[name])
-        out[name] = {"prior": p, "refined": r, "sigma": sigma[name], "change": r - p,
+        out[name] = {"prior": p, "prior_sigma": prior_sigma.get(name), "refined": r,
+                     "sigma": sigma[name], "change": r - p,
                      "change_pct": 100.0 * (r - p) / abs(p) if p != 0 else None}
     return out
 
