@@ -246,6 +246,8 @@ def test_refined_rig_and_report_written(line_refined, tmp_path):
         assert block["fx"]["prior"] == wrong.cameras[c].fx
         assert block["fx"]["change"] == pytest.approx(saved.cameras[c].fx - wrong.cameras[c].fx)
         assert 0 < block["cx"]["sigma"] < block["cx"]["prior_sigma"] == 10.0
+    page = (tmp_path / "report.html").read_text()
+    assert "Refined intrinsics" in page and "rig_refined.yaml" in page
     # a later run without refined intrinsics into the same folder removes the stale file
     # (the same result with the intrinsics dropped: writing runs["fixed"], where only the
     # reference is calibrated, fails in report/figures.py fig_edges on a log axis without data)
@@ -253,6 +255,7 @@ def test_refined_rig_and_report_written(line_refined, tmp_path):
                                                    intrinsics_sigma={}))
     write_outputs(plain, wrong, tmp_path)
     assert not (tmp_path / "rig_refined.yaml").exists()
+    assert "Refined intrinsics" not in (tmp_path / "report.html").read_text()
     assert "intrinsics_refined" not in json.loads((tmp_path / "report.json").read_text())[
         "cameras"][wrong.reference]
 
