@@ -12,6 +12,7 @@ No file is written here except the detection cache; :mod:`rgbd_calib.outputs` wr
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import os
@@ -186,12 +187,19 @@ def calibrate(
     bundle, depth, board_only = None, None, None
     cameras = dict(pg.cameras)
     if config.method == "bundle":
-        # 4. bundle adjustment on the marker corners
+        # 4. bundle adjustment on the marker corners (raw pixels when refining intrinsics)
+        refine_intrinsics = config.bundle.intrinsics == "refine"
         with timed(timings, "bundle"):
-            measurements = marker_measurements(observations, pg, rig)
+            measurements = marker_measurements(observations, pg, rig,
+                                               refined_intrinsics=refine_intrinsics)
             bundle = bundle_adjust(measurements, _camera_matrices(rig), rig.reference,
-                                   pg.T_ref_cam, pg.T_ref_board, config.bundle, fixed_cameras)
+                                   pg.T_ref_cam, pg.T_ref_board, config.bundle, fixed_cameras,
+                                   intrinsics=rig.cameras)
         cameras = cameras_from_solve(bundle)
+        if refine_intrinsics:
+            # the depth stage back-projects with the refined intrinsics
+            dataset = copy.copy(dataset)  # same frames, another rig: no re-scan
+            dataset.rig = refined_rig(rig, bundle)
         refine = _refine_method(config.refine, dataset, cameras)
         if refine != "none":
             # 5. depth: scale per camera, static clouds, pairwise registration
@@ -206,7 +214,8 @@ def calibrate(
                 with timed(timings, "joint"):
                     bundle = bundle_adjust(measurements, _camera_matrices(rig), rig.reference,
                                            T_ref_cam, bundle.T_ref_board, config.bundle,
-                                           fixed_cameras, depth.relative_poses)
+                                           fixed_cameras, depth.relative_poses,
+                                           intrinsics=rig.cameras)
                 cameras = cameras_from_solve(bundle)
             # 7. checks: each pair's fit at the final extrinsics
             with timed(timings, "depth_check"):
@@ -303,22 +312,39 @@ def _unconnected(
 
 
 def marker_measurements(
-    observations: list[BoardObservation], pg: PoseGraphResult, rig: Rig
+    observations: list[BoardObservation], pg: PoseGraphResult, rig: Rig,
+    refined_intrinsics: bool = False,
 ) -> list[MarkerMeasurement]:
     """The bundle adjustment's measurements: every marker of every view the pose graph kept
     (its cameras and boards solved, the view not an outlier or stale edge), in undistorted
-    pinhole pixels."""
-    dropped = {pg.residuals[i].view + "/" + pg.residuals[i].camera for i in pg.outlier_edges}
+    pinhole pixels.
+
+    With ``refined_intrinsics`` the pixels are the detected ones (the bundle adjustment
+    projects through the full model it refines) and the pose graph's outlier views are kept:
+    they were judged with the rig.yaml intrinsics, which refining assumes may be wrong (a
+    0.7 % focal error makes the per-view PnP poses of a camera disagree by 5-20 mm, and the
+    pose graph then flags every view of a camera); the bundle adjustment's per-marker kernel
+    and outlier test still remove bad markers."""
+    edges = pg.stale_edges if refined_intrinsics else pg.outlier_edges
+    dropped = {pg.residuals[i].view + "/" + pg.residuals[i].camera for i in edges}
     measurements = []
     for o in observations:
         if o.camera not in pg.cameras or o.frame not in pg.T_ref_board:
             continue
         if f"{o.frame}/{o.camera}" in dropped:
             continue
-        px = rig.cameras[o.camera].undistort_pixels(o.corners_px)
+        px = o.corners_px if refined_intrinsics else (
+            rig.cameras[o.camera].undistort_pixels(o.corners_px))
         for mid, c, P in zip(o.ids, px, o.object_points):
             measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P))
     return measurements
+
+
+def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:
+    """``rig`` with the bundle adjustment's refined intrinsics (cameras it did not refine keep
+    their rig.yaml model): what ``rig_refined.yaml`` holds."""
+    cameras = {c: bundle.intrinsics.get(c, intr) for c, intr in rig.cameras.items()}
+    return Rig(cameras, rig.reference, rig.source)
 
 
 def _camera_matrices(rig: Rig) -> dict[str, np.ndarray]:

@@ -338,6 +338,13 @@ def calibrate(
             help="Depth refinement: colored-icp (default when there is depth), geometric or none."
         ),
     ] = None,
+    intrinsics: Annotated[
+        str | None,
+        typer.Option(
+            help="fixed (default): trust the rig.yaml intrinsics; refine: estimate them in "
+            "the bundle adjustment (writes rig_refined.yaml)."
+        ),
+    ] = None,
     fix: Annotated[
         Path | None,
         typer.Option(
@@ -354,7 +361,8 @@ def calibrate(
     from .results import load_extrinsics
 
     _check_output_folder(out)
-    cfg = load_config(config, method=method, workers=workers, refine=refine)
+    cfg = load_config(config, method=method, workers=workers, refine=refine,
+                      **{"bundle.intrinsics": intrinsics})
     b = load_board(board_file) if board_file else thesis_board()
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     fixed = None
@@ -429,7 +437,8 @@ def _print_summary(result, out: Path) -> None:
     Console().print(table)
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
-    console.print(f"results in {out}/ (extrinsics.yaml, report.json, exports/)")
+    refined = ", rig_refined.yaml" if result.bundle is not None and result.bundle.intrinsics else ""
+    console.print(f"results in {out}/ (extrinsics.yaml, report.json, exports/{refined})")
 
 
 @app.command()

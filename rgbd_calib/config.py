@@ -17,6 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from .camera import DISTORTION_NAMES
 from .errors import ConfigError
 from .yamlio import read_yaml_mapping, to_builtin
 
@@ -289,8 +290,12 @@ class PoseGraphConfig(BaseModel):
     relative_error_tol: float = Field(1e-10, gt=0.0, description="LM relative error tolerance.")
 
 
+INTRINSICS_NAMES = ("fx", "fy", "cx", "cy", *DISTORTION_NAMES)
+
+
 class BundleConfig(BaseModel):
-    """Joint bundle adjustment on marker corners (camera and board poses, intrinsics fixed)."""
+    """Joint bundle adjustment on marker corners (camera and board poses; intrinsics fixed, or
+    refined under a prior at the rig.yaml values)."""
 
     model_config = ConfigDict(extra="forbid")
     pixel_sigma: float = Field(
@@ -316,6 +321,52 @@ class BundleConfig(BaseModel):
     )
     max_iterations: int = Field(100, ge=1)
     relative_error_tol: float = 1e-10
+    intrinsics: Literal["fixed", "refine"] = Field(
+        "fixed",
+        description="fixed: the rig.yaml intrinsics are taken as exact and the corners are "
+        "undistorted with them; refine: the parameters of intrinsics_params are estimated per "
+        "camera with the rig.yaml values as a Gaussian prior, projecting through the full "
+        "camera model (distortion included) onto the raw detected corners",
+    )
+    intrinsics_params: list[str] = Field(
+        default_factory=lambda: ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"],
+        min_length=1,
+        description="parameters refined per camera (names of OpenCV's model: fx fy cx cy k1 k2 "
+        "p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 tau_x tau_y); the others stay at their rig.yaml values",
+    )
+    intrinsics_prior_focal_pct: float = Field(
+        1.0,
+        gt=0,
+        description="prior sigma of fx and fy, percent of the rig.yaml value (factory "
+        "calibrations of RGB-D cameras are typically good to ~0.5-1 %)",
+    )
+    intrinsics_prior_center_px: float = Field(
+        10.0, gt=0, description="prior sigma of cx and cy (px)"
+    )
+    intrinsics_prior_distortion: float = Field(
+        0.1,
+        gt=0,
+        description="prior sigma of the radial, thin-prism and tilt coefficients (k1..k6, "
+        "s1..s4, tau_x, tau_y; unitless): loose against a mild lens, whose k1 is ~0.05-0.2",
+    )
+    intrinsics_prior_tangential: float = Field(
+        0.01,
+        gt=0,
+        description="prior sigma of the tangential coefficients p1, p2 (unitless; decentring "
+        "of a mounted lens is ~1e-3)",
+    )
+
+    @model_validator(mode="after")
+    def _known_intrinsics(self) -> BundleConfig:
+        unknown = [n for n in self.intrinsics_params if n not in INTRINSICS_NAMES]
+        if unknown:
+            raise ValueError(
+                f"unknown intrinsics parameter(s) {', '.join(unknown)}; choose from "
+                + " ".join(INTRINSICS_NAMES)
+            )
+        if len(set(self.intrinsics_params)) != len(self.intrinsics_params):
+            raise ValueError("intrinsics_params lists a parameter twice")
+        return self
 
 
 # ----------------------------------------------------------------------------- depth

@@ -32,7 +32,13 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
-from .camera import pinhole_pose_jacobian, project_pinhole
+from .camera import (
+    DISTORTION_LENGTHS,
+    DISTORTION_NAMES,
+    CameraIntrinsics,
+    pinhole_pose_jacobian,
+    project_pinhole,
+)
 from .config import BundleConfig, PoseGraphConfig
 from .errors import CalibrationError
 from .geometry import adjoint, invert_transform, make_transform, orthonormalize, rotation_angle_deg
@@ -747,12 +753,14 @@ def median_edge_residual(
 # ---------------------------------------------------------------------------- bundle adjustment
 @dataclass(frozen=True)
 class MarkerMeasurement:
-    """One marker seen in one view: 4 undistorted pinhole pixels and their board points."""
+    """One marker seen in one view: 4 pixels and their board points. The pixels are
+    undistorted pinhole pixels when the intrinsics are fixed, the raw detected pixels when the
+    bundle adjustment refines them (see :func:`bundle_adjust`)."""
 
     camera: str
     view: str
     marker_id: int
-    corners_px: np.ndarray  # (4,2), distortion already removed (pinhole pixels)
+    corners_px: np.ndarray  # (4,2) pinhole pixels (fixed intrinsics) or raw pixels (refine)
     object_points: np.ndarray  # (4,3) board frame, metres
 
 
@@ -780,6 +788,12 @@ class BundleResult:
     pixel_sigma_estimated: float
     iterations: int
     final_error: float
+    # refined intrinsics only (config.intrinsics == "refine"): camera -> the refined model,
+    # camera -> {parameter: marginal sigma} and {parameter: prior sigma}, both in the order
+    # of config.intrinsics_params
+    intrinsics: dict[str, CameraIntrinsics] = field(default_factory=dict)
+    intrinsics_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
+    intrinsics_prior_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def _project(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
@@ -824,6 +838,29 @@ def _robust_weight_loss(kind: str, k: float, d: np.ndarray) -> tuple[np.ndarray,
     return w, rho
 
 
+def _robust_rows(r: np.ndarray, blocks, H: list[np.ndarray] | None, robust: str,
+                 robust_k: float) -> np.ndarray:
+    """The per-marker robust kernel of a view factor (see :func:`_view_factor`).
+
+    ``r`` (n,8) whitened residuals of n markers; ``blocks()`` the whitened Jacobians
+    (8n, d_k) of the factor's keys, called only when ``H`` is given (a linearisation); they
+    are written into ``H`` scaled by sqrt(w(d_m)) row by row. Returns the factor's error."""
+    if robust not in ("huber", "cauchy"):
+        if H is not None:
+            for k, J in enumerate(blocks()):
+                H[k] = J
+        return r.reshape(-1)
+    d = np.sqrt(np.einsum("ij,ij->i", r, r))
+    w, rho = _robust_weight_loss(robust, robust_k, d)
+    if H is None:
+        scale = np.sqrt(2.0 * rho) / np.where(d > 0, d, 1.0)
+        return (r * np.where(d > 0, scale, 1.0)[:, None]).reshape(-1)
+    sw = np.repeat(np.sqrt(w), 8)[:, None]
+    for k, J in enumerate(blocks()):
+        H[k] = J * sw
+    return r.reshape(-1) * sw[:, 0]
+
+
 def _view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.ndarray,
                  corners_px: np.ndarray, sigma: float, robust: str, robust_k: float):
     """All markers of one camera view in one factor, each marker with its own robust kernel.
@@ -845,28 +882,122 @@ def _view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
     inv_sigma = 1.0 / sigma
-    plain = robust not in ("huber", "cauchy")
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
         uv, J_cam, J_board = _project(values.atPose3(key_cam).matrix(),
                                       values.atPose3(key_board).matrix(), K, P_b, H is not None)
         r = ((uv - measured) * inv_sigma).reshape(n, 8)
-        if plain:
-            if H is not None:
-                H[0] = J_cam.reshape(-1, 6) * inv_sigma
-                H[1] = J_board.reshape(-1, 6) * inv_sigma
-            return r.reshape(-1)
-        d = np.sqrt(np.einsum("ij,ij->i", r, r))
-        w, rho = _robust_weight_loss(robust, robust_k, d)
-        if H is None:
-            scale = np.sqrt(2.0 * rho) / np.where(d > 0, d, 1.0)
-            return (r * np.where(d > 0, scale, 1.0)[:, None]).reshape(-1)
-        sw = np.repeat(np.sqrt(w), 8)[:, None]
-        H[0] = (J_cam.reshape(-1, 6) * inv_sigma) * sw
-        H[1] = (J_board.reshape(-1, 6) * inv_sigma) * sw
-        return r.reshape(-1) * sw[:, 0]
+        return _robust_rows(r, lambda: (J_cam.reshape(-1, 6) * inv_sigma,
+                                        J_board.reshape(-1, 6) * inv_sigma), H, robust, robust_k)
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), [key_cam, key_board], error)
+
+
+# ------------------------------------------------------------------ bundle with intrinsics
+def _with_parameters(base: CameraIntrinsics, names: tuple[str, ...],
+                     x: np.ndarray) -> CameraIntrinsics:
+    """``base`` with the parameters ``names`` set to ``x`` (distortion names index OpenCV's
+    coefficient list; the list is padded with zeros to hold the last name)."""
+    values = dict(zip(names, np.asarray(x, dtype=float).tolist()))
+    dist = list(_padded_distortion(base, names))
+    for i, name in enumerate(DISTORTION_NAMES[:len(dist)]):
+        dist[i] = values.get(name, dist[i])
+    return CameraIntrinsics(base.width, base.height,
+                            values.get("fx", base.fx), values.get("fy", base.fy),
+                            values.get("cx", base.cx), values.get("cy", base.cy),
+                            tuple(dist), base.depth_scale)
+
+
+def _padded_distortion(base: CameraIntrinsics, names: tuple[str, ...]) -> tuple[float, ...]:
+    """``base.distortion`` padded with zeros to OpenCV's next valid length (4, 5, 8, 12, 14)
+    that holds every distortion coefficient of ``names``."""
+    need = max([DISTORTION_NAMES.index(n) + 1 for n in names if n in DISTORTION_NAMES]
+               + [len(base.distortion)])
+    length = next(n for n in DISTORTION_LENGTHS if n >= need)
+    return tuple(base.distortion) + (0.0,) * (length - len(base.distortion))
+
+
+def intrinsics_vector(base: CameraIntrinsics, names: tuple[str, ...]) -> np.ndarray:
+    """The values of the parameters ``names`` of ``base`` (missing coefficients are 0)."""
+    padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
+                              _padded_distortion(base, names), base.depth_scale)
+    table = dict(zip(padded.parameter_names,
+                     (padded.fx, padded.fy, padded.cx, padded.cy, *padded.distortion)))
+    return np.array([table[n] for n in names], dtype=float)
+
+
+def intrinsics_prior_sigmas(base: CameraIntrinsics, names: tuple[str, ...],
+                            config: BundleConfig) -> np.ndarray:
+    """Prior sigmas of the parameters ``names``: focal in percent of its value, centre in
+    pixels, p1/p2 tangential, every other coefficient with the distortion sigma."""
+    out = []
+    for n in names:
+        if n in ("fx", "fy"):
+            out.append(config.intrinsics_prior_focal_pct / 100.0 * getattr(base, n))
+        elif n in ("cx", "cy"):
+            out.append(config.intrinsics_prior_center_px)
+        elif n in ("p1", "p2"):
+            out.append(config.intrinsics_prior_tangential)
+        else:
+            out.append(config.intrinsics_prior_distortion)
+    return np.array(out, dtype=float)
+
+
+def _project_full(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, intr: CameraIntrinsics,
+                  columns: np.ndarray | None, P_b: np.ndarray, jacobians: bool = True):
+    """As :func:`_project`, through the full camera model ``intr`` (distortion included):
+    pixels (N,2) and, with ``jacobians``, d(u,v)/dxi (N,2,6) of the camera and of the board
+    and d(u,v)/d(intrinsics) (N,2,len(columns)), ``columns`` indexing
+    :meth:`~rgbd_calib.camera.CameraIntrinsics.intrinsics_jacobian`. The pose Jacobians are
+    d(u,v)/dp_cam (``project_jacobian``) times dp_cam/dxi_cam = ``[[p_cam]x, -I]``, the board's
+    as in :func:`_project`."""
+    R_rc, t_rc = T_ref_cam[:3, :3], T_ref_cam[:3, 3]
+    R_cb = R_rc.T @ T_ref_board[:3, :3]
+    t_cb = R_rc.T @ (T_ref_board[:3, 3] - t_rc)
+    p = P_b @ R_cb.T + t_cb
+    if not jacobians:
+        return intr.project(p), None, None, None
+    uv, J_point = intr.project_jacobian(p)
+    dp_dxi = np.zeros((len(p), 3, 6))
+    dp_dxi[:, 0, 1], dp_dxi[:, 0, 2] = -p[:, 2], p[:, 1]  # [p]x: Exp(-w) p = p + p x w
+    dp_dxi[:, 1, 0], dp_dxi[:, 1, 2] = p[:, 2], -p[:, 0]
+    dp_dxi[:, 2, 0], dp_dxi[:, 2, 1] = -p[:, 1], p[:, 0]
+    dp_dxi[:, :, 3:] = -np.eye(3)
+    J_cam = J_point @ dp_dxi
+    J_board = J_cam @ -adjoint(make_transform(R_cb, t_cb))
+    J_intr = intr.intrinsics_jacobian(p)[:, :, columns]
+    return uv, J_cam, J_board, J_intr
+
+
+def _view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
+                            base: CameraIntrinsics, names: tuple[str, ...],
+                            object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
+                            robust: str, robust_k: float):
+    """:func:`_view_factor` with the camera's intrinsics as a third variable: a vector of the
+    parameters ``names`` (the rest of ``base`` held), the board points projected through the
+    full model (distortion included) onto the RAW detected pixels ``corners_px`` (n,4,2).
+    Same per-marker robust kernel; Jacobians w.r.t. camera pose, board pose, intrinsics."""
+    n = len(object_points)
+    measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
+    P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
+    inv_sigma = 1.0 / sigma
+    padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
+                              _padded_distortion(base, names), base.depth_scale)
+    columns = np.array([padded.parameter_names.index(nm) for nm in names])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
+        intr = _with_parameters(padded, names, values.atVector(key_intr))
+        uv, J_cam, J_board, J_intr = _project_full(
+            values.atPose3(key_cam).matrix(), values.atPose3(key_board).matrix(), intr,
+            columns, P_b, H is not None)
+        r = ((uv - measured) * inv_sigma).reshape(n, 8)
+        return _robust_rows(r, lambda: (J_cam.reshape(-1, 6) * inv_sigma,
+                                        J_board.reshape(-1, 6) * inv_sigma,
+                                        J_intr.reshape(-1, len(names)) * inv_sigma),
+                            H, robust, robust_k)
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n),
+                              [key_cam, key_board, key_intr], error)
 
 
 @dataclass(frozen=True)
@@ -895,16 +1026,27 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
                   reference: str, init_T_ref_cam: dict[str, np.ndarray],
                   init_T_ref_board: dict[str, np.ndarray], config: BundleConfig = BundleConfig(),
                   fixed_cameras: dict[str, np.ndarray] | None = None,
-                  relative_poses: list[RelativePose] = ()) -> BundleResult:
+                  relative_poses: list[RelativePose] = (),
+                  intrinsics: dict[str, CameraIntrinsics] | None = None) -> BundleResult:
     """Joint bundle adjustment of camera poses ``T_ref_cam`` and board poses ``T_ref_board``
     on the marker corners (one GTSAM CustomFactor per camera view holding all its markers,
     robust per marker: :func:`_view_factor`), optionally joined by camera-to-camera
     ``relative_poses`` (depth registration) as ``BetweenFactorPose3`` with their own
     information: one joint graph, one set of marginals.
 
-    Intrinsics are held fixed; the reference camera (and any ``fixed_cameras``) carry a tight
-    prior. Marginal covariances come from the converged graph, scaled by the a-posteriori
-    variance factor when ``config.estimate_sigma`` is on."""
+    With ``config.intrinsics == "fixed"`` the intrinsics are held (``K`` per camera) and the
+    measurements are undistorted pinhole pixels. With ``"refine"`` each camera also gets a
+    vector variable of the parameters ``config.intrinsics_params`` under a Gaussian prior at
+    ``intrinsics`` (the rig.yaml models, required then; sigmas from
+    :func:`intrinsics_prior_sigmas`), and the measurements are the RAW detected pixels,
+    projected through the full model (:func:`_view_factor_intrinsics`). The reference camera
+    (and any ``fixed_cameras``) carry a tight pose prior. Marginal covariances come from the
+    converged graph, scaled by the a-posteriori variance factor when ``config.estimate_sigma``
+    is on."""
+    refine = config.intrinsics == "refine"
+    if refine and intrinsics is None:
+        raise CalibrationError("refining intrinsics needs the rig's camera models")
+    names = tuple(config.intrinsics_params)
     fixed = dict(fixed_cameras or {})
     fixed.setdefault(reference, np.eye(4))
     cams = sorted({m.camera for m in measurements} | set(fixed)
@@ -912,15 +1054,32 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     views = sorted({m.view for m in measurements})
     cam_key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
     view_key = {v: gtsam.symbol("b", i) for i, v in enumerate(views)}
+    intr_key = ({c: gtsam.symbol("k", i) for i, c in enumerate(cams) if c in intrinsics}
+                if refine else {})
     kept = [m for m in measurements if m.camera in init_T_ref_cam and m.view in init_T_ref_board]
+    if refine:
+        kept = [m for m in kept if m.camera in intr_key]
+        x0 = {c: intrinsics_vector(intrinsics[c], names) for c in intr_key}
+        prior_intr = {c: gtsam.noiseModel.Diagonal.Sigmas(
+            intrinsics_prior_sigmas(intrinsics[c], names, config)) for c in intr_key}
 
     def build(groups: list[_ViewGroup], sigma: float,
               robust: bool = True) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
         kind = config.robust if robust else "none"
         for g in groups:
-            graph.add(_view_factor(cam_key[g.camera], view_key[g.view], K[g.camera],
-                                   g.object_points, g.corners_px, sigma, kind, config.robust_k))
+            if refine:
+                graph.add(_view_factor_intrinsics(
+                    cam_key[g.camera], view_key[g.view], intr_key[g.camera],
+                    intrinsics[g.camera], names, g.object_points, g.corners_px, sigma, kind,
+                    config.robust_k))
+            else:
+                graph.add(_view_factor(cam_key[g.camera], view_key[g.view], K[g.camera],
+                                       g.object_points, g.corners_px, sigma, kind,
+                                       config.robust_k))
+        for c, k in intr_key.items():
+            if c in connected:
+                graph.add(gtsam.PriorFactorVector(k, x0[c], prior_intr[c]))
         prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)
         for c, T in fixed.items():
             graph.add(gtsam.PriorFactorPose3(cam_key[c], gtsam.Pose3(T), prior))
@@ -942,20 +1101,30 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     for v in views:
         if v in init_T_ref_board:
             values.insert(view_key[v], gtsam.Pose3(init_T_ref_board[v]))
+    for c, k in intr_key.items():
+        if values.exists(cam_key[c]):
+            values.insert(k, x0[c])
+
+    def models(values: gtsam.Values) -> dict[str, CameraIntrinsics] | None:
+        """The current camera models (refine), None when the intrinsics are fixed."""
+        if not refine:
+            return None
+        return {c: _with_parameters(intrinsics[c], names, values.atVector(k))
+                for c, k in intr_key.items() if values.exists(k)}
 
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)
     outliers: list[tuple[str, str, int, float]] = []
     active, values = _reference_component(kept, values, cam_key, view_key, set(fixed),
-                                          relative_poses, reference)
+                                          relative_poses, reference, intr_key)
     connected = {c for c in cams if values.exists(cam_key[c])}
     for _ in range(3):  # solve, drop markers far off, re-solve
         groups = _group_views(active)
         graph = build(groups, config.pixel_sigma)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
-        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K)
+        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K, models(values))
         bad = rms > config.outlier_px
         if not np.any(bad):
             break
@@ -964,11 +1133,13 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         active = [m for m, b in zip(active, bad) if not b]
         # removing outliers can cut a camera (or a view) off the reference: drop that part
         active, values = _reference_component(active, values, cam_key, view_key, set(fixed),
-                                              relative_poses, reference)
+                                              relative_poses, reference, intr_key)
         connected = {c for c in cams if values.exists(cam_key[c])}
         groups = _group_views(active)
-        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K)
-    dof = max(8 * len(active) - 6 * (values.size() - len(fixed)), 1)
+        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K, models(values))
+    n_intr = sum(values.exists(k) for k in intr_key.values())
+    dof = max(8 * len(active) - 6 * (values.size() - n_intr - len(fixed))
+              - len(names) * n_intr, 1)
     sigma_hat = float(np.sqrt(np.sum(4 * rms**2) / dof))  # 4 corners x (du^2+dv^2)
     # marginals of the plain Gaussian graph at the solution, corners weighted by the
     # a-posteriori sigma (Foerstner's variance factor) so that the relative-pose factors keep
@@ -980,7 +1151,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         graph = build(groups, sigma_marg)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
-        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K)
+        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K, models(values))
     marg_graph = build(groups, sigma_marg, robust=False)
     marginals = gtsam.Marginals(marg_graph, values)
     out_cam, cov, s_rot, s_trans = {}, {}, {}, {}
@@ -997,15 +1168,21 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         s_rot[c], s_trans[c] = _sigmas_from_covariance(T, C)
     boards = {v: values.atPose3(view_key[v]).matrix() for v in views if values.exists(view_key[v])}
     residuals = [(m.camera, m.view, m.marker_id, r) for m, r in zip(active, rms.tolist())]
+    refined = models(values) or {}
+    sigma_intr = {c: dict(zip(names, np.sqrt(np.diag(
+        marginals.marginalCovariance(intr_key[c]))).tolist())) for c in refined}
+    sigma_prior = {c: dict(zip(names, prior_intr[c].sigmas().tolist())) for c in refined}
     return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, outliers, sigma_hat,
-                        optimizer.iterations(), graph.error(values))
+                        optimizer.iterations(), graph.error(values), refined, sigma_intr,
+                        sigma_prior)
 
 
 def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
                          cam_key: dict, view_key: dict, fixed: set[str],
-                         relative_poses, reference: str):
+                         relative_poses, reference: str, intr_key: dict | None = None):
     """Keep the measurements and values connected to the reference camera (a camera or view
-    cut off from it has no determined pose: its marginals would be singular)."""
+    cut off from it has no determined pose: its marginals would be singular); ``intr_key``
+    (camera -> intrinsics vector key) keeps the intrinsics of the kept cameras."""
     parent: dict[str, str] = {}
 
     def find(x: str) -> str:
@@ -1034,18 +1211,27 @@ def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
     for v, k in view_key.items():
         if values.exists(k) and find("v:" + v) == root:
             sub.insert(k, values.atPose3(k))
+    for c, k in (intr_key or {}).items():
+        if values.exists(k) and find("c:" + c) == root:
+            sub.insert(k, values.atVector(k))
     return kept, sub
 
 
 def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,
-                view_key: dict, K: dict) -> np.ndarray:
+                view_key: dict, K: dict,
+                models: dict[str, CameraIntrinsics] | None = None) -> np.ndarray:
     """RMS corner residual (px) of each of the ``n`` active markers at ``values``:
-    sqrt(mean over the 4 corners of |uv - uv_meas|^2), vectorised per camera view."""
+    sqrt(mean over the 4 corners of |uv - uv_meas|^2), vectorised per camera view; through
+    the full camera ``models`` when given (refined intrinsics), else the pinhole ``K``."""
     out = np.empty(n)
     for g in groups:
-        uv, _, _ = _project(values.atPose3(cam_key[g.camera]).matrix(),
-                            values.atPose3(view_key[g.view]).matrix(), K[g.camera],
-                            g.object_points.reshape(-1, 3), jacobians=False)
+        T_cam = values.atPose3(cam_key[g.camera]).matrix()
+        T_board = values.atPose3(view_key[g.view]).matrix()
+        P_b = g.object_points.reshape(-1, 3)
+        if models is not None:
+            uv = _project_full(T_cam, T_board, models[g.camera], None, P_b, jacobians=False)[0]
+        else:
+            uv, _, _ = _project(T_cam, T_board, K[g.camera], P_b, jacobians=False)
         d2 = np.sum((uv.reshape(-1, 4, 2) - g.corners_px) ** 2, axis=2)
         out[g.index] = np.sqrt(np.mean(d2, axis=1))
     return out

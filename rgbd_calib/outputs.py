@@ -19,7 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from .calibrate import CalibrationResult
+from .calibrate import CalibrationResult, refined_rig
 from .config import write_config
 from .exports import write_exports
 from .ply import write_fused_ply
@@ -28,7 +28,7 @@ from .progress import Progress
 from .refine import DepthRefinement
 from .report import dump_report, finite_or_null, report_dict, write_report_html
 from .results import Extrinsics, write_extrinsics
-from .rig import Rig
+from .rig import Rig, save_rig
 from .yamlio import to_builtin, write_yaml
 
 
@@ -63,6 +63,9 @@ def _written(stage: Path, out_dir: Path) -> list[Path]:
     return [out_dir / p.relative_to(stage) for p in files if not p.is_dir()]
 
 
+RIG_REFINED = "rig_refined.yaml"
+
+
 def write_outputs(
     result: CalibrationResult,
     rig: Rig,
@@ -73,12 +76,15 @@ def write_outputs(
     progress: Progress | None = None,
 ) -> list[Path]:
     """Write extrinsics.yaml, report.json, report.html, config_resolved.yaml and exports/
-    into out_dir (and fused.ply, copied from ``fused_ply`` when the depth stage made one).
+    into out_dir (and fused.ply, copied from ``fused_ply`` when the depth stage made one;
+    rig_refined.yaml, rig.yaml's format, when the bundle adjustment refined the intrinsics).
 
     Without ``fused_ply`` an older ``out_dir/fused.ply`` is removed (it would belong to another
     run) and the report previews the cloud from the dataset's depth frames."""
     out_dir = Path(out_dir)
-    with staged(out_dir, replaces=("fused.ply",)) as stage:
+    with staged(out_dir, replaces=("fused.ply", RIG_REFINED)) as stage:
+        if result.bundle is not None and result.bundle.intrinsics:
+            save_rig(refined_rig(rig, result.bundle), stage / RIG_REFINED)
         if result.depth is not None:
             pairs = pairs if pairs is not None else result.depth.pairs
             depth_scale = depth_scale if depth_scale is not None else (

@@ -125,7 +125,7 @@ def _final_marker_residuals(
         if o.camera in cams and o.frame in boards:
             T_cam_board = invert_transform(cams[o.camera].T_ref_cam) @ boards[o.frame]
             pts = o.object_points.reshape(-1, 3) @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
-            uv = rig.cameras[o.camera].project(pts).reshape(-1, 4, 2)
+            uv = _final_model(result, rig, o.camera).project(pts).reshape(-1, 4, 2)
             row["rms"] = np.sqrt(np.mean(np.sum((uv - o.corners_px) ** 2, axis=-1), axis=-1))
             row["used_markers"] = np.array(
                 [status == "used" and (o.camera, o.frame, int(m)) not in bundle_out for m in o.ids],
@@ -186,6 +186,11 @@ def _camera_entry(
         res = [r[3] for r in result.bundle.residuals_px if r[0] == name]
         entry["bundle_marker_rms_px"] = _percentiles(res)
         entry["bundle_outlier_markers"] = sum(1 for r in result.bundle.outliers if r[0] == name)
+        if name in result.bundle.intrinsics:
+            entry["intrinsics_refined"] = intrinsics_change(
+                rig.cameras[name], result.bundle.intrinsics[name],
+                result.bundle.intrinsics_sigma.get(name, {}),
+                result.bundle.intrinsics_prior_sigma.get(name, {}))
     entry.update(
         {
             "intrinsics": rig.cameras[name].to_dict(),
@@ -205,6 +210,34 @@ def _camera_entry(
         }
     )
     return entry
+
+
+def _final_model(result: CalibrationResult, rig: Rig, camera: str) -> Any:
+    """The camera model of the final estimate: the refined intrinsics when the bundle
+    adjustment refined them, else the rig.yaml ones."""
+    if result.bundle is not None and camera in result.bundle.intrinsics:
+        return result.bundle.intrinsics[camera]
+    return rig.cameras[camera]
+
+
+def intrinsics_change(prior: Any, refined: Any, sigma: dict[str, float],
+                      prior_sigma: dict[str, float]) -> dict[str, Any]:
+    """``cameras.<name>.intrinsics_refined``: per refined parameter its rig.yaml ``prior``,
+    the prior's sigma ``prior_sigma``, the ``refined`` value, its marginal ``sigma``,
+    ``change`` (refined - prior, px for fx fy cx cy) and ``change_pct`` (percent of the
+    prior; null when the prior is 0)."""
+    names = refined.parameter_names
+    before = dict(zip(prior.parameter_names, (prior.fx, prior.fy, prior.cx, prior.cy,
+                                              *prior.distortion)))
+    after = dict(zip(names, (refined.fx, refined.fy, refined.cx, refined.cy,
+                             *refined.distortion)))
+    out = {}
+    for name in sigma:
+        p, r = float(before.get(name, 0.0)), float(after[name])
+        out[name] = {"prior": p, "prior_sigma": prior_sigma.get(name), "refined": r,
+                     "sigma": sigma[name], "change": r - p,
+                     "change_pct": 100.0 * (r - p) / abs(p) if p != 0 else None}
+    return out
 
 
 def _excluded(rows: list[dict[str, Any]]) -> np.ndarray:

@@ -22,6 +22,7 @@ from .schema import (
     FEW_VIEWS,
     FEW_VIEWS_FACTOR,
     INCONSISTENT_FRACTION,
+    INTRINSICS_SUPPORT_MAX,
     MARKER_FACTOR,
     MARKER_MIN_PX,
     PAIR_FINAL_EXCESS_MM,
@@ -272,6 +273,36 @@ def board_coverage(report: dict[str, Any], earlier: list[Finding]) -> list[Findi
     ]
 
 
+def intrinsics_unsupported(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Refined intrinsics the data could not determine: the marginal sigma stays close to the
+    prior's, so the 'refined' value is mostly the rig.yaml one (and its error)."""
+    weak = {}
+    for name, cam in report["cameras"].items():
+        params = [
+            p for p, e in (cam.get("intrinsics_refined") or {}).items()
+            if e["sigma"] is not None and e["prior_sigma"]
+            and e["sigma"] > INTRINSICS_SUPPORT_MAX * e["prior_sigma"]
+        ]
+        if params:
+            weak[name] = params
+    if not weak:
+        return []
+    return [
+        finding(
+            "warning",
+            "intrinsics_unsupported",
+            list(weak),
+            "The board views hardly constrain some refined intrinsics (marginal sigma above "
+            f"{INTRINSICS_SUPPORT_MAX:.0%} of the prior's): "
+            + "; ".join(f"{n}: {' '.join(p)}" for n, p in weak.items())
+            + ". Their refined values are mostly the rig.yaml ones.",
+            "Record more views with the board at several distances and tilts, reaching the "
+            "image corners (distortion), or refine fewer parameters "
+            "(bundle.intrinsics_params, e.g. fx fy cx cy).",
+        )
+    ]
+
+
 def board_distance(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     narrow = [
         (n, c["coverage"]["distance_m"])
@@ -476,6 +507,7 @@ RULES: tuple[Rule, ...] = (
     board_coverage,
     board_distance,
     board_tilt,
+    intrinsics_unsupported,
     outlier_views,
     marker,
     reprojection,

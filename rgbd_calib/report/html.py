@@ -311,6 +311,34 @@ def _cloud_section(figs: Figures, cloud: Cloud | None, no_cloud_reason: str) -> 
     return out
 
 
+def _intrinsics_section(report: dict[str, Any]) -> list[str]:
+    """Refined intrinsics (``bundle.intrinsics: refine``): each parameter against its
+    rig.yaml prior; nothing when the intrinsics were held fixed."""
+    rows = []
+    for name, cam in report["cameras"].items():
+        for param, e in (cam.get("intrinsics_refined") or {}).items():
+            unit = "px" if param in ("fx", "fy", "cx", "cy") else ""
+
+            def num(x: float | None, unit: str = unit) -> str:
+                return "-" if x is None else f"{x:.6g}{' ' + unit if unit else ''}"
+
+            pct = e["change_pct"]
+            rows.append((_e(name), param, num(e["prior"]), num(e["refined"]), num(e["change"]),
+                         "-" if pct is None else f"{pct:+.3f} %", num(e["sigma"]),
+                         num(e["prior_sigma"])))
+    if not rows:
+        return []
+    return [
+        "<section><h2>Refined intrinsics</h2>"
+        + _table(["camera", "parameter", "rig.yaml", "refined", "change", "change %",
+                  "sigma", "prior sigma"], rows, left=(0, 1)),
+        "<p class='cap'>The bundle adjustment refined these parameters with the rig.yaml "
+        "values as a prior (sigma: the estimate's marginal 1-sigma); the refined models are "
+        "in rig_refined.yaml. A sigma close to the prior's means the views hardly constrained "
+        "that parameter.</p></section>",
+    ]
+
+
 def _residual_sections(figs: Figures) -> list[str]:
     """Reprojection histograms, residual by edge and co-visibility: a figure and a caption
     each."""
@@ -506,6 +534,7 @@ def render_html(
         _head(report),
         _verdict_section(report),
         _summary_section(report, colors),
+        _intrinsics_section(report),
         _rig_section(figs),
         _viewer_section(report, colors, cloud, no_cloud_reason),
         _cloud_section(figs, cloud, no_cloud_reason),

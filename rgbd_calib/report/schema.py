@@ -42,6 +42,8 @@ PAIR_RMSE_MAX_MM = 15.0  # point-to-plane RMSE after ICP above this: depth itsel
 PAIR_FINAL_EXCESS_MM = 2.0
 PAIR_FITNESS_MIN = 0.3
 DEPTH_SCALE_TOL = 0.003  # |factor - 1| above this: the camera's depth needs its scale
+INTRINSICS_SUPPORT_MAX = 0.5  # a refined parameter's sigma above this x its prior's: the
+# data added little to the rig.yaml value (few views, corners not reaching the image border)
 COVERAGE_GRID = (48, 27)  # sample points across, down, for the image coverage of a camera
 REGION_MIN = 0.1  # a 3x3 image region less covered than this counts as never reached
 REGIONS = (
@@ -121,6 +123,11 @@ CAMERA_SCHEMA: dict[str, Any] = {
         "distortion": ListOf(N),
         "depth_scale": N,
     },
+    "intrinsics_refined?": MapOf(
+        "<param>",
+        {"prior": N, "prior_sigma": Nullable(N), "refined": N, "sigma": Nullable(N),
+         "change": N, "change_pct": Nullable(N)},
+    ),
     "reprojection_px": _STATS,
     "reprojection_all_px": _STATS,
     "reprojection_histogram": {"used": ListOf(INT), "excluded": ListOf(INT)},
