@@ -7,6 +7,7 @@ camera whose rig.yaml fx is 5 % too large.
 
 from __future__ import annotations
 
+import base64
 import json
 import re
 import shutil
@@ -364,3 +365,16 @@ def test_rebuild_reads_a_report_from_before_rmse_final(runs, tmp_path):
     assert rebuilt["schema_version"] == REPORT_SCHEMA_VERSION
     assert rebuilt["pairs"][0]["rmse_final_mm"] is None
     assert validate_report(rebuilt) == []
+
+
+def test_edge_figure_draws_a_rig_without_edge_residuals():
+    """Only the reference calibrated (no edge residual anywhere): the log-scaled residual
+    panels say "no data" instead of raising (it stopped report.html being written)."""
+    from rgbd_calib.report.figures import fig_edges
+
+    report = {"reference": "a", "cameras": {"a": {}, "b": {}}}
+    empty = {"camera": "a", "edge_status": "used", "edge_translation_mm": None,
+             "edge_rotation_deg": None, "final_reprojection_rms_px": None}
+    for views in ([], [empty]):
+        png = base64.b64decode(fig_edges({**report, "views": views}))
+        assert png.startswith(b"\x89PNG")

@@ -227,7 +227,10 @@ def fig_edges(report: dict[str, Any]) -> str:
                 color="red",
                 label="outlier / stale" if key == panels[0][0] else None,
             )
-        ax.set_yscale("log")
+        if any(len(c.get_offsets()) for c in ax.collections):  # an empty axis cannot be log
+            ax.set_yscale("log")
+        else:
+            ax.text(0.5, 0.5, "no data", transform=ax.transAxes, ha="center", va="center")
         ax.set_ylabel(label)
         ax.grid(True, which="major", lw=0.3, alpha=0.6)
     axes[0].legend(
