@@ -17,13 +17,14 @@ import hashlib
 import json
 import os
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .board import Board
+from .camera import CameraIntrinsics
 from .config import CalibrationConfig, DetectionConfig, PoseConfig
 from .dataset import FolderDataset
 from .detection import MarkerDetections, detect_job, init_detector
@@ -32,6 +33,7 @@ from .graph import (
     BundleResult,
     MarkerMeasurement,
     PoseGraphResult,
+    RelativePose,
     bundle_adjust,
     calibrate_pose_graph,
 )
@@ -61,6 +63,8 @@ class CalibrationResult:
     dataset_summary: dict[str, Any] = field(default_factory=dict)
     depth: DepthRefinement | None = None
     extrinsics_board_only: Extrinsics | None = None  # before depth refinement
+    # camera -> factor its covariance was scaled by for a model error (see model_error_sigmas)
+    model_error_factor: dict[str, float] = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------- detection stage
@@ -185,17 +189,17 @@ def calibrate(
         pg = pose_graph(dataset, observations, config, fixed_cameras)
     unconnected = _unconnected(rig.names, observations, pg.unconnected)
     bundle, depth, board_only = None, None, None
-    cameras = dict(pg.cameras)
+    cameras, factors = model_error_sigmas(dict(pg.cameras), None, pg, config)
     if config.method == "bundle":
         # 4. bundle adjustment on the marker corners (raw pixels when refining intrinsics)
         refine_intrinsics = config.bundle.intrinsics == "refine"
         with timed(timings, "bundle"):
             measurements = marker_measurements(observations, pg, rig,
                                                refined_intrinsics=refine_intrinsics)
-            bundle = bundle_adjust(measurements, _camera_matrices(rig), rig.reference,
-                                   pg.T_ref_cam, pg.T_ref_board, config.bundle, fixed_cameras,
-                                   intrinsics=rig.cameras)
-        cameras = cameras_from_solve(bundle)
+            bundle = bundle_sound_first(measurements, _camera_matrices(rig), rig.reference,
+                                        pg.T_ref_cam, pg.T_ref_board, config, pg,
+                                        fixed_cameras, intrinsics=rig.cameras)
+        cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg, config)
         if refine_intrinsics:
             # the depth stage back-projects with the refined intrinsics
             dataset = copy.copy(dataset)  # same frames, another rig: no re-scan
@@ -212,11 +216,12 @@ def calibrate(
             # 6. joint solve: corners and the accepted depth pairs
             if depth.relative_poses:
                 with timed(timings, "joint"):
-                    bundle = bundle_adjust(measurements, _camera_matrices(rig), rig.reference,
-                                           T_ref_cam, bundle.T_ref_board, config.bundle,
-                                           fixed_cameras, depth.relative_poses,
-                                           intrinsics=rig.cameras)
-                cameras = cameras_from_solve(bundle)
+                    bundle = bundle_sound_first(measurements, _camera_matrices(rig),
+                                                rig.reference, T_ref_cam, bundle.T_ref_board,
+                                                config, pg, fixed_cameras,
+                                                depth.relative_poses, intrinsics=rig.cameras)
+                cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg,
+                                                      config)
             # 7. checks: each pair's fit at the final extrinsics
             with timed(timings, "depth_check"):
                 depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},
@@ -226,7 +231,7 @@ def calibrate(
         rig.reference, {c: cameras[c] for c in rig.names if c in cameras}, unconnected
     )
     return CalibrationResult(extrinsics, observations, rejected, pg, bundle, config, n_images,
-                             timings, dataset.summary().to_dict(), depth, board_only)
+                             timings, dataset.summary().to_dict(), depth, board_only, factors)
 
 
 # ----------------------------------------------------------------------------- stages
@@ -345,6 +350,117 @@ def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:
     their rig.yaml model): what ``rig_refined.yaml`` holds."""
     cameras = {c: bundle.intrinsics.get(c, intr) for c, intr in rig.cameras.items()}
     return Rig(cameras, rig.reference, rig.source)
+
+
+def bundle_sound_first(
+    measurements: list[MarkerMeasurement],
+    K: dict[str, np.ndarray],
+    reference: str,
+    init_T_ref_cam: dict[str, np.ndarray],
+    init_T_ref_board: dict[str, np.ndarray],
+    config: CalibrationConfig,
+    pg: PoseGraphResult,
+    fixed_cameras: dict[str, np.ndarray] | None = None,
+    relative_poses: list[RelativePose] = (),
+    intrinsics: dict[str, CameraIntrinsics] | None = None,
+) -> BundleResult:
+    """:func:`~rgbd_calib.graph.bundle_adjust`, so that a camera with a model error does not
+    pull the others.
+
+    The bundle weighs every corner alike; the corners of a camera whose model is off
+    (``pg.model_error``) would bend the board poses and, through them, the sound cameras.
+    When there are such cameras and at least one sound camera besides the reference, the
+    sound cameras (with the reference and any fixed ones) are solved first on their own
+    corners; then every camera, the sound ones held where the first solve put them, which
+    places the model-error cameras against boards the sound cameras fixed. Sound cameras
+    keep the first solve's covariance and board poses seen by it keep its values. Otherwise
+    (no model error, or every camera has one) one joint solve."""
+    fixed = dict(fixed_cameras or {})
+    cams = {m.camera for m in measurements}
+    sound = {c for c in cams if c not in pg.model_error} | {reference} | set(fixed)
+    if not pg.model_error or not (cams - sound) or len(sound - {reference} - set(fixed)) < 1:
+        return bundle_adjust(measurements, K, reference, init_T_ref_cam, init_T_ref_board,
+                             config.bundle, fixed_cameras, relative_poses,
+                             intrinsics=intrinsics)
+    first = bundle_adjust([m for m in measurements if m.camera in sound], K, reference,
+                          init_T_ref_cam, init_T_ref_board, config.bundle, fixed_cameras,
+                          [r for r in relative_poses if {r.cam_a, r.cam_b} <= sound],
+                          intrinsics=intrinsics)
+    held = {**first.T_ref_cam, **fixed}
+    boards = {**init_T_ref_board, **first.T_ref_board}
+    second = bundle_adjust(measurements, K, reference, {**init_T_ref_cam, **held}, boards,
+                           config.bundle, held, relative_poses, intrinsics=intrinsics)
+    keep = set(first.T_ref_cam)
+    return replace(
+        second,
+        T_ref_board={**second.T_ref_board,
+                     **{v: T for v, T in first.T_ref_board.items() if v in second.T_ref_board}},
+        covariance={**second.covariance,
+                    **{c: first.covariance[c] for c in keep}},
+        sigma_rotation_deg={**second.sigma_rotation_deg,
+                            **{c: first.sigma_rotation_deg[c] for c in keep}},
+        sigma_translation_mm={**second.sigma_translation_mm,
+                              **{c: first.sigma_translation_mm[c] for c in keep}},
+        outliers=first.outliers + [o for o in second.outliers if o not in first.outliers],
+    )
+
+
+def model_error_sigmas(
+    cameras: dict[str, CameraExtrinsics],
+    bundle: BundleResult | None,
+    pg: PoseGraphResult,
+    config: CalibrationConfig,
+) -> tuple[dict[str, CameraExtrinsics], dict[str, float]]:
+    """Honest uncertainty when the pose graph found cameras with a model error.
+
+    The pose graph's marginals are the honest ones then: a model-error camera's edges carry
+    its a-posteriori variance factor and, being common to all its views, count once (see
+    ``_EdgeNoise.correlated`` in :mod:`rgbd_calib.graph`), and every camera chained to the
+    reference through it inherits that. The bundle adjustment weighs every corner alike, so
+    after it each camera's covariance is scaled up until it covers the pose graph's (the
+    largest generalised eigenvalue of the pair) and, for a model-error camera, by at least
+    its own corners' variance factor (``mean(rms^2) / 2`` over the bundle's corner sigma^2)
+    times its number of views. A model-error camera the bundle lost (every marker beyond
+    ``outlier_px``) keeps its pose-graph estimate. ``bundle`` None: the pose graph's cameras
+    are already honest. Returns the cameras and, per model-error camera, its total factor
+    over its nominal covariance (pose-graph variance factor x edges, or the bundle scale)."""
+    out = dict(cameras)
+    factors = {c: m.variance_factor * max(m.edges, 1) for c, m in pg.model_error.items()}
+    if bundle is None or not pg.model_error:
+        return out, factors
+    b = config.bundle
+    sigma_px = max(bundle.pixel_sigma_estimated, 1e-3) if b.estimate_sigma else b.pixel_sigma
+    for c, graph_cam in pg.cameras.items():
+        if c not in out:
+            if c in pg.model_error:
+                out[c] = graph_cam
+            continue
+        e = out[c]
+        f = _cover_factor(e.covariance, graph_cam.covariance)
+        if c in pg.model_error:
+            rms = np.array([r[3] for r in bundle.residuals_px if r[0] == c])
+            views = len({r[1] for r in bundle.residuals_px if r[0] == c})
+            own = float(np.mean(rms**2) / 2.0) / sigma_px**2 if len(rms) else 1.0
+            f = max(f, own * max(views, 1))
+            factors[c] = f
+        if f > 1.0 and e.covariance is not None:
+            out[c] = CameraExtrinsics(c, e.T_ref_cam, e.sigma_rotation_deg * np.sqrt(f),
+                                      e.sigma_translation_mm * np.sqrt(f), e.covariance * f)
+    return out, factors
+
+
+def _cover_factor(cov: np.ndarray | None, target: np.ndarray | None) -> float:
+    """Smallest ``f >= 1`` with ``f * cov >= target`` (both 6x6, same frame and order): the
+    largest eigenvalue of ``L^-1 target L^-T``, ``cov = L L^T``; 1 when either is missing
+    or ``cov`` is singular (the reference, a fixed camera)."""
+    if cov is None or target is None or not np.all(np.isfinite(target)):
+        return 1.0
+    try:
+        L = np.linalg.cholesky(np.asarray(cov, float))
+    except np.linalg.LinAlgError:
+        return 1.0
+    A = np.linalg.solve(L, np.linalg.solve(L, np.asarray(target, float)).T)
+    return max(float(np.linalg.eigvalsh((A + A.T) / 2).max()), 1.0)
 
 
 def _camera_matrices(rig: Rig) -> dict[str, np.ndarray]:

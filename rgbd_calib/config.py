@@ -267,6 +267,16 @@ class PoseGraphConfig(BaseModel):
         "re-solve until the inlier set is stable.",
     )
     max_reject_rounds: int = Field(4, ge=1, description="Cap on reject / re-solve rounds.")
+    camera_model_error: bool = Field(
+        True,
+        description="A camera whose median edge residual exceeds kernel_threshold (most of "
+        "its views disagree with the rig) has a model error (intrinsics, board, sync), not "
+        "outlier views: keep it and scale its edge covariances by its own a-posteriori "
+        "variance factor instead of rejecting its views (off: the camera is rejected).",
+    )
+    model_error_min_views: int = Field(
+        3, ge=2, description="Fewest used edges of a camera for the model-error test."
+    )
     exclude_stale: bool = Field(
         True, description="Leave out edges that repeat the same camera's previous pose exactly."
     )

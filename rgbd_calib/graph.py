@@ -17,13 +17,17 @@ The solve, step by step (:func:`solve_pose_graph`):
 4. reject edges whose whitened residual exceeds the kernel threshold and re-solve until the
    inlier set is stable,
 5. marginal covariances on a *Gaussian* graph of the final inliers, linearised at the
-   solution, so that robust down-weighting does not inflate (or shrink) the claimed sigmas.
+   solution, so that robust down-weighting does not inflate (or shrink) the claimed sigmas;
+   a camera whose views all disagree the same way (a model error, kept with its noise scaled
+   by its own variance factor before step 4: :func:`_camera_model_error`) enters with its
+   views' information counted once.
 
 This is the only module of the package that imports gtsam; it does no file I/O.
 """
 
 from __future__ import annotations
 
+import copy
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from typing import Any
@@ -46,6 +50,8 @@ from .results import CameraExtrinsics, Extrinsics, PoseEdge
 
 # Median of a chi distribution with 3 dof: median |x| of an isotropic 3D Gaussian / sigma.
 _CHI3_MEDIAN = float(np.sqrt(chi2.ppf(0.5, 3)))
+# Median of chi^2 with 6 dof: the median squared whitened norm of a consistent 6-dof edge.
+_CHI2_6_MEDIAN = float(chi2.ppf(0.5, 6))
 REASON_NO_SHARED_VIEW = "shares no board view with any connected camera"
 
 
@@ -72,6 +78,30 @@ class EdgeResidual:
 
 
 @dataclass(frozen=True)
+class CameraModelError:
+    """A camera whose views disagree with the rig as a whole (a model error: intrinsics, board,
+    distortion, sync), kept with its edge covariances scaled by ``variance_factor``.
+    ``edges``: its edges in the graph; ``outliers_before``: how many exceeded the kernel threshold
+    under the nominal noise; ``translation_mm`` / ``rotation_deg``: median size of its edge
+    residuals at the final solution."""
+
+    camera: str
+    variance_factor: float
+    edges: int
+    outliers_before: int
+    translation_mm: float
+    rotation_deg: float
+
+    @property
+    def sigma_factor(self) -> float:
+        return float(np.sqrt(self.variance_factor))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**{k: getattr(self, k) for k in self.__dataclass_fields__},
+                "sigma_factor": self.sigma_factor}
+
+
+@dataclass(frozen=True)
 class PoseGraphResult:
     """Solved pose graph: cameras with marginal uncertainty, board views, per-edge residuals."""
 
@@ -83,6 +113,7 @@ class PoseGraphResult:
     sigma_rotation_deg_default: float = float("nan")  # default edge sigmas finally used
     sigma_translation_mm_default: float = float("nan")
     stats: dict[str, Any] = field(default_factory=dict)
+    model_error: dict[str, CameraModelError] = field(default_factory=dict)
 
     @property
     def T_ref_cam(self) -> dict[str, np.ndarray]:
@@ -258,26 +289,44 @@ def _kernel_weight(kernel, r: float) -> float:
 
 
 class _EdgeNoise:
-    """Gaussian noise model per edge: its own covariance, else the current default sigmas."""
+    """Gaussian noise model per edge: its own covariance, else the current default sigmas,
+    times its camera's model-error variance factor (``camera_factor``, 1 when absent)."""
 
     def __init__(self, edges: list[PoseEdge], config: PoseGraphConfig):
         self.edges = edges
         self.sigma_rot = float(np.radians(config.default_sigma_rotation_deg))
         self.sigma_trans = float(config.default_sigma_translation_mm) / 1000.0
-        self._own = {
-            i: gtsam.noiseModel.Gaussian.Covariance(np.asarray(e.covariance, float))
-            for i, e in enumerate(edges)
-            if e.covariance is not None
-        }
+        self.camera_factor: dict[str, float] = {}
+        self._cache: dict[tuple[int, float], Any] = {}
 
-    def default(self):
+    def default(self, factor: float = 1.0):
         return gtsam.noiseModel.Diagonal.Sigmas(
-            np.array([self.sigma_rot] * 3 + [self.sigma_trans] * 3)
+            np.sqrt(factor) * np.array([self.sigma_rot] * 3 + [self.sigma_trans] * 3)
         )
 
+    def correlated(self, ids: list[int]) -> _EdgeNoise:
+        """A copy for the marginals where each model-error camera's factor is also multiplied
+        by its number of edges among ``ids``: its model error is common to all its views, so
+        their information counts once (fully correlated errors do not average down), and the
+        marginals of every camera chained through it inherit that."""
+        out = copy.copy(self)
+        count = Counter(self.edges[i].camera for i in ids)
+        out.camera_factor = {c: f * max(count[c], 1) for c, f in self.camera_factor.items()}
+        return out
+
     def models(self, ids: list[int]) -> dict[int, Any]:
-        d = self.default()
-        return {i: self._own.get(i, d) for i in ids}
+        out = {}
+        for i in ids:
+            e = self.edges[i]
+            f = self.camera_factor.get(e.camera, 1.0)
+            if e.covariance is None:
+                out[i] = self.default(f)
+                continue
+            if (i, f) not in self._cache:
+                cov = f * np.asarray(e.covariance, float)
+                self._cache[(i, f)] = gtsam.noiseModel.Gaussian.Covariance(cov)
+            out[i] = self._cache[(i, f)]
+        return out
 
 
 def _lm(
@@ -466,7 +515,7 @@ def solve_pose_graph(
         inlier_ids = used
     else:
         inlier_ids = [i for i in used if white_of[i] <= config.kernel_threshold]
-    covariances = _marginals(problem, inlier_ids, noise, values, cams)
+    covariances = _marginals(problem, inlier_ids, noise.correlated(inlier_ids), values, cams)
     dof = 6 * len(inlier_ids) - 6 * n_free
     chi2_sum = float(np.sum(np.square([white_of[i] for i in inlier_ids])))
     stats.update(
@@ -483,6 +532,9 @@ def solve_pose_graph(
     unconnected = {
         c: REASON_NO_SHARED_VIEW for c in dict.fromkeys(e.camera for e in edges) if c not in cams
     }
+    model_error = _model_error_table(
+        residuals, noise.camera_factor, stats.pop("model_error_outliers", {})
+    )
     return PoseGraphResult(
         reference,
         _camera_results(reference, T_ref_cam, covariances),
@@ -492,7 +544,28 @@ def solve_pose_graph(
         float(np.degrees(noise.sigma_rot)),
         noise.sigma_trans * 1000.0,
         stats,
+        model_error,
     )
+
+
+def _model_error_table(
+    residuals: tuple[EdgeResidual, ...], factors: dict[str, float], before: dict[str, int]
+) -> dict[str, CameraModelError]:
+    """One :class:`CameraModelError` per camera with a variance factor above one."""
+    out = {}
+    for c, f in factors.items():
+        if f <= 1.0:
+            continue
+        mine = [r for r in residuals if r.camera == c and np.isfinite(r.whitened_norm)]
+        out[c] = CameraModelError(
+            c,
+            float(f),
+            len(mine),
+            int(before.get(c, 0)),
+            float(np.median([r.translation_mm for r in mine])) if mine else float("nan"),
+            float(np.median([r.rotation_deg for r in mine])) if mine else float("nan"),
+        )
+    return out
 
 
 def _usable_edges(
@@ -546,6 +619,12 @@ def _robust_solve(
             values, it = _lm(problem.build(ids, noise, robust=True), values, config)
             stats["iterations"] += it
 
+    if config.camera_model_error:
+        values, it, stats["model_error_outliers"] = _camera_model_error(
+            problem, ids, noise, values, config
+        )
+        stats["iterations"] += it
+
     used = ids
     if config.reject_outliers:
         for _ in range(config.max_reject_rounds):
@@ -558,6 +637,51 @@ def _robust_solve(
             values, it = _lm(problem.build(used, noise, robust=True), values, config)
             stats["iterations"] += it
     return values, used, stats
+
+
+def _camera_model_error(
+    problem: _Graph,
+    ids: list[int],
+    noise: _EdgeNoise,
+    values: gtsam.Values,
+    config: PoseGraphConfig,
+    rounds: int = 4,
+) -> tuple[gtsam.Values, int, dict[str, int]]:
+    """Find the cameras with a model error and scale their edge noise (``noise.camera_factor``).
+
+    The rule: a camera whose *median* whitened edge residual exceeds ``kernel_threshold`` has
+    most of its views outside the threshold. Outlier rejection is for the few views that
+    disagree with the others of their camera (blur, a wrong detection, a sync glitch); when
+    the typical view disagrees, rejecting would remove the camera, and what disagrees is the
+    camera's model (intrinsics, distortion, the board's back sheet, time offset). Such a
+    camera keeps its views; its edge covariances are multiplied by its own robust
+    a-posteriori variance factor ``median(r^2) / median(chi2_6)`` (the median: a single bad
+    view does not set it), so its whitened residuals become chi2-consistent again and the
+    usual rejection can then still drop its single outlier views. Re-solved and re-tested
+    until no camera is flagged (factors multiply); the median over a camera's edges is
+    measured at the robust solution of the whole graph, so one camera cannot hide another.
+
+    Returns the values, LM iterations and, per flagged camera, its outlier count before."""
+    iterations, before = 0, {}
+    for _ in range(rounds):
+        _, white = problem.errors(ids, noise, values)
+        per_camera: dict[str, list[float]] = defaultdict(list)
+        for i, r in zip(ids, white, strict=True):
+            per_camera[problem.edges[i].camera].append(float(r))
+        flagged = {
+            c: float(np.median(np.square(r))) / _CHI2_6_MEDIAN
+            for c, r in per_camera.items()
+            if len(r) >= config.model_error_min_views
+            and float(np.median(r)) > config.kernel_threshold
+        }
+        if not flagged:
+            break
+        for c, factor in flagged.items():
+            before.setdefault(c, sum(1 for r in per_camera[c] if r > config.kernel_threshold))
+            noise.camera_factor[c] = noise.camera_factor.get(c, 1.0) * factor
+        values, it = _lm(problem.build(ids, noise, robust=True), values, config)
+        iterations += it
+    return values, iterations, before
 
 
 def _residual_table(
@@ -677,6 +801,7 @@ def calibrate_pose_graph(
         result.sigma_rotation_deg_default,
         result.sigma_translation_mm_default,
         result.stats,
+        result.model_error,
     )
 
 

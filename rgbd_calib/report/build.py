@@ -67,7 +67,7 @@ def report_dict(
             for name in rig.names
         },
         "unconnected": result.extrinsics.unconnected,
-        "pose_graph": _pose_graph_entry(result.posegraph),
+        "pose_graph": _pose_graph_entry(result.posegraph, result.model_error_factor),
         "views": [_view_entry(r) for r in rows],
         "board_views": _board_view_entries(rows, boards, rig.names),
         "markers": _marker_entries(rows),
@@ -305,7 +305,9 @@ def _board_geometry(result: CalibrationResult) -> dict[str, Any]:
     }
 
 
-def _pose_graph_entry(pg: PoseGraphResult) -> dict[str, Any]:
+def _pose_graph_entry(pg: PoseGraphResult, factors: dict[str, float]) -> dict[str, Any]:
+    """The edges, their outliers, and the cameras kept with a model error: the factor their
+    final covariance was scaled by (``factors``, else the pose graph's own)."""
     return {
         "edges": len(pg.residuals),
         "used": len(pg.used_edges),
@@ -317,6 +319,18 @@ def _pose_graph_entry(pg: PoseGraphResult) -> dict[str, Any]:
                 "whitened_norm": pg.residuals[i].whitened_norm,
             }
             for i in pg.outlier_edges
+        ],
+        "model_error": [
+            {
+                "camera": c,
+                "edges": m.edges,
+                "outliers_before": m.outliers_before,
+                "translation_mm": m.translation_mm,
+                "rotation_deg": m.rotation_deg,
+                "variance_factor": float(factors.get(c, m.variance_factor)),
+                "sigma_factor": float(np.sqrt(factors.get(c, m.variance_factor))),
+            }
+            for c, m in pg.model_error.items()
         ],
     }
 

@@ -119,6 +119,30 @@ def inconsistent_camera(report: dict[str, Any], earlier: list[Finding]) -> list[
     return out
 
 
+def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Cameras whose views all disagree with the rig the same way: kept, with an inflated
+    sigma (``pose_graph.model_error``), instead of dropped as outliers."""
+    out = []
+    for m in report["pose_graph"].get("model_error") or []:
+        name = m["camera"]
+        out.append(
+            finding(
+                "warning",
+                "camera_model_error",
+                [name],
+                f"{name}: its board views disagree with the rest of the rig as a whole "
+                f"({m['outliers_before']} of {m['edges']} beyond the outlier threshold; "
+                f"median {fmt(m['translation_mm'], 1)} mm / {fmt(m['rotation_deg'], 2)} deg "
+                "per view): a model error, not outlier views. The camera is kept, its "
+                f"uncertainty scaled x{m['sigma_factor']:.1f} to match.",
+                f"Likely causes: {name}'s intrinsics (fx, fy, cx, cy) or lens distortion in "
+                "rig.yaml; the board (back sheet glued off, thickness, print scale) when it "
+                "sees one face; its frame synchronisation. Fix the model and re-run calibrate.",
+            )
+        )
+    return out
+
+
 def _inconsistencies(
     cam: dict[str, Any], views: list[dict[str, Any]], rig_p50: float | None
 ) -> list[str]:
@@ -502,6 +526,7 @@ def depth_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]
 RULES: tuple[Rule, ...] = (
     not_calibrated,
     inconsistent_camera,
+    camera_model_error,
     weak_camera,
     each_sound_camera(few_views, weak_link),
     board_coverage,

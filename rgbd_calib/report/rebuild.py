@@ -60,6 +60,8 @@ def _refinalize(report: dict[str, Any], path: Path) -> dict[str, Any]:
         for pair in report.get("pairs") or []:  # 1.1 added it; an older report has no value
             if isinstance(pair, dict):
                 pair.setdefault("rmse_final_mm", None)
+        if isinstance(report.get("pose_graph"), dict):  # 1.2 added it
+            report["pose_graph"].setdefault("model_error", [])
         report = finalize_report(report)
     except (KeyError, TypeError, ValueError) as exc:
         raise ReportError(

@@ -13,7 +13,7 @@ from typing import Any
 
 from ..errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.1"
+REPORT_SCHEMA_VERSION = "1.2"
 
 
 class ReportError(RgbdCalibError):
@@ -184,6 +184,17 @@ REPORT_SCHEMA: dict[str, Any] = {
         "used": INT,
         "stale": INT,
         "outliers": ListOf({"camera": S, "view": S, "whitened_norm": N}),
+        "model_error": ListOf(
+            {
+                "camera": S,
+                "edges": INT,
+                "outliers_before": INT,
+                "translation_mm": Nullable(N),
+                "rotation_deg": Nullable(N),
+                "variance_factor": N,
+                "sigma_factor": N,
+            }
+        ),
     },
     "views": ListOf(
         {
