@@ -189,12 +189,15 @@ def calibrate(
     if config.method == "bundle":
         # 4. bundle adjustment on the marker corners (raw pixels when refining intrinsics)
         refine_intrinsics = config.bundle.intrinsics == "refine"
+        refine_board = config.bundle.board == "refine"
         with timed(timings, "bundle"):
             measurements = marker_measurements(observations, pg, rig,
-                                               refined_intrinsics=refine_intrinsics)
+                                               refined_intrinsics=refine_intrinsics,
+                                               board=board,
+                                               keep_outlier_views=refine_board)
             bundle = bundle_adjust(measurements, _camera_matrices(rig), rig.reference,
                                    pg.T_ref_cam, pg.T_ref_board, config.bundle, fixed_cameras,
-                                   intrinsics=rig.cameras)
+                                   intrinsics=rig.cameras, back_centre=back_centre(board))
         cameras = cameras_from_solve(bundle)
         if refine_intrinsics:
             # the depth stage back-projects with the refined intrinsics
@@ -215,7 +218,8 @@ def calibrate(
                     bundle = bundle_adjust(measurements, _camera_matrices(rig), rig.reference,
                                            T_ref_cam, bundle.T_ref_board, config.bundle,
                                            fixed_cameras, depth.relative_poses,
-                                           intrinsics=rig.cameras)
+                                           intrinsics=rig.cameras,
+                                           back_centre=back_centre(board))
                 cameras = cameras_from_solve(bundle)
             # 7. checks: each pair's fit at the final extrinsics
             with timed(timings, "depth_check"):
@@ -313,7 +317,8 @@ def _unconnected(
 
 def marker_measurements(
     observations: list[BoardObservation], pg: PoseGraphResult, rig: Rig,
-    refined_intrinsics: bool = False,
+    refined_intrinsics: bool = False, board: Board | None = None,
+    keep_outlier_views: bool = False,
 ) -> list[MarkerMeasurement]:
     """The bundle adjustment's measurements: every marker of every view the pose graph kept
     (its cameras and boards solved, the view not an outlier or stale edge), in undistorted
@@ -324,8 +329,14 @@ def marker_measurements(
     they were judged with the rig.yaml intrinsics, which refining assumes may be wrong (a
     0.7 % focal error makes the per-view PnP poses of a camera disagree by 5-20 mm, and the
     pose graph then flags every view of a camera); the bundle adjustment's per-marker kernel
-    and outlier test still remove bad markers."""
-    edges = pg.stale_edges if refined_intrinsics else pg.outlier_edges
+    and outlier test still remove bad markers.
+
+    ``keep_outlier_views`` keeps them too (board self-calibration: with a misglued back sheet
+    the per-view PnP poses of the nominal board put every back-facing camera's views off by
+    the glue error, and the pose graph flags them all). ``board`` gives each measurement its
+    face (front when None)."""
+    keep = refined_intrinsics or keep_outlier_views
+    edges = pg.stale_edges if keep else pg.outlier_edges
     dropped = {pg.residuals[i].view + "/" + pg.residuals[i].camera for i in edges}
     measurements = []
     for o in observations:
@@ -336,8 +347,18 @@ def marker_measurements(
         px = o.corners_px if refined_intrinsics else (
             rig.cameras[o.camera].undistort_pixels(o.corners_px))
         for mid, c, P in zip(o.ids, px, o.object_points):
-            measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P))
+            face = 1 if board is None else int(board.faces[board.index_of[int(mid)]])
+            measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P, face))
     return measurements
+
+
+def back_centre(board: Board) -> np.ndarray | None:
+    """Board-file centre (m) of the back-marker grid (its xy bounding box, on the back face):
+    where the back sheet's offset is reported; None for a one-sided board."""
+    back = board.corners[board.faces < 0].reshape(-1, 3)
+    if not len(back):
+        return None
+    return np.r_[(back[:, :2].min(axis=0) + back[:, :2].max(axis=0)) / 2, -board.thickness]
 
 
 def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:

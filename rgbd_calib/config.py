@@ -356,6 +356,24 @@ class BundleConfig(BaseModel):
         "of a mounted lens is ~1e-3)",
     )
 
+    board: Literal["fixed", "refine"] = Field(
+        "fixed",
+        description="fixed: the board file's geometry is exact; refine: the pose of the back "
+        "sheet relative to the front sheet (in-plane offset, rotation about the normal, "
+        "thickness) is estimated with the board file as a Gaussian prior (a misglued back "
+        "sheet). Observable only when some view has both faces seen (by different cameras); "
+        "otherwise it is held and the result says so",
+    )
+    board_prior_offset_mm: float = Field(
+        3.0, gt=0, description="prior sigma of the back sheet's in-plane offset (mm, per axis)"
+    )
+    board_prior_rotation_deg: float = Field(
+        1.0, gt=0, description="prior sigma of the back sheet's rotation about the normal (deg)"
+    )
+    board_prior_thickness_mm: float = Field(
+        1.0, gt=0, description="prior sigma of the board's thickness (mm)"
+    )
+
     @model_validator(mode="after")
     def _known_intrinsics(self) -> BundleConfig:
         unknown = [n for n in self.intrinsics_params if n not in INTRINSICS_NAMES]
