@@ -61,6 +61,7 @@ class CalibrationResult:
     dataset_summary: dict[str, Any] = field(default_factory=dict)
     depth: DepthRefinement | None = None
     extrinsics_board_only: Extrinsics | None = None  # before depth refinement
+    board: Board | None = None  # the board file calibrated with (board_refined.yaml's base)
 
 
 # ----------------------------------------------------------------------------- detection stage
@@ -230,7 +231,7 @@ def calibrate(
         rig.reference, {c: cameras[c] for c in rig.names if c in cameras}, unconnected
     )
     return CalibrationResult(extrinsics, observations, rejected, pg, bundle, config, n_images,
-                             timings, dataset.summary().to_dict(), depth, board_only)
+                             timings, dataset.summary().to_dict(), depth, board_only, board)
 
 
 # ----------------------------------------------------------------------------- stages

@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from .numbers import fmt, median_or_none
 from .schema import (
     COVERAGE_MIN,
@@ -21,6 +23,9 @@ from .schema import (
     FEW_SHARED_VIEWS,
     FEW_VIEWS,
     FEW_VIEWS_FACTOR,
+    GLUE_MIN_DEG,
+    GLUE_MIN_MM,
+    GLUE_SIGMAS,
     INCONSISTENT_FRACTION,
     INTRINSICS_SUPPORT_MAX,
     MARKER_FACTOR,
@@ -303,6 +308,47 @@ def intrinsics_unsupported(report: dict[str, Any], earlier: list[Finding]) -> li
     ]
 
 
+def board_glue(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The back sheet off its board-file place (``bundle.board: refine``): significant against
+    its sigma and large enough to matter; or held because it was unobservable."""
+    refined = report["board"].get("refined")
+    if not refined:
+        return []
+    if refined["held"]:
+        return [finding("info", "board_glue", [], f"Board not refined: {refined['held']}.",
+                        "To refine the back sheet, record views in which cameras on both "
+                        "sides see the board at the same time.")]
+    (dx, dy), rot = refined["offset_mm"], refined["rotation_deg"]
+    (sx, sy), srot = refined["sigmas"]["offset_mm"], refined["sigmas"]["rotation_deg"]
+    shifted = (abs(dx) > GLUE_SIGMAS * sx or abs(dy) > GLUE_SIGMAS * sy) and (
+        np.hypot(dx, dy) > GLUE_MIN_MM)
+    turned = abs(rot) > GLUE_SIGMAS * srot and abs(rot) > GLUE_MIN_DEG
+    if not (shifted or turned):
+        return []
+    return [finding(
+        "warning",
+        "board_glue",
+        [],
+        f"{glue_sentence(refined)} (sigma {fmt(sx, 2)} / {fmt(sy, 2)} mm, {fmt(srot, 3)} deg).",
+        "Use board_refined.yaml (--board) for the next calibrations with this board, or "
+        "re-glue the back sheet.",
+    )]
+
+
+def glue_sentence(refined: dict[str, Any]) -> str:
+    """'Back sheet is 1.50 mm right, 1.00 mm down, 0.30 deg counter-clockwise of where the
+    board file puts it (seen from the front); thickness 6.60 mm (+0.00)' from
+    ``report.board.refined``."""
+    (dx, dy), rot = refined["offset_mm"], refined["rotation_deg"]
+    return (
+        f"Back sheet is {abs(dx):.2f} mm {'right' if dx >= 0 else 'left'}, "
+        f"{abs(dy):.2f} mm {'up' if dy >= 0 else 'down'}, {abs(rot):.2f} deg "
+        f"{'counter-clockwise' if rot >= 0 else 'clockwise'} of where the board file puts it "
+        f"(seen from the front); thickness {refined['thickness_mm']:.2f} mm "
+        f"({refined['thickness_change_mm']:+.2f})"
+    )
+
+
 def board_distance(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     narrow = [
         (n, c["coverage"]["distance_m"])
@@ -504,6 +550,7 @@ RULES: tuple[Rule, ...] = (
     inconsistent_camera,
     weak_camera,
     each_sound_camera(few_views, weak_link),
+    board_glue,
     board_coverage,
     board_distance,
     board_tilt,
