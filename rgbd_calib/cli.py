@@ -419,7 +419,7 @@ def _print_summary(result, out: Path) -> None:
     from rich.table import Table
 
     from .report.build import board_refined_entry
-    from .report.findings import glue_sentence
+    from .report.findings import board_scale_sentence, common_depth_scale, glue_sentence
 
     table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
     for col, unit in (
@@ -461,6 +461,11 @@ def _print_summary(result, out: Path) -> None:
             f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
         )
         refined += ", board_refined.yaml"
+    scales = result.depth.depth_scale_dict() if result.depth is not None else {}
+    ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
+    if ratio is not None:
+        length = result.board.marker_length if result.board is not None else None
+        console.print(f"[red]board scale[/]: {board_scale_sentence(ratio, length)}")
     console.print(f"results in {out}/ (extrinsics.yaml, report.json, exports/{refined})")
 
 

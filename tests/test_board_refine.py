@@ -330,3 +330,50 @@ def test_pipeline_writes_board_refined_and_report(glued_race, tmp_path):
     write_outputs(runs["fixed"], rig, tmp_path / "fixed")
     assert not (tmp_path / "fixed" / "board_refined.yaml").exists()
     assert "refined" not in json.loads((tmp_path / "fixed" / "report.json").read_text())["board"]
+
+
+# ------------------------------------------------------------------ board scale from depth
+def _scale_report(factors, marker_length_m=0.05):
+    return {"board": {"marker_length_m": marker_length_m},
+            "cameras": {c: {"depth_scale_factor": f, "depth_scale_sigma": s}
+                        for c, (f, s) in factors.items()}}
+
+
+def test_common_depth_scale_names_the_print():
+    """A 40 mm print of a 50 mm board file: every camera's depth reads 0.8 of the distance
+    the calibration puts the board at; the printed length is the file's times that ratio.
+    One board_scale finding replaces the per-camera depth_scale ones."""
+    from rgbd_calib.report.findings import board_scale, common_depth_scale, depth_scale
+
+    print_40 = {"a": (0.800, 0.002), "b": (0.803, 0.003), "c": (0.797, 0.002)}
+    assert common_depth_scale(print_40) == pytest.approx(0.8, abs=0.002)
+    report = _scale_report(print_40)
+    found = board_scale(report, [])
+    assert len(found) == 1 and found[0]["code"] == "board_scale"
+    assert "40.0 mm" in found[0]["message"] and "50.0 mm" in found[0]["message"]
+    assert "20.0% smaller" in found[0]["message"]
+    assert depth_scale(report, found) == []
+    assert len(depth_scale(report, [])) == 3  # without it: every camera blamed
+    # one camera disagrees: its depth, not the board
+    assert common_depth_scale({**print_40, "d": (1.0, 0.002)}) is None
+    # all alike but within 1 %: depth units, not a wrong print
+    assert common_depth_scale({"a": (1.006, 0.001), "b": (1.007, 0.001)}) is None
+    assert common_depth_scale({"a": (0.8, 0.002)}) is None  # one camera proves nothing
+
+
+def test_board_and_intrinsics_refined_together():
+    """Both refinements in one bundle (exact rig intrinsics, no distortion): the glue is still
+    recovered (measured: within 0.020 mm / 0.012 deg; the cameras move by up to 2.6 mm, the
+    focal-length / distance trade-off test_intrinsics measures on clean intrinsics)."""
+    T_ref_cam, boards, meas, T_fb = _glued_scene(0)
+    intr = CameraIntrinsics(1280, 720, K[0, 0], K[1, 1], K[0, 2], K[1, 2], (0.0,) * 5)
+    rng = np.random.default_rng(0)
+    init_cam = {c: (T if c == "c0" else perturb(T, rng)) for c, T in T_ref_cam.items()}
+    init_board = {v: perturb(T, rng) for v, T in boards.items()}
+    res = bundle_adjust(meas, {c: K for c in T_ref_cam}, "c0", init_cam, init_board,
+                        BundleConfig(board="refine", intrinsics="refine",
+                                     intrinsics_params=["fx", "fy", "cx", "cy"]),
+                        intrinsics={c: intr for c in T_ref_cam})
+    assert set(res.intrinsics) == set(T_ref_cam)
+    assert_transforms_close(res.board.T_front_back, T_fb, GLUE_OFFSET_TOL_MM,
+                            GLUE_ROTATION_TOL_DEG)

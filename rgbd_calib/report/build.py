@@ -300,8 +300,11 @@ def _board_geometry(result: CalibrationResult) -> dict[str, Any]:
         return {"markers_seen": 0, "extent_m": None, "thickness_m": None}
     pts = np.concatenate([o.object_points.reshape(-1, 3) for o in result.observations])
     ids = {int(i) for o in result.observations for i in o.ids}
+    corners = np.concatenate([o.object_points for o in result.observations])
+    side_m = float(np.linalg.norm(np.diff(corners[:, [0, 1]], axis=1), axis=-1).mean())
     return {
         "markers_seen": len(ids),
+        "marker_length_m": side_m,
         "extent_m": [
             float(pts[:, 0].min()),
             float(pts[:, 0].max()),

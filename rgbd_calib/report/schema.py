@@ -44,6 +44,8 @@ PAIR_FITNESS_MIN = 0.3
 GLUE_SIGMAS = 3.0  # a back-sheet offset or rotation beyond this many sigma is real ...
 GLUE_MIN_MM = 0.2  # ... and worth a corrected board file above this offset ...
 GLUE_MIN_DEG = 0.05  # ... or this rotation
+BOARD_SCALE_MIN = 0.01  # every camera's depth scale off by this much the same way: the print
+BOARD_SCALE_SPREAD = 0.003  # camera-to-camera depth-scale spread allowed on top of the sigmas
 DEPTH_SCALE_TOL = 0.003  # |factor - 1| above this: the camera's depth needs its scale
 INTRINSICS_SUPPORT_MAX = 0.5  # a refined parameter's sigma above this x its prior's: the
 # data added little to the rig.yaml value (few views, corners not reaching the image border)
@@ -183,6 +185,7 @@ REPORT_SCHEMA: dict[str, Any] = {
         "markers_seen": INT,
         "extent_m": Nullable(ListOf(N)),
         "thickness_m": Nullable(N),
+        "marker_length_m?": N,
         "refined?": {
             "held": Nullable(S),
             "offset_mm": Nullable(ListOf(N)),
