@@ -514,6 +514,26 @@ def save_board(board: Board, path: Path) -> None:
     write_yaml(path, board.to_dict())
 
 
+def refined_board(board: Board, T_front_back: np.ndarray) -> Board:
+    """``board`` with its back sheet where ``T_front_back`` (4x4, metres, board frame) puts it:
+    each back-face corner ``p`` becomes ``T_front_back p`` (the bundle adjustment's board
+    self-calibration). The grid form cannot express a shifted or rotated back sheet, so the
+    result is in the explicit form (every corner listed; :func:`save_board` writes it, and
+    :func:`load_board` reads it back). The thickness becomes the mean depth of the moved back
+    corners, which are put exactly on that plane (the tilts of the sheet are held at zero)."""
+    T = np.asarray(T_front_back, dtype=float)
+    corners = board.corners.copy()
+    back = board.faces == BACK
+    moved = corners[back].reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+    thickness = board.thickness
+    if len(moved):
+        thickness = float(-moved[:, 2].mean())
+        moved[:, 2] = -thickness
+        corners[back] = moved.reshape(-1, 4, 3)
+    return Board(board.dictionary, board.ids.copy(), corners, board.faces.copy(), thickness,
+                 board.panel, board.name, None)
+
+
 def thesis_board() -> Board:
     """The seed thesis's board (configs/board_thesis.yaml), built in code for defaults."""
     return board_from_grid("DICT_4X4_100", 4, 7, 0.04, 0.02, 0.0066, 0, 28,

@@ -65,6 +65,7 @@ class CalibrationResult:
     extrinsics_board_only: Extrinsics | None = None  # before depth refinement
     # camera -> factor its covariance was scaled by for a model error (see model_error_sigmas)
     model_error_factor: dict[str, float] = field(default_factory=dict)
+    board: Board | None = None  # the board file calibrated with (board_refined.yaml's base)
 
 
 # ----------------------------------------------------------------------------- detection stage
@@ -193,12 +194,16 @@ def calibrate(
     if config.method == "bundle":
         # 4. bundle adjustment on the marker corners (raw pixels when refining intrinsics)
         refine_intrinsics = config.bundle.intrinsics == "refine"
+        refine_board = config.bundle.board == "refine"
         with timed(timings, "bundle"):
             measurements = marker_measurements(observations, pg, rig,
-                                               refined_intrinsics=refine_intrinsics)
+                                               refined_intrinsics=refine_intrinsics,
+                                               board=board,
+                                               keep_outlier_views=refine_board)
             bundle = bundle_sound_first(measurements, _camera_matrices(rig), rig.reference,
                                         pg.T_ref_cam, pg.T_ref_board, config, pg,
-                                        fixed_cameras, intrinsics=rig.cameras)
+                                        fixed_cameras, intrinsics=rig.cameras,
+                                        back_centre=back_centre(board))
         cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg, config)
         if refine_intrinsics:
             # the depth stage back-projects with the refined intrinsics
@@ -219,7 +224,8 @@ def calibrate(
                     bundle = bundle_sound_first(measurements, _camera_matrices(rig),
                                                 rig.reference, T_ref_cam, bundle.T_ref_board,
                                                 config, pg, fixed_cameras,
-                                                depth.relative_poses, intrinsics=rig.cameras)
+                                                depth.relative_poses, intrinsics=rig.cameras,
+                                                back_centre=back_centre(board))
                 cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg,
                                                       config)
             # 7. checks: each pair's fit at the final extrinsics
@@ -231,7 +237,8 @@ def calibrate(
         rig.reference, {c: cameras[c] for c in rig.names if c in cameras}, unconnected
     )
     return CalibrationResult(extrinsics, observations, rejected, pg, bundle, config, n_images,
-                             timings, dataset.summary().to_dict(), depth, board_only, factors)
+                             timings, dataset.summary().to_dict(), depth, board_only,
+                             model_error_factor=factors, board=board)
 
 
 # ----------------------------------------------------------------------------- stages
@@ -318,7 +325,8 @@ def _unconnected(
 
 def marker_measurements(
     observations: list[BoardObservation], pg: PoseGraphResult, rig: Rig,
-    refined_intrinsics: bool = False,
+    refined_intrinsics: bool = False, board: Board | None = None,
+    keep_outlier_views: bool = False,
 ) -> list[MarkerMeasurement]:
     """The bundle adjustment's measurements: every marker of every view the pose graph kept
     (its cameras and boards solved, the view not an outlier or stale edge), in undistorted
@@ -329,8 +337,14 @@ def marker_measurements(
     they were judged with the rig.yaml intrinsics, which refining assumes may be wrong (a
     0.7 % focal error makes the per-view PnP poses of a camera disagree by 5-20 mm, and the
     pose graph then flags every view of a camera); the bundle adjustment's per-marker kernel
-    and outlier test still remove bad markers."""
-    edges = pg.stale_edges if refined_intrinsics else pg.outlier_edges
+    and outlier test still remove bad markers.
+
+    ``keep_outlier_views`` keeps them too (board self-calibration: with a misglued back sheet
+    the per-view PnP poses of the nominal board put every back-facing camera's views off by
+    the glue error, and the pose graph flags them all). ``board`` gives each measurement its
+    face (front when None)."""
+    keep = refined_intrinsics or keep_outlier_views
+    edges = pg.stale_edges if keep else pg.outlier_edges
     dropped = {pg.residuals[i].view + "/" + pg.residuals[i].camera for i in edges}
     measurements = []
     for o in observations:
@@ -341,8 +355,18 @@ def marker_measurements(
         px = o.corners_px if refined_intrinsics else (
             rig.cameras[o.camera].undistort_pixels(o.corners_px))
         for mid, c, P in zip(o.ids, px, o.object_points):
-            measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P))
+            face = 1 if board is None else int(board.faces[board.index_of[int(mid)]])
+            measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P, face))
     return measurements
+
+
+def back_centre(board: Board) -> np.ndarray | None:
+    """Board-file centre (m) of the back-marker grid (its xy bounding box, on the back face):
+    where the back sheet's offset is reported; None for a one-sided board."""
+    back = board.corners[board.faces < 0].reshape(-1, 3)
+    if not len(back):
+        return None
+    return np.r_[(back[:, :2].min(axis=0) + back[:, :2].max(axis=0)) / 2, -board.thickness]
 
 
 def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:
@@ -363,6 +387,7 @@ def bundle_sound_first(
     fixed_cameras: dict[str, np.ndarray] | None = None,
     relative_poses: list[RelativePose] = (),
     intrinsics: dict[str, CameraIntrinsics] | None = None,
+    back_centre: np.ndarray | None = None,
 ) -> BundleResult:
     """:func:`~rgbd_calib.graph.bundle_adjust`, so that a camera with a model error does not
     pull the others.
@@ -381,15 +406,16 @@ def bundle_sound_first(
     if not pg.model_error or not (cams - sound) or len(sound - {reference} - set(fixed)) < 1:
         return bundle_adjust(measurements, K, reference, init_T_ref_cam, init_T_ref_board,
                              config.bundle, fixed_cameras, relative_poses,
-                             intrinsics=intrinsics)
+                             intrinsics=intrinsics, back_centre=back_centre)
     first = bundle_adjust([m for m in measurements if m.camera in sound], K, reference,
                           init_T_ref_cam, init_T_ref_board, config.bundle, fixed_cameras,
                           [r for r in relative_poses if {r.cam_a, r.cam_b} <= sound],
-                          intrinsics=intrinsics)
+                          intrinsics=intrinsics, back_centre=back_centre)
     held = {**first.T_ref_cam, **fixed}
     boards = {**init_T_ref_board, **first.T_ref_board}
     second = bundle_adjust(measurements, K, reference, {**init_T_ref_cam, **held}, boards,
-                           config.bundle, held, relative_poses, intrinsics=intrinsics)
+                           config.bundle, held, relative_poses, intrinsics=intrinsics,
+                           back_centre=back_centre)
     keep = set(first.T_ref_cam)
     return replace(
         second,

@@ -345,6 +345,15 @@ def calibrate(
             "the bundle adjustment (writes rig_refined.yaml)."
         ),
     ] = None,
+    board_model: Annotated[
+        str | None,
+        typer.Option(
+            "--board-model",
+            help="fixed (default): the board file is exact; refine: estimate where the back "
+            "sheet really is (offset, rotation, thickness) in the bundle adjustment (writes "
+            "board_refined.yaml).",
+        ),
+    ] = None,
     fix: Annotated[
         Path | None,
         typer.Option(
@@ -362,7 +371,7 @@ def calibrate(
 
     _check_output_folder(out)
     cfg = load_config(config, method=method, workers=workers, refine=refine,
-                      **{"bundle.intrinsics": intrinsics})
+                      **{"bundle.intrinsics": intrinsics, "bundle.board": board_model})
     b = load_board(board_file) if board_file else thesis_board()
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     fixed = None
@@ -409,6 +418,9 @@ def _calibrate_and_write(ds, board, cfg, out: Path, fixed=None):
 def _print_summary(result, out: Path) -> None:
     from rich.table import Table
 
+    from .report.build import board_refined_entry
+    from .report.findings import board_scale_sentence, common_depth_scale, glue_sentence
+
     table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
     for col, unit in (
         ("camera", ""),
@@ -438,6 +450,22 @@ def _print_summary(result, out: Path) -> None:
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
     refined = ", rig_refined.yaml" if result.bundle is not None and result.bundle.intrinsics else ""
+    board = board_refined_entry(result).get("refined")
+    if board and board["held"]:
+        console.print(f"[yellow]board not refined[/]: {board['held']}")
+    elif board:
+        s = board["sigmas"]
+        console.print(
+            f"board: {glue_sentence(board)}; sigma {s['offset_mm'][0]:.2f} / "
+            f"{s['offset_mm'][1]:.2f} mm, {s['rotation_deg']:.3f} deg, "
+            f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
+        )
+        refined += ", board_refined.yaml"
+    scales = result.depth.depth_scale_dict() if result.depth is not None else {}
+    ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
+    if ratio is not None:
+        length = result.board.marker_length if result.board is not None else None
+        console.print(f"[red]board scale[/]: {board_scale_sentence(ratio, length)}")
     console.print(f"results in {out}/ (extrinsics.yaml, report.json, exports/{refined})")
 
 

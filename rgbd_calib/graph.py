@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import copy
 from collections import Counter, defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import gtsam
@@ -45,7 +45,14 @@ from .camera import (
 )
 from .config import BundleConfig, PoseGraphConfig
 from .errors import CalibrationError
-from .geometry import adjoint, invert_transform, make_transform, orthonormalize, rotation_angle_deg
+from .geometry import (
+    adjoint,
+    invert_transform,
+    make_transform,
+    orthonormalize,
+    rotation_angle_deg,
+    skew,
+)
 from .results import CameraExtrinsics, Extrinsics, PoseEdge
 
 # Median of a chi distribution with 3 dof: median |x| of an isotropic 3D Gaussian / sigma.
@@ -887,6 +894,7 @@ class MarkerMeasurement:
     marker_id: int
     corners_px: np.ndarray  # (4,2) pinhole pixels (fixed intrinsics) or raw pixels (refine)
     object_points: np.ndarray  # (4,3) board frame, metres
+    face: int = 1  # +1 front, -1 back: a back marker moves with the back sheet (board refine)
 
 
 @dataclass(frozen=True)
@@ -919,6 +927,60 @@ class BundleResult:
     intrinsics: dict[str, CameraIntrinsics] = field(default_factory=dict)
     intrinsics_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
     intrinsics_prior_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
+    # board self-calibration (config.board == "refine"): the estimated back-sheet pose, its
+    # 6x6 marginal [rot, trans] (right perturbation) and why it was held, if it was
+    board: BoardModel | None = None
+
+
+@dataclass(frozen=True)
+class BoardModel:
+    """The back sheet's pose relative to the front sheet as the bundle adjustment estimated it.
+
+    ``T_front_back`` (4x4, metres, board frame) maps a back-face point of the board file to
+    where the back sheet really is (the convention of ``ground_truth.yaml``, docs/synthetic.md);
+    ``covariance`` is its 6x6 marginal ``[rot rad, trans m]`` for the right perturbation
+    ``T_front_back @ Exp(xi)``; ``centre`` the board-file centre of the back-marker grid (m),
+    about which the offset is reported. ``held`` names why it was not estimated (identity then).
+    """
+
+    T_front_back: np.ndarray
+    covariance: np.ndarray
+    centre: np.ndarray
+    thickness_m: float  # the board file's
+    held: str = ""
+
+    @property
+    def offset_mm(self) -> np.ndarray:
+        """Shift (dx, dy, dz) mm of the back-grid centre: ``T_front_back c - c``."""
+        c = self.centre
+        return (self.T_front_back[:3, :3] @ c + self.T_front_back[:3, 3] - c) * 1000.0
+
+    @property
+    def rotation_deg(self) -> float:
+        """Rotation of the back sheet about the board normal (+z, counter-clockwise seen from
+        the front), degrees."""
+        R = self.T_front_back[:3, :3]
+        return float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))
+
+    @property
+    def thickness_mm(self) -> float:
+        """The estimated thickness: the board file's minus the back sheet's z shift."""
+        return (self.thickness_m - float(self.offset_mm[2]) / 1000.0) * 1000.0
+
+    @property
+    def sigmas(self) -> dict[str, float]:
+        """Marginal 1-sigmas: offset x, y and thickness (mm) at the centre, rotation (deg).
+
+        d(T c) = R [-[c]x, I] xi for the right perturbation xi = [w, v]."""
+        R = self.T_front_back[:3, :3]
+        c = self.centre
+        J = np.zeros((4, 6))
+        J[:3, :3] = -R @ skew(c)
+        J[:3, 3:] = R
+        J[3, 2] = 1.0  # rotation about z (small tilts held)
+        s = np.sqrt(np.maximum(np.diag(J @ self.covariance @ J.T), 0.0))
+        return {"offset_x_mm": float(s[0] * 1000), "offset_y_mm": float(s[1] * 1000),
+                "thickness_mm": float(s[2] * 1000), "rotation_deg": float(np.degrees(s[3]))}
 
 
 def _project(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
@@ -986,8 +1048,27 @@ def _robust_rows(r: np.ndarray, blocks, H: list[np.ndarray] | None, robust: str,
     return r.reshape(-1) * sw[:, 0]
 
 
+def _back_sheet(P_b: np.ndarray, back: np.ndarray, T_front_back: np.ndarray) -> np.ndarray:
+    """Board points ``P_b`` (N,3) with the rows ``back`` moved by ``T_front_back``."""
+    P = P_b.copy()
+    P[back] = P_b[back] @ T_front_back[:3, :3].T + T_front_back[:3, 3]
+    return P
+
+
+def _back_sheet_jacobian(J_board: np.ndarray, back: np.ndarray,
+                         T_front_back: np.ndarray) -> np.ndarray:
+    """d(u,v)/dxi (N,2,6) of the back-sheet pose from the board pose's ``J_board``: with
+    ``T_front_back <- T_front_back Exp(xi)``, ``T_ref_board T_front_back Exp(xi) =
+    T_ref_board Exp(Ad(T_front_back) xi) T_front_back``, so J = J_board Ad(T_front_back) on
+    the back-face rows and 0 on the front-face ones."""
+    J = np.zeros_like(J_board)
+    J[back] = J_board[back] @ adjoint(T_front_back)
+    return J
+
+
 def _view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.ndarray,
-                 corners_px: np.ndarray, sigma: float, robust: str, robust_k: float):
+                 corners_px: np.ndarray, sigma: float, robust: str, robust_k: float,
+                 key_back: int | None = None, back: np.ndarray | None = None):
     """All markers of one camera view in one factor, each marker with its own robust kernel.
 
     It reproduces, marker by marker, what a per-marker ``Robust(kernel, Isotropic(8, sigma))``
@@ -1002,7 +1083,14 @@ def _view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.
       current point; w = 1 and rho = d^2/2 without a kernel (the plain Gaussian graph).
 
     ``object_points`` (n,4,3), ``corners_px`` (n,4,2) undistorted pinhole pixels. The factor's
-    ``unwhitenedError`` is therefore the loss-scaled whitened residual, not pixels."""
+    ``unwhitenedError`` is therefore the loss-scaled whitened residual, not pixels.
+
+    With ``key_back`` (board self-calibration) the markers flagged in ``back`` (n,) are on the
+    back sheet, whose pose ``T_front_back`` (a Pose3 variable) moves their board points
+    (:func:`_view_factor_back`)."""
+    if key_back is not None:
+        return _view_factor_back(key_cam, key_board, key_back, back, K, None, (),
+                                 object_points, corners_px, sigma, robust, robust_k)
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
@@ -1097,11 +1185,16 @@ def _project_full(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, intr: CameraIn
 def _view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
                             base: CameraIntrinsics, names: tuple[str, ...],
                             object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
-                            robust: str, robust_k: float):
+                            robust: str, robust_k: float, key_back: int | None = None,
+                            back: np.ndarray | None = None):
     """:func:`_view_factor` with the camera's intrinsics as a third variable: a vector of the
     parameters ``names`` (the rest of ``base`` held), the board points projected through the
     full model (distortion included) onto the RAW detected pixels ``corners_px`` (n,4,2).
-    Same per-marker robust kernel; Jacobians w.r.t. camera pose, board pose, intrinsics."""
+    Same per-marker robust kernel; Jacobians w.r.t. camera pose, board pose, intrinsics
+    (and the back sheet's pose with ``key_back``, :func:`_view_factor_back`)."""
+    if key_back is not None:
+        return _view_factor_back(key_cam, key_board, key_back, back, None, (key_intr, base),
+                                 names, object_points, corners_px, sigma, robust, robust_k)
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
@@ -1125,6 +1218,53 @@ def _view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
                               [key_cam, key_board, key_intr], error)
 
 
+def _view_factor_back(key_cam: int, key_board: int, key_back: int, back: np.ndarray,
+                      K: np.ndarray | None, intr: tuple, names: tuple[str, ...],
+                      object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
+                      robust: str, robust_k: float):
+    """The view factor with the back sheet's pose ``T_front_back`` (Pose3 ``key_back``) as a
+    variable: the corners of the markers flagged in ``back`` (n,) are
+    ``T_front_back @ object_point`` (:func:`_back_sheet`). Pinhole ``K`` (fixed intrinsics),
+    or ``intr = (key_intr, base)`` for refined ones (as :func:`_view_factor_intrinsics`).
+    Keys: camera, board, [intrinsics,] back sheet; same per-marker robust kernel."""
+    n = len(object_points)
+    measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
+    P_file = np.asarray(object_points, dtype=float).reshape(-1, 3)
+    rows = np.repeat(np.asarray(back, dtype=bool), 4)
+    inv_sigma = 1.0 / sigma
+    keys = [key_cam, key_board]
+    if intr:
+        key_intr, base = intr
+        padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
+                                  _padded_distortion(base, names), base.depth_scale)
+        columns = np.array([padded.parameter_names.index(nm) for nm in names])
+        keys.append(key_intr)
+    keys.append(key_back)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
+        T_fb = values.atPose3(key_back).matrix()
+        P_b = _back_sheet(P_file, rows, T_fb)
+        T_cam, T_board = values.atPose3(key_cam).matrix(), values.atPose3(key_board).matrix()
+        if intr:
+            model = _with_parameters(padded, names, values.atVector(key_intr))
+            uv, J_cam, J_board, J_intr = _project_full(T_cam, T_board, model, columns, P_b,
+                                                       H is not None)
+        else:
+            uv, J_cam, J_board = _project(T_cam, T_board, K, P_b, H is not None)
+        r = ((uv - measured) * inv_sigma).reshape(n, 8)
+
+        def blocks():
+            out = [J_cam.reshape(-1, 6) * inv_sigma, J_board.reshape(-1, 6) * inv_sigma]
+            if intr:
+                out.append(J_intr.reshape(-1, len(names)) * inv_sigma)
+            out.append(_back_sheet_jacobian(J_board, rows, T_fb).reshape(-1, 6) * inv_sigma)
+            return out
+
+        return _robust_rows(r, blocks, H, robust, robust_k)
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), keys, error)
+
+
 @dataclass(frozen=True)
 class _ViewGroup:
     """The markers of one (camera, view): their indices in the active list and stacked data."""
@@ -1134,6 +1274,7 @@ class _ViewGroup:
     index: np.ndarray  # (n,) positions in the active measurement list
     object_points: np.ndarray  # (n,4,3)
     corners_px: np.ndarray  # (n,4,2)
+    back: np.ndarray  # (n,) bool: marker on the back face
 
 
 def _group_views(active: list[MarkerMeasurement]) -> list[_ViewGroup]:
@@ -1143,7 +1284,8 @@ def _group_views(active: list[MarkerMeasurement]) -> list[_ViewGroup]:
         members[(m.camera, m.view)].append(i)
     return [_ViewGroup(c, v, np.array(idx),
                        np.stack([active[i].object_points for i in idx]).astype(float),
-                       np.stack([active[i].corners_px for i in idx]).astype(float))
+                       np.stack([active[i].corners_px for i in idx]).astype(float),
+                       np.array([active[i].face < 0 for i in idx], dtype=bool))
             for (c, v), idx in members.items()]
 
 
@@ -1152,7 +1294,8 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
                   init_T_ref_board: dict[str, np.ndarray], config: BundleConfig = BundleConfig(),
                   fixed_cameras: dict[str, np.ndarray] | None = None,
                   relative_poses: list[RelativePose] = (),
-                  intrinsics: dict[str, CameraIntrinsics] | None = None) -> BundleResult:
+                  intrinsics: dict[str, CameraIntrinsics] | None = None,
+                  back_centre: np.ndarray | None = None) -> BundleResult:
     """Joint bundle adjustment of camera poses ``T_ref_cam`` and board poses ``T_ref_board``
     on the marker corners (one GTSAM CustomFactor per camera view holding all its markers,
     robust per marker: :func:`_view_factor`), optionally joined by camera-to-camera
@@ -1167,7 +1310,17 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     projected through the full model (:func:`_view_factor_intrinsics`). The reference camera
     (and any ``fixed_cameras``) carry a tight pose prior. Marginal covariances come from the
     converged graph, scaled by the a-posteriori variance factor when ``config.estimate_sigma``
-    is on."""
+    is on.
+
+    With ``config.board == "refine"`` the back sheet's pose ``T_front_back`` is one more
+    Pose3 variable (board self-calibration, :func:`_view_factor_back`): it moves the board
+    points of the back-face measurements (``MarkerMeasurement.face == -1``), under a prior at
+    the identity (the board file) with the config's sigmas on the in-plane offset, the rotation
+    about the normal and the thickness; the tilts of a sheet glued flat on the panel are held
+    by a tight prior. ``back_centre`` (board-file centre of the back-marker grid, m; default:
+    of the back markers measured) is where the offset is reported (:class:`BoardModel`). It is
+    held at the board file, and ``result.board.held`` says why, when no view has markers of
+    both faces: then a back-sheet shift is the same as a shift of those views' board poses."""
     refine = config.intrinsics == "refine"
     if refine and intrinsics is None:
         raise CalibrationError("refining intrinsics needs the rig's camera models")
@@ -1182,6 +1335,9 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     intr_key = ({c: gtsam.symbol("k", i) for i, c in enumerate(cams) if c in intrinsics}
                 if refine else {})
     kept = [m for m in measurements if m.camera in init_T_ref_cam and m.view in init_T_ref_board]
+    key_back = gtsam.symbol("f", 0)
+    board_model = _board_model_setup(kept, config, back_centre)
+    solve_board = board_model is not None and not board_model.held
     if refine:
         kept = [m for m in kept if m.camera in intr_key]
         x0 = {c: intrinsics_vector(intrinsics[c], names) for c in intr_key}
@@ -1193,15 +1349,21 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         graph = gtsam.NonlinearFactorGraph()
         kind = config.robust if robust else "none"
         for g in groups:
+            extra = ({"key_back": key_back, "back": g.back}
+                     if solve_board and g.back.any() else {})
             if refine:
                 graph.add(_view_factor_intrinsics(
                     cam_key[g.camera], view_key[g.view], intr_key[g.camera],
                     intrinsics[g.camera], names, g.object_points, g.corners_px, sigma, kind,
-                    config.robust_k))
+                    config.robust_k, **extra))
             else:
                 graph.add(_view_factor(cam_key[g.camera], view_key[g.view], K[g.camera],
                                        g.object_points, g.corners_px, sigma, kind,
-                                       config.robust_k))
+                                       config.robust_k, **extra))
+        if solve_board:
+            graph.add(gtsam.PriorFactorPose3(key_back, gtsam.Pose3(),
+                                             gtsam.noiseModel.Diagonal.Sigmas(
+                                                 _board_prior_sigmas(config))))
         for c, k in intr_key.items():
             if c in connected:
                 graph.add(gtsam.PriorFactorVector(k, x0[c], prior_intr[c]))
@@ -1229,6 +1391,22 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     for c, k in intr_key.items():
         if values.exists(cam_key[c]):
             values.insert(k, x0[c])
+    back_of = {}
+    if solve_board:
+        values.insert(key_back, gtsam.Pose3())
+        back_of = {"T_front_back": lambda vals: vals.atPose3(key_back).matrix()}
+
+    def component(active, values):
+        """:func:`_reference_component`, keeping the back sheet's pose."""
+        out, sub = _reference_component(active, values, cam_key, view_key, set(fixed),
+                                        relative_poses, reference, intr_key)
+        if solve_board:
+            sub.insert(key_back, values.atPose3(key_back))
+        return out, sub
+
+    def marker_rms(groups, n, values):
+        return _marker_rms(groups, n, values, cam_key, view_key, K, models(values),
+                           **{k: f(values) for k, f in back_of.items()})
 
     def models(values: gtsam.Values) -> dict[str, CameraIntrinsics] | None:
         """The current camera models (refine), None when the intrinsics are fixed."""
@@ -1241,15 +1419,14 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)
     outliers: list[tuple[str, str, int, float]] = []
-    active, values = _reference_component(kept, values, cam_key, view_key, set(fixed),
-                                          relative_poses, reference, intr_key)
+    active, values = component(kept, values)
     connected = {c for c in cams if values.exists(cam_key[c])}
     for _ in range(3):  # solve, drop markers far off, re-solve
         groups = _group_views(active)
         graph = build(groups, config.pixel_sigma)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
-        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K, models(values))
+        rms = marker_rms(groups, len(active), values)
         bad = rms > config.outlier_px
         if not np.any(bad):
             break
@@ -1257,14 +1434,14 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
                      for m, r, b in zip(active, rms, bad) if b]
         active = [m for m, b in zip(active, bad) if not b]
         # removing outliers can cut a camera (or a view) off the reference: drop that part
-        active, values = _reference_component(active, values, cam_key, view_key, set(fixed),
-                                              relative_poses, reference, intr_key)
+        active, values = component(active, values)
         connected = {c for c in cams if values.exists(cam_key[c])}
         groups = _group_views(active)
-        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K, models(values))
+        rms = marker_rms(groups, len(active), values)
     n_intr = sum(values.exists(k) for k in intr_key.values())
-    dof = max(8 * len(active) - 6 * (values.size() - n_intr - len(fixed))
-              - len(names) * n_intr, 1)
+    n_back = 1 if solve_board else 0  # a Pose3 with 4 free dof (tilts held)
+    dof = max(8 * len(active) - 6 * (values.size() - n_intr - n_back - len(fixed))
+              - len(names) * n_intr - 4 * n_back, 1)
     sigma_hat = float(np.sqrt(np.sum(4 * rms**2) / dof))  # 4 corners x (du^2+dv^2)
     # marginals of the plain Gaussian graph at the solution, corners weighted by the
     # a-posteriori sigma (Foerstner's variance factor) so that the relative-pose factors keep
@@ -1276,7 +1453,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         graph = build(groups, sigma_marg)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
-        rms = _marker_rms(groups, len(active), values, cam_key, view_key, K, models(values))
+        rms = marker_rms(groups, len(active), values)
     marg_graph = build(groups, sigma_marg, robust=False)
     marginals = gtsam.Marginals(marg_graph, values)
     out_cam, cov, s_rot, s_trans = {}, {}, {}, {}
@@ -1297,9 +1474,49 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     sigma_intr = {c: dict(zip(names, np.sqrt(np.diag(
         marginals.marginalCovariance(intr_key[c]))).tolist())) for c in refined}
     sigma_prior = {c: dict(zip(names, prior_intr[c].sigmas().tolist())) for c in refined}
+    if solve_board:
+        board_model = replace(board_model, T_front_back=values.atPose3(key_back).matrix(),
+                              covariance=np.asarray(marginals.marginalCovariance(key_back)))
     return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, outliers, sigma_hat,
                         optimizer.iterations(), graph.error(values), refined, sigma_intr,
-                        sigma_prior)
+                        sigma_prior, board_model)
+
+
+BOARD_TILT_SIGMA_RAD = 1e-6  # a sheet glued flat on the panel does not tilt: held
+
+
+def _board_prior_sigmas(config: BundleConfig) -> np.ndarray:
+    """Prior sigmas of ``T_front_back`` in GTSAM's order ``[rx, ry, rz, tx, ty, tz]``."""
+    return np.array([BOARD_TILT_SIGMA_RAD, BOARD_TILT_SIGMA_RAD,
+                     np.radians(config.board_prior_rotation_deg),
+                     config.board_prior_offset_mm / 1000.0, config.board_prior_offset_mm / 1000.0,
+                     config.board_prior_thickness_mm / 1000.0])
+
+
+def _board_model_setup(measurements: list[MarkerMeasurement], config: BundleConfig,
+                       back_centre: np.ndarray | None) -> BoardModel | None:
+    """The back-sheet model to estimate (``held`` empty) or the reason it is held; None when
+    ``config.board`` is fixed."""
+    if config.board != "refine":
+        return None
+    back = [m.object_points for m in measurements if m.face < 0]
+    if not back:
+        return BoardModel(np.eye(4), np.zeros((6, 6)), np.zeros(3), 0.0,
+                          "the back face was never seen: the back sheet's pose is "
+                          "unobservable, held at the board file")
+    P = np.concatenate(back).reshape(-1, 3)
+    thickness_m = float(-np.mean(P[:, 2]))
+    if back_centre is None:
+        back_centre = np.r_[(P[:, :2].min(axis=0) + P[:, :2].max(axis=0)) / 2, -thickness_m]
+    faces_of: dict[str, set[int]] = defaultdict(set)
+    for m in measurements:
+        faces_of[m.view].add(m.face)
+    held = ""
+    if not any(len(f) == 2 for f in faces_of.values()):
+        held = ("no board view has both faces seen at once (by different cameras): the back "
+                "sheet's pose is unobservable, held at the board file")
+    return BoardModel(np.eye(4), np.zeros((6, 6)), np.asarray(back_centre, float),
+                      thickness_m, held)
 
 
 def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
@@ -1344,15 +1561,19 @@ def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
 
 def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,
                 view_key: dict, K: dict,
-                models: dict[str, CameraIntrinsics] | None = None) -> np.ndarray:
+                models: dict[str, CameraIntrinsics] | None = None,
+                T_front_back: np.ndarray | None = None) -> np.ndarray:
     """RMS corner residual (px) of each of the ``n`` active markers at ``values``:
     sqrt(mean over the 4 corners of |uv - uv_meas|^2), vectorised per camera view; through
-    the full camera ``models`` when given (refined intrinsics), else the pinhole ``K``."""
+    the full camera ``models`` when given (refined intrinsics), else the pinhole ``K``; the
+    back-face markers moved by ``T_front_back`` when given (board self-calibration)."""
     out = np.empty(n)
     for g in groups:
         T_cam = values.atPose3(cam_key[g.camera]).matrix()
         T_board = values.atPose3(view_key[g.view]).matrix()
         P_b = g.object_points.reshape(-1, 3)
+        if T_front_back is not None:
+            P_b = _back_sheet(P_b, np.repeat(g.back, 4), T_front_back)
         if models is not None:
             uv = _project_full(T_cam, T_board, models[g.camera], None, P_b, jacobians=False)[0]
         else:

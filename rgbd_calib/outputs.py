@@ -19,6 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from .board import refined_board, save_board
 from .calibrate import CalibrationResult, refined_rig
 from .config import write_config
 from .exports import write_exports
@@ -64,6 +65,7 @@ def _written(stage: Path, out_dir: Path) -> list[Path]:
 
 
 RIG_REFINED = "rig_refined.yaml"
+BOARD_REFINED = "board_refined.yaml"
 
 
 def write_outputs(
@@ -77,14 +79,19 @@ def write_outputs(
 ) -> list[Path]:
     """Write extrinsics.yaml, report.json, report.html, config_resolved.yaml and exports/
     into out_dir (and fused.ply, copied from ``fused_ply`` when the depth stage made one;
-    rig_refined.yaml, rig.yaml's format, when the bundle adjustment refined the intrinsics).
+    rig_refined.yaml, rig.yaml's format, when the bundle adjustment refined the intrinsics;
+    board_refined.yaml, the board file with the back sheet where the bundle adjustment found
+    it, when it refined the board).
 
     Without ``fused_ply`` an older ``out_dir/fused.ply`` is removed (it would belong to another
     run) and the report previews the cloud from the dataset's depth frames."""
     out_dir = Path(out_dir)
-    with staged(out_dir, replaces=("fused.ply", RIG_REFINED)) as stage:
+    with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED)) as stage:
         if result.bundle is not None and result.bundle.intrinsics:
             save_rig(refined_rig(rig, result.bundle), stage / RIG_REFINED)
+        model = result.bundle.board if result.bundle is not None else None
+        if model is not None and not model.held and result.board is not None:
+            save_board(refined_board(result.board, model.T_front_back), stage / BOARD_REFINED)
         if result.depth is not None:
             pairs = pairs if pairs is not None else result.depth.pairs
             depth_scale = depth_scale if depth_scale is not None else (

@@ -61,7 +61,7 @@ def report_dict(
             **result.dataset_summary,
             "path": str(rig.source.parent.resolve()) if rig.source else None,
         },
-        "board": _board_geometry(result),
+        "board": {**_board_geometry(result), **board_refined_entry(result)},
         "cameras": {
             name: _camera_entry(result, rig, name, rows, edges_px, depth_scale.get(name) or {})
             for name in rig.names
@@ -111,6 +111,8 @@ def _final_marker_residuals(
     cams = result.extrinsics.cameras
     edge_of = {(r.camera, r.view): r for r in result.posegraph.residuals}
     bundle_out = {(c, v, m) for c, v, m, _ in result.bundle.outliers} if result.bundle else set()
+    model = result.bundle.board if result.bundle else None
+    T_front_back = model.T_front_back if model is not None and not model.held else None
     rows: list[dict[str, Any]] = []
     for o in result.observations:
         edge = edge_of.get((o.camera, o.frame))
@@ -124,7 +126,12 @@ def _final_marker_residuals(
         }
         if o.camera in cams and o.frame in boards:
             T_cam_board = invert_transform(cams[o.camera].T_ref_cam) @ boards[o.frame]
-            pts = o.object_points.reshape(-1, 3) @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+            P_b = o.object_points.reshape(-1, 3)
+            if T_front_back is not None:  # the back sheet where the bundle found it
+                back = P_b[:, 2] < -model.thickness_m / 2
+                P_b = P_b.copy()
+                P_b[back] = P_b[back] @ T_front_back[:3, :3].T + T_front_back[:3, 3]
+            pts = P_b @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
             uv = _final_model(result, rig, o.camera).project(pts).reshape(-1, 4, 2)
             row["rms"] = np.sqrt(np.mean(np.sum((uv - o.corners_px) ** 2, axis=-1), axis=-1))
             row["used_markers"] = np.array(
@@ -293,8 +300,11 @@ def _board_geometry(result: CalibrationResult) -> dict[str, Any]:
         return {"markers_seen": 0, "extent_m": None, "thickness_m": None}
     pts = np.concatenate([o.object_points.reshape(-1, 3) for o in result.observations])
     ids = {int(i) for o in result.observations for i in o.ids}
+    corners = np.concatenate([o.object_points for o in result.observations])
+    side_m = float(np.linalg.norm(np.diff(corners[:, [0, 1]], axis=1), axis=-1).mean())
     return {
         "markers_seen": len(ids),
+        "marker_length_m": side_m,
         "extent_m": [
             float(pts[:, 0].min()),
             float(pts[:, 0].max()),
@@ -303,6 +313,32 @@ def _board_geometry(result: CalibrationResult) -> dict[str, Any]:
         ],
         "thickness_m": float(max(-pts[:, 2].min(), 0.0)),
     }
+
+
+def board_refined_entry(result: CalibrationResult) -> dict[str, Any]:
+    """``board.refined`` when the bundle adjustment refined the board (``bundle.board:
+    refine``): the back sheet's offset (mm, board x right / y up seen from the front) and
+    rotation (deg, counter-clockwise seen from the front) at the centre of the back-marker
+    grid, the thickness and its change (mm), their marginal sigmas, and why it was held."""
+    model = result.bundle.board if result.bundle is not None else None
+    if model is None:
+        return {}
+    held = bool(model.held)
+    offset = model.offset_mm
+    sig = model.sigmas
+    return {"refined": {
+        "held": model.held or None,
+        "offset_mm": None if held else [float(offset[0]), float(offset[1])],
+        "rotation_deg": None if held else model.rotation_deg,
+        "thickness_mm": None if held else model.thickness_mm,
+        "thickness_change_mm": None if held else model.thickness_mm - model.thickness_m * 1000,
+        "sigmas": None if held else {
+            "offset_mm": [sig["offset_x_mm"], sig["offset_y_mm"]],
+            "rotation_deg": sig["rotation_deg"],
+            "thickness_mm": sig["thickness_mm"],
+        },
+        "T_front_back": model.T_front_back,
+    }}
 
 
 def _pose_graph_entry(pg: PoseGraphResult, factors: dict[str, float]) -> dict[str, Any]:

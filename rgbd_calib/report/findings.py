@@ -12,8 +12,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from .numbers import fmt, median_or_none
 from .schema import (
+    BOARD_SCALE_MIN,
+    BOARD_SCALE_SPREAD,
     COVERAGE_MIN,
     DEPTH_SCALE_TOL,
     DISTANCE_SPREAD_MIN,
@@ -21,6 +25,9 @@ from .schema import (
     FEW_SHARED_VIEWS,
     FEW_VIEWS,
     FEW_VIEWS_FACTOR,
+    GLUE_MIN_DEG,
+    GLUE_MIN_MM,
+    GLUE_SIGMAS,
     INCONSISTENT_FRACTION,
     INTRINSICS_SUPPORT_MAX,
     MARKER_FACTOR,
@@ -327,6 +334,47 @@ def intrinsics_unsupported(report: dict[str, Any], earlier: list[Finding]) -> li
     ]
 
 
+def board_glue(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The back sheet off its board-file place (``bundle.board: refine``): significant against
+    its sigma and large enough to matter; or held because it was unobservable."""
+    refined = report["board"].get("refined")
+    if not refined:
+        return []
+    if refined["held"]:
+        return [finding("info", "board_glue", [], f"Board not refined: {refined['held']}.",
+                        "To refine the back sheet, record views in which cameras on both "
+                        "sides see the board at the same time.")]
+    (dx, dy), rot = refined["offset_mm"], refined["rotation_deg"]
+    (sx, sy), srot = refined["sigmas"]["offset_mm"], refined["sigmas"]["rotation_deg"]
+    shifted = (abs(dx) > GLUE_SIGMAS * sx or abs(dy) > GLUE_SIGMAS * sy) and (
+        np.hypot(dx, dy) > GLUE_MIN_MM)
+    turned = abs(rot) > GLUE_SIGMAS * srot and abs(rot) > GLUE_MIN_DEG
+    if not (shifted or turned):
+        return []
+    return [finding(
+        "warning",
+        "board_glue",
+        [],
+        f"{glue_sentence(refined)} (sigma {fmt(sx, 2)} / {fmt(sy, 2)} mm, {fmt(srot, 3)} deg).",
+        "Use board_refined.yaml (--board) for the next calibrations with this board, or "
+        "re-glue the back sheet.",
+    )]
+
+
+def glue_sentence(refined: dict[str, Any]) -> str:
+    """'Back sheet is 1.50 mm right, 1.00 mm down, 0.30 deg counter-clockwise of where the
+    board file puts it (seen from the front); thickness 6.60 mm (+0.00)' from
+    ``report.board.refined``."""
+    (dx, dy), rot = refined["offset_mm"], refined["rotation_deg"]
+    return (
+        f"Back sheet is {abs(dx):.2f} mm {'right' if dx >= 0 else 'left'}, "
+        f"{abs(dy):.2f} mm {'up' if dy >= 0 else 'down'}, {abs(rot):.2f} deg "
+        f"{'counter-clockwise' if rot >= 0 else 'clockwise'} of where the board file puts it "
+        f"(seen from the front); thickness {refined['thickness_mm']:.2f} mm "
+        f"({refined['thickness_change_mm']:+.2f})"
+    )
+
+
 def board_distance(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     narrow = [
         (n, c["coverage"]["distance_m"])
@@ -509,7 +557,61 @@ def each_pair(*checks: Callable[[dict[str, Any]], Finding | None]) -> Rule:
     return rule
 
 
+def common_depth_scale(factors: dict[str, tuple[float, float]]) -> float | None:
+    """The depth-scale ratio every camera agrees on, when it says the board's print differs
+    from its board file; None otherwise.
+
+    ``factors``: camera -> (factor, sigma) of ``z_measured ~ factor * z_board`` (depth.py),
+    where ``z_board`` is the distance the calibration puts the board at. A board file whose
+    markers are ``1/S`` times the printed ones makes every PnP distance (and every extrinsic
+    translation) ``1/S`` times too long, so every camera's depth reads factor ``S``: the
+    printed marker length is the file's times the common factor. Needs two or more cameras,
+    each within 3 x sqrt(sigma^2 + BOARD_SCALE_SPREAD^2) of the weighted mean (real cameras'
+    depth scales differ by a few 0.1 %), and the mean off 1 by more than BOARD_SCALE_MIN."""
+    usable = [(f, s) for f, s in factors.values() if f is not None and s is not None]
+    if len(usable) < 2:
+        return None
+    f = np.array([u[0] for u in usable])
+    var = np.array([u[1] for u in usable]) ** 2 + BOARD_SCALE_SPREAD**2
+    mean = float(np.sum(f / var) / np.sum(1.0 / var))
+    if np.any(np.abs(f - mean) > 3.0 * np.sqrt(var)) or abs(mean - 1.0) <= BOARD_SCALE_MIN:
+        return None
+    return mean
+
+
+def board_scale_sentence(ratio: float, marker_length_m: float | None) -> str:
+    """One line: the board's print is ``ratio`` times its file, and the marker length the data
+    supports."""
+    size = "smaller" if ratio < 1 else "larger"
+    text = (f"Every camera's depth says the board is {100 * abs(1 - ratio):.1f}% {size} than "
+            "its board file: the printed marker length is wrong in the board file")
+    if marker_length_m:
+        text += (f" (the data supports {1000 * marker_length_m * ratio:.1f} mm, the file says "
+                 f"{1000 * marker_length_m:.1f} mm)")
+    return text
+
+
+def board_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Every camera's depth off by the same few percent: the board's print, not the depth."""
+    ratio = common_depth_scale({
+        n: (c["depth_scale_factor"], c["depth_scale_sigma"])
+        for n, c in report["cameras"].items()})
+    if ratio is None:
+        return []
+    return [finding(
+        "error",
+        "board_scale",
+        [],
+        board_scale_sentence(ratio, report["board"].get("marker_length_m")) + ".",
+        "Measure a printed marker's black square and set marker_length (grid form) or the "
+        "corners (explicit form) of the board file, then calibrate again: every translation "
+        f"of this calibration is {abs(1 / ratio - 1):.1%} off.",
+    )]
+
+
 def depth_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    if any(w["code"] == "board_scale" for w in earlier):
+        return []  # one board finding instead of every camera's depth blamed
     return [
         finding(
             "info",
@@ -529,6 +631,7 @@ RULES: tuple[Rule, ...] = (
     camera_model_error,
     weak_camera,
     each_sound_camera(few_views, weak_link),
+    board_glue,
     board_coverage,
     board_distance,
     board_tilt,
@@ -538,6 +641,7 @@ RULES: tuple[Rule, ...] = (
     reprojection,
     dropped_views,
     each_pair(pair_disagrees, pair_rmse, pair_fitness),
+    board_scale,
     depth_scale,
 )
 

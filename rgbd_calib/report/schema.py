@@ -41,6 +41,11 @@ PAIR_RMSE_MAX_MM = 15.0  # point-to-plane RMSE after ICP above this: depth itsel
 # the rest of the calibration disagree (depth noise alone gives ~5 mm at 2 m on a D435)
 PAIR_FINAL_EXCESS_MM = 2.0
 PAIR_FITNESS_MIN = 0.3
+GLUE_SIGMAS = 3.0  # a back-sheet offset or rotation beyond this many sigma is real ...
+GLUE_MIN_MM = 0.2  # ... and worth a corrected board file above this offset ...
+GLUE_MIN_DEG = 0.05  # ... or this rotation
+BOARD_SCALE_MIN = 0.01  # every camera's depth scale off by this much the same way: the print
+BOARD_SCALE_SPREAD = 0.003  # camera-to-camera depth-scale spread allowed on top of the sigmas
 DEPTH_SCALE_TOL = 0.003  # |factor - 1| above this: the camera's depth needs its scale
 INTRINSICS_SUPPORT_MAX = 0.5  # a refined parameter's sigma above this x its prior's: the
 # data added little to the rig.yaml value (few views, corners not reaching the image border)
@@ -176,7 +181,23 @@ REPORT_SCHEMA: dict[str, Any] = {
         "depth_cameras": ListOf(S),
         "path": Nullable(S),
     },
-    "board": {"markers_seen": INT, "extent_m": Nullable(ListOf(N)), "thickness_m": Nullable(N)},
+    "board": {
+        "markers_seen": INT,
+        "extent_m": Nullable(ListOf(N)),
+        "thickness_m": Nullable(N),
+        "marker_length_m?": N,
+        "refined?": {
+            "held": Nullable(S),
+            "offset_mm": Nullable(ListOf(N)),
+            "rotation_deg": Nullable(N),
+            "thickness_mm": Nullable(N),
+            "thickness_change_mm": Nullable(N),
+            "sigmas": Nullable(
+                {"offset_mm": ListOf(N), "rotation_deg": N, "thickness_mm": N}
+            ),
+            "T_front_back": MAT4,
+        },
+    },
     "cameras": MapOf("<camera>", CAMERA_SCHEMA),
     "unconnected": MapOf("<camera>", S),
     "pose_graph": {
