@@ -46,6 +46,9 @@ from .rig import Rig
 from .yamlio import atomic_write_text
 
 CACHE_VERSION = 1
+# a flagged camera whose corners fit within 2x the rig's RMS once the board or intrinsics
+# were refined had its model error explained by them (see model_error_sigmas)
+MODEL_ERROR_EXPLAINED = 4.0
 
 
 @dataclass(frozen=True)
@@ -456,6 +459,13 @@ def model_error_sigmas(
         return out, factors
     b = config.bundle
     sigma_px = max(bundle.pixel_sigma_estimated, 1e-3) if b.estimate_sigma else b.pixel_sigma
+    if b.board == "refine" or b.intrinsics == "refine":
+        # the pose graph judged the views with the nominal board and rig.yaml intrinsics; the
+        # bundle freed that model. When every flagged camera's corners now fit like the rest
+        # of the rig, the freed model explained the error: nothing is left to inflate.
+        own = {c: _corner_variance_factor(bundle, c, sigma_px) for c in pg.model_error}
+        if all(f <= MODEL_ERROR_EXPLAINED for f in own.values()):
+            return out, dict.fromkeys(pg.model_error, 1.0)
     for c, graph_cam in pg.cameras.items():
         if c not in out:
             if c in pg.model_error:
@@ -464,15 +474,20 @@ def model_error_sigmas(
         e = out[c]
         f = _cover_factor(e.covariance, graph_cam.covariance)
         if c in pg.model_error:
-            rms = np.array([r[3] for r in bundle.residuals_px if r[0] == c])
             views = len({r[1] for r in bundle.residuals_px if r[0] == c})
-            own = float(np.mean(rms**2) / 2.0) / sigma_px**2 if len(rms) else 1.0
-            f = max(f, own * max(views, 1))
+            f = max(f, _corner_variance_factor(bundle, c, sigma_px) * max(views, 1))
             factors[c] = f
         if f > 1.0 and e.covariance is not None:
             out[c] = CameraExtrinsics(c, e.T_ref_cam, e.sigma_rotation_deg * np.sqrt(f),
                                       e.sigma_translation_mm * np.sqrt(f), e.covariance * f)
     return out, factors
+
+
+def _corner_variance_factor(bundle: BundleResult, camera: str, sigma_px: float) -> float:
+    """``mean(rms^2) / 2 / sigma_px^2`` over the camera's markers in the bundle (each rms is
+    over 4 corners x 2 axes, hence the 2): about 1 when its corners fit like the rig's."""
+    rms = np.array([r[3] for r in bundle.residuals_px if r[0] == camera])
+    return float(np.mean(rms**2) / 2.0) / sigma_px**2 if len(rms) else 1.0
 
 
 def _cover_factor(cov: np.ndarray | None, target: np.ndarray | None) -> float:

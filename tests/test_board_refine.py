@@ -284,12 +284,19 @@ def test_pipeline_glued_board(glued_race):
     gt = load_ground_truth(synth.path)
     fixed, refined = runs["fixed"], runs["refine"]
     assert fixed.bundle.board is None
-    assert len(fixed.extrinsics.cameras) == 4  # measured: right0-3 dropped
+    # measured: right0-3 dropped. A known gap of "model error is not an outlier": on this
+    # seed the camera-level model-error rule does not catch the back-facing side (on seed 5
+    # it keeps all 8); board refinement is what keeps them here.
+    assert len(fixed.extrinsics.cameras) == 4
     assert not refined.extrinsics.unconnected
     assert len(refined.extrinsics.cameras) == 8
     for c, e in refined.extrinsics.cameras.items():
         assert_transforms_close(e.T_ref_cam, gt.T_ref_cam[c], RACE_MAX_MM, RACE_MAX_DEG)
         assert_transforms_close(e.T_ref_cam, gt.T_ref_cam[c], 0.3, 0.01)  # measured <= 0.11
+    # the refined board explains the flagged cameras' error: sigmas not inflated, honest
+    ratios = [transform_error(e.T_ref_cam, gt.T_ref_cam[c])[1] / e.sigma_translation_mm
+              for c, e in refined.extrinsics.cameras.items() if c != gt.reference]
+    assert 0.2 < float(np.sqrt(np.mean(np.square(ratios)))) < 3.0, ratios
     model = refined.bundle.board
     assert not model.held
     assert_transforms_close(model.T_front_back, gt.T_front_back, GLUE_OFFSET_TOL_MM,

@@ -140,8 +140,14 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
                 f"{name}: its board views disagree with the rest of the rig as a whole "
                 f"({m['outliers_before']} of {m['edges']} beyond the outlier threshold; "
                 f"median {fmt(m['translation_mm'], 1)} mm / {fmt(m['rotation_deg'], 2)} deg "
-                "per view): a model error, not outlier views. The camera is kept, its "
-                f"uncertainty scaled x{m['sigma_factor']:.1f} to match.",
+                "per view): a model error, not outlier views. "
+                + (
+                    f"The camera is kept, its uncertainty scaled x{m['sigma_factor']:.1f} to "
+                    "match."
+                    if m["sigma_factor"] > 1.0
+                    else "The refined board / intrinsics explain it: its corners fit like the "
+                    "rest of the rig, and its uncertainty is not inflated."
+                ),
                 f"Likely causes: {name}'s intrinsics (fx, fy, cx, cy) or lens distortion in "
                 "rig.yaml; the board (back sheet glued off, thickness, print scale) when it "
                 "sees one face; its frame synchronisation. Fix the model and re-run calibrate.",
