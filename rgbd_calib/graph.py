@@ -1344,56 +1344,13 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         prior_intr = {c: gtsam.noiseModel.Diagonal.Sigmas(
             intrinsics_prior_sigmas(intrinsics[c], names, config)) for c in intr_key}
 
-    def build(groups: list[_ViewGroup], sigma: float,
-              robust: bool = True) -> gtsam.NonlinearFactorGraph:
-        graph = gtsam.NonlinearFactorGraph()
-        kind = config.robust if robust else "none"
-        for g in groups:
-            extra = ({"key_back": key_back, "back": g.back}
-                     if solve_board and g.back.any() else {})
-            if refine:
-                graph.add(_view_factor_intrinsics(
-                    cam_key[g.camera], view_key[g.view], intr_key[g.camera],
-                    intrinsics[g.camera], names, g.object_points, g.corners_px, sigma, kind,
-                    config.robust_k, **extra))
-            else:
-                graph.add(_view_factor(cam_key[g.camera], view_key[g.view], K[g.camera],
-                                       g.object_points, g.corners_px, sigma, kind,
-                                       config.robust_k, **extra))
-        if solve_board:
-            graph.add(gtsam.PriorFactorPose3(key_back, gtsam.Pose3(),
-                                             gtsam.noiseModel.Diagonal.Sigmas(
-                                                 _board_prior_sigmas(config))))
-        for c, k in intr_key.items():
-            if c in connected:
-                graph.add(gtsam.PriorFactorVector(k, x0[c], prior_intr[c]))
-        prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)
-        for c, T in fixed.items():
-            graph.add(gtsam.PriorFactorPose3(cam_key[c], gtsam.Pose3(T), prior))
-        for rel in relative_poses:
-            if rel.cam_a not in connected or rel.cam_b not in connected:
-                continue  # a pair cut off from the reference constrains nothing we solve
-            # BetweenFactorPose3(b, a) predicts T_ref_b^-1 T_ref_a = T_b_a; its error is
-            # Logmap(T_b_a_measured^-1 T_b_a), the right perturbation the information is for
-            graph.add(gtsam.BetweenFactorPose3(
-                cam_key[rel.cam_b], cam_key[rel.cam_a], gtsam.Pose3(rel.T_b_a),
-                gtsam.noiseModel.Gaussian.Information(rel.information)))
-        return graph
+    problem = _BundleProblem(config, K, cam_key, view_key, intr_key, intrinsics, names,
+                             x0 if refine else {}, prior_intr if refine else {}, fixed,
+                             relative_poses, solve_board, key_back, refine)
 
-    values = gtsam.Values()
-    for c in cams:
-        T = fixed.get(c, init_T_ref_cam.get(c))
-        if T is not None:
-            values.insert(cam_key[c], gtsam.Pose3(T))
-    for v in views:
-        if v in init_T_ref_board:
-            values.insert(view_key[v], gtsam.Pose3(init_T_ref_board[v]))
-    for c, k in intr_key.items():
-        if values.exists(cam_key[c]):
-            values.insert(k, x0[c])
+    values = _initial_values(problem, cams, views, init_T_ref_cam, init_T_ref_board)
     back_of = {}
     if solve_board:
-        values.insert(key_back, gtsam.Pose3())
         back_of = {"T_front_back": lambda vals: vals.atPose3(key_back).matrix()}
 
     def component(active, values):
@@ -1405,15 +1362,9 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         return out, sub
 
     def marker_rms(groups, n, values):
-        return _marker_rms(groups, n, values, cam_key, view_key, K, models(values),
+        return _marker_rms(groups, n, values, cam_key, view_key, K,
+                           _current_models(problem, values),
                            **{k: f(values) for k, f in back_of.items()})
-
-    def models(values: gtsam.Values) -> dict[str, CameraIntrinsics] | None:
-        """The current camera models (refine), None when the intrinsics are fixed."""
-        if not refine:
-            return None
-        return {c: _with_parameters(intrinsics[c], names, values.atVector(k))
-                for c, k in intr_key.items() if values.exists(k)}
 
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
@@ -1423,7 +1374,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     connected = {c for c in cams if values.exists(cam_key[c])}
     for _ in range(3):  # solve, drop markers far off, re-solve
         groups = _group_views(active)
-        graph = build(groups, config.pixel_sigma)
+        graph = _build_graph(problem, groups, config.pixel_sigma, connected)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
         rms = marker_rms(groups, len(active), values)
@@ -1438,10 +1389,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
         connected = {c for c in cams if values.exists(cam_key[c])}
         groups = _group_views(active)
         rms = marker_rms(groups, len(active), values)
-    n_intr = sum(values.exists(k) for k in intr_key.values())
-    n_back = 1 if solve_board else 0  # a Pose3 with 4 free dof (tilts held)
-    dof = max(8 * len(active) - 6 * (values.size() - n_intr - n_back - len(fixed))
-              - len(names) * n_intr - 4 * n_back, 1)
+    dof = _residual_dof(problem, len(active), values)
     sigma_hat = float(np.sqrt(np.sum(4 * rms**2) / dof))  # 4 corners x (du^2+dv^2)
     # marginals of the plain Gaussian graph at the solution, corners weighted by the
     # a-posteriori sigma (Foerstner's variance factor) so that the relative-pose factors keep
@@ -1450,36 +1398,147 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     if relative_poses and config.estimate_sigma:
         # re-solve with the corners at their estimated noise, so that board and depth
         # measurements are weighted against each other by their real uncertainties
-        graph = build(groups, sigma_marg)
+        graph = _build_graph(problem, groups, sigma_marg, connected)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
         rms = marker_rms(groups, len(active), values)
-    marg_graph = build(groups, sigma_marg, robust=False)
+    marg_graph = _build_graph(problem, groups, sigma_marg, connected, robust=False)
     marginals = gtsam.Marginals(marg_graph, values)
-    out_cam, cov, s_rot, s_trans = {}, {}, {}, {}
-    for c in cams:
-        if not values.exists(cam_key[c]):
-            continue
-        T = values.atPose3(cam_key[c]).matrix()
-        out_cam[c] = T
-        if c in fixed:
-            C = np.zeros((6, 6))
-        else:
-            C = marginals.marginalCovariance(cam_key[c])
-        cov[c] = C
-        s_rot[c], s_trans[c] = _sigmas_from_covariance(T, C)
+    out_cam, cov, s_rot, s_trans = _camera_marginals(cams, values, cam_key, fixed, marginals)
     boards = {v: values.atPose3(view_key[v]).matrix() for v in views if values.exists(view_key[v])}
     residuals = [(m.camera, m.view, m.marker_id, r) for m, r in zip(active, rms.tolist())]
-    refined = models(values) or {}
-    sigma_intr = {c: dict(zip(names, np.sqrt(np.diag(
-        marginals.marginalCovariance(intr_key[c]))).tolist())) for c in refined}
-    sigma_prior = {c: dict(zip(names, prior_intr[c].sigmas().tolist())) for c in refined}
+    refined, sigma_intr, sigma_prior = _refined_intrinsics(problem, values, marginals)
     if solve_board:
         board_model = replace(board_model, T_front_back=values.atPose3(key_back).matrix(),
                               covariance=np.asarray(marginals.marginalCovariance(key_back)))
     return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, outliers, sigma_hat,
                         optimizer.iterations(), graph.error(values), refined, sigma_intr,
                         sigma_prior, board_model)
+
+
+@dataclass(frozen=True)
+class _BundleProblem:
+    """What one bundle adjustment's factor graph is made of (see :func:`bundle_adjust`)."""
+
+    config: BundleConfig
+    K: dict[str, np.ndarray]
+    cam_key: dict[str, int]
+    view_key: dict[str, int]
+    intr_key: dict[str, int]  # refined intrinsics only
+    intrinsics: dict[str, CameraIntrinsics] | None
+    names: tuple[str, ...]
+    x0: dict[str, np.ndarray]
+    prior_intr: dict[str, Any]
+    fixed: dict[str, np.ndarray]
+    relative_poses: list[RelativePose]
+    solve_board: bool
+    key_back: int
+    refine: bool  # intrinsics refined: the view factors project raw pixels through the model
+
+
+def _build_graph(p: _BundleProblem, groups: list[_ViewGroup], sigma: float,
+                 connected: set[str], robust: bool = True) -> gtsam.NonlinearFactorGraph:
+    """The factor graph: one view factor per (camera, view) at corner noise ``sigma`` (px),
+    robust per marker unless ``robust`` is off, the priors (fixed cameras, intrinsics, back
+    sheet) and the relative poses between ``connected`` cameras."""
+    config = p.config
+    graph = gtsam.NonlinearFactorGraph()
+    kind = config.robust if robust else "none"
+    for g in groups:
+        extra = ({"key_back": p.key_back, "back": g.back}
+                 if p.solve_board and g.back.any() else {})
+        if p.refine:
+            graph.add(_view_factor_intrinsics(
+                p.cam_key[g.camera], p.view_key[g.view], p.intr_key[g.camera],
+                p.intrinsics[g.camera], p.names, g.object_points, g.corners_px, sigma, kind,
+                config.robust_k, **extra))
+        else:
+            graph.add(_view_factor(p.cam_key[g.camera], p.view_key[g.view], p.K[g.camera],
+                                   g.object_points, g.corners_px, sigma, kind,
+                                   config.robust_k, **extra))
+    if p.solve_board:
+        graph.add(gtsam.PriorFactorPose3(p.key_back, gtsam.Pose3(),
+                                         gtsam.noiseModel.Diagonal.Sigmas(
+                                             _board_prior_sigmas(config))))
+    for c, k in p.intr_key.items():
+        if c in connected:
+            graph.add(gtsam.PriorFactorVector(k, p.x0[c], p.prior_intr[c]))
+    prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)
+    for c, T in p.fixed.items():
+        graph.add(gtsam.PriorFactorPose3(p.cam_key[c], gtsam.Pose3(T), prior))
+    for rel in p.relative_poses:
+        if rel.cam_a not in connected or rel.cam_b not in connected:
+            continue  # a pair cut off from the reference constrains nothing we solve
+        # BetweenFactorPose3(b, a) predicts T_ref_b^-1 T_ref_a = T_b_a; its error is
+        # Logmap(T_b_a_measured^-1 T_b_a), the right perturbation the information is for
+        graph.add(gtsam.BetweenFactorPose3(
+            p.cam_key[rel.cam_b], p.cam_key[rel.cam_a], gtsam.Pose3(rel.T_b_a),
+            gtsam.noiseModel.Gaussian.Information(rel.information)))
+    return graph
+
+
+def _initial_values(p: _BundleProblem, cams: list[str], views: list[str],
+                    init_T_ref_cam: dict[str, np.ndarray],
+                    init_T_ref_board: dict[str, np.ndarray]) -> gtsam.Values:
+    """Camera poses (fixed ones where they are held), board poses, the intrinsics' prior
+    values and the back sheet at the board file: the solve's starting point."""
+    values = gtsam.Values()
+    for c in cams:
+        T = p.fixed.get(c, init_T_ref_cam.get(c))
+        if T is not None:
+            values.insert(p.cam_key[c], gtsam.Pose3(T))
+    for v in views:
+        if v in init_T_ref_board:
+            values.insert(p.view_key[v], gtsam.Pose3(init_T_ref_board[v]))
+    for c, k in p.intr_key.items():
+        if values.exists(p.cam_key[c]):
+            values.insert(k, p.x0[c])
+    if p.solve_board:
+        values.insert(p.key_back, gtsam.Pose3())
+    return values
+
+
+def _current_models(p: _BundleProblem, values: gtsam.Values) -> dict[str, CameraIntrinsics] | None:
+    """The current camera models (refined intrinsics), None when the intrinsics are fixed."""
+    if not p.refine:
+        return None
+    return {c: _with_parameters(p.intrinsics[c], p.names, values.atVector(k))
+            for c, k in p.intr_key.items() if values.exists(k)}
+
+
+def _refined_intrinsics(p: _BundleProblem, values: gtsam.Values, marginals: gtsam.Marginals):
+    """The refined camera models, their marginal sigmas and their prior sigmas, by parameter
+    name (all empty when the intrinsics are fixed)."""
+    refined = _current_models(p, values) or {}
+    sigma = {c: dict(zip(p.names, np.sqrt(np.diag(
+        marginals.marginalCovariance(p.intr_key[c]))).tolist())) for c in refined}
+    prior = {c: dict(zip(p.names, p.prior_intr[c].sigmas().tolist())) for c in refined}
+    return refined, sigma, prior
+
+
+def _residual_dof(p: _BundleProblem, n_markers: int, values: gtsam.Values) -> int:
+    """Redundancy of the corner fit: 8 residuals per marker less the free parameters (6 per
+    unheld pose, the intrinsics vectors, 4 for the back sheet: its tilts are held)."""
+    n_intr = sum(values.exists(k) for k in p.intr_key.values())
+    n_back = 1 if p.solve_board else 0
+    return max(8 * n_markers - 6 * (values.size() - n_intr - n_back - len(p.fixed))
+               - len(p.names) * n_intr - 4 * n_back, 1)
+
+
+def _camera_marginals(cams: list[str], values: gtsam.Values, cam_key: dict[str, int],
+                      fixed: dict[str, np.ndarray], marginals: gtsam.Marginals):
+    """Per solved camera: ``T_ref_cam``, its 6x6 marginal covariance (zeros when held) and
+    the rotation (deg) / translation (mm) sigmas."""
+    out_cam, cov, s_rot, s_trans = {}, {}, {}, {}
+    for c in cams:
+        if not values.exists(cam_key[c]):
+            continue
+        T = values.atPose3(cam_key[c]).matrix()
+        out_cam[c] = T
+        C = np.zeros((6, 6)) if c in fixed else marginals.marginalCovariance(cam_key[c])
+        cov[c] = C
+        s_rot[c], s_trans[c] = _sigmas_from_covariance(T, C)
+    return out_cam, cov, s_rot, s_trans
 
 
 BOARD_TILT_SIGMA_RAD = 1e-6  # a sheet glued flat on the panel does not tilt: held
