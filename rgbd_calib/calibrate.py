@@ -25,7 +25,8 @@ import numpy as np
 
 from .board import Board
 from .camera import CameraIntrinsics
-from .config import CalibrationConfig, DetectionConfig, PoseConfig
+from . import selfcal
+from .config import BundleConfig, CalibrationConfig, DetectionConfig, PoseConfig
 from .dataset import FolderDataset
 from .detection import MarkerDetections, detect_job, init_detector
 from .errors import CalibrationError
@@ -43,6 +44,7 @@ from .progress import Progress, Tick, start, timed
 from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
 from .results import CameraExtrinsics, Extrinsics, PoseEdge, cameras_from_solve
 from .rig import Rig
+from .selfcal import SelfCalibration
 from .yamlio import atomic_write_text
 
 CACHE_VERSION = 1
@@ -69,6 +71,8 @@ class CalibrationResult:
     # camera -> factor its covariance was scaled by for a model error (see model_error_sigmas)
     model_error_factor: dict[str, float] = field(default_factory=dict)
     board: Board | None = None  # the board file calibrated with (board_refined.yaml's base)
+    # bundle.board / bundle.intrinsics auto: the models tried and the one chosen
+    self_calibration: SelfCalibration | None = None
 
 
 # ----------------------------------------------------------------------------- detection stage
@@ -79,6 +83,16 @@ def _fingerprint(board: Board, config: DetectionConfig) -> str:
         default=str,
     )
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _lens_key(intrinsics: CameraIntrinsics) -> str:
+    """What of a camera's model the edge fit depends on: nothing for a pinhole camera (its
+    marker edges are straight), the whole model when the lens distorts (the fit bends the
+    edges with it)."""
+    if not intrinsics.has_distortion:
+        return ""
+    text = json.dumps(intrinsics.to_dict(), sort_keys=True, default=float)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
 def _file_key(path: Path) -> str:
@@ -100,6 +114,7 @@ def detect_dataset(
     size and modification time; it is saved every few hundred images so an interrupted run
     resumes where it stopped."""
     fingerprint = _fingerprint(board, config)
+    lens = {c: _lens_key(i) for c, i in dataset.rig.cameras.items()}
     cached: dict[str, dict] = {}
     if cache_path is not None and cache_path.is_file():
         try:
@@ -114,11 +129,13 @@ def detect_dataset(
         for cam, path in fs.color.items():
             key = f"{cam}/{fs.frame}"
             entry = cached.get(key)
-            if entry is not None and entry.get("file") == _file_key(path):
+            intr = dataset.rig.cameras[cam]
+            if (entry is not None and entry.get("file") == _file_key(path)
+                    and entry.get("lens", "") == lens[cam]):
                 results[(cam, fs.frame)] = MarkerDetections.from_dict(entry["det"])
             else:
-                intr = dataset.rig.cameras[cam]
-                jobs.append((cam, fs.frame, str(path), intr.width, intr.height))
+                job = (cam, fs.frame, str(path), intr.width, intr.height)
+                jobs.append(job + (intr,) if intr.has_distortion else job)
     if progress:
         progress(len(results))
 
@@ -127,6 +144,7 @@ def detect_dataset(
             return
         images = {
             f"{c}/{f}": {"file": _file_key(dataset.color_path(c, f)), "det": d.to_dict()}
+            | ({"lens": lens[c]} if lens[c] else {})
             for (c, f), d in results.items()
         }
         atomic_write_text(cache_path, json.dumps({"fingerprint": fingerprint, "images": images}))
@@ -192,23 +210,36 @@ def calibrate(
     with timed(timings, "pose_graph"):
         pg = pose_graph(dataset, observations, config, fixed_cameras)
     unconnected = _unconnected(rig.names, observations, pg.unconnected)
-    bundle, depth, board_only = None, None, None
+    bundle, depth, board_only, ladder = None, None, None, None
     cameras, factors = model_error_sigmas(dict(pg.cameras), None, pg, config)
     if config.method == "bundle":
-        # 4. bundle adjustment on the marker corners (raw pixels when refining intrinsics)
-        refine_intrinsics = config.bundle.intrinsics == "refine"
-        refine_board = config.bundle.board == "refine"
+        # 4. bundle adjustment on the marker corners, freeing as much of the board and lens
+        #    model as the data supports (bundle.board / bundle.intrinsics: auto)
         with timed(timings, "bundle"):
-            measurements = marker_measurements(observations, pg, rig,
-                                               refined_intrinsics=refine_intrinsics,
-                                               board=board,
-                                               keep_outlier_views=refine_board)
-            bundle = bundle_sound_first(measurements, _camera_matrices(rig), rig.reference,
-                                        pg.T_ref_cam, pg.T_ref_board, config, pg,
-                                        fixed_cameras, intrinsics=rig.cameras,
-                                        back_centre=back_centre(board))
-        cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg, config)
-        if refine_intrinsics:
+            bundle, measurements, solve, ladder = self_calibrated_bundle(
+                observations, pg, rig, board, config, fixed_cameras)
+        if ladder is not None and ladder.chosen.distortion:
+            # the corners were fitted along straight edges; with the refined lens the edges
+            # are curved: detect again with it and solve the chosen model once more
+            with timed(timings, "redetection"):
+                lens_rig = refined_rig(rig, bundle)
+                relens = copy.copy(dataset)
+                relens.rig = lens_rig
+                tick = start(progress, "detecting markers with the refined lens", n_images)
+                cache = cache_dir / "detections_refined_lens.json" if cache_dir else None
+                detections = detect_dataset(relens, board, config.detection, cache,
+                                            config.workers, tick)
+                observations, rejected = board_poses(detections, board, lens_rig, config.pose)
+            with timed(timings, "bundle"):
+                measurements = marker_measurements(observations, pg, rig, True, board, True)
+                bundle = bundle_sound_first(measurements, _camera_matrices(rig), rig.reference,
+                                            {**pg.T_ref_cam, **bundle.T_ref_cam},
+                                            {**pg.T_ref_board, **bundle.T_ref_board}, solve,
+                                            pg, fixed_cameras, intrinsics=rig.cameras,
+                                            back_centre=back_centre(board))
+            ladder = replace(ladder, redetected=True)
+        cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg, solve)
+        if bundle.intrinsics:
             # the depth stage back-projects with the refined intrinsics
             dataset = copy.copy(dataset)  # same frames, another rig: no re-scan
             dataset.rig = refined_rig(rig, bundle)
@@ -226,11 +257,11 @@ def calibrate(
                 with timed(timings, "joint"):
                     bundle = bundle_sound_first(measurements, _camera_matrices(rig),
                                                 rig.reference, T_ref_cam, bundle.T_ref_board,
-                                                config, pg, fixed_cameras,
+                                                solve, pg, fixed_cameras,
                                                 depth.relative_poses, intrinsics=rig.cameras,
                                                 back_centre=back_centre(board))
                 cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg,
-                                                      config)
+                                                      solve)
             # 7. checks: each pair's fit at the final extrinsics
             with timed(timings, "depth_check"):
                 depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},
@@ -241,7 +272,7 @@ def calibrate(
     )
     return CalibrationResult(extrinsics, observations, rejected, pg, bundle, config, n_images,
                              timings, dataset.summary().to_dict(), depth, board_only,
-                             model_error_factor=factors, board=board)
+                             model_error_factor=factors, board=board, self_calibration=ladder)
 
 
 # ----------------------------------------------------------------------------- stages
@@ -361,6 +392,88 @@ def marker_measurements(
             face = 1 if board is None else int(board.faces[board.index_of[int(mid)]])
             measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P, face))
     return measurements
+
+
+def self_calibrated_bundle(
+    observations: list[BoardObservation],
+    pg: PoseGraphResult,
+    rig: Rig,
+    board: Board,
+    config: CalibrationConfig,
+    fixed_cameras: dict[str, np.ndarray] | None = None,
+) -> tuple[BundleResult, list[MarkerMeasurement], CalibrationConfig, SelfCalibration | None]:
+    """The bundle adjustment with ``config.bundle``'s board and intrinsics models.
+
+    Explicit modes (``fixed`` / ``refine``) solve once. With ``auto`` (either), the ladder of
+    :mod:`rgbd_calib.selfcal`: the nominal model first, then each richer model started from
+    the last accepted solve, kept only when it calibrates more cameras or fits the common
+    markers better than its extra parameters cost (BIC). Returns the chosen solve, its
+    measurements, the configuration it was solved with (explicit modes, for the later joint
+    solve) and the ladder (None for explicit modes)."""
+    b = config.bundle
+    K, centre = _camera_matrices(rig), back_centre(board)
+
+    def solve(level: BundleConfig, init_cam: dict[str, np.ndarray],
+              init_board: dict[str, np.ndarray], freed: bool):
+        cfg = config.model_copy(update={"bundle": level})
+        meas = marker_measurements(observations, pg, rig,
+                                   refined_intrinsics=level.intrinsics == "refine",
+                                   board=board, keep_outlier_views=freed)
+        result = bundle_sound_first(meas, K, rig.reference, init_cam, init_board, cfg, pg,
+                                    fixed_cameras, intrinsics=rig.cameras, back_centre=centre)
+        return result, meas, cfg
+
+    if not selfcal.is_auto(b):
+        result, meas, cfg = solve(b, pg.T_ref_cam, pg.T_ref_board, b.board == "refine")
+        return result, meas, cfg, None
+    level = selfcal.base_level(b)
+    current, meas, cfg = solve(level.bundle_config(b), pg.T_ref_cam, pg.T_ref_board,
+                               level.board)
+    cap = b.outlier_px
+    terms = selfcal.marker_terms(current.residuals_px, current.outliers, cap)
+    fits = [selfcal.LevelFit(level, len(current.T_ref_cam), len(current.residuals_px),
+                             selfcal.rms_px(terms), reason="the starting model")]
+    double_sided = bool(np.any(np.asarray(board.faces) < 0))
+    model_error = bool(pg.model_error)
+    for group in selfcal.candidate_groups(b, double_sided, model_error):
+        # the group's models, each the accepted model plus more; the best by BIC wins
+        best, tried = None, []
+        for step in group:
+            trial_level = selfcal.extend(level, step)
+            if trial_level == level:
+                continue
+            init_cam = {**pg.T_ref_cam, **current.T_ref_cam}
+            init_board = {**pg.T_ref_board, **current.T_ref_board}
+            try:
+                trial, t_meas, t_cfg = solve(trial_level.bundle_config(b), init_cam,
+                                             init_board, True)
+            except (CalibrationError, RuntimeError, ValueError,
+                    np.linalg.LinAlgError) as exc:
+                tried.append(selfcal.LevelFit(trial_level, 0, 0, float("nan"), accepted=False,
+                                              reason=f"the solve failed: {exc}"))
+                continue
+            n_cams = len({m.camera for m in t_meas} - set(fixed_cameras or {}))
+            added = (selfcal.BOARD_PARAMETERS if trial_level.board and not level.board
+                     else 0) + (len(trial_level.intrinsics_params)
+                                - len(level.intrinsics_params)) * n_cams
+            t_terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, cap)
+            ok, gain, reason = selfcal.compare(terms, len(current.T_ref_cam), t_terms,
+                                               len(trial.T_ref_cam), added)
+            if ok and trial_level.board and not level.board and trial.board is not None \
+                    and trial.board.held:
+                ok, reason = False, trial.board.held
+            fit = selfcal.LevelFit(trial_level, len(trial.T_ref_cam), len(trial.residuals_px),
+                                   selfcal.rms_px(t_terms), added, gain, ok, reason)
+            tried.append(fit)
+            if ok and (best is None or selfcal.better(fit, best[0])):
+                best = (fit, trial, t_meas, t_cfg, t_terms)
+        fits += [f if best is None or f is best[0] or not f.accepted else
+                 replace(f, accepted=False, reason=f.reason + "; another model fits better")
+                 for f in tried]
+        if best is not None:
+            fit, current, meas, cfg, terms = best
+            level = fit.level
+    return current, meas, cfg, selfcal.SelfCalibration(level, fits)
 
 
 def back_centre(board: Board) -> np.ndarray | None:

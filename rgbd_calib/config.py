@@ -331,18 +331,25 @@ class BundleConfig(BaseModel):
     )
     max_iterations: int = Field(100, ge=1)
     relative_error_tol: float = 1e-10
-    intrinsics: Literal["fixed", "refine"] = Field(
+    intrinsics: Literal["fixed", "refine", "auto"] = Field(
         "fixed",
         description="fixed: the rig.yaml intrinsics are taken as exact and the corners are "
         "undistorted with them; refine: the parameters of intrinsics_params are estimated per "
         "camera with the rig.yaml values as a Gaussian prior, projecting through the full "
-        "camera model (distortion included) onto the raw detected corners",
+        "camera model (distortion included) onto the raw detected corners; auto: only when the "
+        "pose graph finds a camera-level model error, first fx fy cx cy, then the distortion "
+        "parameters of intrinsics_params, each kept only when the corners fit better than "
+        "the added parameters cost (BIC; see rgbd_calib/selfcal.py); with distortion refined "
+        "the markers are detected again with the refined lens",
     )
     intrinsics_params: list[str] = Field(
-        default_factory=lambda: ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"],
+        default_factory=lambda: ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"],
         min_length=1,
         description="parameters refined per camera (names of OpenCV's model: fx fy cx cy k1 k2 "
-        "p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 tau_x tau_y); the others stay at their rig.yaml values",
+        "p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 tau_x tau_y); the others stay at their rig.yaml values. "
+        "k3 is left out by default: a board that does not reach the image corners does not "
+        "constrain it, and a free k3 extrapolates to hundreds of px there (measured: race, "
+        "20 frames, unlisted distortion)",
     )
     intrinsics_prior_focal_pct: float = Field(
         1.0,
@@ -366,7 +373,7 @@ class BundleConfig(BaseModel):
         "of a mounted lens is ~1e-3)",
     )
 
-    board: Literal["fixed", "refine"] = Field(
+    board: Literal["fixed", "refine", "auto"] = Field(
         "fixed",
         description="fixed: the board file's geometry is exact; refine: the pose of the back "
         "sheet relative to the front sheet (in-plane offset, rotation about the normal, "
@@ -377,8 +384,9 @@ class BundleConfig(BaseModel):
         "view an outlier), leaving bad markers to its per-marker kernel. Measured (race, "
         "848x480, 20 frames): glued 1.5/-1.0 mm, 0.3 deg: fixed drops the 4 back-facing "
         "cameras, refine keeps all 8 within 0.11 mm / 0.003 deg; clean: fixed 0.140 mm, "
-        "refine 0.131 mm worst. The default stays fixed until that outlier-view change is "
-        "measured on rigs with truly bad views (desynchronised cameras)",
+        "refine 0.131 mm worst. auto: refined when the board is double-sided and the refined "
+        "sheet calibrates more cameras or fits the corners better than its 4 parameters cost "
+        "(BIC; rgbd_calib/selfcal.py), else the board file's geometry",
     )
     board_prior_offset_mm: float = Field(
         3.0, gt=0, description="prior sigma of the back sheet's in-plane offset (mm, per axis)"

@@ -964,9 +964,13 @@ def init_detector(board: Board, config: DetectionConfig, threads: int = 1) -> No
     _WORKER["board"], _WORKER["config"] = board, config
 
 
-def detect_job(job: tuple[str, str, str, int, int]) -> tuple[str, str, dict]:
-    """``(camera, frame, colour image path, width, height)`` -> ``(camera, frame,
-    MarkerDetections.to_dict())``, with the board and config of :func:`init_detector`."""
-    camera, frame, path, width, height = job
+def detect_job(job: tuple) -> tuple[str, str, dict]:
+    """``(camera, frame, colour image path, width, height[, intrinsics])`` -> ``(camera, frame,
+    MarkerDetections.to_dict())``, with the board and config of :func:`init_detector`. The
+    optional ``intrinsics`` (a camera with lens distortion) bend the edge fit along the
+    curved marker edges."""
+    camera, frame, path, width, height = job[:5]
+    intrinsics = job[5] if len(job) > 5 else None
     gray = read_color_image(Path(path), width, height, gray=True)
-    return camera, frame, detect_markers(gray, _WORKER["board"], _WORKER["config"]).to_dict()
+    det = detect_markers(gray, _WORKER["board"], _WORKER["config"], intrinsics=intrinsics)
+    return camera, frame, det.to_dict()

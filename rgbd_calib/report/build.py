@@ -87,6 +87,8 @@ def report_dict(
     }
     if result.bundle is not None:
         report["bundle"] = _bundle_entry(result.bundle)
+        if result.self_calibration is not None:
+            report["bundle"]["self_calibration"] = result.self_calibration.to_dict()
     return finalize_report(to_builtin(report))
 
 

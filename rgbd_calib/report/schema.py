@@ -256,6 +256,17 @@ REPORT_SCHEMA: dict[str, Any] = {
         "iterations": INT,
         "markers": INT,
         "outlier_markers": ListOf({"camera": S, "view": S, "marker": INT, "rms_px": N}),
+        "self_calibration?": {
+            "chosen": S,
+            "board": B,
+            "intrinsics_params": ListOf(S),
+            "redetected": B,
+            "levels": ListOf({
+                "level": S, "board": B, "intrinsics_params": ListOf(S), "cameras": INT,
+                "markers": INT, "rms_px": Nullable(N), "added_parameters": INT,
+                "bic_gain": Nullable(N), "accepted": B, "reason": S,
+            }),
+        },
     },
     "summary": {
         "verdict": S,
