@@ -462,6 +462,22 @@ def self_calibrated_bundle(
             if ok and trial_level.board and not level.board and trial.board is not None \
                     and trial.board.held:
                 ok, reason = False, trial.board.held
+            tension = selfcal.prior_tension(trial, rig)
+            if ok and tension is not None and tension[0] > selfcal.PRIOR_TENSION:
+                # the data put a parameter several prior sigmas from rig.yaml: the prior is
+                # wrong (another camera's file, a re-focused lens), and would bias the value
+                # and the extrinsics towards it while the marginals stay small. Loosen it.
+                z, cam, name = tension
+                loose = selfcal.loosened(trial_level.bundle_config(b))
+                try:
+                    trial, t_meas, t_cfg = solve(loose, {**init_cam, **trial.T_ref_cam},
+                                                 {**init_board, **trial.T_ref_board}, True)
+                    t_terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, cap)
+                    reason += (f"; {name} of {cam} came {z:.1f} prior sigmas from rig.yaml: "
+                               f"priors loosened {selfcal.LOOSEN:.0f}x")
+                except (CalibrationError, RuntimeError, ValueError,
+                        np.linalg.LinAlgError) as exc:
+                    reason += f"; loosening the contradicted prior failed: {exc}"
             fit = selfcal.LevelFit(trial_level, len(trial.T_ref_cam), len(trial.residuals_px),
                                    selfcal.rms_px(t_terms), added, gain, ok, reason)
             tried.append(fit)

@@ -37,6 +37,8 @@ from typing import Any
 from .config import BundleConfig
 
 FOCAL_CENTRE = ("fx", "fy", "cx", "cy")
+PRIOR_TENSION = 3.0  # a refined parameter this many prior sigmas from rig.yaml: prior wrong
+LOOSEN = 10.0  # ... and its priors are then widened this many times
 BOARD_PARAMETERS = 4  # in-plane offset (2), rotation about the normal, thickness
 
 
@@ -161,6 +163,36 @@ def extend(level: ModelLevel, step: tuple[bool, tuple[str, ...]]) -> ModelLevel:
 def _name(board: bool, params: tuple[str, ...]) -> str:
     parts = (["board"] if board else []) + ([" ".join(params)] if params else [])
     return " + ".join(parts) if parts else "nominal"
+
+
+def prior_tension(bundle: Any, rig: Any) -> tuple[float, str, str] | None:
+    """The refined intrinsics parameter furthest from its rig.yaml value in prior sigmas:
+    ``(z, camera, parameter)``; None when no intrinsics were refined."""
+    worst = None
+    for cam, refined in bundle.intrinsics.items():
+        prior_sigma = bundle.intrinsics_prior_sigma.get(cam, {})
+        before, after = _values(rig.cameras[cam]), _values(refined)
+        for name, sigma in prior_sigma.items():
+            if sigma and sigma > 0:
+                z = abs(after.get(name, 0.0) - before.get(name, 0.0)) / sigma
+                if worst is None or z > worst[0]:
+                    worst = (z, cam, name)
+    return worst
+
+
+def _values(intrinsics: Any) -> dict[str, float]:
+    return dict(zip(intrinsics.parameter_names, (intrinsics.fx, intrinsics.fy, intrinsics.cx,
+                                                 intrinsics.cy, *intrinsics.distortion)))
+
+
+def loosened(config: BundleConfig) -> BundleConfig:
+    """``config`` with every intrinsics prior sigma :data:`LOOSEN` times wider."""
+    return config.model_copy(update={
+        "intrinsics_prior_focal_pct": config.intrinsics_prior_focal_pct * LOOSEN,
+        "intrinsics_prior_center_px": config.intrinsics_prior_center_px * LOOSEN,
+        "intrinsics_prior_distortion": config.intrinsics_prior_distortion * LOOSEN,
+        "intrinsics_prior_tangential": config.intrinsics_prior_tangential * LOOSEN,
+    })
 
 
 def marker_terms(residuals: list[tuple[str, str, int, float]],

@@ -263,8 +263,9 @@ def glued_race(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth") / "glued"
     synth = synthesize(out, "race", 20, 3, thesis_board(), SynthParams(glue=GLUE), workers=2)
     runs = {}
-    for mode in ("fixed", "refine"):
-        cfg = load_config(None, workers=2, refine="none", **{"bundle.board": mode})
+    for mode in ("fixed", "refine", "auto"):
+        cfg = load_config(None, workers=2, refine="none", **{
+            "bundle.board": mode, "bundle.intrinsics": "auto" if mode == "auto" else "fixed"})
         runs[mode] = calibrate(FolderDataset(synth.path), thesis_board(), cfg)
     return synth, runs
 
@@ -303,6 +304,26 @@ def test_pipeline_glued_board(glued_race):
                             GLUE_ROTATION_TOL_DEG)
     np.testing.assert_allclose(model.offset_mm[:2], GLUE[:2], atol=GLUE_OFFSET_TOL_MM)
     assert abs(model.rotation_deg - GLUE[2]) < GLUE_ROTATION_TOL_DEG
+
+
+def test_pipeline_glued_board_auto(glued_race):
+    """The default (``auto`` board and intrinsics) on the glued set: the back sheet is freed
+    because it keeps the 4 cameras the nominal board loses; all 8 within the race bounds and
+    the glue recovered as with ``refine``."""
+    from rgbd_calib.synth import load_ground_truth
+
+    synth, runs = glued_race
+    gt = load_ground_truth(synth.path)
+    auto = runs["auto"]
+    ladder = auto.self_calibration
+    assert ladder is not None and ladder.chosen.board
+    assert [f.level.name for f in ladder.fits][:2] == ["nominal", "board"]
+    assert ladder.fits[1].accepted and ladder.fits[1].cameras == 8
+    assert len(auto.extrinsics.cameras) == 8 and not auto.extrinsics.unconnected
+    for c, e in auto.extrinsics.cameras.items():
+        assert_transforms_close(e.T_ref_cam, gt.T_ref_cam[c], RACE_MAX_MM, RACE_MAX_DEG)
+    assert_transforms_close(auto.bundle.board.T_front_back, gt.T_front_back,
+                            GLUE_OFFSET_TOL_MM, GLUE_ROTATION_TOL_DEG)
 
 
 def test_pipeline_writes_board_refined_and_report(glued_race, tmp_path):

@@ -95,7 +95,7 @@ def solve(rig, params, seed=0):
 
 # ----------------------------------------------------------------------------- config
 def test_config_surface():
-    assert BundleConfig().intrinsics == "fixed"
+    assert BundleConfig().intrinsics == "auto" and BundleConfig().board == "auto"
     assert BundleConfig(intrinsics_params=["fx", "cy", "k1", "tau_x"]).intrinsics_params[-1] \
         == "tau_x"
     with pytest.raises(ValueError, match="unknown intrinsics parameter"):
@@ -105,7 +105,7 @@ def test_config_surface():
     with pytest.raises(ConfigError, match="bundle.intrinsics"):
         load_config(None, **{"bundle.intrinsics": "free"})
     assert load_config(None, **{"bundle.intrinsics": "refine"}).bundle.intrinsics == "refine"
-    assert CalibrationConfig().bundle.intrinsics == "fixed"
+    assert CalibrationConfig().bundle.intrinsics == "auto"
 
 
 # ----------------------------------------------------------------------------- factor

@@ -606,8 +606,11 @@ def test_camera_that_never_shares_a_view(clean, tmp_path):
 def test_wrong_intrinsics_on_one_camera(clean, tmp_path):
     """cam9 gets another camera's intrinsics file: fx scaled by 1.05. Every view of cam9
     disagrees with the rig the same way: a model error, not outlier views (issue 13, item 4).
-    It used to be dropped as all-outlier; now it is kept with its sigma inflated to cover its
-    real error, and the warning ``camera_model_error`` names it and the likely causes."""
+    It used to be dropped as all-outlier; now the pose graph flags it (warning
+    ``camera_model_error`` naming it and the likely causes) and the default ``auto``
+    self-calibration frees the intrinsics: cam9 is kept, its fx recovered, its error within
+    3 sigma. (With ``bundle.intrinsics: fixed`` it is kept with its sigma inflated instead:
+    tests/test_intrinsics.py.)"""
     w = workspace(clean, tmp_path)
     edit_rig(w.ds, lambda r: r["cameras"]["cam9"].update(fx=r["cameras"]["cam9"]["fx"] * 1.05))
     code, text = calibrate(w)
@@ -617,15 +620,18 @@ def test_wrong_intrinsics_on_one_camera(clean, tmp_path):
     found = [x for x in report["warnings"] if x["code"] == "camera_model_error"]
     assert any(x["cameras"] == ["cam9"] and "intrinsics" in x["advice"] for x in found)
     flagged = {m["camera"]: m for m in report["pose_graph"]["model_error"]}
-    assert "cam9" in flagged and flagged["cam9"]["sigma_factor"] > 1.0
+    assert "cam9" in flagged
+    assert "fx" in report["bundle"]["self_calibration"]["intrinsics_params"]
+    fx = report["cameras"]["cam9"]["intrinsics_refined"]["fx"]
+    assert abs(fx["refined"] * 1.05 / fx["prior"] - 1.0) < 0.002, fx  # back to the truth
     gt = load_ground_truth(w.ds)
     cam9 = report["cameras"]["cam9"]
     deg, mm = transform_error(np.asarray(cam9["T_ref_cam"]), gt.T_ref_cam["cam9"])
     assert mm < 3.0 * cam9["sigma_translation_mm"], (mm, cam9["sigma_translation_mm"])
     assert deg < 3.0 * cam9["sigma_rotation_deg"], (deg, cam9["sigma_rotation_deg"])
     ok_case("wrong intrinsics", "wrong intrinsics on one camera (cam9 fx x 1.05)", w, text,
-            "`pose_graph.model_error` (cam9, kept, sigma inflated), warning "
-            "`camera_model_error`")
+            "`pose_graph.model_error` (cam9, kept), warning `camera_model_error`, "
+            "`bundle.self_calibration` (intrinsics refined, fx recovered)")
 
 
 STRAY_PX = 40  # a poster-sized stray: small copies (< ~17 px here) are not even detected
