@@ -341,17 +341,20 @@ def calibrate(
     intrinsics: Annotated[
         str | None,
         typer.Option(
-            help="fixed (default): trust the rig.yaml intrinsics; refine: estimate them in "
-            "the bundle adjustment (writes rig_refined.yaml)."
+            help="auto (default): estimate them in the bundle adjustment only when the "
+            "views disagree camera by camera and the corners fit better for it (writes "
+            "rig_refined.yaml then); fixed: trust the rig.yaml intrinsics; refine: always "
+            "estimate them."
         ),
     ] = None,
     board_model: Annotated[
         str | None,
         typer.Option(
             "--board-model",
-            help="fixed (default): the board file is exact; refine: estimate where the back "
-            "sheet really is (offset, rotation, thickness) in the bundle adjustment (writes "
-            "board_refined.yaml).",
+            help="auto (default): estimate where the back sheet really is (offset, "
+            "rotation, thickness) when that keeps more cameras or fits the corners better "
+            "(writes board_refined.yaml then); fixed: the board file is exact; refine: "
+            "always estimate it.",
         ),
     ] = None,
     fix: Annotated[
@@ -450,6 +453,13 @@ def _print_summary(result, out: Path) -> None:
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
     refined = ", rig_refined.yaml" if result.bundle is not None and result.bundle.intrinsics else ""
+    ladder = result.self_calibration
+    if ladder is not None and ladder.chosen.name != "nominal":
+        chosen = next((f for f in ladder.fits if f.level == ladder.chosen), None)
+        why = f": {chosen.reason}" if chosen is not None else ""
+        console.print(f"self-calibration: refined {ladder.chosen.name}{why}"
+                      + ("; markers detected again with the refined lens"
+                         if ladder.redetected else ""))
     board = board_refined_entry(result).get("refined")
     if board and board["held"]:
         console.print(f"[yellow]board not refined[/]: {board['held']}")

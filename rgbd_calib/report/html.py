@@ -196,6 +196,20 @@ def _summary_rows(report: dict[str, Any]) -> list[tuple[str, Any, str]]:
                 "px",
             )
         )
+        ladder = report["bundle"].get("self_calibration")
+        if ladder:
+            tried = "; ".join(
+                f"{lv['level']}: {'kept' if lv['accepted'] else 'not kept'}"
+                for lv in ladder["levels"][1:]
+            )
+            rows.append(
+                (
+                    "self-calibration: model chosen",
+                    ladder["chosen"] + (" (markers detected again)" if ladder["redetected"]
+                                        else ""),
+                    f"tried {tried}" if tried else "",
+                )
+            )
     return rows
 
 
