@@ -1,0 +1,90 @@
+"""The model ladder's decisions (rgbd_calib/selfcal.py), on hand-made residuals: pure maths,
+no solve. The pipeline runs are in test_board_refine (glue), test_robustness (wrong focal)
+and test_distortion_pipeline (unlisted lens)."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from rgbd_calib import selfcal
+from rgbd_calib.camera import CameraIntrinsics
+from rgbd_calib.config import BundleConfig
+
+
+def _terms(rms, n=500, cam="c"):
+    return selfcal.marker_terms([(cam, f"v{i}", i, rms) for i in range(n)], [], cap_px=3.0)
+
+
+def test_bic_rejects_parameters_that_only_fit_noise():
+    rng = np.random.default_rng(0)
+    n = 2000
+    base = {("c", f"v{i}", i): float(np.sum(rng.normal(0, 0.1, 8) ** 2)) for i in range(n)}
+    # a correct model with k more parameters lowers SSR by about k sigma^2
+    k = 32
+    richer = {key: v * (1 - k / (8 * n)) for key, v in base.items()}
+    ok, gain, reason = selfcal.compare(base, 8, richer, 8, k)
+    assert not ok and gain < 0, reason
+    # a real model error: the fit improves by far more than the parameters cost
+    better = {key: v * 0.25 for key, v in base.items()}
+    ok, gain, reason = selfcal.compare(base, 8, better, 8, k)
+    assert ok and gain > 1000, reason
+
+
+def test_more_cameras_wins_and_fewer_loses():
+    a, b = _terms(0.1), _terms(0.5)
+    assert selfcal.compare(a, 4, b, 8, 4)[0]  # worse fit but 4 more cameras kept
+    assert not selfcal.compare(b, 8, a, 7, 4)[0]  # better fit but a camera lost
+
+
+def test_compare_uses_common_markers_and_caps_outliers():
+    before = selfcal.marker_terms([("c", "v", 1, 0.1)], [("c", "v", 2, 50.0)], cap_px=3.0)
+    assert before[("c", "v", 2)] == pytest.approx(8 * 9.0)
+    after = selfcal.marker_terms([("c", "v", 1, 0.1), ("c", "v", 3, 0.1)], [], cap_px=3.0)
+    ok, gain, reason = selfcal.compare(before, 1, after, 1, 0)
+    assert "1 common markers" in reason and gain == pytest.approx(0.0)
+
+
+def test_candidate_groups_follow_the_config():
+    auto = BundleConfig(board="auto", intrinsics="auto")
+    groups = selfcal.candidate_groups(auto, double_sided=True, model_error=True)
+    assert groups[0] == [(True, ())]
+    assert groups[1][0] == (False, ("fx", "fy", "cx", "cy"))
+    assert groups[1][1][1] == tuple(auto.intrinsics_params)
+    # no model error: the intrinsics are not tried; one-sided board: no back sheet
+    assert selfcal.candidate_groups(auto, double_sided=False, model_error=False) == []
+    fixed = BundleConfig(board="fixed", intrinsics="fixed")
+    assert selfcal.candidate_groups(fixed, True, True) == []
+    assert not selfcal.is_auto(fixed) and selfcal.is_auto(auto)
+    # explicit refine is part of every level
+    base = selfcal.base_level(BundleConfig(board="refine", intrinsics="auto"))
+    assert base.board and base.intrinsics_params == ()
+    level = selfcal.extend(base, (False, ("fx", "fy")))
+    assert level.name == "board + fx fy"
+    cfg = level.bundle_config(BundleConfig())
+    assert cfg.board == "refine" and cfg.intrinsics == "refine"
+    assert cfg.intrinsics_params == ["fx", "fy"] and not level.distortion
+    assert selfcal.extend(level, (False, ("fx", "k1"))).distortion
+
+
+def test_better_prefers_cameras_then_bic():
+    lv = selfcal.ModelLevel("x", False)
+    a = selfcal.LevelFit(lv, 8, 100, 0.1, 4, 50.0)
+    b = selfcal.LevelFit(lv, 8, 100, 0.1, 4, 80.0)
+    c = selfcal.LevelFit(lv, 9, 100, 0.3, 4, None)
+    assert selfcal.better(b, a) and not selfcal.better(a, b)
+    assert selfcal.better(c, b)
+
+
+def test_prior_tension_and_loosening():
+    nominal = CameraIntrinsics(640, 480, 500.0, 500.0, 320.0, 240.0)
+    refined = CameraIntrinsics(640, 480, 525.0, 500.0, 320.5, 240.0)
+    bundle = SimpleNamespace(intrinsics={"c": refined},
+                             intrinsics_prior_sigma={"c": {"fx": 5.0, "fy": 5.0, "cx": 10.0,
+                                                           "cy": 10.0}})
+    rig = SimpleNamespace(cameras={"c": nominal})
+    z, cam, name = selfcal.prior_tension(bundle, rig)
+    assert (cam, name) == ("c", "fx") and z == pytest.approx(5.0)
+    loose = selfcal.loosened(BundleConfig())
+    assert loose.intrinsics_prior_focal_pct == pytest.approx(10.0)
+    assert loose.intrinsics_prior_center_px == pytest.approx(100.0)
