@@ -24,6 +24,7 @@ from .camera import CameraIntrinsics
 from .dataset import FolderWriter
 from .errors import ConfigError, DatasetError
 from .rig import CAMERA_NAME, Rig
+from .sources.align import distortion_from_realsense
 
 DEFAULT_MODE = (1280, 720, 30)  # width, height, fps: a D435i depth and colour mode
 HW_SYNC_MASTER, HW_SYNC_SLAVE = 1, 2  # rs.option.inter_cam_sync_mode values (D400)
@@ -115,7 +116,7 @@ class _RealSenseStream:
             ci.fy,
             ci.ppx,
             ci.ppy,
-            tuple(float(c) for c in list(ci.coeffs)[:5]),  # k1 k2 p1 p2 k3, as sources/align.py
+            distortion_from_realsense(str(ci.model), ci.coeffs, f"camera {serial}"),
             float(f"{depth_sensor.get_depth_scale():.7g}"),
         )
         self._align = rs.align(rs.stream.color)
