@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from .board import Board
+from .board import Board, refined_board
 from .camera import CameraIntrinsics
 from . import selfcal
 from .config import BundleConfig, CalibrationConfig, DetectionConfig, PoseConfig
@@ -248,10 +248,14 @@ def calibrate(
             # 5. depth: scale per camera, static clouds, pairwise registration
             board_only = Extrinsics(rig.reference, dict(cameras), dict(unconnected))
             T_ref_cam = {c: e.T_ref_cam for c, e in cameras.items()}
+            # the board's faces where the bundle put them (a refined back sheet's thickness)
+            model = bundle.board
+            depth_board = (refined_board(board, model.T_front_back)
+                           if model is not None and not model.held else board)
             with timed(timings, "depth"):
                 views = board_views_per_camera(observations, T_ref_cam, bundle.T_ref_board)
-                depth = measure_depth(dataset, board, T_ref_cam, views, bundle.T_ref_board,
-                                      refine, config.depth, progress)
+                depth = measure_depth(dataset, depth_board, T_ref_cam, views,
+                                      bundle.T_ref_board, refine, config.depth, progress)
             # 6. joint solve: corners and the accepted depth pairs
             if depth.relative_poses:
                 with timed(timings, "joint"):
