@@ -67,7 +67,7 @@ SETS: dict[str, dict[str, Any]] = {
 IMAGES = {"intrinsics": "clean", "all": "glue+distortion"}  # sets that only change rig.yaml
 IMAGE_SETS = {**SETS, "glue+distortion": {**GLUE, **DIST}}
 METHODS = ("fixed", "auto", "thesis")
-RECORD_VERSION = 1
+RECORD_VERSION = 2
 
 
 def ensure_set(
@@ -181,7 +181,9 @@ def run_method(
             rec["self_calibration"] = result.self_calibration.to_dict()
         if bundle is not None and bundle.board is not None and not bundle.board.held:
             rot, mm = transform_error(bundle.board.T_front_back, gt.T_front_back)
-            rec["glue_error"] = {"translation_mm": mm, "rotation_deg": rot}
+            T, c = bundle.board.T_front_back - gt.T_front_back, bundle.board.centre
+            centre_mm = float(np.linalg.norm(T[:3, :3] @ c + T[:3, 3]) * 1000)  # at the grid
+            rec["glue_error"] = {"translation_mm": mm, "rotation_deg": rot, "centre_mm": centre_mm}
         refined = dict(bundle.intrinsics) if bundle is not None else {}
         rec["intrinsics_refined"] = sorted(refined)
         rec["intrinsics"] = {}
@@ -270,6 +272,7 @@ def summary(recs: list[dict[str, Any]]) -> dict[str, Any]:
 def markdown(payload: dict[str, Any]) -> str:
     meta, runs = payload["meta"], payload["runs"]
     head = (
+        f"`{meta['command']}` ({meta['date']}, {meta['total_s']} s in all)\n\n"
         f"Seeds {meta['seeds']}, {meta['frames']} frame sets, synth noise defaults (blur "
         f"{meta['noise']['blur_sigma_px']} px, colour noise {meta['noise']['color_noise_dn']}"
         f" DN); load average {meta['load_start']} at start, {meta['load_end']} at the end "
@@ -287,8 +290,8 @@ def markdown(payload: dict[str, Any]) -> str:
         "|---|---|" + "---|---|---|---|" * len(methods),
     ]
     auto = [
-        "| layout | set | chosen | glue err mm / deg | fx / fy % | cx / cy px "
-        "| lens worst px image / covered | rig.yaml worst px image / covered |",
+        "| layout | set | chosen | glue err mm / deg (at grid centre, mm) | fx / fy % | cx / cy px "
+        "| lens worst px image / covered | rig.yaml: f %, c px, worst px image / covered |",
         "|---|---|---|---|---|---|---|---|",
     ]
     notes = []
@@ -305,7 +308,7 @@ def markdown(payload: dict[str, Any]) -> str:
                     x["kept"],
                     f"{_f(x['worst_mm'])} / {_f(x['worst_deg'], 4)}",
                     f"{_f(x['nrms_t'], 2)} / {_f(x['nrms_r'], 2)}",
-                    _f(x["time_s"], 0),
+                    _f(x["time_s"], 1),
                 ]
                 notes += [f"{layout} {name} {m}: {f}" for f in x["failures"]]
             lines.append(f"| {layout} | {name} | " + " | ".join(cells) + " |")
@@ -317,10 +320,15 @@ def markdown(payload: dict[str, Any]) -> str:
                     if a["refined"]
                     else "not refined | - | -"
                 )
-                base = f"{_f(f['image_px'], 2)} / {_f(f['covered_px'], 2)}" if f else "-"
+                base = (
+                    f"{_f(f['fx_pct'], 3)} / {_f(f['fy_pct'], 3)} %, {_f(f['cx_px'], 2)} / "
+                    f"{_f(f['cy_px'], 2)} px, {_f(f['image_px'], 2)} / {_f(f['covered_px'], 2)} px"
+                    if f
+                    else "-"
+                )
                 auto.append(
                     f"| {layout} | {name} | {a['chosen']} | {_f(a['glue_mm'])} / "
-                    f"{_f(a['glue_deg'], 4)} | {lens} | {base} |"
+                    f"{_f(a['glue_deg'], 4)} ({_f(a['glue_centre_mm'])}) | {lens} | {base} |"
                 )
     out = (
         head + "\n".join(lines) + "\n\n`auto`: the model chosen and what it recovered "
