@@ -261,6 +261,7 @@ def summary(recs: list[dict[str, Any]]) -> dict[str, Any]:
         "refined": any(r["intrinsics_refined"] for r in ok),
         "glue_mm": worst("translation_mm", glue),
         "glue_deg": worst("rotation_deg", glue),
+        "glue_centre_mm": worst("centre_mm", glue),
         **{
             k: worst(k, ints)
             for k in ("fx_pct", "fy_pct", "cx_px", "cy_px", "image_px", "covered_px")
