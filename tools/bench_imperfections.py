@@ -57,17 +57,12 @@ from rgbd_calib.yamlio import atomic_write_text, read_yaml_mapping, write_yaml  
 GLUE = {"glue": (1.5, -1.0, 0.3)}
 INTR = {"intrinsics_error": (0.7, 3.0)}
 DIST = {"distortion": (0.08, -0.15, 0.0005, -0.0005, 0.03), "rig_distortion": "zeros"}
-SETS: dict[str, dict[str, Any]] = {
-    "clean": {},
-    "glue": GLUE,
-    "intrinsics": INTR,
-    "distortion": DIST,
-    "all": {**GLUE, **INTR, **DIST},
-}
+SETS: dict[str, dict[str, Any]] = dict(clean={}, glue=GLUE, intrinsics=INTR, distortion=DIST)
+SETS["all"] = {**GLUE, **INTR, **DIST}
 IMAGES = {"intrinsics": "clean", "all": "glue+distortion"}  # sets that only change rig.yaml
 IMAGE_SETS = {**SETS, "glue+distortion": {**GLUE, **DIST}}
 METHODS = ("fixed", "auto", "thesis")
-RECORD_VERSION = 2
+RECORD_VERSION = 3
 
 
 def ensure_set(
@@ -167,15 +162,8 @@ def run_method(
             if c == gt.reference:
                 continue
             rot, mm = transform_error(e.T_ref_cam, gt.T_ref_cam[c])
-            rec["cameras"].append(
-                {
-                    "camera": c,
-                    "rotation_deg": rot,
-                    "translation_mm": mm,
-                    "sigma_rotation_deg": e.sigma_rotation_deg,
-                    "sigma_translation_mm": e.sigma_translation_mm,
-                }
-            )
+            sigmas = dict(sigma_rotation_deg=e.sigma_rotation_deg, sigma_mm=e.sigma_translation_mm)
+            rec["cameras"].append(dict(camera=c, rotation_deg=rot, translation_mm=mm, **sigmas))
         bundle = result.bundle
         if result.self_calibration is not None:
             rec["self_calibration"] = result.self_calibration.to_dict()
@@ -189,10 +177,9 @@ def run_method(
         rec["intrinsics"] = {}
         for c, true in gt.intrinsics.items():
             pts = [o.corners_px.reshape(-1, 2) for o in result.observations if o.camera == c]
+            pts = np.concatenate(pts) if pts else np.zeros((0, 2))
             rec["intrinsics"][c] = intrinsics_error(
-                refined.get(c, dataset.rig.cameras[c]),
-                true,
-                np.concatenate(pts) if pts else np.zeros((0, 2)),
+                refined.get(c, dataset.rig.cameras[c]), true, pts
             )
     except Exception as exc:
         rec["status"] = "failed"
@@ -205,12 +192,8 @@ def cached_run(
     method: str, path: Path, image_cache: Path, board: Board, workers: int, rerun: bool
 ) -> tuple[dict[str, Any], bool]:
     gt = (path / "ground_truth.yaml").stat()
-    key = json.dumps(
-        [method, RECORD_VERSION, code_hash(), board.to_dict(), gt.st_mtime_ns],
-        sort_keys=True,
-        default=str,
-    )
-    fingerprint = hashlib.sha256(key.encode()).hexdigest()[:16]
+    key = [method, RECORD_VERSION, code_hash(), board.to_dict(), gt.st_mtime_ns]
+    fingerprint = hashlib.sha256(json.dumps(key, default=str).encode()).hexdigest()[:16]
     cache_file = path.parent / "cache" / path.name / "results" / f"{method}.json"
     if not rerun and cache_file.is_file():
         saved = json.loads(cache_file.read_text())
@@ -246,13 +229,7 @@ def summary(recs: list[dict[str, Any]]) -> dict[str, Any]:
         "worst_deg": max(deg, default=None),
         "median_mm": float(np.median(mm)) if mm else None,
         "median_deg": float(np.median(deg)) if deg else None,
-        "nrms_t": _rms(
-            [
-                c["translation_mm"] / c["sigma_translation_mm"]
-                for c in cams
-                if c["sigma_translation_mm"]
-            ]
-        ),
+        "nrms_t": _rms([c["translation_mm"] / c["sigma_mm"] for c in cams if c["sigma_mm"]]),
         "nrms_r": _rms(
             [c["rotation_deg"] / c["sigma_rotation_deg"] for c in cams if c["sigma_rotation_deg"]]
         ),
@@ -382,16 +359,9 @@ def main(argv: list[str] | None = None) -> int:
                     )
                 except Exception as exc:
                     traceback.print_exc()
+                    fail = dict(layout=layout, seed=seed, set=name, status="failed")
                     runs += [
-                        {
-                            "layout": layout,
-                            "seed": seed,
-                            "set": name,
-                            "method": m,
-                            "status": "failed",
-                            "message": f"render: {exc}",
-                        }
-                        for m in args.methods
+                        {**fail, "method": m, "message": f"render: {exc}"} for m in args.methods
                     ]
                     continue
                 images = f"{layout}-f{args.frames}-s{seed}-{IMAGES.get(name, name)}"
@@ -401,11 +371,8 @@ def main(argv: list[str] | None = None) -> int:
                     rec, cached = cached_run(m, path, image_cache, board, args.workers, args.rerun)
                     runs.append({**rec, "layout": layout, "seed": seed, "set": name})
                     how = "cached" if cached else f"{time.perf_counter() - t0:.0f} s"
-                    print(
-                        f"{path.name:28s} {m:7s} {rec['status']} ({how}) {rec['message']}",
-                        file=sys.stderr,
-                        flush=True,
-                    )
+                    msg = f"{path.name:28s} {m:7s} {rec['status']} ({how}) {rec['message']}"
+                    print(msg, file=sys.stderr, flush=True)
                     meta["load_end"] = [round(x, 1) for x in os.getloadavg()]
                     meta["total_s"] = round(time.perf_counter() - t_start)
                     payload = {"meta": meta, "runs": runs}
