@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from . import selfcal
 from .board import Board, refined_board
 from .camera import CameraIntrinsics
-from . import selfcal
 from .config import BundleConfig, CalibrationConfig, DetectionConfig, PoseConfig
 from .dataset import FolderDataset
 from .detection import MarkerDetections, detect_job, init_detector
@@ -430,69 +430,80 @@ def self_calibrated_bundle(
     if not selfcal.is_auto(b):
         result, meas, cfg = solve(b, pg.T_ref_cam, pg.T_ref_board, b.board == "refine")
         return result, meas, cfg, None
+    errors = (CalibrationError, RuntimeError, ValueError, np.linalg.LinAlgError)
+    cap = b.outlier_px
     level = selfcal.base_level(b)
     current, meas, cfg = solve(level.bundle_config(b), pg.T_ref_cam, pg.T_ref_board,
                                level.board)
-    cap = b.outlier_px
     terms = selfcal.marker_terms(current.residuals_px, current.outliers, cap)
     fits = [selfcal.LevelFit(level, len(current.T_ref_cam), len(current.residuals_px),
                              selfcal.rms_px(terms), reason="the starting model")]
-    double_sided = bool(np.any(np.asarray(board.faces) < 0))
-    model_error = bool(pg.model_error)
-    for group in selfcal.candidate_groups(b, double_sided, model_error):
-        # the group's models, each the accepted model plus more; the best by BIC wins
-        best, tried = None, []
-        for step in group:
-            trial_level = selfcal.extend(level, step)
-            if trial_level == level:
-                continue
-            init_cam = {**pg.T_ref_cam, **current.T_ref_cam}
-            init_board = {**pg.T_ref_board, **current.T_ref_board}
+
+    def try_level(trial_level: selfcal.ModelLevel):
+        """Solve ``trial_level`` from the accepted solve; (fit, solve, measurements, config,
+        marker terms), the solve None when it failed."""
+        init_cam = {**pg.T_ref_cam, **current.T_ref_cam}
+        init_board = {**pg.T_ref_board, **current.T_ref_board}
+        try:
+            trial, t_meas, t_cfg = solve(trial_level.bundle_config(b), init_cam, init_board,
+                                         True)
+        except errors as exc:
+            return (selfcal.LevelFit(trial_level, 0, 0, float("nan"), accepted=False,
+                                     reason=f"the solve failed: {exc}"), None, [], cfg, {})
+        n_cams = len({m.camera for m in t_meas} - set(fixed_cameras or {}))
+        added = (selfcal.BOARD_PARAMETERS if trial_level.board and not level.board else 0) + (
+            len(trial_level.intrinsics_params) - len(level.intrinsics_params)) * n_cams
+        t_terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, cap)
+        ok, gain, reason = selfcal.compare(terms, len(current.T_ref_cam), t_terms,
+                                           len(trial.T_ref_cam), added)
+        if ok and trial_level.board and not level.board and trial.board is not None \
+                and trial.board.held:
+            ok, reason = False, trial.board.held
+        tension = selfcal.prior_tension(trial, rig)
+        if ok and tension is not None and tension[0] > selfcal.PRIOR_TENSION:
+            # the data put a parameter several prior sigmas from rig.yaml: the prior is wrong
+            # (another camera's file, a re-focused lens) and would bias the value and the
+            # extrinsics towards it while the marginals stay small. Loosen it.
+            z, cam, name = tension
             try:
-                trial, t_meas, t_cfg = solve(trial_level.bundle_config(b), init_cam,
-                                             init_board, True)
-            except (CalibrationError, RuntimeError, ValueError,
-                    np.linalg.LinAlgError) as exc:
-                tried.append(selfcal.LevelFit(trial_level, 0, 0, float("nan"), accepted=False,
-                                              reason=f"the solve failed: {exc}"))
+                trial, t_meas, t_cfg = solve(selfcal.loosened(t_cfg.bundle),
+                                             {**init_cam, **trial.T_ref_cam},
+                                             {**init_board, **trial.T_ref_board}, True)
+                t_terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, cap)
+                reason += (f"; {name} of {cam} came {z:.1f} prior sigmas from rig.yaml: "
+                           f"priors loosened {selfcal.LOOSEN:.0f}x")
+            except errors as exc:
+                reason += f"; loosening the contradicted prior failed: {exc}"
+        fit = selfcal.LevelFit(trial_level, len(trial.T_ref_cam), len(trial.residuals_px),
+                               selfcal.rms_px(t_terms), added, gain, ok, reason)
+        return fit, trial, t_meas, t_cfg, t_terms
+
+    double_sided = bool(np.any(np.asarray(board.faces) < 0))
+    queue = selfcal.candidate_groups(b, double_sided, bool(pg.model_error))
+    # a group that a wrong model elsewhere hid (the back sheet judged through an undistorted
+    # lens) is tried once more after a later group was accepted
+    for _ in range(2):
+        rejected, retry = [], False
+        for group in queue:
+            tried = [try_level(selfcal.extend(level, step)) for step in group
+                     if selfcal.extend(level, step) != level]
+            good = [t for t in tried if t[0].accepted]
+            best = None
+            for t in good:
+                if best is None or selfcal.better(t[0], best[0]):
+                    best = t
+            fits += [t[0] if best is None or t is best else
+                     replace(t[0], accepted=False,
+                             reason=t[0].reason + "; another model fits better")
+                     for t in tried]
+            if best is None:
+                rejected.append(group)
                 continue
-            n_cams = len({m.camera for m in t_meas} - set(fixed_cameras or {}))
-            added = (selfcal.BOARD_PARAMETERS if trial_level.board and not level.board
-                     else 0) + (len(trial_level.intrinsics_params)
-                                - len(level.intrinsics_params)) * n_cams
-            t_terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, cap)
-            ok, gain, reason = selfcal.compare(terms, len(current.T_ref_cam), t_terms,
-                                               len(trial.T_ref_cam), added)
-            if ok and trial_level.board and not level.board and trial.board is not None \
-                    and trial.board.held:
-                ok, reason = False, trial.board.held
-            tension = selfcal.prior_tension(trial, rig)
-            if ok and tension is not None and tension[0] > selfcal.PRIOR_TENSION:
-                # the data put a parameter several prior sigmas from rig.yaml: the prior is
-                # wrong (another camera's file, a re-focused lens), and would bias the value
-                # and the extrinsics towards it while the marginals stay small. Loosen it.
-                z, cam, name = tension
-                loose = selfcal.loosened(trial_level.bundle_config(b))
-                try:
-                    trial, t_meas, t_cfg = solve(loose, {**init_cam, **trial.T_ref_cam},
-                                                 {**init_board, **trial.T_ref_board}, True)
-                    t_terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, cap)
-                    reason += (f"; {name} of {cam} came {z:.1f} prior sigmas from rig.yaml: "
-                               f"priors loosened {selfcal.LOOSEN:.0f}x")
-                except (CalibrationError, RuntimeError, ValueError,
-                        np.linalg.LinAlgError) as exc:
-                    reason += f"; loosening the contradicted prior failed: {exc}"
-            fit = selfcal.LevelFit(trial_level, len(trial.T_ref_cam), len(trial.residuals_px),
-                                   selfcal.rms_px(t_terms), added, gain, ok, reason)
-            tried.append(fit)
-            if ok and (best is None or selfcal.better(fit, best[0])):
-                best = (fit, trial, t_meas, t_cfg, t_terms)
-        fits += [f if best is None or f is best[0] or not f.accepted else
-                 replace(f, accepted=False, reason=f.reason + "; another model fits better")
-                 for f in tried]
-        if best is not None:
             fit, current, meas, cfg, terms = best
-            level = fit.level
+            level, retry = fit.level, retry or bool(rejected)
+        if not retry:
+            break
+        queue = rejected
     return current, meas, cfg, selfcal.SelfCalibration(level, fits)
 
 
