@@ -296,6 +296,16 @@ def _no_shared_view(dataset: FolderDataset) -> CalibrationError:
     )
 
 
+def pose_edges(observations: list[BoardObservation], config: CalibrationConfig) -> list[PoseEdge]:
+    """The pose graph's edges, one ``T_cam_board`` per view in ``observations`` order (so a
+    residual's ``index`` names its edge), weighted by the PnP covariance unless
+    ``config.edge_covariance`` is off."""
+    return [
+        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance if config.edge_covariance else None)
+        for o in observations
+    ]
+
+
 def pose_graph(
     dataset: FolderDataset,
     observations: list[BoardObservation],
@@ -304,10 +314,7 @@ def pose_graph(
 ) -> PoseGraphResult:
     """The robust pose graph of the per-view board poses (edges weighted by their PnP
     covariance unless ``config.edge_covariance`` is off)."""
-    edges = [
-        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance if config.edge_covariance else None)
-        for o in observations
-    ]
+    edges = pose_edges(observations, config)
     pg = calibrate_pose_graph(edges, dataset.rig.reference, config.graph, fixed_cameras)
     if len(pg.cameras) < 2:
         raise _no_shared_view(dataset)
