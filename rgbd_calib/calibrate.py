@@ -234,7 +234,8 @@ def calibrate(
             # 7. checks: each pair's fit at the final extrinsics
             with timed(timings, "depth_check"):
                 depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},
-                                     config.depth)
+                                     config.depth,
+                                     start(progress, "checking depth pairs", len(depth.pairs)))
     _explain_dropped(rig.names, pg.cameras, cameras, unconnected)
     extrinsics = Extrinsics(
         rig.reference, {c: cameras[c] for c in rig.names if c in cameras}, unconnected
