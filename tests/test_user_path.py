@@ -1,0 +1,137 @@
+"""The user's path end to end: a real ``calibrate`` run whose every output is read back by the
+tool that consumes it, and whose console (not a terminal) shows progress, the verdict, the
+warnings and the report's path."""
+
+from __future__ import annotations
+
+import re
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import yaml
+from conftest import assert_transforms_close
+from test_exports import _launch_nodes
+from typer.testing import CliRunner
+
+from rgbd_calib.cli import app
+from rgbd_calib.exports import urdf_rpy_to_matrix
+from rgbd_calib.geometry import invert_transform, make_transform, quaternion_xyzw_to_matrix
+from rgbd_calib.results import load_extrinsics
+
+EXACT_MM, EXACT_DEG = 1e-6, 1e-5  # the same numbers written in another format
+# the thesis pose graph re-solved from the exported CSVs: another method on the same views
+POSEGRAPH_MM, POSEGRAPH_DEG = 5.0, 0.3
+
+
+def test_every_export_reads_back_with_its_consumer(tiny_calibration, tmp_path):
+    _, out, _ = tiny_calibration
+    ext = load_extrinsics(out / "extrinsics.yaml", check_redundant=True)
+    names = list(ext.cameras)
+    assert len(names) == 4 and ext.T_ref_cam(ext.reference).tolist() == np.eye(4).tolist()
+    exports = out / "exports"
+
+    # Kalibr: composing T_cn_cnm1 along the chain gives back T_ref_cam
+    chain = yaml.safe_load((exports / "camchain.yaml").read_text())
+    T_ref = np.eye(4)
+    for n, name in enumerate([ext.reference] + [c for c in names if c != ext.reference]):
+        if n:
+            T_ref = T_ref @ invert_transform(np.asarray(chain[f"cam{n}"]["T_cn_cnm1"]))
+        assert_transforms_close(T_ref, ext.T_ref_cam(name), EXACT_MM, EXACT_DEG)
+        assert chain[f"cam{n}"]["resolution"] == [640, 360]
+
+    # ROS 2 launch file and URDF: one transform per non-reference camera
+    launch = (exports / "static_transforms.launch.py").read_text()
+    compile(launch, "static_transforms.launch.py", "exec")
+    nodes = _launch_nodes(launch)
+    assert len(nodes) == 3
+    for args in nodes:
+        cam = args["--child-frame-id"].removesuffix("_color_optical_frame")
+        T = make_transform(quaternion_xyzw_to_matrix([float(args[k]) for k in
+                                                      ("--qx", "--qy", "--qz", "--qw")]),
+                           [float(args[k]) for k in ("--x", "--y", "--z")])
+        assert_transforms_close(T, ext.T_ref_cam(cam), EXACT_MM, EXACT_DEG)
+    joints = ET.parse(exports / "cameras.urdf").getroot().findall("joint")
+    assert len(joints) == 3
+    for joint in joints:
+        cam = joint.find("child").get("link").removesuffix("_color_optical_frame")
+        origin = joint.find("origin")
+        T = make_transform(urdf_rpy_to_matrix(origin.get("rpy").split()),
+                           [float(v) for v in origin.get("xyz").split()])
+        assert_transforms_close(T, ext.T_ref_cam(cam), EXACT_MM, EXACT_DEG)
+
+    # the thesis CSVs: rgbd-calib's own posegraph command accepts them and agrees
+    edge_rows = (exports / "Edges.csv").read_text().strip().splitlines()[1:]
+    assert len(edge_rows) >= 8
+    result = CliRunner().invoke(app, ["posegraph", str(exports / "Nodes.csv"),
+                                      str(exports / "Edges.csv"), "--out", str(tmp_path / "pg")])
+    assert result.exit_code == 0, result.output
+    again = load_extrinsics(tmp_path / "pg" / "extrinsics.yaml")
+    assert set(again.cameras) == set(names)
+    for name in names:
+        assert_transforms_close(again.T_ref_cam(name), ext.T_ref_cam(name), POSEGRAPH_MM,
+                                POSEGRAPH_DEG)
+
+    # g2o: GTSAM's reader finds every camera vertex and one edge per Edges.csv row
+    gtsam = pytest.importorskip("gtsam")
+    graph, values = gtsam.readG2o(str(exports / "posegraph.g2o"), True)
+    assert graph.size() == len(edge_rows)
+    for i, name in enumerate([ext.reference] + [c for c in names if c != ext.reference]):
+        assert np.allclose(values.atPose3(i).matrix(), ext.T_ref_cam(name), atol=1e-9)
+
+    # the other outputs: config, fused cloud, report.json rebuilt by `rgbd-calib report`
+    from rgbd_calib.config import load_config
+    from rgbd_calib.ply import read_ply
+
+    assert load_config(out / "config_resolved.yaml").method == "bundle"
+    points, _, _, cloud_names = read_ply(out / "fused.ply")
+    assert len(points) > 1000 and set(cloud_names) == set(names)
+    report = (out / "report.json").read_text()
+    result = CliRunner().invoke(app, ["report", str(out)])
+    assert result.exit_code == 0, result.output
+    assert (out / "report.json").read_text() == report
+
+
+def test_console_off_a_terminal_shows_progress_verdict_warnings_and_report(tiny_calibration):
+    _, out, text = tiny_calibration
+    lines = text.splitlines()
+    # progress as plain lines: each stage's start and end, with counts
+    for stage in ("detecting markers", "registering pairs", "checking depth pairs"):
+        assert any(re.match(rf"{stage}.*: \d+/\d+ done in [\d.]+ s$", ln) for ln in lines), stage
+    verdict = [i for i, ln in enumerate(lines) if ln.startswith("verdict: ")]
+    assert len(verdict) == 1
+    import json
+
+    report = json.loads((out / "report.json").read_text())
+    assert report["summary"]["verdict"].upper() in lines[verdict[0]]
+    found = report["warnings"]
+    shown = [ln for ln in lines[verdict[0] + 1:] if ln.split(":")[0] in ("error", "warning",
+                                                                          "info")]
+    assert len(shown) == len(found)  # one line each
+    ranks = [("error", "warning", "info").index(ln.split(":")[0]) for ln in shown]
+    assert ranks == sorted(ranks)  # worst first
+    assert f"report: {out / 'report.html'}" in lines
+    assert lines[-1].startswith(f"results in {out}/") and "fused.ply" in lines[-1]
+
+
+def test_plain_progress_lines_have_rate_and_eta():
+    from rgbd_calib.console import PlainProgress
+
+    now = [0.0]
+    lines: list[str] = []
+    progress = PlainProgress(lines.append, interval_s=10.0, clock=lambda: now[0])
+    tick = progress("detecting markers", 100, 20)
+    for _ in range(8):
+        now[0] += 5.0
+        tick(10)
+    assert lines == [
+        "detecting markers: 20/100 started",
+        "detecting markers: 40/100 (40%), 2.0/s, ETA 30 s",
+        "detecting markers: 60/100 (60%), 2.0/s, ETA 20 s",
+        "detecting markers: 80/100 (80%), 2.0/s, ETA 10 s",
+        "detecting markers: 100/100 done in 40.0 s",
+    ]
+    unknown = PlainProgress(lines.append, clock=lambda: now[0])("rendering", None)
+    now[0] += 20
+    unknown(4)
+    assert lines[-2:] == ["rendering: started", "rendering: 4 done, 0.2/s, 20 s"]
