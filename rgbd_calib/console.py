@@ -8,6 +8,7 @@ on a terminal (stderr); tables and notes are printed either way.
 from __future__ import annotations
 
 import contextlib
+import re
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -40,6 +41,10 @@ def progress_bar():
         console=console,
         disable=not sys.stderr.isatty(),
     )
+
+
+# every line PlainProgress writes (a log reader or a test can tell them from results and errors)
+PROGRESS_LINE = re.compile(r"^(?!error:)[^:\n]+: (started$|\d+/\d+ |\d+ done, )")
 
 
 class PlainProgress:

@@ -40,6 +40,7 @@ from typer.testing import CliRunner
 
 from rgbd_calib.board import thesis_board
 from rgbd_calib.cli import app
+from rgbd_calib.console import PROGRESS_LINE
 from rgbd_calib.geometry import transform_error
 from rgbd_calib.synth import load_ground_truth
 
@@ -130,7 +131,7 @@ def assert_one_line_failure(w: Work, code: int, text: str, names: str | Path,
                             row: tuple[str, str, str] | None = None) -> str:
     """Exit 2, one line naming ``names`` and saying what to do; the earlier result kept.
     ``row`` = (case, input, command) records the case for the doc table first."""
-    lines = text.strip().splitlines()
+    lines = [ln for ln in text.strip().splitlines() if not PROGRESS_LINE.match(ln)]
     if row is not None:
         record(*row, code, w.norm(" / ".join(lines)))
     assert code == 2, text
@@ -360,7 +361,7 @@ def test_no_library_chatter_on_stderr(clean, tmp_path, damage):
         capture_output=True, text=True, timeout=120)
     assert run.returncode == 2, run.stderr
     assert run.stdout == ""
-    lines = run.stderr.strip().splitlines()
+    lines = [ln for ln in run.stderr.strip().splitlines() if not PROGRESS_LINE.match(ln)]
     assert len(lines) == 1 and str(bad) in lines[0], run.stderr
 
 
@@ -872,7 +873,7 @@ def test_ctrl_c_leaves_earlier_results_and_resumes(clean, tmp_path):
     for run in (run1, run2):
         assert run.returncode == 130, run.stderr
         assert run.stdout == ""
-        lines = run.stderr.strip().splitlines()
+        lines = [ln for ln in run.stderr.strip().splitlines() if not PROGRESS_LINE.match(ln)]
         assert len(lines) == 1 and lines[0].startswith("interrupted"), run.stderr
         assert (w.out / "extrinsics.yaml").read_bytes() == w.earlier
         assert (w.out / "report.json").read_bytes() == w.earlier_report

@@ -115,7 +115,7 @@ def test_console_off_a_terminal_shows_progress_verdict_warnings_and_report(tiny_
 
 
 def test_plain_progress_lines_have_rate_and_eta():
-    from rgbd_calib.console import PlainProgress
+    from rgbd_calib.console import PROGRESS_LINE, PlainProgress
 
     now = [0.0]
     lines: list[str] = []
@@ -135,3 +135,8 @@ def test_plain_progress_lines_have_rate_and_eta():
     now[0] += 20
     unknown(4)
     assert lines[-2:] == ["rendering: started", "rendering: 4 done, 0.2/s, 20 s"]
+    # a log reader (and the one-line-error tests) can tell progress from everything else
+    assert all(PROGRESS_LINE.match(ln) for ln in lines)
+    for other in ("error: ds/rig.yaml: missing; write one", "verdict: GOOD: no warning",
+                  "report: out/report.html", "results in out/ (extrinsics.yaml)"):
+        assert not PROGRESS_LINE.match(other), other
