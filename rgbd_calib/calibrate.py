@@ -16,6 +16,7 @@ import copy
 import hashlib
 import json
 import os
+import sys
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -23,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from . import CallableModule
 from .board import Board
 from .camera import CameraIntrinsics
 from .config import CalibrationConfig, DetectionConfig, PoseConfig
@@ -44,6 +46,10 @@ from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measu
 from .results import CameraExtrinsics, Extrinsics, PoseEdge, cameras_from_solve
 from .rig import Rig
 from .yamlio import atomic_write_text
+
+# `from rgbd_calib import calibrate; calibrate(dataset, board)` calls the function below while
+# rgbd_calib.calibrate stays this module for every import of it (see rgbd_calib.CallableModule)
+sys.modules[__name__].__class__ = CallableModule
 
 CACHE_VERSION = 1
 # a flagged camera whose corners fit within 2x the rig's RMS once the board or intrinsics
@@ -133,6 +139,7 @@ def detect_dataset(
 
     workers = workers or os.cpu_count() or 1
     done_since_save = 0
+    executor = None
     try:
         if workers <= 1 or len(jobs) < 8:
             init_detector(board, config, threads=-1)

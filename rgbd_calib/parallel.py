@@ -3,14 +3,49 @@
 Forking a process that already runs library thread pools copies locks held by threads that do
 not exist in the child: OpenCV's ``setNumThreads`` then deadlocks in the child (seen in the test
 suite). Workers therefore start from a clean ``forkserver`` process.
+
+A worker started that way re-imports the script that started it (as Python's multiprocessing
+does for ``spawn`` and ``forkserver``): a script that calls the library at import time, without
+an ``if __name__ == "__main__":`` guard, would calibrate again in every worker, which fails with
+a long ``BrokenProcessPool`` traceback. :func:`process_context` stops that with one clear line.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import sys
 from multiprocessing.context import BaseContext
+from pathlib import Path
+
+from .errors import ConfigError
+
+GUARD = 'if __name__ == "__main__":'
+
+
+def check_entry_point() -> None:
+    """Refuse to start worker processes from a script without a ``__main__`` guard.
+
+    In a worker that is still re-importing the script (the script called the library at import
+    time anyway), exit quietly: the parent reports it. In the parent, a ``.py`` main script
+    whose text has no ``__main__`` at all is refused before any worker starts."""
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        raise SystemExit(1)
+    path = getattr(sys.modules.get("__main__"), "__file__", None)
+    if not path or not str(path).endswith(".py"):
+        return  # interactive, python -c, a notebook, a frozen entry point
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return
+    if "__main__" not in text:
+        raise ConfigError(
+            f"{path}: calls rgbd-calib at import time, but its worker processes re-import this "
+            f"script; put the calls in a function called under `{GUARD}` (README, Library use)"
+        )
 
 
 def process_context() -> BaseContext:
-    """The multiprocessing context every pool of the package uses."""
+    """The multiprocessing context every pool of the package uses (after
+    :func:`check_entry_point`)."""
+    check_entry_point()
     return multiprocessing.get_context("forkserver")

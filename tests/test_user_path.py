@@ -140,3 +140,72 @@ def test_plain_progress_lines_have_rate_and_eta():
     for other in ("error: ds/rig.yaml: missing; write one", "verdict: GOOD: no warning",
                   "report: out/report.html", "results in out/ (extrinsics.yaml)"):
         assert not PROGRESS_LINE.match(other), other
+
+
+def test_readme_library_example_runs_as_written(tiny_dataset, tmp_path):
+    """The README's ``## Library use`` snippet, run as a script from a clone's root (its
+    configs/ linked in), calibrates and writes the outputs. Its dataset is the session's
+    :func:`tiny_dataset`, rendered with the snippet's own ``synthesize`` arguments, so the
+    snippet skips that step here."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    from conftest import CONFIGS, REPO
+
+    readme = (REPO / "README.md").read_text()
+    section = readme.split("## Library use", 1)[1]
+    snippet = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    (tmp_path / "configs").symlink_to(CONFIGS)
+    (tmp_path / "example.py").write_text(snippet)
+    assert 'synthesize(data, "thesis-line", 4, 0, thesis_board(), SynthParams(resolution=(640, ' \
+        '360)))' in snippet  # what tiny_dataset renders
+    shutil.copytree(tiny_dataset, tmp_path / "example_dataset")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), *sys.path])}
+    run = subprocess.run([sys.executable, "example.py"], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=300, check=False)
+    assert run.returncode == 0, run.stderr
+    assert [ln.split(":")[0] for ln in run.stdout.splitlines()] == ["cam7", "cam8", "cam9",
+                                                                    "cam10"]
+    assert load_extrinsics(tmp_path / "example_out" / "extrinsics.yaml").reference == "cam7"
+
+
+def test_script_without_main_guard_fails_with_one_line(tmp_path):
+    """A script that calls the library at import time is refused before any worker starts,
+    with one line naming the script and the fix (instead of a BrokenProcessPool traceback)."""
+    import os
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    script = tmp_path / "noguard.py"
+    script.write_text("from rgbd_calib.parallel import process_context\n"
+                      "from rgbd_calib import RgbdCalibError\n"
+                      "try:\n    process_context()\n"
+                      "except RgbdCalibError as exc:\n    print(exc)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), *sys.path])}
+    run = subprocess.run([sys.executable, str(script)], env=env, capture_output=True,
+                         text=True, timeout=60, check=False)
+    assert run.returncode == 0, run.stderr
+    assert len(run.stdout.splitlines()) == 1
+    assert str(script) in run.stdout and 'if __name__ == "__main__":' in run.stdout
+
+
+def test_public_api_keeps_the_calibrate_module_importable():
+    import importlib
+
+    import rgbd_calib
+    from rgbd_calib import CalibrationConfig, FolderDataset, calibrate, load_board, write_outputs
+
+    module = importlib.import_module("rgbd_calib.calibrate")
+    assert calibrate is module is rgbd_calib.calibrate  # the module, and callable
+    assert callable(calibrate) and module.calibrate.__name__ == "calibrate"
+    assert FolderDataset.__module__ == "rgbd_calib.dataset"
+    assert load_board.__name__ == "load_board" and write_outputs.__name__ == "write_outputs"
+    assert CalibrationConfig().method == "bundle"
+    assert set(rgbd_calib.__all__) >= {"calibrate", "FolderDataset", "load_board",
+                                       "CalibrationConfig", "write_outputs"}
+    for name in rgbd_calib.__all__:
+        assert getattr(rgbd_calib, name) is not None, name
