@@ -55,7 +55,8 @@ E2E_MM, E2E_DEG = 1.0, 0.05
 # closing question ("is this the dataset folder?")
 ADVICE = re.compile(
     r"; (?:[^;]* )?(check|fix|use|add|choose|re-export|record|keep|set|align|export|list|"
-    r"move|delete|remove|give|edit|re-run|run|copy|write|rename)\b|\?$"
+    r"move|delete|remove|give|edit|re-run|run|copy|write|rename)\b"
+    r"|\?( \(format: docs/formats\.md#[a-z0-9-]+\))?$"  # a question, then the format's section
 )
 
 ROWS: dict[str, tuple[str, str, str, str]] = {}  # case -> (input, command, exit, user sees)

@@ -209,3 +209,43 @@ def test_public_api_keeps_the_calibrate_module_importable():
                                        "CalibrationConfig", "write_outputs"}
     for name in rgbd_calib.__all__:
         assert getattr(rgbd_calib, name) is not None, name
+
+
+def _anchors(markdown: str) -> set[str]:
+    """GitHub's anchors of a markdown file's headings."""
+    out = set()
+    for line in markdown.splitlines():
+        if line.startswith("#"):
+            title = line.lstrip("#").strip().lower()
+            out.add("#" + re.sub(r"[^a-z0-9 _-]", "", title).replace(" ", "-"))
+    return out
+
+
+def test_errors_about_a_format_link_its_section_of_docs_formats_md(tmp_path):
+    from conftest import REPO
+
+    from rgbd_calib.board import load_board
+    from rgbd_calib.dataset import FolderDataset
+    from rgbd_calib.errors import RgbdCalibError
+    from rgbd_calib.posegraph_csv import read_edges_csv
+    from rgbd_calib.rig import load_rig
+
+    anchors = _anchors((REPO / "docs" / "formats.md").read_text())
+    (tmp_path / "rig.yaml").write_text("cameras: []\n")
+    (tmp_path / "board.yaml").write_text("dictionary: DICT_4X4_100\nthickness: 0.005\n")
+    (tmp_path / "extrinsics.yaml").write_text("cameras: {}\n")
+    (tmp_path / "Edges.csv").write_text("Cam,Node ID,tx,ty,tz,qx,qy,qz,qw\n")
+    (tmp_path / "ds").mkdir()
+    cases = {
+        "#rigyaml": lambda: load_rig(tmp_path / "rig.yaml"),
+        "#board-file-added": lambda: load_board(tmp_path / "board.yaml"),
+        "#calibration-output": lambda: load_extrinsics(tmp_path / "extrinsics.yaml"),
+        "#thesis-pose-graph-csvs": lambda: read_edges_csv(tmp_path / "Edges.csv"),
+        "#recorded-rgb-d-set-folder-form": lambda: FolderDataset(tmp_path / "nowhere"),
+    }
+    for section, fail in cases.items():
+        assert section in anchors, section
+        with pytest.raises(RgbdCalibError) as err:
+            fail()
+        assert str(err.value).count("docs/formats.md") == 1, str(err.value)
+        assert f"docs/formats.md{section}" in str(err.value), str(err.value)
