@@ -27,6 +27,32 @@ app = typer.Typer(
 )
 
 
+class _PlainHelpCommand(typer.core.TyperCommand):
+    """``--help`` with click's plain type names (PATH, INT, PATH...) instead of typer's
+    ``<path>``, ``<list[Path]>``, and nothing for on/off flags (typer shows ``<bool>``)."""
+
+    def get_params(self, ctx):
+        params = super().get_params(ctx)
+        for param in params:
+            if getattr(param, "metavar", None) is None:
+                param.display_type_rich = functools.partial(_plain_type, param)
+        return params
+
+
+def _plain_type(param, ctx) -> str | None:
+    if getattr(param, "is_flag", False):
+        return None
+    label = type(param).display_type_rich(param, ctx) or ""
+    label = label.strip("<>")
+    many = label.startswith("list[")
+    label = label.removeprefix("list[").removesuffix("]").removesuffix("...")
+    label = {"str": "TEXT", "float": "NUMBER"}.get(label.lower(), label.upper())
+    return label + ("..." if many else "")
+
+
+command = functools.partial(app.command, cls=_PlainHelpCommand)
+
+
 def _version(value: bool) -> None:
     if value:
         typer.echo(f"rgbd-calib {__version__}")
@@ -131,7 +157,7 @@ def _parse_resolution(text: str | None) -> tuple[int, int] | None:
     return w, h
 
 
-@app.command()
+@command()
 @user_errors
 def board(
     board_file: Annotated[Path, typer.Argument(help="Board YAML (grid or explicit form).")],
@@ -158,7 +184,7 @@ def board(
         typer.echo(path)
 
 
-@app.command()
+@command()
 @user_errors
 def synth(
     out: Annotated[
@@ -307,7 +333,7 @@ def _open_dataset(sources: list[Path], out: Path, names: str | None, sync_tolera
     return FolderDataset(folder)
 
 
-@app.command()
+@command()
 @user_errors
 def calibrate(
     dataset: Annotated[
@@ -475,7 +501,7 @@ def _print_summary(result, out: Path, verdict: bool = True) -> None:
         print_verdict(out)
 
 
-@app.command()
+@command()
 @user_errors
 def refine(
     dataset: Annotated[
@@ -520,7 +546,7 @@ def refine(
     console.print(f"results in {out}/ (extrinsics.yaml, refine_report.json, fused.ply)")
 
 
-@app.command()
+@command()
 @user_errors
 def report(
     out: Annotated[Path, typer.Argument(help="Output folder of an earlier calibrate run.")],
@@ -533,7 +559,7 @@ def report(
     console.print(f"report: {path}")
 
 
-@app.command()
+@command()
 @user_errors
 def posegraph(
     nodes: Annotated[Path, typer.Argument(help="Thesis Nodes.csv (initial guesses).")],
@@ -570,7 +596,7 @@ def posegraph(
     console.print(f"results in {out}/ (extrinsics.yaml, posegraph_report.json, exports/)")
 
 
-@app.command()
+@command()
 @user_errors
 def demo(
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("demo_out"),
@@ -631,7 +657,7 @@ DEMO_GOOD_MM = 1.0
 DEMO_GOOD_DEG = 0.05
 
 
-@app.command()
+@command()
 @user_errors
 def convert(
     sources: Annotated[
@@ -660,7 +686,7 @@ def convert(
     cli_convert(sources, out, _name_list(names), sync_tolerance_ms)
 
 
-@app.command()
+@command()
 @user_errors
 def record(
     out: Annotated[Path, typer.Option("--out", help="Dataset folder to write.")],

@@ -249,3 +249,25 @@ def test_errors_about_a_format_link_its_section_of_docs_formats_md(tmp_path):
             fail()
         assert str(err.value).count("docs/formats.md") == 1, str(err.value)
         assert f"docs/formats.md{section}" in str(err.value), str(err.value)
+
+
+def test_help_shows_plain_types_not_python_annotations():
+    runner = CliRunner()
+    for cmd in ("calibrate", "board", "synth", "demo", "posegraph", "record", "refine"):
+        result = runner.invoke(app, [cmd, "--help"], env={"COLUMNS": "200"})
+        assert result.exit_code == 0, result.output
+        for raw in ("<bool>", "<list[", "<path>", "<str>", "<int>"):
+            assert raw not in result.output, (cmd, raw)
+    text = runner.invoke(app, ["calibrate", "--help"], env={"COLUMNS": "200"}).output
+    assert "PATH..." in text and "INT" in text
+
+
+def test_side_view_labels_of_close_cameras_are_stacked():
+    from rgbd_calib.report.figures import label_row
+
+    placed: list[tuple[float, float]] = []
+    rows = []
+    for anchor in [(0.0, 1.0), (0.01, 1.0), (0.02, 1.01), (2.0, 1.0)]:  # 3 close, 1 far
+        rows.append(label_row(anchor, placed, size=3.0))
+        placed.append(anchor)
+    assert rows == [0, 1, 2, 0]
