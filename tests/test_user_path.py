@@ -271,3 +271,48 @@ def test_side_view_labels_of_close_cameras_are_stacked():
         rows.append(label_row(anchor, placed, size=3.0))
         placed.append(anchor)
     assert rows == [0, 1, 2, 0]
+
+
+def test_unity_and_open3d_exports_read_back(tiny_calibration):
+    """Open3D's own readers take the Open3D files; the Unity poses convert back exactly."""
+    import json
+
+    from rgbd_calib.exports import UNITY_FROM_OPENCV
+    from rgbd_calib.rig import load_rig
+
+    dataset, out, _ = tiny_calibration
+    ext = load_extrinsics(out / "extrinsics.yaml")
+    rig = load_rig(dataset / "rig.yaml")
+    names = [ext.reference] + [c for c in ext.cameras if c != ext.reference]
+    S = UNITY_FROM_OPENCV
+
+    unity = json.loads((out / "exports" / "unity_cameras.json").read_text())
+    for name in names:
+        cam = unity["cameras"][name]
+        R_unity = quaternion_xyzw_to_matrix(cam["rotation_xyzw"])
+        T = make_transform(S @ R_unity @ S, S @ np.asarray(cam["position"]))
+        assert_transforms_close(T, ext.T_ref_cam(name), EXACT_MM, EXACT_DEG)
+        # a point 1 m in front of the camera is 1 m along the Unity camera's forward (+z)
+        ahead = ext.T_ref_cam(name) @ [0, 0, 1, 1]
+        assert np.allclose(S @ ahead[:3], cam["position"] + R_unity @ [0, 0, 1], atol=1e-9)
+    assert np.allclose(unity["cameras"][ext.reference]["rotation_xyzw"], [0, 0, 0, 1])
+
+    o3d = pytest.importorskip("open3d")
+    for name in names:
+        params = o3d.io.read_pinhole_camera_parameters(
+            str(out / "exports" / "open3d" / f"{name}.json"))
+        np.testing.assert_allclose(params.extrinsic, invert_transform(ext.T_ref_cam(name)),
+                                   atol=1e-12)
+        np.testing.assert_allclose(params.intrinsic.intrinsic_matrix, rig.cameras[name].K)
+        assert (params.intrinsic.width, params.intrinsic.height) == (640, 360)
+    trajectory = o3d.io.read_pinhole_camera_trajectory(
+        str(out / "exports" / "open3d" / "cameras.json"))
+    assert len(trajectory.parameters) == len(names)
+    graph = o3d.io.read_pose_graph(str(out / "exports" / "open3d" / "posegraph.json"))
+    assert len(graph.nodes) == len(names) and len(graph.edges) == len(names) - 1
+    for i, name in enumerate(names):
+        np.testing.assert_allclose(graph.nodes[i].pose, ext.T_ref_cam(name), atol=1e-12)
+    for edge in graph.edges:  # source -> target (the reference) is the source's pose
+        np.testing.assert_allclose(edge.transformation, graph.nodes[edge.source_node_id].pose,
+                                   atol=1e-12)
+        assert edge.target_node_id == 0 and np.all(np.linalg.eigvalsh(edge.information) > 0)
