@@ -101,7 +101,7 @@ class Extrinsics:
 
 
 EXTRINSICS_HEADER = """rgbd-calib extrinsics (docs/formats.md, "Calibration output").
-T_ref_cam maps points of a camera's frame into the reference camera's frame: p_ref = T_ref_cam @ p_cam.
+T_ref_cam maps a camera's points into the reference camera's frame: p_ref = T_ref_cam @ p_cam.
 Camera frame: the OpenCV optical frame of the colour sensor (x right, y down, z forward).
 Units: metres; quaternion_xyzw is the rotation of T_ref_cam; sigmas are 1-sigma marginals."""
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,16 @@ from rgbd_calib.geometry import transform_error
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = REPO / "configs"
 SHARED = REPO.parent / "shared"
-SHARED_DATA = SHARED / "data"
+# the project's shared recordings (thesis pose graph, a RealSense bag): not in the repository;
+# RGBD_CALIB_SHARED_DATA points to them, default ../shared/data beside the clone
+SHARED_DATA_ENV = "RGBD_CALIB_SHARED_DATA"
+SHARED_DATA = Path(os.environ.get(SHARED_DATA_ENV) or SHARED / "data")
+
+
+def shared_data_missing(name: str) -> str:
+    """Skip reason for a test that needs ``SHARED_DATA / name``."""
+    return (f"shared data {name!r} not found; set {SHARED_DATA_ENV} to the folder that holds "
+            f"it (default ../shared/data beside the clone)")
 
 
 @pytest.fixture
