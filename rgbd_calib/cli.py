@@ -606,23 +606,21 @@ def demo(
     frames: Annotated[int, typer.Option(help="Frame sets to render.")] = 16,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
 ) -> None:
-    """Render a small synthetic rig, calibrate it and compare with its ground truth."""
-    import shutil
-
+    """Render a small synthetic rig, calibrate it and compare with its ground truth (a re-run
+    with the same options reuses the render and the detections)."""
     from .board import thesis_board
     from .dataset import FolderDataset
     from .geometry import transform_error
-    from .synth import SynthParams, load_ground_truth, synthesize
+    from .synth import SynthParams, load_ground_truth, synthesize_cached
 
     _check_output_folder(out)
     _workers_ignore_ctrl_c()
-    dataset = out / "dataset"
-    if dataset.exists():
-        shutil.rmtree(dataset)
     b = thesis_board()
     with stage_progress() as progress:
-        synthesize(dataset, layout, frames, seed, b, SynthParams(depth_bias=0.004),
-                   progress=progress)
+        dataset, reused = synthesize_cached(out / "dataset", layout, frames, seed, b,
+                                            SynthParams(depth_bias=0.004), progress=progress)
+    if reused:
+        console.print(f"reusing the rendered rig in {dataset}/ (same options)", highlight=False)
     ds = FolderDataset(dataset)
     result = _calibrate_and_write(ds, b, None, out / "calibration")
     _print_summary(result, out / "calibration", verdict=False)

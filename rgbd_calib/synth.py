@@ -855,6 +855,58 @@ def synthesize(
     return SynthDataset(out, rig, poses)
 
 
+RENDER_KEY = "render_key.json"  # beside a cached render: what it was rendered from
+
+
+def render_key(layout: str, n_frames: int, seed: int, board: Board, params: SynthParams) -> str:
+    """What a render depends on: its arguments and the renderer's own source (so a changed
+    renderer renders again), as a short hash."""
+    import hashlib
+    import json
+
+    here = Path(__file__).parent
+    sources = [(here / f).read_bytes() for f in ("synth.py", "scene.py", "camera.py")]
+    args = json.dumps([layout, n_frames, seed, board.to_dict(), repr(params)], default=str)
+    digest = hashlib.sha256(args.encode())
+    for src in sources:
+        digest.update(src)
+    return digest.hexdigest()[:16]
+
+
+def synthesize_cached(
+    out: Path,
+    layout: str,
+    n_frames: int,
+    seed: int,
+    board: Board,
+    params: SynthParams = SynthParams(),
+    workers: int | None = None,
+    progress: Progress | None = None,
+) -> tuple[Path, bool]:
+    """:func:`synthesize` into ``out`` unless ``out`` already holds the same render (same
+    arguments, same renderer: :func:`render_key`, kept in ``out``'s sibling
+    ``<out>.render_key.json``); returns ``(out, reused)``. A reused render keeps its files'
+    times, so a calibration's detection cache stays valid too."""
+    import json
+    import shutil
+
+    out = Path(out)
+    key_file = out.with_name(out.name + "." + RENDER_KEY)
+    key = render_key(layout, n_frames, seed, board, params)
+    try:
+        cached = json.loads(key_file.read_text()).get("key")
+    except (OSError, ValueError, AttributeError):
+        cached = None
+    if cached == key and (out / "ground_truth.yaml").is_file():
+        return out, True
+    key_file.unlink(missing_ok=True)
+    if out.exists():
+        shutil.rmtree(out)
+    synthesize(out, layout, n_frames, seed, board, params, workers, progress)
+    key_file.write_text(json.dumps({"key": key}) + "\n")
+    return out, False
+
+
 @dataclass(frozen=True)
 class GroundTruth:
     """``ground_truth.yaml`` of a synthetic set (never read by the calibration itself).

@@ -316,3 +316,28 @@ def test_unity_and_open3d_exports_read_back(tiny_calibration):
         np.testing.assert_allclose(edge.transformation, graph.nodes[edge.source_node_id].pose,
                                    atol=1e-12)
         assert edge.target_node_id == 0 and np.all(np.linalg.eigvalsh(edge.information) > 0)
+
+
+def test_a_second_render_with_the_same_options_is_reused(tmp_path, monkeypatch):
+    """The demo's render is cached like the detections: same options and renderer, no
+    render (the renderer is replaced by a stub that records its calls)."""
+    import rgbd_calib.synth as synth
+    from rgbd_calib.board import thesis_board
+
+    renders = []
+
+    def fake_synthesize(out, layout, n_frames, seed, board, params, workers, progress):
+        renders.append(seed)
+        out.mkdir(parents=True)
+        (out / "ground_truth.yaml").write_text(f"seed: {seed}\n")
+
+    monkeypatch.setattr(synth, "synthesize", fake_synthesize)
+    params = synth.SynthParams(depth_bias=0.004)
+    out = tmp_path / "dataset"
+    for seed, reused in ((0, False), (0, True), (1, False), (1, True)):
+        path, was = synth.synthesize_cached(out, "race", 16, seed, thesis_board(), params)
+        assert path == out and was == reused, seed
+    assert renders == [0, 1] and (out / "ground_truth.yaml").read_text() == "seed: 1\n"
+    other = synth.SynthParams(depth_bias=0.005)
+    assert synth.render_key("race", 16, 1, thesis_board(), other) != synth.render_key(
+        "race", 16, 1, thesis_board(), params)
