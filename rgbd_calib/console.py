@@ -141,22 +141,22 @@ def verdict_lines(report: dict) -> list[tuple[str, str]]:
 
 
 def print_verdict(out: Path) -> None:
-    """Print the verdict and warnings of ``out/report.json`` and where the report, the fused
-    cloud and the extrinsics are."""
+    """Print where the results are, then the verdict and warnings of ``out/report.json``, and
+    last the path of ``report.html``."""
     import json
 
     from rich.markup import escape
 
     report = json.loads((Path(out) / "report.json").read_text())
+    extras = [n for n in ("fused.ply", "rig_refined.yaml", "board_refined.yaml")
+              if (Path(out) / n).exists()]
+    files = ", ".join(["extrinsics.yaml", "report.json", *extras, "exports/"])
+    console.print(f"results in {out}/ ({files})", highlight=False, soft_wrap=True)
     for style, text in verdict_lines(report):
         head, _, rest = text.partition(":")
         console.print(f"[{style}]{escape(head)}:[/]{escape(rest)}" if style else escape(text),
                       highlight=False, soft_wrap=True)
     console.print(f"report: {Path(out) / 'report.html'}", highlight=False, soft_wrap=True)
-    extras = [n for n in ("fused.ply", "rig_refined.yaml", "board_refined.yaml")
-              if (Path(out) / n).exists()]
-    files = ", ".join(["extrinsics.yaml", "report.json", *extras, "exports/"])
-    console.print(f"results in {out}/ ({files})", highlight=False, soft_wrap=True)
 
 
 # --------------------------------------------------------------------------- convert
