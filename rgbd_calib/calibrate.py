@@ -17,7 +17,6 @@ import hashlib
 import json
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -39,7 +38,7 @@ from .graph import (
     bundle_adjust,
     calibrate_pose_graph,
 )
-from .parallel import process_context
+from .parallel import WorkerPool
 from .pose import BoardObservation, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
 from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
@@ -146,9 +145,8 @@ def detect_dataset(
             iterator = map(detect_job, jobs)
             executor = None
         else:
-            executor = ProcessPoolExecutor(
+            executor = WorkerPool(
                 workers,
-                mp_context=process_context(),
                 initializer=init_detector,
                 initargs=(board, config),
             )

@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import multiprocessing
 import sys
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from multiprocessing.context import BaseContext
 from pathlib import Path
 
-from .errors import ConfigError
+from .errors import ConfigError, RgbdCalibError
 
 GUARD = 'if __name__ == "__main__":'
 
@@ -49,3 +52,27 @@ def process_context() -> BaseContext:
     :func:`check_entry_point`)."""
     check_entry_point()
     return multiprocessing.get_context("forkserver")
+
+
+class WorkerPool(ProcessPoolExecutor):
+    """The package's process pool: :func:`process_context` workers, and a worker that dies
+    (the script re-imported without its guard, or the system out of memory) is one clear
+    error instead of a ``BrokenProcessPool`` traceback."""
+
+    def __init__(self, max_workers: int | None = None, **kwargs) -> None:
+        super().__init__(max_workers, mp_context=process_context(), **kwargs)
+
+    def map(self, fn, *iterables, timeout=None, chunksize=1) -> Iterator:
+        results = super().map(fn, *iterables, timeout=timeout, chunksize=chunksize)
+
+        def explained() -> Iterator:
+            try:
+                yield from results
+            except BrokenProcessPool:
+                raise RgbdCalibError(
+                    "a worker process stopped: when this runs from a script, put its calls "
+                    f"in a function called under `{GUARD}` (README, Library use); otherwise "
+                    "the machine may be out of memory: use fewer workers"
+                ) from None
+
+        return explained()

@@ -21,7 +21,6 @@ Pure numpy rendering; cv2 only filters images. Written by :class:`~rgbd_calib.da
 from __future__ import annotations
 
 import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -40,7 +39,7 @@ from .geometry import (
     rotvec_to_matrix,
     transform_points,
 )
-from .parallel import process_context
+from .parallel import WorkerPool
 from .progress import Progress, start
 from .rig import Rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
@@ -803,7 +802,7 @@ def synthesize(
         if workers <= 1:
             backgrounds = [render_background(rig.scene, cam) for cam in rig.cameras]
         else:
-            with ProcessPoolExecutor(workers, mp_context=process_context()) as ex:
+            with WorkerPool(workers) as ex:
                 backgrounds = list(
                     ex.map(render_background, [rig.scene] * len(rig.cameras), rig.cameras)
                 )
@@ -824,9 +823,7 @@ def synthesize(
                 _render_frame(job)
                 tick(1)
         else:
-            with ProcessPoolExecutor(
-                workers, mp_context=process_context(), initializer=_init_worker, initargs=(state,)
-            ) as ex:
+            with WorkerPool(workers, initializer=_init_worker, initargs=(state,)) as ex:
                 for _ in ex.map(_render_frame, jobs, chunksize=1):
                     tick(1)
         T_world_ref = rig.cameras[rig.reference_index].T_world_cam

@@ -342,3 +342,32 @@ def test_a_second_render_with_the_same_options_is_reused(tmp_path, monkeypatch):
     other = synth.SynthParams(depth_bias=0.005)
     assert synth.render_key("race", 16, 1, thesis_board(), other) != synth.render_key(
         "race", 16, 1, thesis_board(), params)
+
+
+def test_script_calling_at_import_time_despite_a_guard_word_gets_one_clear_error(tmp_path):
+    """A script whose text mentions __main__ but still starts the pool at import time: the
+    re-imported copies in the workers stop quietly and the parent gets one clear error."""
+    import os
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    script = tmp_path / "halfguard.py"
+    script.write_text("# __main__ is mentioned, yet the pool starts at import time\n"
+                      "from rgbd_calib import RgbdCalibError\n"
+                      "from rgbd_calib.parallel import WorkerPool\n"
+                      "try:\n"
+                      "    with WorkerPool(2) as pool:\n"
+                      "        print(list(pool.map(abs, [1, -2, 3, -4])))\n"
+                      "except RgbdCalibError as exc:\n"
+                      "    print('ERROR', exc)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), *sys.path])}
+    run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=120, check=False)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("ERROR a worker process stopped") and GUARD_TEXT in run.stdout
+    assert "Traceback" not in run.stderr, run.stderr
+
+
+GUARD_TEXT = 'if __name__ == "__main__":'
