@@ -16,14 +16,14 @@ import copy
 import hashlib
 import json
 import os
-from concurrent.futures import ProcessPoolExecutor
+import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from . import selfcal
+from . import CallableModule, selfcal
 from .board import Board, refined_board
 from .camera import CameraIntrinsics
 from .config import BundleConfig, CalibrationConfig, DetectionConfig, PoseConfig
@@ -38,7 +38,7 @@ from .graph import (
     bundle_adjust,
     calibrate_pose_graph,
 )
-from .parallel import process_context
+from .parallel import WorkerPool
 from .pose import BoardObservation, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
 from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
@@ -46,6 +46,10 @@ from .results import CameraExtrinsics, Extrinsics, PoseEdge, cameras_from_solve
 from .rig import Rig
 from .selfcal import SelfCalibration
 from .yamlio import atomic_write_text
+
+# `from rgbd_calib import calibrate; calibrate(dataset, board)` calls the function below while
+# rgbd_calib.calibrate stays this module for every import of it (see rgbd_calib.CallableModule)
+sys.modules[__name__].__class__ = CallableModule
 
 CACHE_VERSION = 1
 # a flagged camera whose corners fit within 2x the rig's RMS once the board or intrinsics
@@ -151,15 +155,15 @@ def detect_dataset(
 
     workers = workers or os.cpu_count() or 1
     done_since_save = 0
+    executor = None
     try:
         if workers <= 1 or len(jobs) < 8:
             init_detector(board, config, threads=-1)
             iterator = map(detect_job, jobs)
             executor = None
         else:
-            executor = ProcessPoolExecutor(
+            executor = WorkerPool(
                 workers,
-                mp_context=process_context(),
                 initializer=init_detector,
                 initargs=(board, config),
             )
@@ -269,7 +273,8 @@ def calibrate(
             # 7. checks: each pair's fit at the final extrinsics
             with timed(timings, "depth_check"):
                 depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},
-                                     config.depth)
+                                     config.depth,
+                                     start(progress, "checking depth pairs", len(depth.pairs)))
     _explain_dropped(rig.names, pg.cameras, cameras, unconnected)
     extrinsics = Extrinsics(
         rig.reference, {c: cameras[c] for c in rig.names if c in cameras}, unconnected
@@ -331,6 +336,16 @@ def _no_shared_view(dataset: FolderDataset) -> CalibrationError:
     )
 
 
+def pose_edges(observations: list[BoardObservation], config: CalibrationConfig) -> list[PoseEdge]:
+    """The pose graph's edges, one ``T_cam_board`` per view in ``observations`` order (so a
+    residual's ``index`` names its edge), weighted by the PnP covariance unless
+    ``config.edge_covariance`` is off."""
+    return [
+        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance if config.edge_covariance else None)
+        for o in observations
+    ]
+
+
 def pose_graph(
     dataset: FolderDataset,
     observations: list[BoardObservation],
@@ -339,10 +354,7 @@ def pose_graph(
 ) -> PoseGraphResult:
     """The robust pose graph of the per-view board poses (edges weighted by their PnP
     covariance unless ``config.edge_covariance`` is off)."""
-    edges = [
-        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance if config.edge_covariance else None)
-        for o in observations
-    ]
+    edges = pose_edges(observations, config)
     pg = calibrate_pose_graph(edges, dataset.rig.reference, config.graph, fixed_cameras)
     if len(pg.cameras) < 2:
         raise _no_shared_view(dataset)

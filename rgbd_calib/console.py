@@ -8,6 +8,7 @@ on a terminal (stderr); tables and notes are printed either way.
 from __future__ import annotations
 
 import contextlib
+import re
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -42,10 +43,67 @@ def progress_bar():
     )
 
 
+# every line PlainProgress writes (a log reader or a test can tell them from results and errors)
+PROGRESS_LINE = re.compile(r"^(?!error:)[^:\n]+: (started$|\d+/\d+ |\d+ done, )")
+
+
+class PlainProgress:
+    """The progress protocol as plain lines, for a log file or a pipe (CI, nohup, ssh):
+    ``stage: done/total (pct), rate/s, ETA`` when a stage starts, at most every
+    ``interval_s`` seconds while it runs, and ``stage: total/total done in T s`` when it ends
+    (``total`` None: counts and rate only)."""
+
+    def __init__(self, write=None, interval_s: float = 10.0, clock=None) -> None:
+        import time
+
+        self.write = write or (lambda line: print(line, file=sys.stderr, flush=True))
+        self.interval_s = interval_s
+        self.clock = clock or time.monotonic
+
+    def __call__(self, label: str, total: int | None, done: int = 0):
+        start_done, t0 = done, self.clock()
+        state = {"done": done, "last": t0}
+
+        def line(now: float) -> str:
+            n = state["done"]
+            elapsed = now - t0
+            rate = (n - start_done) / elapsed if elapsed > 0 else 0.0
+            if total is None:
+                return f"{label}: {n} done, {rate:.1f}/s, {elapsed:.0f} s"
+            if n >= total:
+                return f"{label}: {n}/{total} done in {elapsed:.1f} s"
+            eta = f"ETA {(total - n) / rate:.0f} s" if rate > 0 else "ETA unknown"
+            pct = 100.0 * n / total if total else 100.0
+            return f"{label}: {n}/{total} ({pct:.0f}%), {rate:.1f}/s, {eta}"
+
+        if total is None:
+            self.write(f"{label}: started")
+        elif done >= total:
+            self.write(f"{label}: {done}/{total} (nothing to do)" if not total
+                       else f"{label}: {done}/{total} already done (cached)")
+        else:
+            self.write(f"{label}: {done}/{total} started")
+
+        def tick(n: int = 1) -> None:
+            before = state["done"]
+            state["done"] += n
+            now = self.clock()
+            finished = total is not None and before < total <= state["done"]
+            if finished or now - state["last"] >= self.interval_s:
+                state["last"] = now
+                self.write(line(now))
+
+        return tick
+
+
 @contextlib.contextmanager
 def stage_progress() -> Iterator[Progress]:
     """The library's progress protocol, ``progress(label, total, done) -> tick(n=1)``, as one
-    rich bar per stage (``total`` None: a bar without an end)."""
+    rich bar per stage on a terminal (``total`` None: a bar without an end), as plain
+    :class:`PlainProgress` lines otherwise."""
+    if not sys.stderr.isatty():
+        yield PlainProgress()
+        return
     with progress_bar() as bar:
 
         def progress(label: str, total: int | None, done: int = 0):
@@ -53,6 +111,52 @@ def stage_progress() -> Iterator[Progress]:
             return lambda n=1: bar.advance(task, n)
 
         yield progress
+
+
+# --------------------------------------------------------------------------- verdict
+VERDICT_MEANING = {
+    "good": "no warning; the extrinsics are ready to use",
+    "check": "usable, but look at the warnings below first",
+    "poor": "do not use these extrinsics as they are; see the errors below",
+}
+VERDICT_STYLE = {"good": "bold green", "check": "bold yellow", "poor": "bold red"}
+SEVERITY_STYLE = {"error": "red", "warning": "yellow", "info": "cyan"}
+SEVERITY_RANK = {"error": 0, "warning": 1, "info": 2}
+
+
+def verdict_lines(report: dict) -> list[tuple[str, str]]:
+    """``(style, text)`` lines ending a calibration's console output: the verdict, then each
+    warning of ``report.json`` on one line, worst first (errors, warnings, then advice)."""
+    verdict = report.get("summary", {}).get("verdict", "check")
+    lines = [(VERDICT_STYLE.get(verdict, "bold"),
+              f"verdict: {verdict.upper()}: {VERDICT_MEANING.get(verdict, '')}")]
+    found = sorted(report.get("warnings", []),
+                   key=lambda w: SEVERITY_RANK.get(w.get("severity"), 3))
+    for w in found:
+        cams = f" [{', '.join(w['cameras'])}]" if w.get("cameras") else ""
+        advice = f" -> {w['advice']}" if w.get("advice") else ""
+        text = " ".join(f"{w['severity']}: {w['code']}{cams}: {w['message']}{advice}".split())
+        lines.append((SEVERITY_STYLE.get(w["severity"], ""), text))
+    return lines
+
+
+def print_verdict(out: Path) -> None:
+    """Print where the results are, then the verdict and warnings of ``out/report.json``, and
+    last the path of ``report.html``."""
+    import json
+
+    from rich.markup import escape
+
+    report = json.loads((Path(out) / "report.json").read_text())
+    extras = [n for n in ("fused.ply", "rig_refined.yaml", "board_refined.yaml")
+              if (Path(out) / n).exists()]
+    files = ", ".join(["extrinsics.yaml", "report.json", *extras, "exports/"])
+    console.print(f"results in {out}/ ({files})", highlight=False, soft_wrap=True)
+    for style, text in verdict_lines(report):
+        head, _, rest = text.partition(":")
+        console.print(f"[{style}]{escape(head)}:[/]{escape(rest)}" if style else escape(text),
+                      highlight=False, soft_wrap=True)
+    console.print(f"report: {Path(out) / 'report.html'}", highlight=False, soft_wrap=True)
 
 
 # --------------------------------------------------------------------------- convert

@@ -5,7 +5,10 @@
 - a URDF snippet (links + fixed joints; ``rpy`` is fixed-axis roll-pitch-yaw,
   ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``),
 - thesis-style ``Nodes.csv`` / ``Edges.csv``,
-- a g2o pose graph (``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``).
+- a g2o pose graph (``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``),
+- Unity camera poses (left-handed, y up),
+- Open3D ``PinholeCameraParameters`` per camera, their ``PinholeCameraTrajectory`` and a
+  ``PoseGraph`` (what ``open3d.io.read_pinhole_camera_parameters`` / ``read_pose_graph`` read).
 
 Every transform written is ``T_parent_child`` (maps child points into the parent frame), which
 is what tf2, URDF joints and g2o vertices mean by a pose.
@@ -13,6 +16,7 @@ is what tf2, URDF joints and g2o vertices mean by a pose.
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 from typing import Literal
@@ -36,7 +40,11 @@ EXPORT_FILES = {
     "nodes_csv": "Nodes.csv",
     "edges_csv": "Edges.csv",
     "g2o": "posegraph.g2o",
+    "unity": "unity_cameras.json",
+    "open3d_trajectory": "open3d/cameras.json",
+    "open3d_posegraph": "open3d/posegraph.json",
 }
+OPEN3D_CAMERA = "open3d/{camera}.json"  # one PinholeCameraParameters per camera (with a rig)
 
 
 def _ordered(extrinsics: Extrinsics) -> list[str]:
@@ -278,6 +286,117 @@ def g2o_text(
 
 
 # ---------------------------------------------------------------------------------------------
+# Unity
+
+# OpenCV (x right, y down, z forward) <-> Unity (x right, y up, z forward; left-handed)
+UNITY_FROM_OPENCV = np.diag([1.0, -1.0, 1.0])
+
+
+def unity_pose(T_ref_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unity ``(position, rotation quaternion xyzw)`` of a camera at ``T_ref_cam`` (4x4, m).
+
+    Unity's world is the reference camera's frame with y flipped up, and a Unity camera looks
+    along its +z with +y up, so with ``S = diag(1, -1, 1)``: position ``S t`` and rotation
+    ``S R S`` (a proper rotation: the two flips cancel)."""
+    T = np.asarray(T_ref_cam, dtype=float)
+    S = UNITY_FROM_OPENCV
+    return S @ T[:3, 3], matrix_to_quaternion_xyzw(S @ T[:3, :3] @ S)
+
+
+def unity_json_text(extrinsics: Extrinsics, rig: Rig | None = None) -> str:
+    """Unity camera poses: ``transform.localPosition`` (m) and ``transform.localRotation``
+    (``x y z w``) per camera under one parent object at the reference camera, and, with the
+    rig, the vertical ``fieldOfView`` (deg) and the pixel size of each colour stream."""
+    cameras = {}
+    for name in _ordered(extrinsics):
+        position, rotation = unity_pose(extrinsics.T_ref_cam(name))
+        entry: dict = {"position": position.tolist(), "rotation_xyzw": rotation.tolist()}
+        intr = rig.cameras.get(name) if rig is not None else None
+        if intr is not None:
+            entry["field_of_view_deg"] = float(np.degrees(2 * np.arctan2(intr.height / 2,
+                                                                          intr.fy)))
+            entry["resolution"] = [intr.width, intr.height]
+        cameras[name] = entry
+    doc = {
+        "convention": "Unity: left-handed, x right, y up, z forward (the camera looks along +z); "
+        "metres; parent = the reference camera's position with y up; rotation is "
+        "Quaternion(x, y, z, w)",
+        "reference": extrinsics.reference,
+        "cameras": cameras,
+    }
+    return json.dumps(to_builtin(doc), indent=2) + "\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# Open3D (JSON as open3d.io writes it; matrices column-major)
+
+
+def _column_major(M: np.ndarray) -> list[float]:
+    return [float(v) for v in np.asarray(M, dtype=float).T.ravel()]
+
+
+def open3d_camera_parameters(T_ref_cam: np.ndarray, intrinsics) -> dict:
+    """An Open3D ``PinholeCameraParameters``: ``extrinsic`` is world -> camera, i.e.
+    ``T_cam_ref``; ``intrinsic`` the colour stream's pinhole (Open3D has no distortion)."""
+    return {
+        "class_name": "PinholeCameraParameters",
+        "extrinsic": _column_major(invert_transform(np.asarray(T_ref_cam, dtype=float))),
+        "intrinsic": {
+            "width": int(intrinsics.width),
+            "height": int(intrinsics.height),
+            "intrinsic_matrix": _column_major(intrinsics.K),
+        },
+        "version_major": 1,
+        "version_minor": 0,
+    }
+
+
+def open3d_posegraph(extrinsics: Extrinsics) -> dict:
+    """An Open3D ``PoseGraph``: node ``i`` per camera (reference first) with ``pose`` =
+    ``T_ref_cam`` (what ``cloud.transform(node.pose)`` needs to fuse clouds in the reference
+    frame); one edge per other camera, source that camera, target the reference,
+    ``transformation`` = ``T_ref_cam`` and ``information`` the inverse of its marginal
+    covariance (``[rot, trans]``, as Open3D orders it), identity when it has none."""
+    names = _ordered(extrinsics)
+    nodes = [{"class_name": "PoseGraphNode", "pose": _column_major(extrinsics.T_ref_cam(c)),
+              "version_major": 1, "version_minor": 0} for c in names]
+    edges = []
+    for i, name in enumerate(names[1:], start=1):
+        cov = extrinsics.cameras[name].covariance
+        info = np.eye(6) if cov is None else np.linalg.pinv(np.asarray(cov, dtype=float))
+        edges.append({
+            "class_name": "PoseGraphEdge",
+            "source_node_id": i,
+            "target_node_id": 0,
+            "transformation": _column_major(extrinsics.T_ref_cam(name)),
+            "information": _column_major((info + info.T) / 2),
+            "confidence": 1.0,
+            "uncertain": False,
+            "version_major": 1,
+            "version_minor": 0,
+        })
+    return {"class_name": "PoseGraph", "nodes": nodes, "edges": edges,
+            "version_major": 1, "version_minor": 0}
+
+
+def open3d_texts(extrinsics: Extrinsics, rig: Rig | None = None) -> dict[str, str]:
+    """The Open3D files by path under ``exports/``: the pose graph always; with the rig, one
+    ``PinholeCameraParameters`` per camera and their ``PinholeCameraTrajectory`` (in the
+    order of the pose graph's nodes)."""
+    out = {EXPORT_FILES["open3d_posegraph"]: json.dumps(open3d_posegraph(extrinsics), indent=1)}
+    if rig is None:
+        return out
+    params = {c: open3d_camera_parameters(extrinsics.T_ref_cam(c), rig.cameras[c])
+              for c in _ordered(extrinsics) if c in rig.cameras}
+    for camera, p in params.items():
+        out[OPEN3D_CAMERA.format(camera=camera)] = json.dumps(p, indent=1)
+    trajectory = {"class_name": "PinholeCameraTrajectory", "parameters": list(params.values()),
+                  "version_major": 1, "version_minor": 0}
+    out[EXPORT_FILES["open3d_trajectory"]] = json.dumps(trajectory, indent=1)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
 # All at once
 
 
@@ -310,8 +429,14 @@ def write_exports(
             extrinsics, edges, board_poses, default_sigma_rotation_deg, default_sigma_translation_mm
         ),
     }
+    texts["unity"] = unity_json_text(extrinsics, rig)
     paths = {}
     for kind, text in texts.items():
         paths[kind] = folder / EXPORT_FILES[kind]
+        atomic_write_text(paths[kind], text)
+    by_path = {path: kind for kind, path in EXPORT_FILES.items()}
+    for rel, text in open3d_texts(extrinsics, rig).items():
+        kind = by_path.get(rel, "open3d_camera:" + Path(rel).stem)
+        paths[kind] = folder / rel
         atomic_write_text(paths[kind], text)
     return paths

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from .board import refined_board, save_board
-from .calibrate import CalibrationResult, refined_rig
+from .calibrate import CalibrationResult, pose_edges, refined_rig
 from .config import write_config
 from .exports import write_exports
 from .ply import write_fused_ply
@@ -28,7 +28,7 @@ from .posegraph_pipeline import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
 from .progress import Progress
 from .refine import DepthRefinement
 from .report import dump_report, finite_or_null, report_dict, write_report_html
-from .results import Extrinsics, write_extrinsics
+from .results import Extrinsics, PoseEdge, write_extrinsics
 from .rig import Rig, save_rig
 from .yamlio import to_builtin, write_yaml
 
@@ -62,6 +62,13 @@ def _written(stage: Path, out_dir: Path) -> list[Path]:
     """The files of ``stage`` as they will stand in ``out_dir``, ``extrinsics.yaml`` last."""
     files = sorted(stage.rglob("*"), key=lambda p: p.name == "extrinsics.yaml")
     return [out_dir / p.relative_to(stage) for p in files if not p.is_dir()]
+
+
+def used_edges(result: CalibrationResult) -> list[PoseEdge]:
+    """The per-view ``T_cam_board`` edges the pose graph used (the exports' Edges.csv and g2o
+    edges), with their PnP covariances."""
+    edges = pose_edges(result.observations, result.config)
+    return [edges[i] for i in result.posegraph.used_edges]
 
 
 RIG_REFINED = "rig_refined.yaml"
@@ -108,7 +115,8 @@ def write_outputs(
         write_report_html(report, stage, progress=progress)
         write_config(result.config, stage / "config_resolved.yaml")
         boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
-        write_exports(result.extrinsics, stage, rig=rig, board_poses=boards)
+        write_exports(result.extrinsics, stage, rig=rig, edges=used_edges(result),
+                      board_poses=boards)
         write_extrinsics(result.extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written

@@ -35,7 +35,7 @@ from .depth import (
 from .errors import CalibrationError, DatasetError
 from .geometry import invert_transform
 from .graph import RelativePose, bundle_adjust
-from .progress import Progress, start, timed
+from .progress import Progress, Tick, start, timed
 from .results import Extrinsics, cameras_from_solve
 
 RefineMethod = Literal["colored-icp", "geometric", "none"]
@@ -118,9 +118,10 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
 
 
 def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
-                 config: DepthConfig | None = None) -> DepthRefinement:
+                 config: DepthConfig | None = None, tick: Tick | None = None) -> DepthRefinement:
     """Add each pair's point-to-plane RMSE at the final extrinsics (``rmse_final_mm``), on
-    the same points and metric as its ``rmse_before_mm`` / ``rmse_after_mm``."""
+    the same points and metric as its ``rmse_before_mm`` / ``rmse_after_mm``; ``tick(1)``
+    after each pair."""
     pairs = []
     for p in depth.pairs:
         a, b = p["cam_a"], p["cam_b"]
@@ -129,6 +130,8 @@ def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
             final = pair_rmse_mm(depth.clouds[a], depth.clouds[b], depth.T_ref_cam_initial[a],
                                  depth.T_ref_cam_initial[b], T_ref_cam[a], T_ref_cam[b], config)
         pairs.append({**p, "rmse_final_mm": final})
+        if tick is not None:
+            tick(1)
     return replace(depth, pairs=pairs)
 
 

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -83,6 +83,13 @@ class Extrinsics:
     cameras: dict[str, CameraExtrinsics]
     unconnected: dict[str, str] = field(default_factory=dict)  # camera -> why not calibrated
 
+    def __post_init__(self) -> None:
+        # the reference is the world frame: its pose is the identity exactly, not the
+        # optimiser's 1e-28 (the prior holding it is a numerical device)
+        ref = self.cameras.get(self.reference)
+        if ref is not None and np.allclose(ref.T_ref_cam, np.eye(4), atol=1e-9):
+            self.cameras[self.reference] = replace(ref, T_ref_cam=np.eye(4))
+
     def T_ref_cam(self, name: str) -> np.ndarray:
         return self.cameras[name].T_ref_cam
 
@@ -93,9 +100,16 @@ class Extrinsics:
         }
 
 
+EXTRINSICS_HEADER = """rgbd-calib extrinsics (docs/formats.md, "Calibration output").
+T_ref_cam maps a camera's points into the reference camera's frame: p_ref = T_ref_cam @ p_cam.
+Camera frame: the OpenCV optical frame of the colour sensor (x right, y down, z forward).
+Units: metres; quaternion_xyzw is the rotation of T_ref_cam; sigmas are 1-sigma marginals."""
+
+
 def write_extrinsics(extrinsics: Extrinsics, path: Path) -> None:
-    """Write ``extrinsics.yaml`` atomically (temporary file + rename)."""
-    write_yaml(path, extrinsics.to_dict())
+    """Write ``extrinsics.yaml`` atomically (temporary file + rename), after a comment stating
+    the convention."""
+    write_yaml(path, extrinsics.to_dict(), header=EXTRINSICS_HEADER)
 
 
 def load_extrinsics(path: Path, check_redundant: bool = False) -> Extrinsics:

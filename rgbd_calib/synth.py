@@ -21,7 +21,6 @@ Pure numpy rendering; cv2 only filters images. Written by :class:`~rgbd_calib.da
 from __future__ import annotations
 
 import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -40,7 +39,7 @@ from .geometry import (
     rotvec_to_matrix,
     transform_points,
 )
-from .parallel import process_context
+from .parallel import WorkerPool
 from .progress import Progress, start
 from .rig import Rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
@@ -803,7 +802,7 @@ def synthesize(
         if workers <= 1:
             backgrounds = [render_background(rig.scene, cam) for cam in rig.cameras]
         else:
-            with ProcessPoolExecutor(workers, mp_context=process_context()) as ex:
+            with WorkerPool(workers) as ex:
                 backgrounds = list(
                     ex.map(render_background, [rig.scene] * len(rig.cameras), rig.cameras)
                 )
@@ -824,9 +823,7 @@ def synthesize(
                 _render_frame(job)
                 tick(1)
         else:
-            with ProcessPoolExecutor(
-                workers, mp_context=process_context(), initializer=_init_worker, initargs=(state,)
-            ) as ex:
+            with WorkerPool(workers, initializer=_init_worker, initargs=(state,)) as ex:
                 for _ in ex.map(_render_frame, jobs, chunksize=1):
                     tick(1)
         T_world_ref = rig.cameras[rig.reference_index].T_world_cam
@@ -853,6 +850,58 @@ def synthesize(
             },
         )
     return SynthDataset(out, rig, poses)
+
+
+RENDER_KEY = "render_key.json"  # beside a cached render: what it was rendered from
+
+
+def render_key(layout: str, n_frames: int, seed: int, board: Board, params: SynthParams) -> str:
+    """What a render depends on: its arguments and the renderer's own source (so a changed
+    renderer renders again), as a short hash."""
+    import hashlib
+    import json
+
+    here = Path(__file__).parent
+    sources = [(here / f).read_bytes() for f in ("synth.py", "scene.py", "camera.py")]
+    args = json.dumps([layout, n_frames, seed, board.to_dict(), repr(params)], default=str)
+    digest = hashlib.sha256(args.encode())
+    for src in sources:
+        digest.update(src)
+    return digest.hexdigest()[:16]
+
+
+def synthesize_cached(
+    out: Path,
+    layout: str,
+    n_frames: int,
+    seed: int,
+    board: Board,
+    params: SynthParams = SynthParams(),
+    workers: int | None = None,
+    progress: Progress | None = None,
+) -> tuple[Path, bool]:
+    """:func:`synthesize` into ``out`` unless ``out`` already holds the same render (same
+    arguments, same renderer: :func:`render_key`, kept in ``out``'s sibling
+    ``<out>.render_key.json``); returns ``(out, reused)``. A reused render keeps its files'
+    times, so a calibration's detection cache stays valid too."""
+    import json
+    import shutil
+
+    out = Path(out)
+    key_file = out.with_name(out.name + "." + RENDER_KEY)
+    key = render_key(layout, n_frames, seed, board, params)
+    try:
+        cached = json.loads(key_file.read_text()).get("key")
+    except (OSError, ValueError, AttributeError):
+        cached = None
+    if cached == key and (out / "ground_truth.yaml").is_file():
+        return out, True
+    key_file.unlink(missing_ok=True)
+    if out.exists():
+        shutil.rmtree(out)
+    synthesize(out, layout, n_frames, seed, board, params, workers, progress)
+    key_file.write_text(json.dumps({"key": key}) + "\n")
+    return out, False
 
 
 @dataclass(frozen=True)

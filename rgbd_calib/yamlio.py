@@ -130,5 +130,8 @@ def atomic_write_text(path: Path, text: str) -> None:
         raise
 
 
-def write_yaml(path: Path, data: Any) -> None:
-    atomic_write_text(path, yaml.safe_dump(to_builtin(data), sort_keys=False, width=100))
+def write_yaml(path: Path, data: Any, header: str = "") -> None:
+    """Write ``data`` as YAML atomically, after ``header`` (each line made a ``#`` comment)."""
+    comment = "".join(f"# {line}".rstrip() + "\n" for line in header.splitlines())
+    atomic_write_text(path, comment + yaml.safe_dump(to_builtin(data), sort_keys=False,
+                                                     width=100))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,16 @@ from rgbd_calib.geometry import transform_error
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = REPO / "configs"
 SHARED = REPO.parent / "shared"
-SHARED_DATA = SHARED / "data"
+# the project's shared recordings (thesis pose graph, a RealSense bag): not in the repository;
+# RGBD_CALIB_SHARED_DATA points to them, default ../shared/data beside the clone
+SHARED_DATA_ENV = "RGBD_CALIB_SHARED_DATA"
+SHARED_DATA = Path(os.environ.get(SHARED_DATA_ENV) or SHARED / "data")
+
+
+def shared_data_missing(name: str) -> str:
+    """Skip reason for a test that needs ``SHARED_DATA / name``."""
+    return (f"shared data {name!r} not found; set {SHARED_DATA_ENV} to the folder that holds "
+            f"it (default ../shared/data beside the clone)")
 
 
 @pytest.fixture
@@ -47,3 +57,30 @@ def small_line(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("synth") / "line"
     return synthesize(out, "thesis-line", 6, 3, thesis_board(), SynthParams(), workers=2)
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory):
+    """A tiny thesis-line rig with depth (4 cameras, 640x360, 4 frames): the README's example
+    rig. About 6 s."""
+    from rgbd_calib.board import thesis_board
+    from rgbd_calib.synth import SynthParams, synthesize
+
+    out = tmp_path_factory.mktemp("tiny") / "ds"
+    return synthesize(out, "thesis-line", 4, 0, thesis_board(),
+                      SynthParams(resolution=(640, 360)), workers=2).path
+
+
+@pytest.fixture(scope="session")
+def tiny_calibration(tiny_dataset, tmp_path_factory):
+    """``rgbd-calib calibrate`` run through the command line (output not a terminal) on
+    :func:`tiny_dataset`: ``(dataset, out dir, console)``. About 15 s."""
+    from typer.testing import CliRunner
+
+    from rgbd_calib.cli import app
+
+    out = tmp_path_factory.mktemp("tiny_calibration") / "out"
+    result = CliRunner().invoke(app, ["calibrate", str(tiny_dataset), "--out", str(out),
+                                      "--workers", "2"])
+    assert result.exit_code == 0, result.output
+    return tiny_dataset, out, result.output

@@ -6,7 +6,7 @@ import shutil
 import numpy as np
 import pytest
 import yaml
-from conftest import CONFIGS, SHARED_DATA
+from conftest import CONFIGS, SHARED_DATA, shared_data_missing
 from typer.testing import CliRunner
 
 from rgbd_calib import __version__
@@ -130,7 +130,7 @@ def test_bad_datasets_fail_with_one_line(tmp_path, setup, message):
 def test_posegraph_command_on_thesis_data(tmp_path):
     data = SHARED_DATA / "thesis-posegraph"
     if not data.exists():
-        pytest.skip("shared thesis data not present")
+        pytest.skip(shared_data_missing("thesis-posegraph"))
     code, text = run("posegraph", data / "Nodes.csv", data / "Edges.csv", "--out", tmp_path)
     assert code == 0, text
     cams = yaml.safe_load((tmp_path / "extrinsics.yaml").read_text())["cameras"]

@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import SHARED_DATA, shared_data_missing
 
 from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.dataset import FolderDataset
@@ -30,13 +31,7 @@ from rgbd_calib.sources import (
     match_frames,
 )
 
-REAL_BAG = (
-    Path(__file__).resolve().parents[2]
-    / "shared"
-    / "data"
-    / "realsense-d435-single-frame"
-    / "single_depth_color_640x480.bag"
-)
+REAL_BAG = SHARED_DATA / "realsense-d435-single-frame" / "single_depth_color_640x480.bag"
 # README of the recording: colour intrinsics read with pyrealsense2 2.59
 REAL_COLOR = {"fx": 613.2037, "fy": 613.4193, "cx": 319.9388, "cy": 239.1830}
 INTRINSICS_ATOL_PX = 1e-3
@@ -364,7 +359,8 @@ def _depth_agreement(
 
 
 # --------------------------------------------------------------------------- real recording
-needs_real_bag = pytest.mark.skipif(not REAL_BAG.is_file(), reason=f"{REAL_BAG} not present")
+needs_real_bag = pytest.mark.skipif(
+    not REAL_BAG.is_file(), reason=shared_data_missing("realsense-d435-single-frame"))
 
 
 def _real_frameset():

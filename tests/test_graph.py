@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 from collections import defaultdict
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_transforms_close
+from conftest import SHARED_DATA, assert_transforms_close, shared_data_missing
 
 from rgbd_calib.errors import CalibrationError
 from rgbd_calib.geometry import (
@@ -32,7 +31,7 @@ from rgbd_calib.graph import (
 )
 from rgbd_calib.results import PoseEdge
 
-THESIS = Path(__file__).resolve().parents[2] / "shared/data/thesis-posegraph"
+THESIS = SHARED_DATA / "thesis-posegraph"
 
 # arccos in transform_error resolves ~1e-6 deg, so "exact" rotations are checked to 1e-5 deg.
 # Injected per-edge noise (1-sigma per axis, body frame of the board pose).
@@ -299,7 +298,7 @@ def test_default_sigmas_are_estimated_from_the_residuals(rng):
 @pytest.fixture(scope="module")
 def thesis():
     if not (THESIS / "Edges.csv").is_file():
-        pytest.skip(f"thesis pose-graph data not found at {THESIS}")
+        pytest.skip(shared_data_missing("thesis-posegraph"))
     from rgbd_calib.posegraph_csv import read_edges_csv, read_optimised_camera_poses
 
     edges = read_edges_csv(THESIS / "Edges.csv")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_transforms_close
+from conftest import SHARED_DATA, assert_transforms_close, shared_data_missing
 
 from rgbd_calib.errors import ConfigError
 from rgbd_calib.geometry import (
@@ -30,7 +30,7 @@ from rgbd_calib.posegraph_csv import (
 from rgbd_calib.posegraph_pipeline import run_posegraph
 from rgbd_calib.results import PoseEdge, load_extrinsics
 
-THESIS = Path(__file__).resolve().parents[2] / "shared/data/thesis-posegraph"
+THESIS = SHARED_DATA / "thesis-posegraph"
 
 # Thesis Figure 4.10 rows (tab-separated, "Node ID" splits into two header words)
 EDGES_TAB = """Cam\tNode ID\ttx\tty\ttz\tqx\tqy\tqz\tqw
@@ -58,7 +58,7 @@ def write(tmp_path: Path, name: str, text: str) -> Path:
 
 def test_thesis_files_parse(tmp_path):
     if not (THESIS / "Edges.csv").is_file():
-        pytest.skip("thesis pose-graph data not present")
+        pytest.skip(shared_data_missing("thesis-posegraph"))
     edges = read_edges_csv(THESIS / "Edges.csv")
     nodes = read_nodes_csv(THESIS / "Nodes.csv")
     cams = read_optimised_camera_poses(THESIS / "optimised_camera_poses.csv")
@@ -209,7 +209,7 @@ def test_run_posegraph_takes_the_identity_node_as_reference(tmp_path, rng):
 
 def test_run_posegraph_on_the_thesis_data(tmp_path):
     if not (THESIS / "Edges.csv").is_file():
-        pytest.skip("thesis pose-graph data not present")
+        pytest.skip(shared_data_missing("thesis-posegraph"))
     run = run_posegraph(THESIS / "Nodes.csv", THESIS / "Edges.csv")
     assert run.extrinsics.reference == "cam7"
     assert set(run.extrinsics.cameras) == {"cam7", "cam8", "cam9", "cam10"}

@@ -40,6 +40,7 @@ from typer.testing import CliRunner
 
 from rgbd_calib.board import thesis_board
 from rgbd_calib.cli import app
+from rgbd_calib.console import PROGRESS_LINE
 from rgbd_calib.geometry import transform_error
 from rgbd_calib.synth import load_ground_truth
 
@@ -54,7 +55,8 @@ E2E_MM, E2E_DEG = 1.0, 0.05
 # closing question ("is this the dataset folder?")
 ADVICE = re.compile(
     r"; (?:[^;]* )?(check|fix|use|add|choose|re-export|record|keep|set|align|export|list|"
-    r"move|delete|remove|give|edit|re-run|run|copy|write|rename)\b|\?$"
+    r"move|delete|remove|give|edit|re-run|run|copy|write|rename)\b"
+    r"|\?( \(format: docs/formats\.md#[a-z0-9-]+\))?$"  # a question, then the format's section
 )
 
 ROWS: dict[str, tuple[str, str, str, str]] = {}  # case -> (input, command, exit, user sees)
@@ -130,7 +132,7 @@ def assert_one_line_failure(w: Work, code: int, text: str, names: str | Path,
                             row: tuple[str, str, str] | None = None) -> str:
     """Exit 2, one line naming ``names`` and saying what to do; the earlier result kept.
     ``row`` = (case, input, command) records the case for the doc table first."""
-    lines = text.strip().splitlines()
+    lines = [ln for ln in text.strip().splitlines() if not PROGRESS_LINE.match(ln)]
     if row is not None:
         record(*row, code, w.norm(" / ".join(lines)))
     assert code == 2, text
@@ -178,7 +180,8 @@ def check_result(w: Work, good: list[str], expect_missing: tuple[str, ...] = ())
 
 def ok_case(case: str, what: str, w: Work, text: str, listed: str) -> None:
     flat = " ".join(text.split())  # the summary lines wrap at the console width
-    notes = re.findall(r"not calibrated: .*?(?= not calibrated:| results in)", flat)
+    flat = flat.split(" verdict: ")[0]  # the notes come before the verdict and its warnings
+    notes = re.findall(r"not calibrated: .*?(?= not calibrated:|$)", flat)
     seen = "summary table" + "".join(f"; `{w.norm(n)}`" for n in notes)
     record(case, what, "calibrate <dataset>", 0, f"{seen}; report.json: {listed}")
 
@@ -360,7 +363,7 @@ def test_no_library_chatter_on_stderr(clean, tmp_path, damage):
         capture_output=True, text=True, timeout=120)
     assert run.returncode == 2, run.stderr
     assert run.stdout == ""
-    lines = run.stderr.strip().splitlines()
+    lines = [ln for ln in run.stderr.strip().splitlines() if not PROGRESS_LINE.match(ln)]
     assert len(lines) == 1 and str(bad) in lines[0], run.stderr
 
 
@@ -878,7 +881,7 @@ def test_ctrl_c_leaves_earlier_results_and_resumes(clean, tmp_path):
     for run in (run1, run2):
         assert run.returncode == 130, run.stderr
         assert run.stdout == ""
-        lines = run.stderr.strip().splitlines()
+        lines = [ln for ln in run.stderr.strip().splitlines() if not PROGRESS_LINE.match(ln)]
         assert len(lines) == 1 and lines[0].startswith("interrupted"), run.stderr
         assert (w.out / "extrinsics.yaml").read_bytes() == w.earlier
         assert (w.out / "report.json").read_bytes() == w.earlier_report

@@ -58,6 +58,15 @@ def _figure(w: float, h: float, **kw):
     return plt.subplots(figsize=(w, h), layout="constrained", **kw)
 
 
+def label_row(anchor: tuple[float, float], placed: list[tuple[float, float]],
+              size: float) -> int:
+    """How many lines up a camera label goes: one per earlier label anchored within 8% (across)
+    and 4% (up) of the rig's size, so cameras that project close together (the side view of
+    facing cameras) get stacked labels instead of labels printed over each other."""
+    u, v = anchor
+    return sum(abs(u - pu) < 0.08 * size and abs(v - pv) < 0.04 * size for pu, pv in placed)
+
+
 def _draw_rig(
     ax,
     report: dict[str, Any],
@@ -84,6 +93,7 @@ def _draw_rig(
                 for T in Ts[::step]
             ]
             ax.add_collection(LineCollection([s[:, [a, b]] for s in segs], colors=col, lw=0.8))
+    placed: list[tuple[float, float]] = []  # label anchors so far (data units)
     for i, (name, cam) in enumerate(report["cameras"].items()):
         if cam["T_ref_cam"] is None:
             continue
@@ -94,11 +104,13 @@ def _draw_rig(
             ax.plot([f[0, a], f[j, a]], [f[0, b], f[j, b]], color=col, lw=1.6 if ref else 1.0)
         ring = f[[1, 2, 3, 4, 1]]
         ax.plot(ring[:, a], ring[:, b], color=col, lw=1.6 if ref else 1.0)
+        near = label_row((f[0, a], f[0, b]), placed, size)
+        placed.append((f[0, a], f[0, b]))
         ax.annotate(
             name + (" (ref)" if ref else ""),
             (f[0, a], f[0, b]),
             fontsize=8,
-            xytext=(3, 3),
+            xytext=(3, 3 + 10 * near),
             textcoords="offset points",
             color=col,
             fontweight="bold" if ref else "normal",
@@ -179,7 +191,9 @@ def fig_histograms(report: dict[str, Any]) -> str:
             )
         title = f"{name}: p50 {fmt(st['p50'] if st else None)} px"
         ax.set_title(title, color="red" if name in flagged else "black", fontsize=9)
-        ax.set_xlim(0, edges[-1])
+        # a little air between the bars and the frame
+        ax.set_xlim(-0.02 * edges[-1], 1.02 * edges[-1])
+        ax.set_ylim(0, 1.15 * max(1, max(u + e for u, e in zip(h["used"], h["excluded"]))))
     for ax in axes[-1]:
         ax.set_xlabel("marker reprojection RMS (px)")
     for ax in axes[:, 0]:

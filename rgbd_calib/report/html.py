@@ -452,7 +452,7 @@ def _pairs_section(report: dict[str, Any], figs: Figures) -> list[str]:
                         _num(p["rmse_before_mm"], 2),
                         _num(p["rmse_after_mm"], 2),
                         f"{_num(p['correction_deg'], 3)} / {_num(p['correction_mm'], 2)}",
-                        _e(p["accepted"] if p["accepted"] is not None else "n/a"),
+                        {True: "yes", False: "no"}.get(p["accepted"], "n/a"),
                     ]
                     for p in report["pairs"]
                 ],
