@@ -504,7 +504,7 @@ def self_calibrated_bundle(
             for t in good:
                 if best is None or selfcal.better(t[0], best[0]):
                     best = t
-            fits += [t[0] if best is None or t is best else
+            fits += [t[0] if best is None or t is best or not t[0].accepted else
                      replace(t[0], accepted=False,
                              reason=t[0].reason + "; another model fits better")
                      for t in tried]
