@@ -222,15 +222,23 @@ def calibrate(
                 depth = measure_depth(dataset, board, T_ref_cam, views, bundle.T_ref_board,
                                       refine, config.depth, progress)
             # 6. joint solve: corners and the accepted depth pairs
-            if depth.relative_poses:
-                with timed(timings, "joint"):
-                    bundle = bundle_sound_first(measurements, _camera_matrices(rig),
-                                                rig.reference, T_ref_cam, bundle.T_ref_board,
-                                                config, pg, fixed_cameras,
-                                                depth.relative_poses, intrinsics=rig.cameras,
-                                                back_centre=back_centre(board))
-                cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg,
-                                                      config)
+            if depth.used:
+                try:
+                    with timed(timings, "joint"):
+                        joint = bundle_sound_first(measurements, _camera_matrices(rig),
+                                                   rig.reference, T_ref_cam,
+                                                   bundle.T_ref_board, config, pg,
+                                                   fixed_cameras, depth.relative_poses,
+                                                   intrinsics=rig.cameras,
+                                                   back_centre=back_centre(board))
+                except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
+                    depth = depth.with_fallback(f"the joint solve with the depth pairs failed "
+                                                f"({type(exc).__name__}: {exc})".replace(
+                                                    "\n", " "))
+                else:
+                    bundle = joint
+                    cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle,
+                                                          pg, config)
             # 7. checks: each pair's fit at the final extrinsics
             with timed(timings, "depth_check"):
                 depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},

@@ -461,6 +461,9 @@ def _print_summary(result, out: Path) -> None:
             f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
         )
         refined += ", board_refined.yaml"
+    if result.depth is not None and result.depth.fallback is not None:
+        console.print(f"[yellow]depth refinement not used[/]: {result.depth.fallback}; "
+                      "the extrinsics are the board result")
     scales = result.depth.depth_scale_dict() if result.depth is not None else {}
     ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
     if ratio is not None:

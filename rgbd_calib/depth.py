@@ -19,6 +19,7 @@ This is the only module that imports open3d and kiss_icp.
 from __future__ import annotations
 
 import math
+import re
 import time
 from dataclasses import dataclass, replace
 from itertools import combinations
@@ -982,10 +983,19 @@ def register_pair(
         if src.points.shape[0] < 10 or tgt.points.shape[0] < 10:
             break
         distance = config.max_correspondence_factor * voxel
-        if method == "colored-icp":
-            T = _colored_icp_level(src, tgt, T, distance, iterations, config)
-        else:
-            T = _geometric_icp_level(src, tgt, T, voxel, config, kiss)
+        try:
+            if method == "colored-icp":
+                T = _colored_icp_level(src, tgt, T, distance, iterations, config)
+            else:
+                T = _geometric_icp_level(src, tgt, T, voxel, config, kiss)
+        except ICP_ERRORS as exc:  # e.g. Open3D: "No correspondences found between ..."
+            return failed_registration(
+                cloud_a.camera, cloud_b.camera, method, T_b_a0,
+                f"{method} failed at voxel {voxel * 1000:.0f} mm: {one_line_error(exc)}", t_start)
+        if not np.all(np.isfinite(T)):
+            return failed_registration(cloud_a.camera, cloud_b.camera, method, T_b_a0,
+                                       f"{method} diverged at voxel {voxel * 1000:.0f} mm "
+                                       "(non-finite transform)", t_start)
     assert finest is not None
     src, tgt = finest
     # 3. quality at the finest level
@@ -1050,6 +1060,34 @@ def register_pair(
         time_s=time.perf_counter() - t_start,
     )
 
+
+
+# Open3D and kiss-icp report failures as RuntimeError (pybind11), bad inputs as ValueError;
+# a singular system surfaces from numpy as LinAlgError. Any of them rejects the pair only.
+ICP_ERRORS: tuple[type[BaseException], ...] = (RuntimeError, ValueError,
+                                               np.linalg.LinAlgError)
+
+
+def one_line_error(exc: BaseException) -> str:
+    """The error's message on one line, without terminal colour codes (Open3D adds them)."""
+    text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def failed_registration(cam_a: str, cam_b: str, method: str, T_b_a_initial: np.ndarray,
+                        reason: str, t_start: float | None = None) -> PairRegistration:
+    """A rejected :class:`PairRegistration` for a pair whose registration could not run or
+    failed (``reason`` says why): no measurement, zero information, the initial ``T_b_a``."""
+    nan = float("nan")
+    T0 = np.asarray(T_b_a_initial, dtype=float)
+    return PairRegistration(
+        cam_a=cam_a, cam_b=cam_b, method=method, T_b_a=T0, T_b_a_initial=T0,
+        information=np.zeros((6, 6)), information_frame=INFORMATION_FRAME, fitness=0.0,
+        inlier_rmse_mm=nan, rmse_before_mm=nan, rmse_after_mm=nan, conditioning=0.0,
+        n_correspondences=0, correction_deg=0.0, correction_mm=0.0, accepted=False,
+        reason=reason,
+        time_s=0.0 if t_start is None else time.perf_counter() - t_start,
+    )
 
 
 def overlap_error(

@@ -25,9 +25,12 @@ from .dataset import FolderDataset
 from .depth import (
     CameraCloud,
     DepthScaleEstimate,
+    PairRegistration,
     estimate_depth_scale,
+    failed_registration,
     find_overlapping_pairs,
     fuse_clouds,
+    one_line_error,
     pair_rmse_mm,
     register_pair,
     static_cloud,
@@ -52,6 +55,19 @@ class DepthRefinement:
     relative_poses: list[RelativePose]
     T_ref_cam_initial: dict[str, np.ndarray]  # extrinsics the pairs were registered from
     timings_s: dict[str, float] = field(default_factory=dict)
+    skipped_cameras: dict[str, str] = field(default_factory=dict)  # camera -> why no cloud
+    fallback: str | None = None  # why the result is the board's alone (no usable pair), if so
+
+    @property
+    def used(self) -> bool:
+        """Whether any pair went into the solve."""
+        return bool(self.relative_poses) and self.fallback is None
+
+    def with_fallback(self, reason: str) -> DepthRefinement:
+        """This measurement with every pair unused: the solve keeps the board result."""
+        pairs = [p if not p.get("accepted") else
+                 {**p, "accepted": False, "reason": f"not used: {reason}"} for p in self.pairs]
+        return replace(self, pairs=pairs, relative_poses=[], fallback=reason)
 
     def depth_scale_dict(self) -> dict[str, dict[str, float]]:
         return {c: {"factor": e.factor, "sigma": e.sigma} for c, e in self.depth_scales.items()}
@@ -92,12 +108,16 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                 tick(1)
 
     clouds: dict[str, CameraCloud] = {}
+    skipped: dict[str, str] = {}
     with timed(timings, "clouds"):
         tick = start(progress, "static clouds", len(cams))
         for c in cams:
             factor = scales[c].factor if c in scales else 1.0
-            clouds[c] = static_cloud(dataset, c, T_ref_board or {}, T_ref_cam[c], board, config,
-                                     depth_scale_factor=factor)
+            try:
+                clouds[c] = static_cloud(dataset, c, T_ref_board or {}, T_ref_cam[c], board,
+                                         config, depth_scale_factor=factor)
+            except (DatasetError, ValueError, MemoryError) as exc:  # this camera only
+                skipped[c] = str(exc)
             tick(1)
 
     pairs: list[dict[str, Any]] = []
@@ -108,13 +128,42 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             overlaps = find_overlapping_pairs(clouds, T_ref_cam, intrinsics, config)
             tick = start(progress, f"registering pairs ({method})", len(overlaps))
             for ov in overlaps:
-                reg = register_pair(clouds[ov.cam_a], clouds[ov.cam_b], T_ref_cam[ov.cam_a],
-                                    T_ref_cam[ov.cam_b], method, config)
+                reg = _register_safely(clouds[ov.cam_a], clouds[ov.cam_b], T_ref_cam[ov.cam_a],
+                                       T_ref_cam[ov.cam_b], method, config)
                 pairs.append({**ov.to_dict(), **reg.to_dict()})
                 if reg.accepted:
                     relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
                 tick(1)
-    return DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings)
+    depth = DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings,
+                            skipped)
+    if method != "none" and not relative:
+        depth = depth.with_fallback(no_pair_reason(depth))
+    return depth
+
+
+def _register_safely(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.ndarray,
+                     T_ref_b: np.ndarray, method: RefineMethod, config: DepthConfig,
+                     ) -> PairRegistration:
+    """:func:`register_pair`, with any failure of this one pair turned into its rejection
+    (register_pair already catches the ICP libraries' own errors; this is the last net, so
+    that one pair never ends a run)."""
+    try:
+        return register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config)
+    except Exception as exc:  # noqa: BLE001 - deliberately any error of this pair
+        T_b_a0 = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
+        return failed_registration(cloud_a.camera, cloud_b.camera, method, T_b_a0,
+                                   f"registration failed: {type(exc).__name__}: "
+                                   f"{one_line_error(exc)}")
+
+
+def no_pair_reason(depth: DepthRefinement) -> str:
+    """One line: why no pair could be used (for the fallback warning)."""
+    if len(depth.clouds) < 2:
+        why = "; ".join(f"{c}: {r}" for c, r in depth.skipped_cameras.items())
+        return f"fewer than 2 cameras have a static cloud{f' ({why})' if why else ''}"
+    if not depth.pairs:
+        return "no camera pair overlaps under the current extrinsics"
+    return f"all {len(depth.pairs)} camera pairs were rejected"
 
 
 def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
