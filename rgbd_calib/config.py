@@ -581,13 +581,33 @@ class DepthConfig(BaseModel, extra="forbid"):
         description="Correspondence distance of the point-to-plane RMSE reported "
         "before and after registration.",
     )
-    information_inflation: float = Field(
-        100.0,
-        ge=1,
-        description="Covariance multiplier on the ICP information. The raw "
-        "Gauss-Newton information only knows the depth noise; the errors left by colour, "
-        "sampling and normal biases were 3-50x its sigma (Mahalanobis) on the synthetic rigs "
-        "(640x360 to 848x480, 3-8 frames), so the default widens sigma 10x.",
+    information_patch_m: float = Field(
+        0.1,
+        gt=0,
+        description="Size of the surface patches (m) whose residuals are taken to err "
+        "together in a pair's information (the cluster-robust sandwich of docs/depth.md): "
+        "about the normal-estimation radius, over which neighbouring residuals share errors.",
+    )
+    min_patches: int = Field(
+        20,
+        ge=2,
+        description="Reject a pair whose correspondences cover fewer patches: its uncertainty "
+        "cannot be estimated from so few independent pieces of surface.",
+    )
+    max_normalised_rms: float = Field(
+        3.0,
+        gt=0,
+        description="Reject a pair whose point-to-plane residuals after ICP are, in RMS, more "
+        "than this many times their D435-model sigma (far above the noise: a wrong local "
+        "minimum, a moving scene or a depth error).",
+    )
+    min_improvement_chi2: float = Field(
+        12.59,
+        ge=0,
+        description="Use a pair only if its registration is statistically better than the "
+        "current extrinsics: the move from them, weighed by the pair's information, must "
+        "exceed this chi-square with 6 dof (12.59: 5 % false-alarm rate). 0 accepts pairs "
+        "that confirm the current extrinsics too.",
     )
     min_correspondences: int = Field(
         500, ge=6, description="Reject a pair with fewer correspondences at the finest level."
