@@ -220,7 +220,10 @@ def calibrate(
             with timed(timings, "depth"):
                 views = board_views_per_camera(observations, T_ref_cam, bundle.T_ref_board)
                 depth = measure_depth(dataset, board, T_ref_cam, views, bundle.T_ref_board,
-                                      refine, config.depth, progress)
+                                      refine, config.depth, progress,
+                                      board_covariance={c: e.covariance
+                                                        for c, e in cameras.items()},
+                                      workers=config.workers)
             # 6. joint solve: corners and the accepted depth pairs
             if depth.used:
                 try:

@@ -464,6 +464,8 @@ def _print_summary(result, out: Path) -> None:
     if result.depth is not None and result.depth.fallback is not None:
         console.print(f"[yellow]depth refinement not used[/]: {result.depth.fallback}; "
                       "the extrinsics are the board result")
+    elif result.depth is not None and result.depth.note is not None:
+        console.print(f"depth registration: {result.depth.note}")
     scales = result.depth.depth_scale_dict() if result.depth is not None else {}
     ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
     if ratio is not None:

@@ -476,6 +476,12 @@ class DepthConfig(BaseModel, extra="forbid"):
         description="Frames that see the board face more obliquely are "
         "skipped for the depth scale.",
     )
+    scale_max_frames: int = Field(
+        12,
+        ge=1,
+        description="Board views per camera read for the depth scale, sampled evenly (each "
+        "gives a factor to ~0.01 %; 6 views reached 0.03 % on the race rig).",
+    )
     scale_min_points: int = Field(
         200, ge=10, description="Fewest board-face pixels for a frame to count."
     )
@@ -580,6 +586,17 @@ class DepthConfig(BaseModel, extra="forbid"):
         gt=0,
         description="Correspondence distance of the point-to-plane RMSE reported "
         "before and after registration.",
+    )
+    board_weak_sigma_mm: float = Field(
+        0.2,
+        ge=0,
+        description="calibrate registers depth pairs only for cameras whose board marginal "
+        "has a direction with a larger translation sigma (mm) than this (or rotation above "
+        "board_weak_sigma_deg): a pair's own sigma is 0.3-4 mm (docs/depth.md), so it adds "
+        "nothing to a camera the board already holds tighter. 0 registers every pair.",
+    )
+    board_weak_sigma_deg: float = Field(
+        0.01, ge=0, description="Same, rotation (deg) of the worst direction."
     )
     information_patch_m: float = Field(
         0.1,

@@ -489,7 +489,7 @@ def estimate_depth_scale(
     mg = config.scale_face_margin_m
     cos_max = math.cos(math.radians(config.scale_max_view_angle_deg))
     frames, factors, errors, n_points = [], [], [], 0
-    for frame in sorted(T_cam_board):
+    for frame in _even_sample(sorted(T_cam_board), config.scale_max_frames):
         T = np.asarray(T_cam_board[frame], dtype=float)
         raw = dataset.read_depth(camera, frame)
         if raw is None:

@@ -14,6 +14,8 @@ Steps (issue 4's design, one joint graph with the board):
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
@@ -38,6 +40,7 @@ from .depth import (
 from .errors import CalibrationError, DatasetError
 from .geometry import invert_transform
 from .graph import RelativePose, bundle_adjust
+from .parallel import process_context
 from .progress import Progress, start, timed
 from .results import Extrinsics, cameras_from_solve
 
@@ -57,6 +60,16 @@ class DepthRefinement:
     timings_s: dict[str, float] = field(default_factory=dict)
     skipped_cameras: dict[str, str] = field(default_factory=dict)  # camera -> why no cloud
     fallback: str | None = None  # why the result is the board's alone (no usable pair), if so
+    note: str | None = None  # why registration was not needed (strong board data), if so
+    weak_cameras: dict[str, str] | None = None  # cameras depth was run for (None: all)
+
+    def status_dict(self) -> dict[str, Any]:
+        """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason`` and
+        the cameras the board constrained weakly (those depth was registered for)."""
+        status = ("fallback" if self.fallback else "skipped" if self.note
+                  else "used" if self.relative_poses else "none")
+        return {"status": status, "reason": self.fallback or self.note,
+                "weak_cameras": dict(self.weak_cameras or {})}
 
     @property
     def used(self) -> bool:
@@ -80,19 +93,47 @@ class DepthRefinement:
         return pts, cols, idx, names
 
 
+def weak_cameras(covariance: dict[str, np.ndarray | None], config: DepthConfig,
+                 ) -> dict[str, str]:
+    """Cameras the board constrains weakly, with why: the worst direction of the marginal
+    covariance (6x6, [rot rad, trans m]) above ``board_weak_sigma_deg`` in rotation or
+    ``board_weak_sigma_mm`` in translation. A camera without a covariance counts as weak."""
+    out: dict[str, str] = {}
+    for cam, cov in covariance.items():
+        if cov is None or not np.all(np.isfinite(cov)):
+            out[cam] = "no board covariance"
+            continue
+        worst_deg = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0))))
+        worst_mm = float(1000.0 * np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
+        if worst_mm > config.board_weak_sigma_mm or worst_deg > config.board_weak_sigma_deg:
+            out[cam] = f"board sigma {worst_mm:.3f} mm / {worst_deg:.4f} deg in its worst direction"
+    return out
+
+
 def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[str, np.ndarray],
                   board_views: dict[str, dict[str, np.ndarray]] | None, T_ref_board:
                   dict[str, np.ndarray] | None, method: RefineMethod,
                   config: DepthConfig | None = None,
                   progress: Progress | None = None,
+                  board_covariance: dict[str, np.ndarray | None] | None = None,
+                  workers: int | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
 
     ``board_views`` maps camera -> {frame: T_cam_board} of the views it saw (for the depth
     scale); ``T_ref_board`` maps frame -> board pose (for masking the board). Both may be
-    None (refinement of an existing calibration without a board in view)."""
+    None (refinement of an existing calibration without a board in view).
+
+    With ``board_covariance`` (camera -> 6x6 marginal of the board solve) only pairs with a
+    camera the board constrains weakly (:func:`weak_cameras`) are registered, and nothing but
+    the depth scale is measured when the board constrains every camera well: depth adds no
+    information there. Pairs run in ``workers`` processes (default: all cores)."""
     config = config or DepthConfig()
     cams = [c for c in dataset.cameras if c in T_ref_cam and dataset.has_depth(c)]
+    weak: dict[str, str] | None = None
+    if board_covariance is not None:
+        weak = weak_cameras({c: board_covariance.get(c) for c in cams
+                             if c != dataset.rig.reference}, config)
     timings: dict[str, float] = {}
     scales: dict[str, DepthScaleEstimate] = {}
     with timed(timings, "depth_scale"):
@@ -109,6 +150,12 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
 
     clouds: dict[str, CameraCloud] = {}
     skipped: dict[str, str] = {}
+    if method != "none" and weak is not None and not weak:
+        return DepthRefinement(
+            method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
+            note=(f"the board constrains every camera within {config.board_weak_sigma_mm} mm "
+                  f"/ {config.board_weak_sigma_deg} deg: depth registration would add no "
+                  "information and was skipped"), weak_cameras={})
     with timed(timings, "clouds"):
         tick = start(progress, "static clouds", len(cams))
         for c in cams:
@@ -126,19 +173,71 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
         with timed(timings, "registration"):
             intrinsics = {c: dataset.rig.cameras[c] for c in clouds}
             overlaps = find_overlapping_pairs(clouds, T_ref_cam, intrinsics, config)
+            if weak is not None:
+                overlaps = [ov for ov in overlaps if ov.cam_a in weak or ov.cam_b in weak]
             tick = start(progress, f"registering pairs ({method})", len(overlaps))
-            for ov in overlaps:
-                reg = _register_safely(clouds[ov.cam_a], clouds[ov.cam_b], T_ref_cam[ov.cam_a],
-                                       T_ref_cam[ov.cam_b], method, config)
+            jobs = [(ov.cam_a, ov.cam_b, T_ref_cam[ov.cam_a], T_ref_cam[ov.cam_b])
+                    for ov in overlaps]
+            for ov, reg in zip(overlaps, register_pairs(clouds, jobs, method, config, workers,
+                                                         tick)):
                 pairs.append({**ov.to_dict(), **reg.to_dict()})
                 if reg.accepted:
                     relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
-                tick(1)
     depth = DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings,
-                            skipped)
+                            skipped, weak_cameras=weak)
     if method != "none" and not relative:
         depth = depth.with_fallback(no_pair_reason(depth))
     return depth
+
+
+_POOL_CLOUDS: dict[str, CameraCloud] = {}
+_POOL_ARGS: tuple[str, DepthConfig] | None = None
+
+
+def _pool_init(clouds: dict[str, CameraCloud], method: str, config: DepthConfig) -> None:
+    global _POOL_ARGS
+    _POOL_CLOUDS.update(clouds)
+    _POOL_ARGS = (method, config)
+
+
+def _pool_job(job: tuple[str, str, np.ndarray, np.ndarray]) -> PairRegistration:
+    assert _POOL_ARGS is not None
+    a, b, T_ref_a, T_ref_b = job
+    method, config = _POOL_ARGS
+    return _register_safely(_POOL_CLOUDS[a], _POOL_CLOUDS[b], T_ref_a, T_ref_b, method,
+                            config)
+
+
+def register_pairs(clouds: dict[str, CameraCloud],
+                   jobs: list[tuple[str, str, np.ndarray, np.ndarray]], method: RefineMethod,
+                   config: DepthConfig, workers: int | None = None, tick=None,
+                   ) -> list[PairRegistration]:
+    """Register every ``(cam_a, cam_b, T_ref_a, T_ref_b)`` of ``jobs`` (in order), in a
+    process pool of ``workers`` (default: all cores; 1 or a single job runs here). Each
+    worker receives the clouds once; a failing pair is rejected, never raised."""
+    n = min(workers or os.cpu_count() or 1, len(jobs))
+    if n <= 1:
+        out = []
+        for a, b, T_ref_a, T_ref_b in jobs:
+            out.append(_register_safely(clouds[a], clouds[b], T_ref_a, T_ref_b, method, config))
+            if tick:
+                tick(1)
+        return out
+    used = {c for a, b, _, _ in jobs for c in (a, b)}
+    with ProcessPoolExecutor(n, mp_context=process_context(), initializer=_pool_init,
+                             initargs=({c: clouds[c] for c in used}, method, config)) as pool:
+        futures = [pool.submit(_pool_job, job) for job in jobs]
+        out = []
+        for (a, b, T_ref_a, T_ref_b), future in zip(jobs, futures):
+            try:
+                out.append(future.result())
+            except Exception as exc:  # noqa: BLE001 - a worker that died takes one pair
+                T_b_a0 = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
+                out.append(failed_registration(a, b, method, T_b_a0, "registration process "
+                                               f"failed: {type(exc).__name__}: {exc}"))
+            if tick:
+                tick(1)
+        return out
 
 
 def _register_safely(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.ndarray,

@@ -88,7 +88,11 @@ def test_an_exception_inside_one_pair_rejects_only_that_pair(scene, monkeypatch)
 
 
 # --------------------------------------------------------------------------- whole run
-FAST_DEPTH = {"max_frames": 2}  # static clouds from 2 frames: these runs check the flow only
+# static clouds from 2 frames and every camera registered (no board-based selection), in
+# this process (monkeypatched): these runs check the flow only
+FAST_DEPTH = {"max_frames": 2, "board_weak_sigma_mm": 0.0, "board_weak_sigma_deg": 0.0}
+
+
 def _open3d_failure(*args, **kwargs):
     raise RuntimeError("\x1b[1;31m[Open3D Error] (...) ColoredICP.cpp:102: No correspondences "
                        "found between source and target pointcloud.\x1b[0;m")
@@ -105,7 +109,8 @@ def line_board_only(small_line, tmp_path_factory):
 
     cache = tmp_path_factory.mktemp("fallback")
     run = lambda **kw: calibrate(FolderDataset(small_line.path), thesis_board(),  # noqa: E731
-                                 CalibrationConfig(**kw, depth=FAST_DEPTH), cache_dir=cache)
+                                 CalibrationConfig(**kw, depth=FAST_DEPTH, workers=1),
+                                 cache_dir=cache)
     return run, run(refine="none"), FolderDataset(small_line.path).rig
 
 

@@ -87,6 +87,8 @@ def report_dict(
     }
     if result.bundle is not None:
         report["bundle"] = _bundle_entry(result.bundle)
+    if getattr(result, "depth", None) is not None:
+        report["depth"] = result.depth.status_dict()
     return finalize_report(to_builtin(report))
 
 

@@ -564,7 +564,11 @@ def each_pair(*checks: Callable[[dict[str, Any]], Finding | None]) -> Rule:
 
 
 def depth_unused(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
-    """The depth stage ran but no pair went into the solve: the result is the board's alone."""
+    """The depth stage ran but no pair went into the solve: the result is the board's alone
+    (not when the stage skipped registration because the board constrains every camera)."""
+    status = (report.get("depth") or {}).get("status")
+    if status is not None and status != "fallback":
+        return []
     if "depth" not in report.get("timings_s", {}) or any(p["accepted"] for p in report["pairs"]):
         return []
     pairs = report["pairs"]
