@@ -496,9 +496,11 @@ def refine(
     sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view)."""
+    import math
+
     from .errors import ConfigError
     from .outputs import write_refine_outputs
-    from .refine import refine_extrinsics
+    from .refine import load_depth_scales, refine_extrinsics, refine_verdict
     from .results import load_extrinsics
 
     if method not in ("colored-icp", "geometric"):
@@ -507,15 +509,21 @@ def refine(
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     ds.check_images()
     init_ext = load_extrinsics(init, check_redundant=True)
+    scales = load_depth_scales(init.parent / "report.json")
     with stage_progress() as progress:
-        ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress)
-    write_refine_outputs(ext, depth, out, method, init)
+        ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress,
+                                       depth_scales=scales)
+    verdict = refine_verdict(init_ext, ext, depth)
+    write_refine_outputs(ext, depth, out, method, init, verdict=verdict)
     for p in depth.pairs:
         state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
-        console.print(
-            f"{p['cam_a']} -> {p['cam_b']}: rmse {p['rmse_before_mm']:.2f} -> "
-            f"{p['rmse_final_mm']:.2f} mm, {state}"
-        )
+        before, final = p["rmse_before_mm"], p["rmse_final_mm"]
+        rmse = (f"rmse {before:.2f} -> {final:.2f} mm, "
+                if before is not None and final is not None and math.isfinite(before)
+                and math.isfinite(final) else "")
+        console.print(f"{p['cam_a']} -> {p['cam_b']}: {rmse}{state}")
+    colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
+    console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}")
     console.print(f"results in {out}/ (extrinsics.yaml, refine_report.json, fused.ply)")
 
 

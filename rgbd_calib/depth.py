@@ -920,13 +920,23 @@ class _WhitenedRows:
 
 
 def whitened_rows(matches: _Matches, T_b_a: np.ndarray, patch_m: float,
-                  colour: tuple[_Level, _Level, np.ndarray] | None = None) -> _WhitenedRows:
+                  colour: tuple[_Level, _Level, np.ndarray] | None = None,
+                  free_scale: tuple[bool, bool] = (False, False)) -> _WhitenedRows:
     """Point-to-plane residuals over their D435 sigma (:func:`_match`), and, with
     ``colour = (src, tgt, gradients_b)``, the photometric residuals of colored ICP over their
     RMS (colour has no noise model: its variance comes from the residuals). Rows are grouped
-    by the ``patch_m`` voxel of their source point."""
+    by the ``patch_m`` voxel of their source point.
+
+    ``free_scale`` adds a column per camera (a, b) whose depth scale is unknown: the
+    derivative of the residual for ``p_a -> (1 + d_a) p_a`` (``m . p_a``) or
+    ``q_b -> (1 + d_b) q_b`` (``-n_b . q_b``)."""
     m = matches.normals_b @ T_b_a[:3, :3]
-    J = np.hstack([np.cross(matches.src, m), m]) / matches.sigma[:, None]
+    cols = [np.cross(matches.src, m), m]
+    if free_scale[0]:
+        cols.append(np.einsum("ij,ij->i", m, matches.src)[:, None])
+    if free_scale[1]:
+        cols.append(-np.einsum("ij,ij->i", matches.normals_b, matches.tgt)[:, None])
+    J = np.hstack(cols) / matches.sigma[:, None]
     r = matches.residual / matches.sigma
     n_geo = r.size
     if colour is not None and r.size >= 7:
@@ -938,10 +948,15 @@ def whitened_rows(matches: _Matches, T_b_a: np.ndarray, patch_m: float,
               - _intensity(src.colors[matches.src_index]))
         sigma_c = max(float(np.sqrt(np.mean(rc**2))), 1e-6)
         g = d_q @ T_b_a[:3, :3]
-        J = np.vstack([J, np.hstack([np.cross(matches.src, g), g]) / sigma_c])
+        cols = [np.cross(matches.src, g), g]
+        if free_scale[0]:
+            cols.append(np.einsum("ij,ij->i", g, matches.src)[:, None])
+        if free_scale[1]:
+            cols.append(-np.einsum("ij,ij->i", d_q, matches.tgt)[:, None])
+        J = np.vstack([J, np.hstack(cols) / sigma_c])
         r = np.concatenate([r, rc / sigma_c])
     if n_geo == 0:
-        return _WhitenedRows(np.zeros((0, 6)), np.zeros(0), np.zeros(0, int), 0, 0)
+        return _WhitenedRows(np.zeros((0, J.shape[1])), np.zeros(0), np.zeros(0, int), 0, 0)
     _, patch = np.unique(_voxel_keys(matches.src, patch_m), return_inverse=True)
     patch = patch.ravel()
     n_patches = int(patch.max()) + 1
@@ -969,10 +984,11 @@ def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
     the estimate better than the noise allows: M is divided by ``min(s^2, 1)``. The per-row meat
     ``sum (r_i J_i)^T (r_i J_i)`` over G is added to M so that a direction no patch's score
     happened to span keeps a finite variance. The result is the inverse of ``Cov``."""
-    if rows.n_geometric < 6 or rows.n_patches < 2:
+    k = rows.J.shape[1]
+    if rows.n_geometric < k or rows.n_patches < 2:
         return np.zeros((6, 6))
     H = rows.J.T @ rows.J
-    scores = np.zeros((rows.n_patches, 6))
+    scores = np.zeros((rows.n_patches, k))
     np.add.at(scores, rows.patch, rows.J * rows.r[:, None])
     G = rows.n_patches
     row_scores = rows.J * rows.r[:, None]
@@ -984,7 +1000,8 @@ def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
     M = M / min(max(s2, 1e-6), 1.0)
     try:
         H_inv = np.linalg.inv(H)
-        info = np.linalg.inv(H_inv @ M @ H_inv)
+        # columns beyond the pose (free depth scales) are marginalised: pose block of Cov
+        info = np.linalg.inv((H_inv @ M @ H_inv)[:6, :6])
     except np.linalg.LinAlgError:
         return np.zeros((6, 6))
     return 0.5 * (info + info.T)
@@ -1061,6 +1078,7 @@ def register_pair(
     T_ref_b: np.ndarray,
     method: Method = "colored-icp",
     config: DepthConfig | None = None,
+    free_scale: tuple[bool, bool] = (False, False),
 ) -> PairRegistration:
     """Register camera a's static cloud to camera b's, starting from the current extrinsics
     ``T_ref_a``, ``T_ref_b`` (4x4, metres); returns the measured ``T_b_a`` with its
@@ -1128,10 +1146,10 @@ def register_pair(
     if method == "colored-icp" and config.lambda_geometric < 1.0 and n_corr >= 7:
         colour = (src, tgt, color_gradients(tgt.points, tgt.normals, tgt.colors,
                                             at=final.tgt_index))
-    rows = whitened_rows(final, T, config.information_patch_m, colour)
+    rows = whitened_rows(final, T, config.information_patch_m, colour, free_scale)
     # the noise model's Gauss-Newton information says which directions the overlap
     # constrains (conditioning); the sandwich over patches says how well (information)
-    cond = conditioning(rows.J.T @ rows.J, final.src) if n_corr else 0.0
+    cond = conditioning(rows.J[:, :6].T @ rows.J[:, :6], final.src) if n_corr else 0.0
     information = noise_model_information(rows)
     fitness = n_corr / src.points.shape[0] if src.points.shape[0] else 0.0
     inlier_rmse_mm = (float(1000.0 * np.sqrt(np.mean(final.distance**2))) if n_corr
@@ -1171,7 +1189,9 @@ def register_pair(
         reasons.append(
             f"no significant improvement on the current extrinsics: ICP moved "
             f"{corr_mm:.2f} mm / {corr_deg:.3f} deg, chi2 {improvement:.1f} < "
-            f"{config.min_improvement_chi2} (6 dof) under its own uncertainty")
+            f"{config.min_improvement_chi2} (6 dof) under its own uncertainty"
+            + (" (depth scale unknown: a move a depth-scale error explains does not count)"
+               if any(free_scale) else ""))
     if not np.all(np.isfinite(information)):
         reasons.append("information matrix not finite")
     return PairRegistration(

@@ -14,9 +14,11 @@ Steps (issue 4's design, one joint graph with the board):
 
 from __future__ import annotations
 
+import json
 import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -38,7 +40,7 @@ from .depth import (
     static_cloud,
 )
 from .errors import CalibrationError, DatasetError
-from .geometry import invert_transform
+from .geometry import invert_transform, transform_error
 from .graph import RelativePose, bundle_adjust
 from .parallel import process_context
 from .progress import Progress, start, timed
@@ -62,6 +64,7 @@ class DepthRefinement:
     fallback: str | None = None  # why the result is the board's alone (no usable pair), if so
     note: str | None = None  # why registration was not needed (strong board data), if so
     weak_cameras: dict[str, str] | None = None  # cameras depth was run for (None: all)
+    scale_source: dict[str, str] = field(default_factory=dict)  # board / given / unknown
 
     def status_dict(self) -> dict[str, Any]:
         """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason`` and
@@ -117,6 +120,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                   progress: Progress | None = None,
                   board_covariance: dict[str, np.ndarray | None] | None = None,
                   workers: int | None = None,
+                  depth_scales: dict[str, float] | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
 
@@ -127,7 +131,12 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     With ``board_covariance`` (camera -> 6x6 marginal of the board solve) only pairs with a
     camera the board constrains weakly (:func:`weak_cameras`) are registered, and nothing but
     the depth scale is measured when the board constrains every camera well: depth adds no
-    information there. Pairs run in ``workers`` processes (default: all cores)."""
+    information there. Pairs run in ``workers`` processes (default: all cores).
+
+    ``depth_scales`` (camera -> factor, e.g. from the report.json of the calibration being
+    refined) are used for cameras the board gives no factor for. A camera with neither has an
+    unknown depth scale: its pairs' information leaves out the directions a depth-scale error
+    would explain (:func:`rgbd_calib.depth.whitened_rows`, ``free_scale``)."""
     config = config or DepthConfig()
     cams = [c for c in dataset.cameras if c in T_ref_cam and dataset.has_depth(c)]
     weak: dict[str, str] | None = None
@@ -159,7 +168,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     with timed(timings, "clouds"):
         tick = start(progress, "static clouds", len(cams))
         for c in cams:
-            factor = scales[c].factor if c in scales else 1.0
+            factor = (scales[c].factor if c in scales
+                      else (depth_scales or {}).get(c, 1.0))
             try:
                 clouds[c] = static_cloud(dataset, c, T_ref_board or {}, T_ref_cam[c], board,
                                          config, depth_scale_factor=factor)
@@ -176,15 +186,19 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             if weak is not None:
                 overlaps = [ov for ov in overlaps if ov.cam_a in weak or ov.cam_b in weak]
             tick = start(progress, f"registering pairs ({method})", len(overlaps))
-            jobs = [(ov.cam_a, ov.cam_b, T_ref_cam[ov.cam_a], T_ref_cam[ov.cam_b])
-                    for ov in overlaps]
+            known = set(scales) | set(depth_scales or {})
+            jobs = [(ov.cam_a, ov.cam_b, T_ref_cam[ov.cam_a], T_ref_cam[ov.cam_b],
+                     (ov.cam_a not in known, ov.cam_b not in known)) for ov in overlaps]
             for ov, reg in zip(overlaps, register_pairs(clouds, jobs, method, config, workers,
                                                          tick)):
                 pairs.append({**ov.to_dict(), **reg.to_dict()})
                 if reg.accepted:
                     relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
     depth = DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings,
-                            skipped, weak_cameras=weak)
+                            skipped, weak_cameras=weak,
+                            scale_source={c: "board" if c in scales else "given"
+                                          if c in (depth_scales or {}) else "unknown"
+                                          for c in clouds})
     if method != "none" and not relative:
         depth = depth.with_fallback(no_pair_reason(depth))
     return depth
@@ -200,35 +214,39 @@ def _pool_init(clouds: dict[str, CameraCloud], method: str, config: DepthConfig)
     _POOL_ARGS = (method, config)
 
 
-def _pool_job(job: tuple[str, str, np.ndarray, np.ndarray]) -> PairRegistration:
+Job = tuple[str, str, np.ndarray, np.ndarray, tuple[bool, bool]]
+
+
+def _pool_job(job: Job) -> PairRegistration:
     assert _POOL_ARGS is not None
-    a, b, T_ref_a, T_ref_b = job
+    a, b, T_ref_a, T_ref_b, free_scale = job
     method, config = _POOL_ARGS
     return _register_safely(_POOL_CLOUDS[a], _POOL_CLOUDS[b], T_ref_a, T_ref_b, method,
-                            config)
+                            config, free_scale)
 
 
 def register_pairs(clouds: dict[str, CameraCloud],
-                   jobs: list[tuple[str, str, np.ndarray, np.ndarray]], method: RefineMethod,
+                   jobs: list[Job], method: RefineMethod,
                    config: DepthConfig, workers: int | None = None, tick=None,
                    ) -> list[PairRegistration]:
-    """Register every ``(cam_a, cam_b, T_ref_a, T_ref_b)`` of ``jobs`` (in order), in a
+    """Register every ``(cam_a, cam_b, T_ref_a, T_ref_b, free_scale)`` of ``jobs`` (in order), in a
     process pool of ``workers`` (default: all cores; 1 or a single job runs here). Each
     worker receives the clouds once; a failing pair is rejected, never raised."""
     n = min(workers or os.cpu_count() or 1, len(jobs))
     if n <= 1:
         out = []
-        for a, b, T_ref_a, T_ref_b in jobs:
-            out.append(_register_safely(clouds[a], clouds[b], T_ref_a, T_ref_b, method, config))
+        for a, b, T_ref_a, T_ref_b, free_scale in jobs:
+            out.append(_register_safely(clouds[a], clouds[b], T_ref_a, T_ref_b, method, config,
+                                        free_scale))
             if tick:
                 tick(1)
         return out
-    used = {c for a, b, _, _ in jobs for c in (a, b)}
+    used = {c for a, b, *_ in jobs for c in (a, b)}
     with ProcessPoolExecutor(n, mp_context=process_context(), initializer=_pool_init,
                              initargs=({c: clouds[c] for c in used}, method, config)) as pool:
         futures = [pool.submit(_pool_job, job) for job in jobs]
         out = []
-        for (a, b, T_ref_a, T_ref_b), future in zip(jobs, futures):
+        for (a, b, T_ref_a, T_ref_b, _), future in zip(jobs, futures):
             try:
                 out.append(future.result())
             except Exception as exc:  # noqa: BLE001 - a worker that died takes one pair
@@ -242,12 +260,13 @@ def register_pairs(clouds: dict[str, CameraCloud],
 
 def _register_safely(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.ndarray,
                      T_ref_b: np.ndarray, method: RefineMethod, config: DepthConfig,
+                     free_scale: tuple[bool, bool] = (False, False),
                      ) -> PairRegistration:
     """:func:`register_pair`, with any failure of this one pair turned into its rejection
     (register_pair already catches the ICP libraries' own errors; this is the last net, so
     that one pair never ends a run)."""
     try:
-        return register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config)
+        return register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config, free_scale)
     except Exception as exc:  # noqa: BLE001 - deliberately any error of this pair
         T_b_a0 = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
         return failed_registration(cloud_a.camera, cloud_b.camera, method, T_b_a0,
@@ -282,28 +301,112 @@ def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
 
 def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMethod =
                       "colored-icp", config: DepthConfig | None = None,
-                      progress=None) -> tuple[Extrinsics, DepthRefinement]:
+                      progress=None, depth_scales: dict[str, float] | None = None,
+                      workers: int | None = None) -> tuple[Extrinsics, DepthRefinement]:
     """Depth-only refinement of an existing calibration (no board in view): register the
     overlapping pairs from ``init`` and solve a pose graph of the accepted pairs, the
-    reference held. Cameras in no accepted pair keep their initial pose (and sigma)."""
+    reference held and every other camera held to its initial pose by a prior with its
+    initial sigmas (when ``init`` has them): a good calibration is not pulled further than
+    its own uncertainty allows by pairs 10-50x less certain. Cameras in no accepted pair keep
+    their initial pose (and sigma).
+
+    ``depth_scales`` (camera -> factor; :func:`load_depth_scales`) are the depth-scale factors
+    of the calibration ``init`` came from; a camera without one has an unknown depth scale and
+    its pairs do not move it along the directions a scale error explains. With no usable pair
+    the result is ``init`` itself, with ``depth.fallback`` saying why."""
     if method == "none":
         raise CalibrationError("refine needs --method colored-icp or geometric")
     T_init = {c: e.T_ref_cam for c, e in init.cameras.items() if c in dataset.rig.cameras}
     if init.reference not in T_init:
         raise CalibrationError(f"the reference camera {init.reference!r} of the initial "
                                "extrinsics is not in the dataset's rig.yaml")
-    depth = measure_depth(dataset, None, T_init, None, None, method, config, progress)
-    if not depth.relative_poses:
-        raise CalibrationError(
-            f"{dataset.path}: no camera pair overlaps well enough to register "
-            f"({len(depth.pairs)} pairs tried); check the initial extrinsics and that the "
-            "cameras see common static surfaces")
-    res = bundle_adjust([], {c: dataset.rig.cameras[c].K for c in T_init}, init.reference,
-                        T_init, {}, BundleConfig(), relative_poses=depth.relative_poses)
+    depth = measure_depth(dataset, None, T_init, None, None, method, config, progress,
+                          workers=workers, depth_scales=depth_scales)
+    if not depth.used:
+        return init, finish_pairs(depth, T_init, config)
+    priors = initial_pose_priors(init, T_init)
+    try:
+        res = bundle_adjust([], {c: dataset.rig.cameras[c].K for c in T_init}, init.reference,
+                            T_init, {}, BundleConfig(),
+                            relative_poses=depth.relative_poses + priors)
+    except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
+        depth = depth.with_fallback(f"the pose graph of the depth pairs failed "
+                                    f"({type(exc).__name__}: {exc})".replace("\n", " "))
+        return init, finish_pairs(depth, T_init, config)
     solved = cameras_from_solve(res)
     cams = {c: solved.get(c, e) for c, e in init.cameras.items()}
     out = Extrinsics(init.reference, cams, dict(init.unconnected))
     return out, finish_pairs(depth, {c: e.T_ref_cam for c, e in cams.items()}, config)
+
+
+def initial_pose_priors(init: Extrinsics, T_init: dict[str, np.ndarray]) -> list[RelativePose]:
+    """One prior per non-reference camera of ``init`` with finite sigmas, as a relative pose
+    from the camera to the reference (``T_ref_cam`` itself) with a diagonal information from
+    its ``sigma_rotation_deg`` / ``sigma_translation_mm`` on each axis (those are roots of
+    the 3-axis traces, so per axis this is up to sqrt(3) too wide: the prior never claims
+    more than the calibration did)."""
+    out = []
+    for c, e in init.cameras.items():
+        if c == init.reference or c not in T_init:
+            continue
+        s_rot, s_mm = e.sigma_rotation_deg, e.sigma_translation_mm
+        if not (np.isfinite(s_rot) and np.isfinite(s_mm) and s_rot > 0 and s_mm > 0):
+            continue
+        var = np.r_[np.full(3, np.radians(s_rot) ** 2), np.full(3, (s_mm / 1000.0) ** 2)]
+        out.append(RelativePose(c, init.reference, T_init[c], np.diag(1.0 / var)))
+    return out
+
+
+def load_depth_scales(report_json: Path) -> dict[str, float]:
+    """camera -> depth-scale factor from a calibrate ``report.json``
+    (``cameras.<camera>.depth_scale_factor``; cameras without one are left out); empty when
+    the file does not exist."""
+    if not report_json.is_file():
+        return {}
+    try:
+        cams = json.loads(report_json.read_text()).get("cameras", {})
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{report_json}: not a readable report.json ({exc}); remove it or "
+                           "repair it") from exc
+    return {c: float(v["depth_scale_factor"]) for c, v in cams.items()
+            if isinstance(v, dict) and v.get("depth_scale_factor") is not None}
+
+
+def refine_verdict(init: Extrinsics, result: Extrinsics, depth: DepthRefinement,
+                   ) -> dict[str, Any]:
+    """The refine run in one line plus its evidence: ``verdict`` ``refined`` (pairs used),
+    ``unchanged`` (no usable pair: the result is the initial calibration) or ``check``
+    (cameras moved by more than 3 of their initial sigmas, or depth scales unknown), the
+    ``message``, and per camera its move from ``init`` (mm, deg)."""
+    moves = {}
+    for c, e in result.cameras.items():
+        if c in init.cameras:
+            deg, mm = transform_error(e.T_ref_cam, init.cameras[c].T_ref_cam)
+            moves[c] = {"moved_mm": mm, "moved_deg": deg,
+                        "initial_sigma_mm": init.cameras[c].sigma_translation_mm}
+    unknown = sorted(c for c, src in depth.scale_source.items() if src == "unknown")
+    far = sorted(c for c, m in moves.items()
+                 if np.isfinite(m["initial_sigma_mm"]) and m["initial_sigma_mm"] > 0
+                 and m["moved_mm"] > 3.0 * m["initial_sigma_mm"])
+    n_used = sum(bool(p.get("accepted")) for p in depth.pairs)
+    notes = []
+    if unknown:
+        notes.append(f"depth scale unknown for {', '.join(unknown)} (no report.json with "
+                     "depth_scale_factor next to --init): their pairs were not allowed to move "
+                     "them along the directions a depth-scale error explains")
+    if depth.fallback:
+        verdict = "unchanged"
+        notes.insert(0, f"no usable pair ({depth.fallback}): the extrinsics are the initial "
+                        "ones")
+    elif far:
+        verdict = "check"
+        notes.insert(0, f"{n_used} pairs used; {', '.join(far)} moved by more than 3 initial "
+                        "sigmas: the depth and the initial calibration disagree")
+    else:
+        verdict = "check" if unknown else "refined"
+        notes.insert(0, f"{n_used} of {len(depth.pairs)} pairs used")
+    return {"verdict": verdict, "message": "; ".join(notes), "cameras": moves,
+            "depth_scale_source": dict(depth.scale_source)}
 
 
 def board_views_per_camera(observations, T_ref_cam: dict[str, np.ndarray],

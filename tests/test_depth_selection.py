@@ -40,7 +40,8 @@ def test_weak_cameras_from_the_worst_direction_of_the_board_marginal():
 def test_pairs_in_a_process_pool_give_the_same_registrations():
     rng = np.random.default_rng(4)
     clouds = {"a": scene_cloud("a", CAM_A, RECTS, rng), "b": scene_cloud("b", CAM_B, RECTS, rng)}
-    jobs = [("a", "b", nudge(CAM_A), CAM_B), ("b", "a", nudge(CAM_B, 5.0, 0.2), CAM_A)]
+    free = (False, False)
+    jobs = [("a", "b", nudge(CAM_A), CAM_B, free), ("b", "a", nudge(CAM_B, 5.0, 0.2), CAM_A, free)]
     config = DepthConfig()
     here = R.register_pairs(clouds, jobs, "colored-icp", config, workers=1)
     ticks = []
