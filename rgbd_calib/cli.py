@@ -494,13 +494,20 @@ def refine(
     method: Annotated[str, typer.Option(help="colored-icp or geometric.")] = "colored-icp",
     names: Annotated[str | None, NAMES_OPTION] = None,
     sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
+    board_file: Annotated[
+        Path | None,
+        typer.Option("--board", help="Board YAML of the starting calibration (default: the "
+                     "thesis board); with its report.json's board poses it masks the board and "
+                     "gives each camera's depth scale."),
+    ] = None,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view)."""
     import math
 
+    from .board import load_board, thesis_board
     from .errors import ConfigError
     from .outputs import write_refine_outputs
-    from .refine import load_depth_scales, refine_extrinsics, refine_verdict
+    from .refine import load_board_views, load_depth_scales, refine_extrinsics, refine_verdict
     from .results import load_extrinsics
 
     if method not in ("colored-icp", "geometric"):
@@ -510,9 +517,18 @@ def refine(
     ds.check_images()
     init_ext = load_extrinsics(init, check_redundant=True)
     scales = load_depth_scales(init.parent / "report.json")
+    T_ref_board, board_cameras = load_board_views(init.parent / "report.json")
+    b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
         ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress,
-                                       depth_scales=scales)
+                                       depth_scales=scales, board=b, T_ref_board=T_ref_board,
+                                       board_cameras=board_cameras)
+    sources = depth.scale_source
+    for kind, what in (("given", "from the report.json next to --init"),
+                       ("board", "estimated from the board in view"),
+                       ("unknown", "unknown (not moved along what a scale error explains)")):
+        if cams := [c for c, k in sources.items() if k == kind]:
+            console.print(f"depth scale {what}: {', '.join(cams)}")
     verdict = refine_verdict(init_ext, ext, depth)
     write_refine_outputs(ext, depth, out, method, init, verdict=verdict)
     for p in depth.pairs:

@@ -302,7 +302,10 @@ def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
 def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMethod =
                       "colored-icp", config: DepthConfig | None = None,
                       progress=None, depth_scales: dict[str, float] | None = None,
-                      workers: int | None = None) -> tuple[Extrinsics, DepthRefinement]:
+                      workers: int | None = None, board: Board | None = None,
+                      T_ref_board: dict[str, np.ndarray] | None = None,
+                      board_cameras: dict[str, list[str]] | None = None,
+                      ) -> tuple[Extrinsics, DepthRefinement]:
     """Depth-only refinement of an existing calibration (no board in view): register the
     overlapping pairs from ``init`` and solve a pose graph of the accepted pairs, the
     reference held and every other camera held to its initial pose by a prior with its
@@ -312,16 +315,29 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
 
     ``depth_scales`` (camera -> factor; :func:`load_depth_scales`) are the depth-scale factors
     of the calibration ``init`` came from; a camera without one has an unknown depth scale and
-    its pairs do not move it along the directions a scale error explains. With no usable pair
-    the result is ``init`` itself, with ``depth.fallback`` saying why."""
+    its pairs do not move it along the directions a scale error explains. With ``board``,
+    ``T_ref_board`` (frame -> board pose of the starting calibration, e.g. its report.json
+    ``board_views``) and ``board_cameras`` (frame -> cameras that saw it), the board is masked
+    out of the clouds and cameras without a given factor get one estimated from the board
+    face (as calibrate does). With no usable pair the result is ``init`` itself, with
+    ``depth.fallback`` saying why."""
     if method == "none":
         raise CalibrationError("refine needs --method colored-icp or geometric")
     T_init = {c: e.T_ref_cam for c, e in init.cameras.items() if c in dataset.rig.cameras}
     if init.reference not in T_init:
         raise CalibrationError(f"the reference camera {init.reference!r} of the initial "
                                "extrinsics is not in the dataset's rig.yaml")
-    depth = measure_depth(dataset, None, T_init, None, None, method, config, progress,
-                          workers=workers, depth_scales=depth_scales)
+    views = None
+    if board is not None and T_ref_board and board_cameras:
+        given = depth_scales or {}
+        views = {}
+        for frame, seen in board_cameras.items():
+            for c in seen:
+                if c in T_init and c not in given and frame in T_ref_board:
+                    views.setdefault(c, {})[frame] = (invert_transform(T_init[c])
+                                                      @ T_ref_board[frame])
+    depth = measure_depth(dataset, board, T_init, views, T_ref_board, method, config,
+                          progress, workers=workers, depth_scales=depth_scales)
     if not depth.used:
         return init, finish_pairs(depth, T_init, config)
     priors = initial_pose_priors(init, T_init)
@@ -370,6 +386,21 @@ def load_depth_scales(report_json: Path) -> dict[str, float]:
                            "repair it") from exc
     return {c: float(v["depth_scale_factor"]) for c, v in cams.items()
             if isinstance(v, dict) and v.get("depth_scale_factor") is not None}
+
+
+def load_board_views(report_json: Path) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
+    """frame -> ``T_ref_board`` (4x4) and frame -> cameras that saw it, from a calibrate
+    ``report.json`` (``board_views``); empty when the file does not exist."""
+    if not report_json.is_file():
+        return {}, {}
+    try:
+        views = json.loads(report_json.read_text()).get("board_views", [])
+        poses = {str(v["frame"]): np.asarray(v["T_ref_board"], dtype=float) for v in views}
+        cams = {str(v["frame"]): [str(c) for c in v["cameras"]] for v in views}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(f"{report_json}: board_views unreadable ({exc}); remove or repair "
+                           "the report.json next to --init") from exc
+    return poses, cams
 
 
 def refine_verdict(init: Extrinsics, result: Extrinsics, depth: DepthRefinement,
