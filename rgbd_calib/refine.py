@@ -287,12 +287,16 @@ def no_pair_reason(depth: DepthRefinement) -> str:
 def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
                  config: DepthConfig | None = None) -> DepthRefinement:
     """Add each pair's point-to-plane RMSE at the final extrinsics (``rmse_final_mm``), on
-    the same points and metric as its ``rmse_before_mm`` / ``rmse_after_mm``."""
+    the same points and metric as its ``rmse_before_mm`` / ``rmse_after_mm`` (which it equals,
+    without recomputing, when neither camera moved: a fallback or a skipped pair's cameras)."""
     pairs = []
     for p in depth.pairs:
         a, b = p["cam_a"], p["cam_b"]
         final = None
-        if a in T_ref_cam and b in T_ref_cam:
+        if a in T_ref_cam and b in T_ref_cam and all(
+                np.array_equal(T_ref_cam[c], depth.T_ref_cam_initial[c]) for c in (a, b)):
+            final = p.get("rmse_before_mm")
+        elif a in T_ref_cam and b in T_ref_cam:
             final = pair_rmse_mm(depth.clouds[a], depth.clouds[b], depth.T_ref_cam_initial[a],
                                  depth.T_ref_cam_initial[b], T_ref_cam[a], T_ref_cam[b], config)
         pairs.append({**p, "rmse_final_mm": final})
