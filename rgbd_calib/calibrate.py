@@ -40,7 +40,13 @@ from .graph import (
 from .parallel import process_context
 from .pose import BoardObservation, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
-from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
+from .refine import (
+    DepthRefinement,
+    board_views_per_camera,
+    finish_pairs,
+    measure_depth,
+    moved_beyond_board,
+)
 from .results import CameraExtrinsics, Extrinsics, PoseEdge, cameras_from_solve
 from .rig import Rig
 from .yamlio import atomic_write_text
@@ -239,9 +245,13 @@ def calibrate(
                                                 f"({type(exc).__name__}: {exc})".replace(
                                                     "\n", " "))
                 else:
-                    bundle = joint
-                    cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle,
-                                                          pg, config)
+                    joint_cameras, joint_factors = model_error_sigmas(cameras_from_solve(joint),
+                                                                      joint, pg, config)
+                    beyond = moved_beyond_board(cameras, joint_cameras)
+                    if beyond:  # depth never moves a camera beyond its board uncertainty
+                        depth = depth.with_fallback("; ".join(beyond.values()))
+                    else:
+                        bundle, cameras, factors = joint, joint_cameras, joint_factors
             # 7. checks: each pair's fit at the final extrinsics
             with timed(timings, "depth_check"):
                 depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},

@@ -38,6 +38,7 @@ from .depth import (
     pair_rmse_mm,
     register_pair,
     static_cloud,
+    tangent_error,
 )
 from .errors import CalibrationError, DatasetError
 from .geometry import invert_transform, transform_error
@@ -256,6 +257,30 @@ def register_pairs(clouds: dict[str, CameraCloud],
             if tick:
                 tick(1)
         return out
+
+
+BEYOND_BOARD_CHI2 = 16.81  # chi-square, 6 dof, 1 %
+
+
+def moved_beyond_board(board_only: dict[str, Any], joint: dict[str, Any]) -> dict[str, str]:
+    """Cameras the joint solve with the depth pairs moved further from the board-only result
+    than the board's own uncertainty allows (camera -> why): the move ``xi`` (right
+    perturbation, [rot, trans]) weighed by the board marginal, ``xi^T Cov^-1 xi``, above
+    :data:`BEYOND_BOARD_CHI2`. Both arguments map camera -> :class:`CameraExtrinsics`."""
+    out = {}
+    for c, b in board_only.items():
+        if c not in joint or b.covariance is None or not np.all(np.isfinite(b.covariance)):
+            continue
+        xi = tangent_error(b.T_ref_cam, joint[c].T_ref_cam)
+        try:
+            chi2 = float(xi @ np.linalg.solve(b.covariance, xi))
+        except np.linalg.LinAlgError:
+            continue
+        if chi2 > BEYOND_BOARD_CHI2:
+            deg, mm = transform_error(joint[c].T_ref_cam, b.T_ref_cam)
+            out[c] = (f"{c} moved {mm:.2f} mm / {deg:.3f} deg from the board result "
+                      f"(chi2 {chi2:.0f} > {BEYOND_BOARD_CHI2} under its board covariance)")
+    return out
 
 
 def _register_safely(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.ndarray,

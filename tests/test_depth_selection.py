@@ -51,3 +51,15 @@ def test_pairs_in_a_process_pool_give_the_same_registrations():
         assert (h.cam_a, h.cam_b, h.accepted) == (p.cam_a, p.cam_b, p.accepted)
         np.testing.assert_allclose(p.T_b_a, h.T_b_a, atol=1e-9)
         np.testing.assert_allclose(p.information, h.information, rtol=1e-6)
+
+
+def test_a_camera_moved_beyond_its_board_uncertainty_is_found():
+    from rgbd_calib.geometry import make_transform
+    from rgbd_calib.results import CameraExtrinsics
+
+    cov = _cov(0.003, 0.5, worst_axis=2)  # 0.5 mm along z, 0.05 mm along x and y
+    board = {"c": CameraExtrinsics("c", np.eye(4), covariance=cov)}
+    along_z = {"c": CameraExtrinsics("c", make_transform(np.eye(3), [0.0, 0.0, 0.001]))}
+    along_x = {"c": CameraExtrinsics("c", make_transform(np.eye(3), [0.001, 0.0, 0.0]))}
+    assert not R.moved_beyond_board(board, along_z)  # 1 mm = 2 sigma along z
+    assert "moved 1.00 mm" in R.moved_beyond_board(board, along_x)["c"]  # 20 sigma along x
