@@ -45,7 +45,7 @@ from .geometry import invert_transform, transform_error
 from .graph import RelativePose, bundle_adjust
 from .parallel import process_context
 from .progress import Progress, start, timed
-from .results import Extrinsics, cameras_from_solve
+from .results import CameraExtrinsics, Extrinsics, cameras_from_solve
 
 RefineMethod = Literal["colored-icp", "geometric", "none"]
 
@@ -380,6 +380,13 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
         return init, finish_pairs(depth, T_init, config)
     solved = cameras_from_solve(res)
     cams = {c: solved.get(c, e) for c, e in init.cameras.items()}
+    # never further from a calibration with sigmas than those sigmas allow
+    beyond = moved_beyond_board({p.cam_a: CameraExtrinsics(p.cam_a, p.T_b_a, covariance=np.linalg
+                                                           .inv(p.information))
+                                 for p in priors}, cams)
+    if beyond:
+        depth = depth.with_fallback("; ".join(beyond.values()).replace("board", "initial"))
+        return init, finish_pairs(depth, T_init, config)
     out = Extrinsics(init.reference, cams, dict(init.unconnected))
     return out, finish_pairs(depth, {c: e.T_ref_cam for c, e in cams.items()}, config)
 

@@ -149,7 +149,7 @@ def test_calibrate_falls_back_when_the_joint_solve_fails(line_board_only, monkey
                                "variable 7 (Symbol: x7).")
         return real(*args, **kwargs)
 
-    def accepted(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config):  # a plausible pair
+    def accepted(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config, *rest):  # plausible
         T_b_a = invert_transform(T_ref_b) @ T_ref_a
         return D.PairRegistration(
             cloud_a.camera, cloud_b.camera, method, T_b_a, T_b_a, np.eye(6) * 1e6,
