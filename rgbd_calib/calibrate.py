@@ -41,7 +41,13 @@ from .graph import (
 from .parallel import WorkerPool
 from .pose import BoardObservation, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
-from .refine import DepthRefinement, board_views_per_camera, finish_pairs, measure_depth
+from .refine import (
+    DepthRefinement,
+    board_views_per_camera,
+    finish_pairs,
+    measure_depth,
+    moved_beyond_board,
+)
 from .results import CameraExtrinsics, Extrinsics, PoseEdge, cameras_from_solve
 from .rig import Rig
 from .selfcal import SelfCalibration
@@ -259,17 +265,32 @@ def calibrate(
             with timed(timings, "depth"):
                 views = board_views_per_camera(observations, T_ref_cam, bundle.T_ref_board)
                 depth = measure_depth(dataset, depth_board, T_ref_cam, views,
-                                      bundle.T_ref_board, refine, config.depth, progress)
+                                      bundle.T_ref_board, refine, config.depth, progress,
+                                      board_covariance={c: e.covariance
+                                                        for c, e in cameras.items()},
+                                      workers=config.workers)
             # 6. joint solve: corners and the accepted depth pairs
-            if depth.relative_poses:
-                with timed(timings, "joint"):
-                    bundle = bundle_sound_first(measurements, _camera_matrices(rig),
-                                                rig.reference, T_ref_cam, bundle.T_ref_board,
-                                                solve, pg, fixed_cameras,
-                                                depth.relative_poses, intrinsics=rig.cameras,
-                                                back_centre=back_centre(board))
-                cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg,
-                                                      solve)
+            if depth.used:
+                try:
+                    with timed(timings, "joint"):
+                        joint = bundle_sound_first(measurements, _camera_matrices(rig),
+                                                   rig.reference, T_ref_cam,
+                                                   bundle.T_ref_board, solve, pg,
+                                                   fixed_cameras, depth.relative_poses,
+                                                   intrinsics=rig.cameras,
+                                                   back_centre=back_centre(board))
+                except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
+                    depth = depth.with_fallback(f"the joint solve with the depth pairs failed "
+                                                f"({type(exc).__name__}: {exc})".replace(
+                                                    "\n", " "))
+                else:
+                    joint_cameras, joint_factors = model_error_sigmas(cameras_from_solve(joint),
+                                                                      joint, pg, solve)
+                    beyond = moved_beyond_board(cameras, joint_cameras)
+                    if beyond:  # depth never moves a camera beyond its board uncertainty
+                        depth = depth.with_fallback("; ".join(beyond.values()))
+                    else:
+                        bundle, cameras, factors = joint, joint_cameras, joint_factors
             # 7. checks: each pair's fit at the final extrinsics
             with timed(timings, "depth_check"):
                 depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in cameras.items()},

@@ -502,6 +502,11 @@ def _print_summary(result, out: Path, verdict: bool = True) -> None:
             f"{s['offset_mm'][1]:.2f} mm, {s['rotation_deg']:.3f} deg, "
             f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
         )
+    if result.depth is not None and result.depth.fallback is not None:
+        console.print(f"[yellow]depth refinement not used[/]: {result.depth.fallback}; "
+                      "the extrinsics are the board result")
+    elif result.depth is not None and result.depth.note is not None:
+        console.print(f"depth registration: {result.depth.note}")
     scales = result.depth.depth_scale_dict() if result.depth is not None else {}
     ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
     if ratio is not None:
@@ -531,11 +536,20 @@ def refine(
     method: Annotated[str, typer.Option(help="colored-icp or geometric.")] = "colored-icp",
     names: Annotated[str | None, NAMES_OPTION] = None,
     sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
+    board_file: Annotated[
+        Path | None,
+        typer.Option("--board", help="Board YAML of the starting calibration (default: the "
+                     "thesis board); with its report.json's board poses it masks the board and "
+                     "gives each camera's depth scale."),
+    ] = None,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view)."""
+    import math
+
+    from .board import load_board, thesis_board
     from .errors import ConfigError
     from .outputs import write_refine_outputs
-    from .refine import refine_extrinsics
+    from .refine import load_board_views, load_depth_scales, refine_extrinsics, refine_verdict
     from .results import load_extrinsics
 
     if method not in ("colored-icp", "geometric"):
@@ -544,15 +558,30 @@ def refine(
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     ds.check_images()
     init_ext = load_extrinsics(init, check_redundant=True)
+    scales = load_depth_scales(init.parent / "report.json")
+    T_ref_board, board_cameras = load_board_views(init.parent / "report.json")
+    b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
-        ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress)
-    write_refine_outputs(ext, depth, out, method, init)
+        ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress,
+                                       depth_scales=scales, board=b, T_ref_board=T_ref_board,
+                                       board_cameras=board_cameras)
+    sources = depth.scale_source
+    for kind, what in (("given", "from the report.json next to --init"),
+                       ("board", "estimated from the board in view"),
+                       ("unknown", "unknown (not moved along what a scale error explains)")):
+        if cams := [c for c, k in sources.items() if k == kind]:
+            console.print(f"depth scale {what}: {', '.join(cams)}")
+    verdict = refine_verdict(init_ext, ext, depth)
+    write_refine_outputs(ext, depth, out, method, init, verdict=verdict)
     for p in depth.pairs:
         state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
-        console.print(
-            f"{p['cam_a']} -> {p['cam_b']}: rmse {p['rmse_before_mm']:.2f} -> "
-            f"{p['rmse_final_mm']:.2f} mm, {state}"
-        )
+        before, final = p["rmse_before_mm"], p["rmse_final_mm"]
+        rmse = (f"rmse {before:.2f} -> {final:.2f} mm, "
+                if before is not None and final is not None and math.isfinite(before)
+                and math.isfinite(final) else "")
+        console.print(f"{p['cam_a']} -> {p['cam_b']}: {rmse}{state}")
+    colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
+    console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}")
     console.print(f"results in {out}/ (extrinsics.yaml, refine_report.json, fused.ply)")
 
 

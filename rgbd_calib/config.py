@@ -485,6 +485,12 @@ class DepthConfig(BaseModel, extra="forbid"):
         description="Frames that see the board face more obliquely are "
         "skipped for the depth scale.",
     )
+    scale_max_frames: int = Field(
+        12,
+        ge=1,
+        description="Board views per camera read for the depth scale, sampled evenly (each "
+        "gives a factor to ~0.01 %; 6 views reached 0.03 % on the race rig).",
+    )
     scale_min_points: int = Field(
         200, ge=10, description="Fewest board-face pixels for a frame to count."
     )
@@ -590,13 +596,44 @@ class DepthConfig(BaseModel, extra="forbid"):
         description="Correspondence distance of the point-to-plane RMSE reported "
         "before and after registration.",
     )
-    information_inflation: float = Field(
-        100.0,
-        ge=1,
-        description="Covariance multiplier on the ICP information. The raw "
-        "Gauss-Newton information only knows the depth noise; the errors left by colour, "
-        "sampling and normal biases were 3-50x its sigma (Mahalanobis) on the synthetic rigs "
-        "(640x360 to 848x480, 3-8 frames), so the default widens sigma 10x.",
+    board_weak_sigma_mm: float = Field(
+        0.2,
+        ge=0,
+        description="calibrate registers depth pairs only for cameras whose board marginal "
+        "has a direction with a larger translation sigma (mm) than this (or rotation above "
+        "board_weak_sigma_deg): a pair's own sigma is 0.3-4 mm (docs/depth.md), so it adds "
+        "nothing to a camera the board already holds tighter. 0 registers every pair.",
+    )
+    board_weak_sigma_deg: float = Field(
+        0.01, ge=0, description="Same, rotation (deg) of the worst direction."
+    )
+    information_patch_m: float = Field(
+        0.1,
+        gt=0,
+        description="Size of the surface patches (m) whose residuals are taken to err "
+        "together in a pair's information (the cluster-robust sandwich of docs/depth.md): "
+        "about the normal-estimation radius, over which neighbouring residuals share errors.",
+    )
+    min_patches: int = Field(
+        20,
+        ge=2,
+        description="Reject a pair whose correspondences cover fewer patches: its uncertainty "
+        "cannot be estimated from so few independent pieces of surface.",
+    )
+    max_normalised_rms: float = Field(
+        3.0,
+        gt=0,
+        description="Reject a pair whose point-to-plane residuals after ICP are, in RMS, more "
+        "than this many times their D435-model sigma (far above the noise: a wrong local "
+        "minimum, a moving scene or a depth error).",
+    )
+    min_improvement_chi2: float = Field(
+        12.59,
+        ge=0,
+        description="Use a pair only if its registration is statistically better than the "
+        "current extrinsics: the move from them, weighed by the pair's information, must "
+        "exceed this chi-square with 6 dof (12.59: 5 % false-alarm rate). 0 accepts pairs "
+        "that confirm the current extrinsics too.",
     )
     min_correspondences: int = Field(
         500, ge=6, description="Reject a pair with fewer correspondences at the finest level."

@@ -19,6 +19,7 @@ This is the only module that imports open3d and kiss_icp.
 from __future__ import annotations
 
 import math
+import re
 import time
 from dataclasses import dataclass, replace
 from itertools import combinations
@@ -36,7 +37,13 @@ from .camera import CameraIntrinsics
 from .config import DepthConfig
 from .dataset import FolderDataset
 from .errors import DatasetError
-from .geometry import invert_transform, skew, transform_error, transform_points
+from .geometry import (
+    invert_transform,
+    matrix_to_rotvec,
+    skew,
+    transform_error,
+    transform_points,
+)
 
 Method = Literal["colored-icp", "geometric"]
 INFORMATION_FRAME = (
@@ -152,9 +159,10 @@ class PairRegistration:
     """Result of registering camera a's static cloud to camera b's.
 
     ``T_b_a`` (4x4, metres) maps points of camera a into camera b. ``information`` (6x6) is the
-    Gauss-Newton information of ``T_b_a`` at the finest level (point-to-plane with D435 weights,
-    plus the photometric term for colored ICP), divided by ``information_inflation``, in GTSAM
-    order [rotation (rad), translation (m)] for a right perturbation (see
+    inverse of the cluster-robust covariance of ``T_b_a`` at the finest level
+    (:func:`noise_model_information`: point-to-plane residuals over their D435 sigma, plus the
+    photometric term for colored ICP, grouped by surface patch), in GTSAM order
+    [rotation (rad), translation (m)] for a right perturbation (see
     ``information_frame``): for the joint graph, use
     ``BetweenFactorPose3(key(T_ref_b), key(T_ref_a), Pose3(T_b_a),
     noiseModel.Gaussian.Information(information))``. ``conditioning`` is the smallest over the
@@ -178,6 +186,9 @@ class PairRegistration:
     accepted: bool
     reason: str | None
     time_s: float
+    normalised_rms: float = float("nan")  # RMS(point-to-plane residual / D435 sigma)
+    improvement_chi2: float = 0.0  # move^T information move: the Wald statistic of the move
+    n_patches: int = 0  # surface patches of the sandwich covariance
 
     @property
     def covariance(self) -> np.ndarray:
@@ -215,6 +226,9 @@ class PairRegistration:
             "accepted": self.accepted,
             "reason": self.reason,
             "time_s": self.time_s,
+            "normalised_rms": self.normalised_rms,
+            "improvement_chi2": self.improvement_chi2,
+            "n_patches": self.n_patches,
         }
 
 
@@ -475,7 +489,7 @@ def estimate_depth_scale(
     mg = config.scale_face_margin_m
     cos_max = math.cos(math.radians(config.scale_max_view_angle_deg))
     frames, factors, errors, n_points = [], [], [], 0
-    for frame in sorted(T_cam_board):
+    for frame in _even_sample(sorted(T_cam_board), config.scale_max_frames):
         T = np.asarray(T_cam_board[frame], dtype=float)
         raw = dataset.read_depth(camera, frame)
         if raw is None:
@@ -892,6 +906,122 @@ def conditioning(information: np.ndarray, points_a: np.ndarray) -> float:
     return float(max(ev[0], 0.0) / ev[-1]) if ev[-1] > 0 else 0.0
 
 
+# --------------------------------------------------------------------------- noise model
+@dataclass(frozen=True)
+class _WhitenedRows:
+    """Residuals of a registration divided by their sigma, with their Jacobian rows (right
+    perturbation of ``T_b_a``, [rot, trans]) and the surface patch each one comes from."""
+
+    J: np.ndarray  # (M,6)
+    r: np.ndarray  # (M,)
+    patch: np.ndarray  # (M,) patch index in [0, n_patches)
+    n_patches: int
+    n_geometric: int  # the first n_geometric rows are point-to-plane, the rest photometric
+
+
+def whitened_rows(matches: _Matches, T_b_a: np.ndarray, patch_m: float,
+                  colour: tuple[_Level, _Level, np.ndarray] | None = None,
+                  free_scale: tuple[bool, bool] = (False, False)) -> _WhitenedRows:
+    """Point-to-plane residuals over their D435 sigma (:func:`_match`), and, with
+    ``colour = (src, tgt, gradients_b)``, the photometric residuals of colored ICP over their
+    RMS (colour has no noise model: its variance comes from the residuals). Rows are grouped
+    by the ``patch_m`` voxel of their source point.
+
+    ``free_scale`` adds a column per camera (a, b) whose depth scale is unknown: the
+    derivative of the residual for ``p_a -> (1 + d_a) p_a`` (``m . p_a``) or
+    ``q_b -> (1 + d_b) q_b`` (``-n_b . q_b``)."""
+    m = matches.normals_b @ T_b_a[:3, :3]
+    cols = [np.cross(matches.src, m), m]
+    if free_scale[0]:
+        cols.append(np.einsum("ij,ij->i", m, matches.src)[:, None])
+    if free_scale[1]:
+        cols.append(-np.einsum("ij,ij->i", matches.normals_b, matches.tgt)[:, None])
+    J = np.hstack(cols) / matches.sigma[:, None]
+    r = matches.residual / matches.sigma
+    n_geo = r.size
+    if colour is not None and r.size >= 7:
+        src, tgt, gradients_b = colour
+        d_q = gradients_b[matches.tgt_index]
+        p_b = transform_points(T_b_a, matches.src)
+        rc = (_intensity(tgt.colors[matches.tgt_index])
+              + np.einsum("ij,ij->i", d_q, p_b - matches.tgt)
+              - _intensity(src.colors[matches.src_index]))
+        sigma_c = max(float(np.sqrt(np.mean(rc**2))), 1e-6)
+        g = d_q @ T_b_a[:3, :3]
+        cols = [np.cross(matches.src, g), g]
+        if free_scale[0]:
+            cols.append(np.einsum("ij,ij->i", g, matches.src)[:, None])
+        if free_scale[1]:
+            cols.append(-np.einsum("ij,ij->i", d_q, matches.tgt)[:, None])
+        J = np.vstack([J, np.hstack(cols) / sigma_c])
+        r = np.concatenate([r, rc / sigma_c])
+    if n_geo == 0:
+        return _WhitenedRows(np.zeros((0, J.shape[1])), np.zeros(0), np.zeros(0, int), 0, 0)
+    _, patch = np.unique(_voxel_keys(matches.src, patch_m), return_inverse=True)
+    patch = patch.ravel()
+    n_patches = int(patch.max()) + 1
+    # a photometric row belongs to the patch of its point-to-plane row
+    return _WhitenedRows(J, r, np.tile(patch, r.size // n_geo), n_patches, n_geo)
+
+
+def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
+    """Information (6x6) of a registration from the D435 noise model and its residuals.
+
+    With whitened rows ``J_i``, ``r_i`` (:func:`whitened_rows`) the Gauss-Newton information
+    ``H = sum J_i^T J_i`` is the inverse covariance of the estimate only if the residuals are
+    independent with unit variance. They are neither: the normals, the voxel means and the
+    differences between two cameras' samplings of a surface make residuals of one surface
+    patch err together. The estimate's covariance is therefore the cluster-robust sandwich
+    (Liang & Zeger 1986; White 1980)::
+
+        Cov = H^-1 M H^-1,   M = G/(G-1) sum_k g_k g_k^T,   g_k = sum_{i in patch k} J_i^T r_i
+
+    over the G patches. If the noise model held exactly and residuals were independent,
+    E[M] = H and Cov = H^-1; residuals larger than the model grow M by their variance factor,
+    and residuals correlated within a patch by its effective size; residuals smaller than the
+    model (nearest-neighbour matching picks the closest noisy point, so the whitened
+    point-to-plane residuals' mean square ``s^2`` is ~0.5 on the synthetic pairs) do not make
+    the estimate better than the noise allows: M is divided by ``min(s^2, 1)``. The per-row meat
+    ``sum (r_i J_i)^T (r_i J_i)`` over G is added to M so that a direction no patch's score
+    happened to span keeps a finite variance. The result is the inverse of ``Cov``."""
+    k = rows.J.shape[1]
+    if rows.n_geometric < k or rows.n_patches < 2:
+        return np.zeros((6, 6))
+    H = rows.J.T @ rows.J
+    scores = np.zeros((rows.n_patches, k))
+    np.add.at(scores, rows.patch, rows.J * rows.r[:, None])
+    G = rows.n_patches
+    row_scores = rows.J * rows.r[:, None]
+    M = G / (G - 1) * scores.T @ scores + row_scores.T @ row_scores / G
+    # nearest-neighbour correspondences make residuals look smaller than the noise they carry
+    # (each point takes the closest of the other cloud's noisy points): a whitened residual's
+    # variance is at least the noise model's, 1
+    s2 = float(np.mean(rows.r[: rows.n_geometric] ** 2))
+    M = M / min(max(s2, 1e-6), 1.0)
+    try:
+        H_inv = np.linalg.inv(H)
+        # columns beyond the pose (free depth scales) are marginalised: pose block of Cov
+        info = np.linalg.inv((H_inv @ M @ H_inv)[:6, :6])
+    except np.linalg.LinAlgError:
+        return np.zeros((6, 6))
+    return 0.5 * (info + info.T)
+
+
+def normalised_rms(matches: _Matches) -> float:
+    """RMS of the point-to-plane residuals over their D435-model sigma (1 when the residuals
+    are the depth noise alone)."""
+    if matches.residual.size == 0:
+        return float("nan")
+    return float(np.sqrt(np.mean((matches.residual / matches.sigma) ** 2)))
+
+
+def tangent_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """``xi`` (6, [rot rad, trans m]) with ``T_true ~ T_est Exp(xi)``: the right-perturbation
+    error of ``T_est`` in the frame of :data:`INFORMATION_FRAME`."""
+    D = invert_transform(np.asarray(T_est, dtype=float)) @ np.asarray(T_true, dtype=float)
+    return np.concatenate([matrix_to_rotvec(D[:3, :3]), D[:3, 3]])
+
+
 def _rmse_mm(matches: _Matches) -> float:
     if matches.residual.size == 0:
         return float("nan")
@@ -948,6 +1078,7 @@ def register_pair(
     T_ref_b: np.ndarray,
     method: Method = "colored-icp",
     config: DepthConfig | None = None,
+    free_scale: tuple[bool, bool] = (False, False),
 ) -> PairRegistration:
     """Register camera a's static cloud to camera b's, starting from the current extrinsics
     ``T_ref_a``, ``T_ref_b`` (4x4, metres); returns the measured ``T_b_a`` with its
@@ -959,9 +1090,10 @@ def register_pair(
     2. coarse to fine over ``voxel_schedule_m``: voxel means with normals (estimated once
        within ``normal_radius_m``), then one ICP level ("colored-icp": Open3D colored ICP,
        Park et al. 2017; "geometric": kiss-icp robust point-to-point);
-    3. at the finest level: correspondences, fitness, RMSE, the information (point-to-plane,
-       plus the photometric term for colored ICP) and its conditioning; accept or reject with
-       a reason.
+    3. at the finest level: correspondences, fitness, RMSE, the residuals against the D435
+       noise model, the information (:func:`noise_model_information`) and its conditioning;
+       accept only a pair that fits the noise model and moved significantly (Wald test under
+       its own information) from the initial ``T_b_a``, else reject with a reason.
     """
     config = config or DepthConfig()
     if method not in ("colored-icp", "geometric"):
@@ -982,10 +1114,19 @@ def register_pair(
         if src.points.shape[0] < 10 or tgt.points.shape[0] < 10:
             break
         distance = config.max_correspondence_factor * voxel
-        if method == "colored-icp":
-            T = _colored_icp_level(src, tgt, T, distance, iterations, config)
-        else:
-            T = _geometric_icp_level(src, tgt, T, voxel, config, kiss)
+        try:
+            if method == "colored-icp":
+                T = _colored_icp_level(src, tgt, T, distance, iterations, config)
+            else:
+                T = _geometric_icp_level(src, tgt, T, voxel, config, kiss)
+        except ICP_ERRORS as exc:  # e.g. Open3D: "No correspondences found between ..."
+            return failed_registration(
+                cloud_a.camera, cloud_b.camera, method, T_b_a0,
+                f"{method} failed at voxel {voxel * 1000:.0f} mm: {one_line_error(exc)}", t_start)
+        if not np.all(np.isfinite(T)):
+            return failed_registration(cloud_a.camera, cloud_b.camera, method, T_b_a0,
+                                       f"{method} diverged at voxel {voxel * 1000:.0f} mm "
+                                       "(non-finite transform)", t_start)
     assert finest is not None
     src, tgt = finest
     # 3. quality at the finest level
@@ -1001,17 +1142,24 @@ def register_pair(
         final = before = after = _Matches(empty, empty, empty, np.zeros(0), np.ones(0),
                                           np.zeros(0), none, none)
     n_corr = int(final.residual.size)
-    information = point_to_plane_information(final, T)
+    colour = None
     if method == "colored-icp" and config.lambda_geometric < 1.0 and n_corr >= 7:
-        gradients = color_gradients(tgt.points, tgt.normals, tgt.colors, at=final.tgt_index)
-        information = information + photometric_information(final, src, tgt, gradients, T)
-    information = information / config.information_inflation
-    cond = conditioning(information, final.src)
+        colour = (src, tgt, color_gradients(tgt.points, tgt.normals, tgt.colors,
+                                            at=final.tgt_index))
+    rows = whitened_rows(final, T, config.information_patch_m, colour, free_scale)
+    # the noise model's Gauss-Newton information says which directions the overlap
+    # constrains (conditioning); the sandwich over patches says how well (information)
+    cond = conditioning(rows.J[:, :6].T @ rows.J[:, :6], final.src) if n_corr else 0.0
+    information = noise_model_information(rows)
     fitness = n_corr / src.points.shape[0] if src.points.shape[0] else 0.0
     inlier_rmse_mm = (float(1000.0 * np.sqrt(np.mean(final.distance**2))) if n_corr
                       else float("nan"))
     rmse_after = _rmse_mm(after)
     corr_deg, corr_mm = transform_error(T, T_b_a0)
+    noise_rms = normalised_rms(final)
+    # Wald statistic of the move: ~ chi^2(6) if the initial T_b_a were already right
+    move = tangent_error(T, T_b_a0)
+    improvement = float(move @ information @ move)
     reasons = []
     if n_corr < config.min_correspondences:
         reasons.append(f"{n_corr} correspondences < {config.min_correspondences}")
@@ -1019,16 +1167,33 @@ def register_pair(
         reasons.append(f"fitness {fitness:.2f} < {config.min_fitness}")
     if not rmse_after <= config.max_rmse_mm:
         reasons.append(f"point-to-plane RMSE {rmse_after:.1f} mm > {config.max_rmse_mm} mm")
+    if n_corr and not noise_rms <= config.max_normalised_rms:
+        reasons.append(
+            f"residuals {noise_rms:.1f}x the D435 noise model (limit "
+            f"{config.max_normalised_rms}x): the surfaces do not fit (a wrong local minimum, "
+            "a moving scene or a depth error)")
     if cond < config.min_conditioning:
         reasons.append(
             f"poorly conditioned overlap ({cond:.3g} < {config.min_conditioning}): "
             "the common surfaces leave a direction unconstrained (e.g. a single plane)"
         )
+    if n_corr and rows.n_patches < config.min_patches:
+        reasons.append(f"{rows.n_patches} surface patches of {config.information_patch_m} m "
+                       f"< {config.min_patches}: too few to estimate the pair's uncertainty")
     if corr_mm > 1000.0 * config.max_correction_m or corr_deg > config.max_correction_deg:
         reasons.append(
             f"moved {corr_mm:.0f} mm / {corr_deg:.1f} deg from the initial guess (limit "
             f"{1000.0 * config.max_correction_m:.0f} mm / {config.max_correction_deg} deg)"
         )
+    if not reasons and not improvement >= config.min_improvement_chi2:
+        reasons.append(
+            f"no significant improvement on the current extrinsics: ICP moved "
+            f"{corr_mm:.2f} mm / {corr_deg:.3f} deg, chi2 {improvement:.1f} < "
+            f"{config.min_improvement_chi2} (6 dof) under its own uncertainty"
+            + (" (depth scale unknown: a move a depth-scale error explains does not count)"
+               if any(free_scale) else ""))
+    if not np.all(np.isfinite(information)):
+        reasons.append("information matrix not finite")
     return PairRegistration(
         cam_a=cloud_a.camera,
         cam_b=cloud_b.camera,
@@ -1048,8 +1213,39 @@ def register_pair(
         accepted=not reasons,
         reason="; ".join(reasons) or None,
         time_s=time.perf_counter() - t_start,
+        normalised_rms=noise_rms,
+        improvement_chi2=improvement,
+        n_patches=rows.n_patches,
     )
 
+
+
+# Open3D and kiss-icp report failures as RuntimeError (pybind11), bad inputs as ValueError;
+# a singular system surfaces from numpy as LinAlgError. Any of them rejects the pair only.
+ICP_ERRORS: tuple[type[BaseException], ...] = (RuntimeError, ValueError,
+                                               np.linalg.LinAlgError)
+
+
+def one_line_error(exc: BaseException) -> str:
+    """The error's message on one line, without terminal colour codes (Open3D adds them)."""
+    text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def failed_registration(cam_a: str, cam_b: str, method: str, T_b_a_initial: np.ndarray,
+                        reason: str, t_start: float | None = None) -> PairRegistration:
+    """A rejected :class:`PairRegistration` for a pair whose registration could not run or
+    failed (``reason`` says why): no measurement, zero information, the initial ``T_b_a``."""
+    nan = float("nan")
+    T0 = np.asarray(T_b_a_initial, dtype=float)
+    return PairRegistration(
+        cam_a=cam_a, cam_b=cam_b, method=method, T_b_a=T0, T_b_a_initial=T0,
+        information=np.zeros((6, 6)), information_frame=INFORMATION_FRAME, fitness=0.0,
+        inlier_rmse_mm=nan, rmse_before_mm=nan, rmse_after_mm=nan, conditioning=0.0,
+        n_correspondences=0, correction_deg=0.0, correction_mm=0.0, accepted=False,
+        reason=reason,
+        time_s=0.0 if t_start is None else time.perf_counter() - t_start,
+    )
 
 
 def overlap_error(

@@ -132,6 +132,7 @@ def write_refine_outputs(
     method: str,
     init: Path,
     fused_voxel_m: float = 0.005,
+    verdict: dict[str, Any] | None = None,
 ) -> list[Path]:
     """Write a depth-only refinement into ``out_dir``: ``fused.ply`` (at the refined
     extrinsics), ``refine_report.json`` (method, starting file, every pair) and
@@ -141,7 +142,8 @@ def write_refine_outputs(
         T_ref_cam = {c: e.T_ref_cam for c, e in extrinsics.cameras.items()}
         pts, cols, idx, names = depth.fused(T_ref_cam, fused_voxel_m)
         write_fused_ply(stage / "fused.ply", pts, cols, idx, names)
-        report = {"method": method, "init": str(init), "pairs": depth.pairs}
+        report = {**(verdict or {}), "method": method, "init": str(init),
+                  "depth": depth.status_dict(), "pairs": depth.pairs}
         (stage / REFINE_REPORT).write_text(json.dumps(to_builtin(report), indent=1, default=str))
         write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)

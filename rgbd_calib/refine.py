@@ -14,7 +14,11 @@ Steps (issue 4's design, one joint graph with the board):
 
 from __future__ import annotations
 
+import json
+import os
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -25,18 +29,23 @@ from .dataset import FolderDataset
 from .depth import (
     CameraCloud,
     DepthScaleEstimate,
+    PairRegistration,
     estimate_depth_scale,
+    failed_registration,
     find_overlapping_pairs,
     fuse_clouds,
+    one_line_error,
     pair_rmse_mm,
     register_pair,
     static_cloud,
+    tangent_error,
 )
 from .errors import CalibrationError, DatasetError
-from .geometry import invert_transform
+from .geometry import invert_transform, transform_error
 from .graph import RelativePose, bundle_adjust
+from .parallel import process_context
 from .progress import Progress, Tick, start, timed
-from .results import Extrinsics, cameras_from_solve
+from .results import CameraExtrinsics, Extrinsics, cameras_from_solve
 
 RefineMethod = Literal["colored-icp", "geometric", "none"]
 
@@ -52,6 +61,30 @@ class DepthRefinement:
     relative_poses: list[RelativePose]
     T_ref_cam_initial: dict[str, np.ndarray]  # extrinsics the pairs were registered from
     timings_s: dict[str, float] = field(default_factory=dict)
+    skipped_cameras: dict[str, str] = field(default_factory=dict)  # camera -> why no cloud
+    fallback: str | None = None  # why the result is the board's alone (no usable pair), if so
+    note: str | None = None  # why registration was not needed (strong board data), if so
+    weak_cameras: dict[str, str] | None = None  # cameras depth was run for (None: all)
+    scale_source: dict[str, str] = field(default_factory=dict)  # board / given / unknown
+
+    def status_dict(self) -> dict[str, Any]:
+        """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason`` and
+        the cameras the board constrained weakly (those depth was registered for)."""
+        status = ("fallback" if self.fallback else "skipped" if self.note
+                  else "used" if self.relative_poses else "none")
+        return {"status": status, "reason": self.fallback or self.note,
+                "weak_cameras": dict(self.weak_cameras or {})}
+
+    @property
+    def used(self) -> bool:
+        """Whether any pair went into the solve."""
+        return bool(self.relative_poses) and self.fallback is None
+
+    def with_fallback(self, reason: str) -> DepthRefinement:
+        """This measurement with every pair unused: the solve keeps the board result."""
+        pairs = [p if not p.get("accepted") else
+                 {**p, "accepted": False, "reason": f"not used: {reason}"} for p in self.pairs]
+        return replace(self, pairs=pairs, relative_poses=[], fallback=reason)
 
     def depth_scale_dict(self) -> dict[str, dict[str, float]]:
         return {c: {"factor": e.factor, "sigma": e.sigma} for c, e in self.depth_scales.items()}
@@ -64,19 +97,53 @@ class DepthRefinement:
         return pts, cols, idx, names
 
 
+def weak_cameras(covariance: dict[str, np.ndarray | None], config: DepthConfig,
+                 ) -> dict[str, str]:
+    """Cameras the board constrains weakly, with why: the worst direction of the marginal
+    covariance (6x6, [rot rad, trans m]) above ``board_weak_sigma_deg`` in rotation or
+    ``board_weak_sigma_mm`` in translation. A camera without a covariance counts as weak."""
+    out: dict[str, str] = {}
+    for cam, cov in covariance.items():
+        if cov is None or not np.all(np.isfinite(cov)):
+            out[cam] = "no board covariance"
+            continue
+        worst_deg = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0))))
+        worst_mm = float(1000.0 * np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
+        if worst_mm > config.board_weak_sigma_mm or worst_deg > config.board_weak_sigma_deg:
+            out[cam] = f"board sigma {worst_mm:.3f} mm / {worst_deg:.4f} deg in its worst direction"
+    return out
+
+
 def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[str, np.ndarray],
                   board_views: dict[str, dict[str, np.ndarray]] | None, T_ref_board:
                   dict[str, np.ndarray] | None, method: RefineMethod,
                   config: DepthConfig | None = None,
                   progress: Progress | None = None,
+                  board_covariance: dict[str, np.ndarray | None] | None = None,
+                  workers: int | None = None,
+                  depth_scales: dict[str, float] | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
 
     ``board_views`` maps camera -> {frame: T_cam_board} of the views it saw (for the depth
     scale); ``T_ref_board`` maps frame -> board pose (for masking the board). Both may be
-    None (refinement of an existing calibration without a board in view)."""
+    None (refinement of an existing calibration without a board in view).
+
+    With ``board_covariance`` (camera -> 6x6 marginal of the board solve) only pairs with a
+    camera the board constrains weakly (:func:`weak_cameras`) are registered, and nothing but
+    the depth scale is measured when the board constrains every camera well: depth adds no
+    information there. Pairs run in ``workers`` processes (default: all cores).
+
+    ``depth_scales`` (camera -> factor, e.g. from the report.json of the calibration being
+    refined) are used for cameras the board gives no factor for. A camera with neither has an
+    unknown depth scale: its pairs' information leaves out the directions a depth-scale error
+    would explain (:func:`rgbd_calib.depth.whitened_rows`, ``free_scale``)."""
     config = config or DepthConfig()
     cams = [c for c in dataset.cameras if c in T_ref_cam and dataset.has_depth(c)]
+    weak: dict[str, str] | None = None
+    if board_covariance is not None:
+        weak = weak_cameras({c: board_covariance.get(c) for c in cams
+                             if c != dataset.rig.reference}, config)
     timings: dict[str, float] = {}
     scales: dict[str, DepthScaleEstimate] = {}
     with timed(timings, "depth_scale"):
@@ -92,12 +159,23 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                 tick(1)
 
     clouds: dict[str, CameraCloud] = {}
+    skipped: dict[str, str] = {}
+    if method != "none" and weak is not None and not weak:
+        return DepthRefinement(
+            method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
+            note=(f"the board constrains every camera within {config.board_weak_sigma_mm} mm "
+                  f"/ {config.board_weak_sigma_deg} deg: depth registration would add no "
+                  "information and was skipped"), weak_cameras={})
     with timed(timings, "clouds"):
         tick = start(progress, "static clouds", len(cams))
         for c in cams:
-            factor = scales[c].factor if c in scales else 1.0
-            clouds[c] = static_cloud(dataset, c, T_ref_board or {}, T_ref_cam[c], board, config,
-                                     depth_scale_factor=factor)
+            factor = (scales[c].factor if c in scales
+                      else (depth_scales or {}).get(c, 1.0))
+            try:
+                clouds[c] = static_cloud(dataset, c, T_ref_board or {}, T_ref_cam[c], board,
+                                         config, depth_scale_factor=factor)
+            except (DatasetError, ValueError, MemoryError) as exc:  # this camera only
+                skipped[c] = str(exc)
             tick(1)
 
     pairs: list[dict[str, Any]] = []
@@ -106,27 +184,145 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
         with timed(timings, "registration"):
             intrinsics = {c: dataset.rig.cameras[c] for c in clouds}
             overlaps = find_overlapping_pairs(clouds, T_ref_cam, intrinsics, config)
+            if weak is not None:
+                overlaps = [ov for ov in overlaps if ov.cam_a in weak or ov.cam_b in weak]
             tick = start(progress, f"registering pairs ({method})", len(overlaps))
-            for ov in overlaps:
-                reg = register_pair(clouds[ov.cam_a], clouds[ov.cam_b], T_ref_cam[ov.cam_a],
-                                    T_ref_cam[ov.cam_b], method, config)
+            known = set(scales) | set(depth_scales or {})
+            jobs = [(ov.cam_a, ov.cam_b, T_ref_cam[ov.cam_a], T_ref_cam[ov.cam_b],
+                     (ov.cam_a not in known, ov.cam_b not in known)) for ov in overlaps]
+            for ov, reg in zip(overlaps, register_pairs(clouds, jobs, method, config, workers,
+                                                         tick)):
                 pairs.append({**ov.to_dict(), **reg.to_dict()})
                 if reg.accepted:
                     relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
+    depth = DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings,
+                            skipped, weak_cameras=weak,
+                            scale_source={c: "board" if c in scales else "given"
+                                          if c in (depth_scales or {}) else "unknown"
+                                          for c in clouds})
+    if method != "none" and not relative:
+        depth = depth.with_fallback(no_pair_reason(depth))
+    return depth
+
+
+_POOL_CLOUDS: dict[str, CameraCloud] = {}
+_POOL_ARGS: tuple[str, DepthConfig] | None = None
+
+
+def _pool_init(clouds: dict[str, CameraCloud], method: str, config: DepthConfig) -> None:
+    global _POOL_ARGS
+    _POOL_CLOUDS.update(clouds)
+    _POOL_ARGS = (method, config)
+
+
+Job = tuple[str, str, np.ndarray, np.ndarray, tuple[bool, bool]]
+
+
+def _pool_job(job: Job) -> PairRegistration:
+    assert _POOL_ARGS is not None
+    a, b, T_ref_a, T_ref_b, free_scale = job
+    method, config = _POOL_ARGS
+    return _register_safely(_POOL_CLOUDS[a], _POOL_CLOUDS[b], T_ref_a, T_ref_b, method,
+                            config, free_scale)
+
+
+def register_pairs(clouds: dict[str, CameraCloud],
+                   jobs: list[Job], method: RefineMethod,
+                   config: DepthConfig, workers: int | None = None, tick=None,
+                   ) -> list[PairRegistration]:
+    """Register every ``(cam_a, cam_b, T_ref_a, T_ref_b, free_scale)`` of ``jobs`` (in order), in a
+    process pool of ``workers`` (default: all cores; 1 or a single job runs here). Each
+    worker receives the clouds once; a failing pair is rejected, never raised."""
+    n = min(workers or os.cpu_count() or 1, len(jobs))
+    if n <= 1:
+        out = []
+        for a, b, T_ref_a, T_ref_b, free_scale in jobs:
+            out.append(_register_safely(clouds[a], clouds[b], T_ref_a, T_ref_b, method, config,
+                                        free_scale))
+            if tick:
                 tick(1)
-    return DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings)
+        return out
+    used = {c for a, b, *_ in jobs for c in (a, b)}
+    with ProcessPoolExecutor(n, mp_context=process_context(), initializer=_pool_init,
+                             initargs=({c: clouds[c] for c in used}, method, config)) as pool:
+        futures = [pool.submit(_pool_job, job) for job in jobs]
+        out = []
+        for (a, b, T_ref_a, T_ref_b, _), future in zip(jobs, futures):
+            try:
+                out.append(future.result())
+            except Exception as exc:  # noqa: BLE001 - a worker that died takes one pair
+                T_b_a0 = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
+                out.append(failed_registration(a, b, method, T_b_a0, "registration process "
+                                               f"failed: {type(exc).__name__}: {exc}"))
+            if tick:
+                tick(1)
+        return out
+
+
+BEYOND_BOARD_CHI2 = 16.81  # chi-square, 6 dof, 1 %
+
+
+def moved_beyond_board(board_only: dict[str, Any], joint: dict[str, Any]) -> dict[str, str]:
+    """Cameras the joint solve with the depth pairs moved further from the board-only result
+    than the board's own uncertainty allows (camera -> why): the move ``xi`` (right
+    perturbation, [rot, trans]) weighed by the board marginal, ``xi^T Cov^-1 xi``, above
+    :data:`BEYOND_BOARD_CHI2`. Both arguments map camera -> :class:`CameraExtrinsics`."""
+    out = {}
+    for c, b in board_only.items():
+        if c not in joint or b.covariance is None or not np.all(np.isfinite(b.covariance)):
+            continue
+        xi = tangent_error(b.T_ref_cam, joint[c].T_ref_cam)
+        try:
+            chi2 = float(xi @ np.linalg.solve(b.covariance, xi))
+        except np.linalg.LinAlgError:
+            continue
+        if chi2 > BEYOND_BOARD_CHI2:
+            deg, mm = transform_error(joint[c].T_ref_cam, b.T_ref_cam)
+            out[c] = (f"{c} moved {mm:.2f} mm / {deg:.3f} deg from the board result "
+                      f"(chi2 {chi2:.0f} > {BEYOND_BOARD_CHI2} under its board covariance)")
+    return out
+
+
+def _register_safely(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.ndarray,
+                     T_ref_b: np.ndarray, method: RefineMethod, config: DepthConfig,
+                     free_scale: tuple[bool, bool] = (False, False),
+                     ) -> PairRegistration:
+    """:func:`register_pair`, with any failure of this one pair turned into its rejection
+    (register_pair already catches the ICP libraries' own errors; this is the last net, so
+    that one pair never ends a run)."""
+    try:
+        return register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config, free_scale)
+    except Exception as exc:  # noqa: BLE001 - deliberately any error of this pair
+        T_b_a0 = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
+        return failed_registration(cloud_a.camera, cloud_b.camera, method, T_b_a0,
+                                   f"registration failed: {type(exc).__name__}: "
+                                   f"{one_line_error(exc)}")
+
+
+def no_pair_reason(depth: DepthRefinement) -> str:
+    """One line: why no pair could be used (for the fallback warning)."""
+    if len(depth.clouds) < 2:
+        why = "; ".join(f"{c}: {r}" for c, r in depth.skipped_cameras.items())
+        return f"fewer than 2 cameras have a static cloud{f' ({why})' if why else ''}"
+    if not depth.pairs:
+        return "no camera pair overlaps under the current extrinsics"
+    return f"all {len(depth.pairs)} camera pairs were rejected"
 
 
 def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
                  config: DepthConfig | None = None, tick: Tick | None = None) -> DepthRefinement:
     """Add each pair's point-to-plane RMSE at the final extrinsics (``rmse_final_mm``), on
-    the same points and metric as its ``rmse_before_mm`` / ``rmse_after_mm``; ``tick(1)``
-    after each pair."""
+    the same points and metric as its ``rmse_before_mm`` / ``rmse_after_mm`` (which it equals,
+    without recomputing, when neither camera moved: a fallback or a skipped pair's cameras);
+    ``tick(1)`` after each pair."""
     pairs = []
     for p in depth.pairs:
         a, b = p["cam_a"], p["cam_b"]
         final = None
-        if a in T_ref_cam and b in T_ref_cam:
+        if a in T_ref_cam and b in T_ref_cam and all(
+                np.array_equal(T_ref_cam[c], depth.T_ref_cam_initial[c]) for c in (a, b)):
+            final = p.get("rmse_before_mm")
+        elif a in T_ref_cam and b in T_ref_cam:
             final = pair_rmse_mm(depth.clouds[a], depth.clouds[b], depth.T_ref_cam_initial[a],
                                  depth.T_ref_cam_initial[b], T_ref_cam[a], T_ref_cam[b], config)
         pairs.append({**p, "rmse_final_mm": final})
@@ -137,28 +333,150 @@ def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
 
 def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMethod =
                       "colored-icp", config: DepthConfig | None = None,
-                      progress=None) -> tuple[Extrinsics, DepthRefinement]:
+                      progress=None, depth_scales: dict[str, float] | None = None,
+                      workers: int | None = None, board: Board | None = None,
+                      T_ref_board: dict[str, np.ndarray] | None = None,
+                      board_cameras: dict[str, list[str]] | None = None,
+                      ) -> tuple[Extrinsics, DepthRefinement]:
     """Depth-only refinement of an existing calibration (no board in view): register the
     overlapping pairs from ``init`` and solve a pose graph of the accepted pairs, the
-    reference held. Cameras in no accepted pair keep their initial pose (and sigma)."""
+    reference held and every other camera held to its initial pose by a prior with its
+    initial sigmas (when ``init`` has them): a good calibration is not pulled further than
+    its own uncertainty allows by pairs 10-50x less certain. Cameras in no accepted pair keep
+    their initial pose (and sigma).
+
+    ``depth_scales`` (camera -> factor; :func:`load_depth_scales`) are the depth-scale factors
+    of the calibration ``init`` came from; a camera without one has an unknown depth scale and
+    its pairs do not move it along the directions a scale error explains. With ``board``,
+    ``T_ref_board`` (frame -> board pose of the starting calibration, e.g. its report.json
+    ``board_views``) and ``board_cameras`` (frame -> cameras that saw it), the board is masked
+    out of the clouds and cameras without a given factor get one estimated from the board
+    face (as calibrate does). With no usable pair the result is ``init`` itself, with
+    ``depth.fallback`` saying why."""
     if method == "none":
         raise CalibrationError("refine needs --method colored-icp or geometric")
     T_init = {c: e.T_ref_cam for c, e in init.cameras.items() if c in dataset.rig.cameras}
     if init.reference not in T_init:
         raise CalibrationError(f"the reference camera {init.reference!r} of the initial "
                                "extrinsics is not in the dataset's rig.yaml")
-    depth = measure_depth(dataset, None, T_init, None, None, method, config, progress)
-    if not depth.relative_poses:
-        raise CalibrationError(
-            f"{dataset.path}: no camera pair overlaps well enough to register "
-            f"({len(depth.pairs)} pairs tried); check the initial extrinsics and that the "
-            "cameras see common static surfaces")
-    res = bundle_adjust([], {c: dataset.rig.cameras[c].K for c in T_init}, init.reference,
-                        T_init, {}, BundleConfig(), relative_poses=depth.relative_poses)
+    views = None
+    if board is not None and T_ref_board and board_cameras:
+        given = depth_scales or {}
+        views = {}
+        for frame, seen in board_cameras.items():
+            for c in seen:
+                if c in T_init and c not in given and frame in T_ref_board:
+                    views.setdefault(c, {})[frame] = (invert_transform(T_init[c])
+                                                      @ T_ref_board[frame])
+    depth = measure_depth(dataset, board, T_init, views, T_ref_board, method, config,
+                          progress, workers=workers, depth_scales=depth_scales)
+    if not depth.used:
+        return init, finish_pairs(depth, T_init, config)
+    priors = initial_pose_priors(init, T_init)
+    try:
+        res = bundle_adjust([], {c: dataset.rig.cameras[c].K for c in T_init}, init.reference,
+                            T_init, {}, BundleConfig(),
+                            relative_poses=depth.relative_poses + priors)
+    except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
+        depth = depth.with_fallback(f"the pose graph of the depth pairs failed "
+                                    f"({type(exc).__name__}: {exc})".replace("\n", " "))
+        return init, finish_pairs(depth, T_init, config)
     solved = cameras_from_solve(res)
     cams = {c: solved.get(c, e) for c, e in init.cameras.items()}
+    # never further from a calibration with sigmas than those sigmas allow
+    beyond = moved_beyond_board({p.cam_a: CameraExtrinsics(p.cam_a, p.T_b_a, covariance=np.linalg
+                                                           .inv(p.information))
+                                 for p in priors}, cams)
+    if beyond:
+        depth = depth.with_fallback("; ".join(beyond.values()).replace("board", "initial"))
+        return init, finish_pairs(depth, T_init, config)
     out = Extrinsics(init.reference, cams, dict(init.unconnected))
     return out, finish_pairs(depth, {c: e.T_ref_cam for c, e in cams.items()}, config)
+
+
+def initial_pose_priors(init: Extrinsics, T_init: dict[str, np.ndarray]) -> list[RelativePose]:
+    """One prior per non-reference camera of ``init`` with finite sigmas, as a relative pose
+    from the camera to the reference (``T_ref_cam`` itself) with a diagonal information from
+    its ``sigma_rotation_deg`` / ``sigma_translation_mm`` on each axis (those are roots of
+    the 3-axis traces, so per axis this is up to sqrt(3) too wide: the prior never claims
+    more than the calibration did)."""
+    out = []
+    for c, e in init.cameras.items():
+        if c == init.reference or c not in T_init:
+            continue
+        s_rot, s_mm = e.sigma_rotation_deg, e.sigma_translation_mm
+        if not (np.isfinite(s_rot) and np.isfinite(s_mm) and s_rot > 0 and s_mm > 0):
+            continue
+        var = np.r_[np.full(3, np.radians(s_rot) ** 2), np.full(3, (s_mm / 1000.0) ** 2)]
+        out.append(RelativePose(c, init.reference, T_init[c], np.diag(1.0 / var)))
+    return out
+
+
+def load_depth_scales(report_json: Path) -> dict[str, float]:
+    """camera -> depth-scale factor from a calibrate ``report.json``
+    (``cameras.<camera>.depth_scale_factor``; cameras without one are left out); empty when
+    the file does not exist."""
+    if not report_json.is_file():
+        return {}
+    try:
+        cams = json.loads(report_json.read_text()).get("cameras", {})
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{report_json}: not a readable report.json ({exc}); remove it or "
+                           "repair it") from exc
+    return {c: float(v["depth_scale_factor"]) for c, v in cams.items()
+            if isinstance(v, dict) and v.get("depth_scale_factor") is not None}
+
+
+def load_board_views(report_json: Path) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
+    """frame -> ``T_ref_board`` (4x4) and frame -> cameras that saw it, from a calibrate
+    ``report.json`` (``board_views``); empty when the file does not exist."""
+    if not report_json.is_file():
+        return {}, {}
+    try:
+        views = json.loads(report_json.read_text()).get("board_views", [])
+        poses = {str(v["frame"]): np.asarray(v["T_ref_board"], dtype=float) for v in views}
+        cams = {str(v["frame"]): [str(c) for c in v["cameras"]] for v in views}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(f"{report_json}: board_views unreadable ({exc}); remove or repair "
+                           "the report.json next to --init") from exc
+    return poses, cams
+
+
+def refine_verdict(init: Extrinsics, result: Extrinsics, depth: DepthRefinement,
+                   ) -> dict[str, Any]:
+    """The refine run in one line plus its evidence: ``verdict`` ``refined`` (pairs used),
+    ``unchanged`` (no usable pair: the result is the initial calibration) or ``check``
+    (cameras moved by more than 3 of their initial sigmas, or depth scales unknown), the
+    ``message``, and per camera its move from ``init`` (mm, deg)."""
+    moves = {}
+    for c, e in result.cameras.items():
+        if c in init.cameras:
+            deg, mm = transform_error(e.T_ref_cam, init.cameras[c].T_ref_cam)
+            moves[c] = {"moved_mm": mm, "moved_deg": deg,
+                        "initial_sigma_mm": init.cameras[c].sigma_translation_mm}
+    unknown = sorted(c for c, src in depth.scale_source.items() if src == "unknown")
+    far = sorted(c for c, m in moves.items()
+                 if np.isfinite(m["initial_sigma_mm"]) and m["initial_sigma_mm"] > 0
+                 and m["moved_mm"] > 3.0 * m["initial_sigma_mm"])
+    n_used = sum(bool(p.get("accepted")) for p in depth.pairs)
+    notes = []
+    if unknown:
+        notes.append(f"depth scale unknown for {', '.join(unknown)} (no report.json with "
+                     "depth_scale_factor next to --init): their pairs were not allowed to move "
+                     "them along the directions a depth-scale error explains")
+    if depth.fallback:
+        verdict = "unchanged"
+        notes.insert(0, f"no usable pair ({depth.fallback}): the extrinsics are the initial "
+                        "ones")
+    elif far:
+        verdict = "check"
+        notes.insert(0, f"{n_used} pairs used; {', '.join(far)} moved by more than 3 initial "
+                        "sigmas: the depth and the initial calibration disagree")
+    else:
+        verdict = "check" if unknown else "refined"
+        notes.insert(0, f"{n_used} of {len(depth.pairs)} pairs used")
+    return {"verdict": verdict, "message": "; ".join(notes), "cameras": moves,
+            "depth_scale_source": dict(depth.scale_source)}
 
 
 def board_views_per_camera(observations, T_ref_cam: dict[str, np.ndarray],

@@ -89,6 +89,8 @@ def report_dict(
         report["bundle"] = _bundle_entry(result.bundle)
         if result.self_calibration is not None:
             report["bundle"]["self_calibration"] = result.self_calibration.to_dict()
+    if getattr(result, "depth", None) is not None:
+        report["depth"] = result.depth.status_dict()
     return finalize_report(to_builtin(report))
 
 

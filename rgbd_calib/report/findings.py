@@ -563,6 +563,28 @@ def each_pair(*checks: Callable[[dict[str, Any]], Finding | None]) -> Rule:
     return rule
 
 
+def depth_unused(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The depth stage ran but no pair went into the solve: the result is the board's alone
+    (not when the stage skipped registration because the board constrains every camera)."""
+    status = (report.get("depth") or {}).get("status")
+    if status is not None and status != "fallback":
+        return []
+    if "depth" not in report.get("timings_s", {}) or any(p["accepted"] for p in report["pairs"]):
+        return []
+    pairs = report["pairs"]
+    reasons = sorted({str(p["reason"]).split(";")[0] for p in pairs if p["reason"]})
+    why = (f"all {len(pairs)} camera pairs were rejected ({'; '.join(reasons[:3])}"
+           f"{'; ...' if len(reasons) > 3 else ''})" if pairs
+           else "no camera pair overlapped under the board extrinsics")
+    return [finding(
+        "warning",
+        "depth_unused",
+        [],
+        f"Depth refinement added nothing: {why}; the extrinsics are the board result.",
+        "The board result stands on its own; see the pairs table for each pair's reason.",
+    )]
+
+
 def common_depth_scale(factors: dict[str, tuple[float, float]]) -> float | None:
     """The depth-scale ratio every camera agrees on, when it says the board's print differs
     from its board file; None otherwise.
@@ -647,6 +669,7 @@ RULES: tuple[Rule, ...] = (
     reprojection,
     dropped_views,
     each_pair(pair_disagrees, pair_rmse, pair_fitness),
+    depth_unused,
     board_scale,
     depth_scale,
 )

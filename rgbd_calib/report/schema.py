@@ -251,6 +251,7 @@ REPORT_SCHEMA: dict[str, Any] = {
     "dropped_views": ListOf({"camera": S, "frame": S, "reason": S, "markers": INT, "detail": S}),
     "pairs": ListOf(PAIR_SCHEMA),
     "timings_s": MapOf("<stage>", N),
+    "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S)},
     "bundle?": {
         "pixel_sigma_estimated": N,
         "iterations": INT,

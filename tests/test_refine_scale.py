@@ -1,0 +1,63 @@
+"""Issue 14, item 3: refine knows its depth scales or does not move along what they confound."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+from analytic_scene import CAM_A, CAM_B, RECTS, scene_cloud
+
+from rgbd_calib import depth as D
+from rgbd_calib import refine as R
+from rgbd_calib.results import CameraExtrinsics, Extrinsics
+
+SCALE_ERROR = 1.01  # camera a's depth reads 1 % long
+
+
+def test_unknown_depth_scale_does_not_count_a_move_it_explains():
+    """a's depth 1 % long, both cameras at their true poses: ICP shifts a to absorb the scale.
+    Told the scale is known, that shift looks like a significant correction; with a's scale
+    free the pair's information leaves that direction out (the verdict says so, below)."""
+    rng = np.random.default_rng(9)
+    a = scene_cloud("a", CAM_A, RECTS, rng)
+    a = replace(a, points=a.points * np.float32(SCALE_ERROR))
+    b = scene_cloud("b", CAM_B, RECTS, rng)
+    known = D.register_pair(a, b, CAM_A, CAM_B, "colored-icp")
+    free = D.register_pair(a, b, CAM_A, CAM_B, "colored-icp", free_scale=(True, False))
+    assert known.correction_mm > 5.0  # the scale error moved it (2-3 m away: 20-30 mm)
+    assert known.accepted and known.improvement_chi2 > 12.59
+    # measured: 54434 -> 165; what is left is the part of a scale error no rigid move explains
+    assert free.improvement_chi2 < 0.01 * known.improvement_chi2
+
+
+def test_depth_scales_read_from_the_calibration_report(tmp_path):
+    report = tmp_path / "report.json"
+    assert R.load_depth_scales(report) == {}
+    report.write_text(json.dumps({"cameras": {
+        "left0": {"depth_scale_factor": 1.004}, "left1": {"depth_scale_factor": None}}}))
+    assert R.load_depth_scales(report) == {"left0": 1.004}
+
+
+def test_initial_sigmas_become_priors_and_the_verdict_names_the_outcome():
+    T1 = np.eye(4)
+    T1[0, 3] = 1.0
+    init = Extrinsics("ref", {
+        "ref": CameraExtrinsics("ref", np.eye(4), 0.0, 0.0),
+        "good": CameraExtrinsics("good", T1, 0.003, 0.05),
+        "hand": CameraExtrinsics("hand", T1),  # hand-measured: no sigma, no prior
+    })
+    priors = R.initial_pose_priors(init, {c: e.T_ref_cam for c, e in init.cameras.items()})
+    assert [(p.cam_a, p.cam_b) for p in priors] == [("good", "ref")]
+    np.testing.assert_allclose(1.0 / np.sqrt(np.diag(priors[0].information))[3:], 5e-5)
+    depth = R.DepthRefinement("colored-icp", {}, {}, [], [], {}, fallback="no pair overlaps",
+                              scale_source={"good": "unknown"})
+    verdict = R.refine_verdict(init, init, depth)
+    assert verdict["verdict"] == "unchanged" and "no pair overlaps" in verdict["message"]
+    assert "depth scale unknown for good" in verdict["message"]
+    moved = T1.copy()
+    moved[0, 3] += 0.001  # 1 mm: 20 of its 0.05 mm sigmas
+    result = Extrinsics("ref", {**init.cameras, "good": CameraExtrinsics("good", moved)})
+    depth = replace(depth, fallback=None, pairs=[{"accepted": True}])
+    verdict = R.refine_verdict(init, result, depth)
+    assert verdict["verdict"] == "check" and "good moved by more than 3" in verdict["message"]
