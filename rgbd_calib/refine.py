@@ -160,12 +160,6 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
 
     clouds: dict[str, CameraCloud] = {}
     skipped: dict[str, str] = {}
-    if method != "none" and weak is not None and not weak:
-        return DepthRefinement(
-            method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
-            note=(f"the board constrains every camera within {config.board_weak_sigma_mm} mm "
-                  f"/ {config.board_weak_sigma_deg} deg: depth registration would add no "
-                  "information and was skipped"), weak_cameras={})
     with timed(timings, "clouds"):
         tick = start(progress, "static clouds", len(cams))
         for c in cams:
@@ -177,6 +171,14 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             except (DatasetError, ValueError, MemoryError) as exc:  # this camera only
                 skipped[c] = str(exc)
             tick(1)
+
+    if method != "none" and weak is not None and not weak:
+        # the clouds are still built: fused.ply and the report's cloud checks use them
+        return DepthRefinement(
+            method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
+            note=(f"the board constrains every camera within {config.board_weak_sigma_mm} mm "
+                  f"/ {config.board_weak_sigma_deg} deg: depth registration would add no "
+                  "information and was skipped"), weak_cameras={})
 
     pairs: list[dict[str, Any]] = []
     relative: list[RelativePose] = []
