@@ -181,7 +181,7 @@ def check_result(w: Work, good: list[str], expect_missing: tuple[str, ...] = ())
 def ok_case(case: str, what: str, w: Work, text: str, listed: str) -> None:
     flat = " ".join(text.split())  # the summary lines wrap at the console width
     flat = flat.split(" verdict: ")[0]  # the notes come before the verdict and its warnings
-    notes = re.findall(r"not calibrated: .*?(?= not calibrated:|$)", flat)
+    notes = re.findall(r"not calibrated: .*?(?= not calibrated:| results in |$)", flat)
     seen = "summary table" + "".join(f"; `{w.norm(n)}`" for n in notes)
     record(case, what, "calibrate <dataset>", 0, f"{seen}; report.json: {listed}")
 
