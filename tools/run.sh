@@ -35,12 +35,14 @@ if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ]; 
   echo "setting up $VENV (pinned packages from requirements.lock) ..." >&2
   "$PY" -m venv "$VENV" 2>/dev/null || {
     echo "error: '$PY -m venv' failed; run 'sudo apt-get install python3-venv' and re-run" >&2; exit 1; }
-  "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
+  "$VENV/bin/python" -m pip install -q --upgrade pip 2>&1 | grep -v "is ignored: it is neither" >&2 || true
   # kiss-icp asks for typer[all], an extra typer no longer has (rich is pinned here anyway):
   # pip's one-line warning about it is noise, as are the index locations it ignores
   "$VENV/bin/python" -m pip install -q -r requirements.lock 2>&1 \
     | grep -v -e "is ignored: it is neither" -e "does not provide the extra 'all'" >&2 || true
-  "$VENV/bin/python" -m pip install -q --no-deps -e ".[dev,ros]" 2>&1 | grep -v "is ignored: it is neither" >&2 || true
+  # setuptools' "Editable installation" BuildBackendWarning is advice for package authors
+  PYTHONWARNINGS=ignore "$VENV/bin/python" -m pip install -q --no-deps -e ".[dev,ros]" 2>&1 \
+    | grep -v "is ignored: it is neither" >&2 || true
   "$VENV/bin/python" -c "import rgbd_calib, cv2, gtsam, open3d, pyrealsense2" \
     || { echo "error: the environment in $VENV is incomplete; delete it and re-run" >&2; exit 1; }
   echo "$WANT" > "$STAMP"
