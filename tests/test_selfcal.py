@@ -88,3 +88,26 @@ def test_prior_tension_and_loosening():
     loose = selfcal.loosened(BundleConfig())
     assert loose.intrinsics_prior_focal_pct == pytest.approx(10.0)
     assert loose.intrinsics_prior_center_px == pytest.approx(100.0)
+
+
+def test_lens_refined_from_thin_coverage_is_named():
+    """Warning ``lens_coverage``: distortion refined from views covering < 35 % of the image
+    (the polynomial is extrapolated towards the corners); focal/centre only, or good
+    coverage, raise nothing."""
+    from rgbd_calib.report.findings import lens_coverage
+
+    entry = {"prior": 0.0, "prior_sigma": 0.1, "refined": 0.08, "sigma": 0.001,
+             "change": 0.08, "change_pct": None}
+    report = {"cameras": {
+        "thin": {"intrinsics_refined": {"fx": entry, "k1": entry},
+                 "coverage": {"image_fraction": 0.13}},
+        "wide": {"intrinsics_refined": {"k1": entry}, "coverage": {"image_fraction": 0.6}},
+        "focal": {"intrinsics_refined": {"fx": entry}, "coverage": {"image_fraction": 0.1}},
+        "fixed": {"coverage": {"image_fraction": 0.1}},
+    }}
+    found = lens_coverage(report, [])
+    assert len(found) == 1
+    f = found[0]
+    as_dict = f if isinstance(f, dict) else f.to_dict()
+    assert as_dict["code"] == "lens_coverage" and as_dict["cameras"] == ["thin"]
+    assert "thin 13%" in as_dict["message"]

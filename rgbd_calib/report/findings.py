@@ -109,9 +109,10 @@ def inconsistent_camera(report: dict[str, Any], earlier: list[Finding]) -> list[
         [(c["reprojection_all_px"] or {}).get("p50") for c in cams.values() if c["calibrated"]]
     )
     out = []
+    explained = _explained_model_errors(report)
     for name, cam in cams.items():
         views = [v for v in report["views"] if v["camera"] == name]
-        parts = _inconsistencies(cam, views, rig_p50) if views else []
+        parts = _inconsistencies(cam, views, rig_p50, name in explained) if views else []
         if parts:
             out.append(
                 finding(
@@ -156,12 +157,22 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
     return out
 
 
+def _explained_model_errors(report: dict[str, Any]) -> set[str]:
+    """Cameras the pose graph flagged for a model error that the self-calibrated board or
+    intrinsics explained (not inflated: ``sigma_factor`` 1): their pose-graph outlier views
+    were judged with the model the bundle adjustment replaced, and it used them."""
+    return {m["camera"] for m in report["pose_graph"].get("model_error") or []
+            if m.get("sigma_factor") is not None and m["sigma_factor"] <= 1.0}
+
+
 def _inconsistencies(
-    cam: dict[str, Any], views: list[dict[str, Any]], rig_p50: float | None
+    cam: dict[str, Any], views: list[dict[str, Any]], rig_p50: float | None,
+    explained: bool = False,
 ) -> list[str]:
-    """Why a camera disagrees with the rig (empty: it does not): many outlier views, a
-    median reprojection error far above the rig's, many views whose corners fit no pose."""
-    n_out = cam["edge_outliers"]
+    """Why a camera disagrees with the rig (empty: it does not): many outlier views (not
+    when a self-calibrated model ``explained`` them), a median reprojection error far above
+    the rig's, many views whose corners fit no pose."""
+    n_out = 0 if explained else cam["edge_outliers"]
     p50 = (cam["reprojection_all_px"] or {}).get("p50")
     bad_views = n_out >= 2 and n_out >= INCONSISTENT_FRACTION * max(len(views), 1)
     bad_px = (
@@ -340,6 +351,35 @@ def intrinsics_unsupported(report: dict[str, Any], earlier: list[Finding]) -> li
     ]
 
 
+def lens_coverage(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Refined lens distortion from views that covered little of the image: the polynomial is
+    fitted where the board went and extrapolated elsewhere (measured, docs/accuracy.md: 0.1-0.5
+    px inside the covered region, 6 to ~1000 px in corners no view reached)."""
+    thin = {}
+    for name, cam in report["cameras"].items():
+        refined = cam.get("intrinsics_refined") or {}
+        cov = cam.get("coverage") or {}
+        if any(p not in ("fx", "fy", "cx", "cy") for p in refined) \
+                and cov.get("image_fraction") is not None \
+                and cov["image_fraction"] < COVERAGE_MIN:
+            thin[name] = cov["image_fraction"]
+    if not thin:
+        return []
+    return [
+        finding(
+            "warning",
+            "lens_coverage",
+            list(thin),
+            "The lens distortion was refined from views covering little of the image ("
+            + ", ".join(f"{n} {f:.0%}" for n, f in thin.items())
+            + f", under {COVERAGE_MIN:.0%}): the refined model (rig_refined.yaml) holds where "
+            "the board went and is an extrapolation towards the image corners.",
+            "Before using rig_refined.yaml's distortion for the whole image, record views with "
+            "the board reaching the image corners and calibrate again.",
+        )
+    ]
+
+
 def board_glue(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     """The back sheet off its board-file place (``bundle.board: refine``): significant against
     its sigma and large enough to matter; or held because it was unobservable."""
@@ -435,8 +475,8 @@ def board_tilt(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
 
 # ----------------------------------------------------------------------------- views, markers
 def outlier_views(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
-    inconsistent = _cameras_of(earlier, "inconsistent_camera")
-    outliers = [o for o in report["pose_graph"]["outliers"] if o["camera"] not in inconsistent]
+    skip = _cameras_of(earlier, "inconsistent_camera") | _explained_model_errors(report)
+    outliers = [o for o in report["pose_graph"]["outliers"] if o["camera"] not in skip]
     if not outliers:
         return []
     listed = ", ".join(f"{o['camera']}/{o['view']}" for o in outliers[:8])
@@ -664,6 +704,7 @@ RULES: tuple[Rule, ...] = (
     board_distance,
     board_tilt,
     intrinsics_unsupported,
+    lens_coverage,
     outlier_views,
     marker,
     reprojection,
