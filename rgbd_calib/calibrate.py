@@ -227,7 +227,7 @@ def calibrate(
         #    model as the data supports (bundle.board / bundle.intrinsics: auto)
         with timed(timings, "bundle"):
             bundle, measurements, solve, ladder = self_calibrated_bundle(
-                observations, pg, rig, board, config, fixed_cameras)
+                observations, pg, rig, board, config, fixed_cameras, progress)
         if ladder is not None and ladder.chosen.distortion:
             # the corners were fitted along straight edges; with the refined lens the edges
             # are curved: detect again with it and solve the chosen model once more
@@ -438,6 +438,7 @@ def self_calibrated_bundle(
     board: Board,
     config: CalibrationConfig,
     fixed_cameras: dict[str, np.ndarray] | None = None,
+    progress: Progress | None = None,
 ) -> tuple[BundleResult, list[MarkerMeasurement], CalibrationConfig, SelfCalibration | None]:
     """The bundle adjustment with ``config.bundle``'s board and intrinsics models.
 
@@ -449,9 +450,11 @@ def self_calibrated_bundle(
     solve) and the ladder (None for explicit modes)."""
     b = config.bundle
     K, centre = _camera_matrices(rig), back_centre(board)
+    tick = start(progress, "bundle adjustment (models solved)", None)
 
     def solve(level: BundleConfig, init_cam: dict[str, np.ndarray],
               init_board: dict[str, np.ndarray], freed: bool):
+        tick(1)
         cfg = config.model_copy(update={"bundle": level})
         meas = marker_measurements(observations, pg, rig,
                                    refined_intrinsics=level.intrinsics == "refine",
