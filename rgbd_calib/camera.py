@@ -318,6 +318,12 @@ class CameraIntrinsics:
         distortion coefficients in OpenCV order."""
         return ("fx", "fy", "cx", "cy") + DISTORTION_NAMES[: len(self.distortion)]
 
+    @property
+    def parameters(self) -> dict[str, float]:
+        """Each of :attr:`parameter_names` with its value."""
+        return dict(zip(self.parameter_names,
+                        (self.fx, self.fy, self.cx, self.cy, *self.distortion)))
+
     # ------------------------------------------------------------------ normalized <-> pixels
     def _to_normalized(self, pixels: Array) -> Array:
         return np.stack(

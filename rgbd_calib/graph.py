@@ -1134,8 +1134,7 @@ def intrinsics_vector(base: CameraIntrinsics, names: tuple[str, ...]) -> np.ndar
     """The values of the parameters ``names`` of ``base`` (missing coefficients are 0)."""
     padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
                               _padded_distortion(base, names), base.depth_scale)
-    table = dict(zip(padded.parameter_names,
-                     (padded.fx, padded.fy, padded.cx, padded.cy, *padded.distortion)))
+    table = padded.parameters
     return np.array([table[n] for n in names], dtype=float)
 
 

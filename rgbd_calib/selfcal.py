@@ -171,18 +171,13 @@ def prior_tension(bundle: Any, rig: Any) -> tuple[float, str, str] | None:
     worst = None
     for cam, refined in bundle.intrinsics.items():
         prior_sigma = bundle.intrinsics_prior_sigma.get(cam, {})
-        before, after = _values(rig.cameras[cam]), _values(refined)
+        before, after = rig.cameras[cam].parameters, refined.parameters
         for name, sigma in prior_sigma.items():
             if sigma and sigma > 0:
                 z = abs(after.get(name, 0.0) - before.get(name, 0.0)) / sigma
                 if worst is None or z > worst[0]:
                     worst = (z, cam, name)
     return worst
-
-
-def _values(intrinsics: Any) -> dict[str, float]:
-    return dict(zip(intrinsics.parameter_names, (intrinsics.fx, intrinsics.fy, intrinsics.cx,
-                                                 intrinsics.cy, *intrinsics.distortion)))
 
 
 def loosened(config: BundleConfig) -> BundleConfig:

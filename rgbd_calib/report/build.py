@@ -237,11 +237,7 @@ def intrinsics_change(prior: Any, refined: Any, sigma: dict[str, float],
     the prior's sigma ``prior_sigma``, the ``refined`` value, its marginal ``sigma``,
     ``change`` (refined - prior, px for fx fy cx cy) and ``change_pct`` (percent of the
     prior; null when the prior is 0)."""
-    names = refined.parameter_names
-    before = dict(zip(prior.parameter_names, (prior.fx, prior.fy, prior.cx, prior.cy,
-                                              *prior.distortion)))
-    after = dict(zip(names, (refined.fx, refined.fy, refined.cx, refined.cy,
-                             *refined.distortion)))
+    before, after = prior.parameters, refined.parameters
     out = {}
     for name in sigma:
         p, r = float(before.get(name, 0.0)), float(after[name])
