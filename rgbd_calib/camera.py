@@ -46,6 +46,9 @@ DISTORTION_NAMES = (
     "tau_y",
 )
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+# depth noise models of rig.yaml ``depth_noise`` (rgbd_calib.depth.depth_noise): active stereo
+# (RealSense D435, the default) or structured light (Kinect v1 / PrimeSense)
+DEPTH_NOISE_MODELS = ("d435", "kinect-v1")
 
 UNDISTORT_TOLERANCE = 1e-12  # normalized units (~1e-9 px at fx = 1000)
 UNDISTORT_MAX_ITERATIONS = 50
@@ -289,7 +292,10 @@ class CameraIntrinsics:
     """Pinhole + OpenCV distortion model of one colour sensor (depth is aligned to it).
 
     ``distortion`` holds OpenCV's 4, 5, 8, 12 or 14 coefficients
-    (``k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tau_x tau_y]]]]``)."""
+    (``k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tau_x tau_y]]]]``). ``depth_noise`` names the
+    noise model of the depth aligned to this camera (one of :data:`DEPTH_NOISE_MODELS`): the
+    depth stage weighs and accepts registrations by it, and a Kinect's noise is neither as
+    large nor as independent from pixel to pixel as a D435's."""
 
     width: int
     height: int
@@ -299,6 +305,7 @@ class CameraIntrinsics:
     cy: float
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     depth_scale: float = 0.001  # metres per depth count
+    depth_noise: str = "d435"
 
     @property
     def K(self) -> Array:
@@ -424,4 +431,6 @@ class CameraIntrinsics:
             "cy": self.cy,
             "distortion": list(self.distortion),
             "depth_scale": self.depth_scale,
+            # written only when not the default: rig files of D435 rigs stay as they were
+            **({"depth_noise": self.depth_noise} if self.depth_noise != "d435" else {}),
         }

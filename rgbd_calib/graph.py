@@ -1118,7 +1118,7 @@ def _with_parameters(base: CameraIntrinsics, names: tuple[str, ...],
     return CameraIntrinsics(base.width, base.height,
                             values.get("fx", base.fx), values.get("fy", base.fy),
                             values.get("cx", base.cx), values.get("cy", base.cy),
-                            tuple(dist), base.depth_scale)
+                            tuple(dist), base.depth_scale, base.depth_noise)
 
 
 def _padded_distortion(base: CameraIntrinsics, names: tuple[str, ...]) -> tuple[float, ...]:

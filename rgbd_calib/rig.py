@@ -9,12 +9,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .camera import DISTORTION_LENGTHS, CameraIntrinsics
+from .camera import DEPTH_NOISE_MODELS, DISTORTION_LENGTHS, CameraIntrinsics
 from .errors import ConfigError
 from .yamlio import check_keys, read_yaml_mapping, write_yaml
 
 CAMERA_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
-_CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "distortion", "depth_scale"}
+_CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "distortion", "depth_scale",
+                "depth_noise"}
 _DIST_ADVICE = "give OpenCV's k1 k2 p1 p2 k3, e.g. [0, 0, 0, 0, 0]"
 _ADVICE = "copy the colour intrinsics of the recorded resolution (rs-enumerate-devices -c)"
 
@@ -92,7 +93,14 @@ def parse_camera(raw: Any, where: str) -> CameraIntrinsics:
             f"(k1 k2 p1 p2 k3 ...), got {len(dist)}; {_DIST_ADVICE}"
         )
     depth_scale = _positive(raw.get("depth_scale", 0.001), f"{where}.depth_scale")
-    return CameraIntrinsics(width, height, fx, fy, cx, cy, dist, depth_scale)
+    noise = raw.get("depth_noise", "d435")
+    if noise not in DEPTH_NOISE_MODELS:
+        raise ConfigError(
+            f"{where}.depth_noise: {_show(noise)} is not a depth noise model; use one of "
+            f"{', '.join(DEPTH_NOISE_MODELS)} (d435: active stereo, the default; kinect-v1: "
+            "structured light)"
+        )
+    return CameraIntrinsics(width, height, fx, fy, cx, cy, dist, depth_scale, noise)
 
 
 def load_rig(path: Path) -> Rig:

@@ -29,6 +29,21 @@ def test_load_and_defaults(tmp_path):
     assert load_rig(tmp_path / "again.yaml") == rig
 
 
+def test_depth_noise_model_per_camera(tmp_path):
+    """``depth_noise`` (default d435) survives a save and load; a D435 camera's entry is
+    written without it, so existing rig files do not change."""
+    import copy
+
+    data = copy.deepcopy(GOOD)
+    data["cameras"]["cam8"]["depth_noise"] = "kinect-v1"
+    rig = load_rig(write(tmp_path, data))
+    assert rig.cameras["cam7"].depth_noise == "d435"
+    assert rig.cameras["cam8"].depth_noise == "kinect-v1"
+    assert "depth_noise" not in rig.cameras["cam7"].to_dict()
+    save_rig(rig, tmp_path / "again.yaml")
+    assert load_rig(tmp_path / "again.yaml") == rig
+
+
 def test_reference_defaults_to_first_camera(tmp_path):
     data = {"cameras": GOOD["cameras"]}
     assert load_rig(write(tmp_path, data)).reference == "cam7"
@@ -64,6 +79,7 @@ def test_thesis_rig_matches_table_4_1_and_camera_info():
     (lambda d: d.update(reference="camX"), "reference camera 'camX'"),
     (lambda d: d["cameras"].update({"bad name": d["cameras"]["cam7"]}), "may only use"),
     (lambda d: d.update(cameras={}), "non-empty mapping"),
+    (lambda d: d["cameras"]["cam7"].update(depth_noise="kinect"), "not a depth noise model"),
 ])
 def test_bad_rigs_fail_with_one_line(tmp_path, mutate, message):
     import copy
