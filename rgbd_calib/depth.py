@@ -9,9 +9,11 @@ Pipeline, one function per step::
     fuse_clouds                     all cameras in the reference frame, per-point camera index
     overlap_error         point-to-plane distances between two cameras' clouds (report maps)
 
-Depth noise follows Intel's D435 model (Intel RealSense "Depth camera tuning / depth quality"
-white paper, RMS error): ``sigma_z = z^2 * s / (f * B)`` with the subpixel disparity error
-``s`` (px), the focal length ``f`` (px) and the stereo baseline ``B`` (m).
+Depth noise follows a disparity model, ``sigma_z = z^2 * s / (f * B)`` with the disparity error
+``s`` (px), the focal length ``f`` (px) and the baseline ``B`` (m) of the depth sensor: Intel's
+D435 model (RealSense "Depth camera tuning / depth quality" white paper, RMS error) by default,
+or a Kinect v1 (structured light) for a camera whose rig.yaml entry says
+``depth_noise: kinect-v1`` (:func:`depth_noise`).
 
 This is the only module that imports open3d and kiss_icp.
 """
@@ -76,7 +78,7 @@ class CloudStats:
 class CameraCloud:
     """The static scene seen by one camera, in that camera's frame.
 
-    ``points`` (N,3) metres, ``colors`` (N,3) RGB in [0,1], ``sigma_z`` (N,) metres: D435 model
+    ``points`` (N,3) metres, ``colors`` (N,3) RGB in [0,1], ``sigma_z`` (N,) metres: noise-model
     sigma of the median depth, ``pixels`` (N,2) integer ``(u, v)`` of each point, ``normals``
     (N,3) unit vectors facing the camera or None (see :func:`with_normals`)."""
 
@@ -90,6 +92,7 @@ class CameraCloud:
     frames: tuple[str, ...]
     depth_scale_factor: float = 1.0
     normals: np.ndarray | None = None
+    correlation_px: float = 1.0  # pixels within this square share their depth error
 
     @property
     def n_points(self) -> int:
@@ -160,8 +163,8 @@ class PairRegistration:
 
     ``T_b_a`` (4x4, metres) maps points of camera a into camera b. ``information`` (6x6) is the
     inverse of the cluster-robust covariance of ``T_b_a`` at the finest level
-    (:func:`noise_model_information`: point-to-plane residuals over their D435 sigma, plus the
-    photometric term for colored ICP, grouped by surface patch), in GTSAM order
+    (:func:`noise_model_information`: point-to-plane residuals over their noise-model sigma,
+    plus the photometric term for colored ICP, grouped by surface patch), in GTSAM order
     [rotation (rad), translation (m)] for a right perturbation (see
     ``information_frame``): for the joint graph, use
     ``BetweenFactorPose3(key(T_ref_b), key(T_ref_a), Pose3(T_b_a),
@@ -186,7 +189,7 @@ class PairRegistration:
     accepted: bool
     reason: str | None
     time_s: float
-    normalised_rms: float = float("nan")  # RMS(point-to-plane residual / D435 sigma)
+    normalised_rms: float = float("nan")  # RMS(point-to-plane residual / model sigma)
     improvement_chi2: float = 0.0  # move^T information move: the Wald statistic of the move
     n_patches: int = 0  # surface patches of the sandwich covariance
 
@@ -240,8 +243,60 @@ def d435_sigma_z(z_m: np.ndarray, focal_px: float, subpixel_px: float = 0.08,
     return z * z * subpixel_px / (focal_px * baseline_m)
 
 
-def _noise_focal(intr: CameraIntrinsics, config: DepthConfig) -> float:
-    return config.depth_focal_px or intr.fx
+@dataclass(frozen=True)
+class DepthNoise:
+    """Per-pixel depth noise of a disparity sensor: ``sigma_z = z^2 s / (f B)``.
+
+    ``correlation_px`` is the side of the image square over which pixels share their error: a
+    mean of ``k`` neighbouring pixels holds ``max(1, k / correlation_px^2)`` independent
+    errors, not ``k``. Stereo matching and structured light both correlate over their matching
+    window; the synthetic D435 noise is drawn per pixel (1)."""
+
+    subpixel_px: float
+    baseline_m: float
+    focal_px: float
+    correlation_px: float = 1.0
+
+    @property
+    def disparity_sigma(self) -> float:
+        """Sigma of the inverse depth (1/m): ``s / (f B)``."""
+        return self.subpixel_px / (self.focal_px * self.baseline_m)
+
+    def sigma_z(self, z_m: np.ndarray) -> np.ndarray:
+        """Single-frame, single-pixel depth sigma (m) at depth ``z_m``."""
+        return d435_sigma_z(z_m, self.focal_px, self.subpixel_px, self.baseline_m)
+
+
+# Kinect v1 (structured light, IR camera f ~ 580 px, projector-camera baseline 7.5 cm;
+# Khoshelham & Elberink, Sensors 2012). Measured on planar patches of the TUM fr1/xyz frames
+# (docs/depth.md): 1.6 mm per pixel at 0.74 m (2.9e-3 z^2; Khoshelham & Elberink report
+# 1.4e-3 z^2, without the 1/8 px disparity quantisation), and an 8x8 pixel mean only 1.7-2.2x
+# less noisy than one pixel, not 8x: about one independent error per 4x4 pixels.
+KINECT_V1_NOISE = DepthNoise(subpixel_px=0.125, baseline_m=0.075, focal_px=580.0,
+                             correlation_px=4.0)
+
+
+def depth_noise(intr: CameraIntrinsics, config: DepthConfig) -> DepthNoise:
+    """The depth noise model of a camera: its rig.yaml ``depth_noise`` (``kinect-v1``: the
+    :data:`KINECT_V1_NOISE` constants), else the D435 model with ``config``'s ``subpixel_px``
+    and ``baseline_m`` at ``depth_focal_px`` (default: the colour fx, depth being aligned to
+    colour)."""
+    if intr.depth_noise == "kinect-v1":
+        return KINECT_V1_NOISE
+    return DepthNoise(config.subpixel_px, config.baseline_m, config.depth_focal_px or intr.fx)
+
+
+def _noise_name(*clouds: CameraCloud) -> str:
+    """The noise models of clouds, for a message: 'D435', 'Kinect v1' or 'D435 / Kinect v1'."""
+    names = {"d435": "D435", "kinect-v1": "Kinect v1"}
+    return " / ".join(dict.fromkeys(names.get(c.intrinsics.depth_noise, c.intrinsics.depth_noise)
+                                    for c in clouds))
+
+
+def _median_efficiency(n: np.ndarray) -> np.ndarray:
+    """var(median of n Gaussian samples) * n / sigma^2: pi/2 for many samples, 1 for one or two
+    (their median is their mean)."""
+    return np.where(np.asarray(n) <= 2, 1.0, _MEDIAN_EFFICIENCY)
 
 
 def _in_view(intr: CameraIntrinsics, points_cam: np.ndarray, margin_px: float,
@@ -333,8 +388,8 @@ def static_cloud(
     ``T_ref_board`` maps frame -> board pose (4x4, metres, reference frame; may be empty) and
     ``T_ref_cam`` is this camera's current extrinsics: together they place the board in each
     frame, and its pixels (grown by a margin) are left out of that frame's sample. Pixels whose
-    depth spreads over frames by more than ``motion_k`` sigma_z (D435 model) are moving and
-    dropped; so are depth edges and depths out of range. Depth is divided by
+    depth spreads over frames by more than ``motion_k`` sigma_z (:func:`depth_noise`) are
+    moving and dropped; so are depth edges and depths out of range. Depth is divided by
     ``depth_scale_factor`` (the camera's :func:`estimate_depth_scale` factor) before anything
     else. Points are back-projected with the rig intrinsics (depth_scale from the rig)."""
     config = config or DepthConfig()
@@ -371,12 +426,9 @@ def static_cloud(
     dev = np.abs(depth - med[None])
     mad, _ = _nan_median(dev)
     spread = 1.4826 * mad
-    # 2. single-frame D435 sigma at the median depth (+ depth quantisation)
-    f_noise = _noise_focal(intr, config)
-    sigma1 = np.sqrt(
-        d435_sigma_z(med, f_noise, config.subpixel_px, config.baseline_m) ** 2
-        + metres_per_count**2 / 12.0
-    )
+    # 2. single-frame model sigma at the median depth (+ depth quantisation)
+    noise = depth_noise(intr, config)
+    sigma1 = np.sqrt(noise.sigma_z(med) ** 2 + metres_per_count**2 / 12.0)
     # 3. masks: enough samples, not moving, in range, not a depth edge
     # a pixel needs min_samples valid samples, or all its board-free frames when fewer, but
     # never fewer than 2 when 2 frames or more were read (one sample cannot show motion)
@@ -389,7 +441,7 @@ def static_cloud(
     edge = np.zeros((H, W), dtype=bool)
     if config.edge_jump_sigmas is not None:
         disp = np.where(enough & ~moving, 1.0 / np.where(med > 0, med, np.nan), np.nan)
-        thr = config.edge_jump_sigmas * config.subpixel_px / (f_noise * config.baseline_m)
+        thr = config.edge_jump_sigmas * noise.disparity_sigma
         with np.errstate(invalid="ignore"):
             jump_x = np.abs(np.diff(disp, axis=1)) > thr
             jump_y = np.abs(np.diff(disp, axis=0)) > thr
@@ -409,7 +461,7 @@ def static_cloud(
     vs, us = np.nonzero(keep)
     z = med[vs, us].astype(float)
     points = intr.rays(us, vs) * z[:, None]
-    sigma_z = sigma1[vs, us] * np.sqrt(_MEDIAN_EFFICIENCY / n_in[vs, us])
+    sigma_z = sigma1[vs, us] * np.sqrt(_median_efficiency(n_in[vs, us]) / n_in[vs, us])
     stats = CloudStats(
         n_frames=n,
         n_pixels=H * W,
@@ -430,6 +482,7 @@ def static_cloud(
         stats=stats,
         frames=tuple(picked),
         depth_scale_factor=float(depth_scale_factor),
+        correlation_px=noise.correlation_px,
     )
 
 
@@ -478,13 +531,13 @@ def estimate_depth_scale(
     board face towards the camera (front at z = 0 or back at z = -thickness, board frame) gives
     the true depth of every pixel ray that hits it inside the panel minus
     ``scale_face_margin_m``; the measured depth there is compared with it. Per frame ``f`` is an
-    IRLS fit (Huber, weights 1/sigma_z^2 of the D435 model); frames are combined by a Huber-
+    IRLS fit (Huber, weights 1/sigma_z^2 of the noise model); frames are combined by a Huber-
     weighted random-effects mean (weights 1/(sigma_k^2 + tau^2), tau^2 the spread between
     frames beyond their formal errors), and ``sigma`` is its standard error, inflated by the
     scatter over frames when that exceeds the weights."""
     config = config or DepthConfig()
     intr = dataset.rig.cameras[camera]
-    f_noise = _noise_focal(intr, config)
+    noise = depth_noise(intr, config)
     x0, x1, y0, y1 = board.panel
     mg = config.scale_face_margin_m
     cos_max = math.cos(math.radians(config.scale_max_view_angle_deg))
@@ -535,10 +588,7 @@ def estimate_depth_scale(
             continue
         z_true = z_true[inside]
         z_meas = raw[vs[inside], us[inside]].astype(float) * intr.depth_scale
-        sigma = np.sqrt(
-            d435_sigma_z(z_true, f_noise, config.subpixel_px, config.baseline_m) ** 2
-            + intr.depth_scale**2 / 12.0
-        )
+        sigma = np.sqrt(noise.sigma_z(z_true) ** 2 + intr.depth_scale**2 / 12.0)
         f, err = _fit_scale(z_meas, z_true, sigma, config.scale_huber_k)
         frames.append(frame)
         factors.append(f)
@@ -715,7 +765,10 @@ def _make_level(cloud: CameraCloud, keep: np.ndarray, voxel: float,
         cloud.points[keep].astype(float), voxel, cloud.colors[keep],
         cloud.sigma_z[keep].astype(float) ** 2,
     )
-    sigma = np.sqrt(var / np.maximum(counts, 1))  # average of `counts` independent depths
+    # the mean of `counts` neighbouring pixels' depths: independent errors only one per
+    # correlation_px^2 pixels (a voxel's pixels are neighbours in the image)
+    independent = np.maximum(counts / cloud.correlation_px**2, 1.0)
+    sigma = np.sqrt(var / independent)
     return _Level(pts, col, normals(pts), sigma)
 
 
@@ -791,7 +844,7 @@ class _Matches:
     tgt: np.ndarray  # target points in b
     normals_b: np.ndarray  # target normals in b
     residual: np.ndarray  # point-to-plane residual (m)
-    sigma: np.ndarray  # its D435-model sigma (m)
+    sigma: np.ndarray  # its noise-model sigma (m)
     distance: np.ndarray  # point-to-point distance (m)
     src_index: np.ndarray  # indices into the source level
     tgt_index: np.ndarray  # indices into the target level
@@ -922,7 +975,7 @@ class _WhitenedRows:
 def whitened_rows(matches: _Matches, T_b_a: np.ndarray, patch_m: float,
                   colour: tuple[_Level, _Level, np.ndarray] | None = None,
                   free_scale: tuple[bool, bool] = (False, False)) -> _WhitenedRows:
-    """Point-to-plane residuals over their D435 sigma (:func:`_match`), and, with
+    """Point-to-plane residuals over their noise-model sigma (:func:`_match`), and, with
     ``colour = (src, tgt, gradients_b)``, the photometric residuals of colored ICP over their
     RMS (colour has no noise model: its variance comes from the residuals). Rows are grouped
     by the ``patch_m`` voxel of their source point.
@@ -965,7 +1018,7 @@ def whitened_rows(matches: _Matches, T_b_a: np.ndarray, patch_m: float,
 
 
 def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
-    """Information (6x6) of a registration from the D435 noise model and its residuals.
+    """Information (6x6) of a registration from the depth noise model and its residuals.
 
     With whitened rows ``J_i``, ``r_i`` (:func:`whitened_rows`) the Gauss-Newton information
     ``H = sum J_i^T J_i`` is the inverse covariance of the estimate only if the residuals are
@@ -1008,7 +1061,7 @@ def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
 
 
 def normalised_rms(matches: _Matches) -> float:
-    """RMS of the point-to-plane residuals over their D435-model sigma (1 when the residuals
+    """RMS of the point-to-plane residuals over their noise-model sigma (1 when the residuals
     are the depth noise alone)."""
     if matches.residual.size == 0:
         return float("nan")
@@ -1090,7 +1143,7 @@ def register_pair(
     2. coarse to fine over ``voxel_schedule_m``: voxel means with normals (estimated once
        within ``normal_radius_m``), then one ICP level ("colored-icp": Open3D colored ICP,
        Park et al. 2017; "geometric": kiss-icp robust point-to-point);
-    3. at the finest level: correspondences, fitness, RMSE, the residuals against the D435
+    3. at the finest level: correspondences, fitness, RMSE, the residuals against the depth
        noise model, the information (:func:`noise_model_information`) and its conditioning;
        accept only a pair that fits the noise model and moved significantly (Wald test under
        its own information) from the initial ``T_b_a``, else reject with a reason.
@@ -1169,7 +1222,7 @@ def register_pair(
         reasons.append(f"point-to-plane RMSE {rmse_after:.1f} mm > {config.max_rmse_mm} mm")
     if n_corr and not noise_rms <= config.max_normalised_rms:
         reasons.append(
-            f"residuals {noise_rms:.1f}x the D435 noise model (limit "
+            f"residuals {noise_rms:.1f}x the {_noise_name(cloud_a, cloud_b)} noise model (limit "
             f"{config.max_normalised_rms}x): the surfaces do not fit (a wrong local minimum, "
             "a moving scene or a depth error)")
     if cond < config.min_conditioning:

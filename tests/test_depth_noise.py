@@ -81,3 +81,34 @@ def test_residuals_far_above_the_noise_model_are_rejected(realisations):
     assert reg.normalised_rms > 3.0
     d = reg.to_dict()
     assert d["accepted"] is False and d["normalised_rms"] == reg.normalised_rms
+
+
+def test_kinect_noise_model_is_chosen_per_camera_and_correlated(realisations):
+    """A camera whose rig.yaml says ``depth_noise: kinect-v1`` gets the structured-light model
+    (z^2 s / (f B) with the Kinect's constants, not the configured D435 ones), and a voxel mean
+    of its pixels counts one independent error per correlation_px^2 pixels, not one per pixel
+    (docs/depth.md, "Real data: TUM fr1/xyz")."""
+    from rgbd_calib.config import DepthConfig
+
+    a = realisations[0][0]
+    kinect = replace(a.intrinsics, depth_noise="kinect-v1")
+    config = DepthConfig()
+    assert D.depth_noise(a.intrinsics, config).correlation_px == 1.0
+    assert D.depth_noise(a.intrinsics, config).sigma_z(np.array(2.0)) == pytest.approx(
+        4.0 * config.subpixel_px / (a.intrinsics.fx * config.baseline_m))
+    noise = D.depth_noise(kinect, config)
+    assert noise == D.KINECT_V1_NOISE
+    assert float(noise.sigma_z(np.array(1.0))) == pytest.approx(0.125 / (580.0 * 0.075))
+    # one voxel of 64 pixels of equal sigma: 64 independent errors for the D435 model,
+    # 64 / 4^2 = 4 for the Kinect's
+    pts = np.column_stack([np.linspace(0.0, 0.004, 64), np.zeros(64), np.full(64, 1.0)])
+    flat = replace(a, points=pts.astype(np.float32), colors=np.zeros((64, 3), np.float32),
+                   sigma_z=np.full(64, 0.002, np.float32), pixels=np.zeros((64, 2), np.int32),
+                   normals=None)
+    field = D._NormalField(pts, 0.02, 0.08)
+    keep = np.ones(64, bool)
+    assert D._make_level(flat, keep, 0.05, field).sigma == pytest.approx([0.002 / 8])
+    correlated = replace(flat, correlation_px=noise.correlation_px)
+    assert D._make_level(correlated, keep, 0.05, field).sigma == pytest.approx([0.002 / 2])
+    # the median of one or two frames is their mean: no pi/2 penalty
+    assert D._median_efficiency(np.array([1, 2, 3])).tolist() == [1.0, 1.0, D._MEDIAN_EFFICIENCY]

@@ -9,7 +9,8 @@ motion-capture ground truth).
 moving Kinect become two cameras ``a`` and ``b`` of the project's folder form
 (docs/formats.md)::
 
-    <out>/rig.yaml                      a and b, same intrinsics, depth_scale 0.0002 (1/5000 m)
+    <out>/rig.yaml                      a and b, same intrinsics, depth_scale 0.0002 (1/5000 m),
+                                        depth_noise kinect-v1
     <out>/a/color/000000.png            the TUM files, copied byte for byte
     <out>/a/depth/000000.png
     <out>/b/color/000000.png
@@ -281,7 +282,8 @@ def write_sample(seq: Path, frames: list[Frame], i: int, j: int, score: float, a
         shutil.rmtree(out)
     fx, fy, cx, cy, dist = INTRINSICS[args.intrinsics]
     cam = {"width": WIDTH, "height": HEIGHT, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
-           "distortion": dist, "depth_scale": 1.0 / DEPTH_COUNTS_PER_M}
+           "distortion": dist, "depth_scale": 1.0 / DEPTH_COUNTS_PER_M,
+           "depth_noise": "kinect-v1"}  # structured light: not the D435 stereo model
     fa, fb = frames[i], frames[j]
     for name, f in (("a", fa), ("b", fb)):
         for kind, rel in (("color", f.rgb), ("depth", f.depth)):
