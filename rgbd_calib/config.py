@@ -573,8 +573,9 @@ class DepthConfig(BaseModel, extra="forbid"):
         0.015,
         gt=0,
         description="Registration uses only points whose depth sigma (of the "
-        "median, D435 model) is below this (m): unweighted ICP is spoiled by far, noisy points "
-        "(sigma_z grows with z^2; at 640x360 and 8 frames 0.015 m is reached near 2.5 m).",
+        "median, the camera's depth noise model) is below this (m): unweighted ICP is spoiled "
+        "by far, noisy points (sigma_z grows with z^2; at 640x360 and 8 frames 0.015 m is "
+        "reached near 2.5 m).",
     )
     max_incidence_deg: float = Field(
         80.0,
@@ -624,8 +625,8 @@ class DepthConfig(BaseModel, extra="forbid"):
         3.0,
         gt=0,
         description="Reject a pair whose point-to-plane residuals after ICP are, in RMS, more "
-        "than this many times their D435-model sigma (far above the noise: a wrong local "
-        "minimum, a moving scene or a depth error).",
+        "than this many times their noise-model sigma (rig.yaml depth_noise; far above the "
+        "noise: a wrong local minimum, a moving scene or a depth error).",
     )
     min_improvement_chi2: float = Field(
         12.59,
