@@ -107,8 +107,8 @@ def test_kinect_noise_model_is_chosen_per_camera_and_correlated(realisations):
                    normals=None)
     field = D._NormalField(pts, 0.02, 0.08)
     keep = np.ones(64, bool)
-    assert D._make_level(flat, keep, 0.05, field).sigma == pytest.approx([0.002 / 8])
+    assert D._make_level(flat, keep, 0.05, field).sigma_z == pytest.approx([0.002 / 8])
     correlated = replace(flat, correlation_px=noise.correlation_px)
-    assert D._make_level(correlated, keep, 0.05, field).sigma == pytest.approx([0.002 / 2])
+    assert D._make_level(correlated, keep, 0.05, field).sigma_z == pytest.approx([0.002 / 2])
     # the median of one or two frames is their mean: no pi/2 penalty
     assert D._median_efficiency(np.array([1, 2, 3])).tolist() == [1.0, 1.0, D._MEDIAN_EFFICIENCY]
