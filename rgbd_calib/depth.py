@@ -189,6 +189,7 @@ class PairRegistration:
     normalised_rms: float = float("nan")  # RMS(point-to-plane residual / D435 sigma)
     improvement_chi2: float = 0.0  # move^T information move: the Wald statistic of the move
     n_patches: int = 0  # surface patches of the sandwich covariance
+    start: str = "given"  # ICP started from the given extrinsics, or "global" (FPFH + RANSAC)
 
     @property
     def covariance(self) -> np.ndarray:
@@ -229,6 +230,7 @@ class PairRegistration:
             "normalised_rms": self.normalised_rms,
             "improvement_chi2": self.improvement_chi2,
             "n_patches": self.n_patches,
+            "start": self.start,
         }
 
 
