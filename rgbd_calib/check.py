@@ -33,6 +33,7 @@ from typing import Any, Literal
 import gtsam
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from .config import DepthConfig
 from .dataset import FolderDataset
@@ -144,24 +145,40 @@ def d435_sigma_z_ok(cloud: CameraCloud, config: DepthConfig) -> np.ndarray:
 
 
 def global_alignment(cloud_a: CameraCloud, cloud_b: CameraCloud, T_b_a_guess: np.ndarray,
-                     config: DepthConfig, voxel: float = 0.05, max_move_m: float = 0.5,
-                     max_move_deg: float = 30.0, seed: int = 0) -> np.ndarray | None:
-    """``T_b_a`` from FPFH feature matching and RANSAC (Open3D), independent of any start;
-    None when RANSAC finds nothing or a pose further than ``max_move_m`` / ``max_move_deg``
-    from ``T_b_a_guess`` (a knocked camera moves centimetres, not across the room: a far
-    answer is a symmetric or repeated structure, not the camera). Seeded: same answer on
-    every run."""
+                     config: DepthConfig, voxel: float = 0.05, search_m: float = 0.4,
+                     max_move_m: float = 0.5, max_move_deg: float = 30.0,
+                     seed: int = 0) -> np.ndarray | None:
+    """``T_b_a`` from FPFH features and RANSAC (Rusu et al. 2009; Open3D), outside ICP's
+    basin but guided by ``T_b_a_guess``: each of a's points is matched to the point of b with
+    the nearest feature among those within ``search_m`` of where the guess puts it. A knocked
+    camera moves centimetres and turns a few degrees (0.26 m at 3 m for 5 deg), not across the
+    room: unguided matching in a room of walls and floor finds its symmetric aliases metres
+    away (measured: 2-4 m off on the ring rig at RANSAC fitness 0.8-0.9). None when RANSAC
+    finds nothing or lands further than ``max_move_m`` / ``max_move_deg`` from the guess.
+    Seeded: the same answer on every run."""
     if cloud_a.n_points < 100 or cloud_b.n_points < 100:
         return None
     o3d.utility.random.seed(seed)
     src, f_src = _fpfh_cloud(cloud_a, voxel, config)
     tgt, f_tgt = _fpfh_cloud(cloud_b, voxel, config)
-    if len(src.points) < 10 or len(tgt.points) < 10:
+    p_src, p_tgt = np.asarray(src.points), np.asarray(tgt.points)
+    if len(p_src) < 10 or len(p_tgt) < 10:
+        return None
+    F_src, F_tgt = np.asarray(f_src.data).T, np.asarray(f_tgt.data).T
+    moved = p_src @ T_b_a_guess[:3, :3].T + T_b_a_guess[:3, 3]
+    near = cKDTree(p_tgt).query_ball_point(moved, search_m, workers=-1)
+    pairs = []
+    for i, cand in enumerate(near):
+        if cand:
+            cand = np.asarray(cand)
+            j = cand[np.argmin(np.sum((F_tgt[cand] - F_src[i]) ** 2, axis=1))]
+            pairs.append((i, j))
+    if len(pairs) < 10:
         return None
     reg = o3d.pipelines.registration
     distance = 1.5 * voxel
-    result = reg.registration_ransac_based_on_feature_matching(
-        src, tgt, f_src, f_tgt, True, distance,
+    result = reg.registration_ransac_based_on_correspondence(
+        src, tgt, o3d.utility.Vector2iVector(np.asarray(pairs, dtype=np.int32)), distance,
         reg.TransformationEstimationPointToPoint(False), 3,
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
          reg.CorrespondenceCheckerBasedOnDistance(distance)],
@@ -173,6 +190,17 @@ def global_alignment(cloud_a: CameraCloud, cloud_b: CameraCloud, T_b_a_guess: np
     if mm > 1000.0 * max_move_m or deg > max_move_deg:
         return None
     return T
+
+
+def wide_config(config: DepthConfig) -> DepthConfig:
+    """``config`` with a wider basin: two coarser ICP levels first (0.16 and 0.08 m voxels,
+    each its own correspondence distance: a 5 deg turn moves a wall 2 m away by 0.17 m) and
+    a 100 px wider crop (the crop to the other camera's view is made under the wrong guess)."""
+    levels = [v for v in (0.16, 0.08) if v > config.voxel_schedule_m[0]]
+    return config.model_copy(update={
+        "voxel_schedule_m": levels + list(config.voxel_schedule_m),
+        "iterations": [40] * len(levels) + list(config.iterations),
+        "crop_margin_px": config.crop_margin_px + 100.0})
 
 
 def _better(first: PairRegistration, second: PairRegistration) -> PairRegistration:
@@ -200,20 +228,25 @@ def register_robust(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.ndar
         local = register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config, free_scale)
         if local.accepted:
             return local
-        T_global = global_alignment(cloud_a, cloud_b, T_b_a0, config)
-        if T_global is None:
-            return local
-        rescued = register_pair(cloud_a, cloud_b, T_ref_b @ T_global, T_ref_b, method, config,
-                                free_scale)
+        best, start_kind = local, "given"
+        wide = register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, method, wide_config(config),
+                             free_scale)
+        if _better(best, wide) is wide:
+            best, start_kind = wide, "wide"
+        T_start = None if best.accepted else global_alignment(cloud_a, cloud_b, T_b_a0, config)
+        if T_start is not None:
+            again = register_pair(cloud_a, cloud_b, T_ref_b @ T_start, T_ref_b, method, config,
+                                  free_scale)
+            if _better(best, again) is again:
+                best, start_kind = again, "global"
     except ICP_ERRORS + (MemoryError,) as exc:
         return failed_registration(cloud_a.camera, cloud_b.camera, method, T_b_a0,
                                    f"registration failed: {one_line_error(exc)}")
-    best = _better(local, rescued)
     if best is local:
         return local
     deg, mm = transform_error(best.T_b_a, T_b_a0)
     return replace(best, T_b_a_initial=T_b_a0, correction_deg=deg, correction_mm=mm,
-                   start="global")
+                   start=start_kind)
 
 
 # --------------------------------------------------------------------------- inference
@@ -379,6 +412,18 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
     return out
 
 
+def check_config(config: DepthConfig | None) -> DepthConfig:
+    """The depth settings of a check: every pair that fits is a measurement, also one that
+    confirms the calibration (``min_improvement_chi2`` 0), and a knocked camera's pair may
+    move far (``max_correction`` 0.5 m / 30 deg: the correction of ``T_b_a`` is the knock's
+    turn times the baseline, 0.15 m for 5 deg across a 1.7 m ring, beyond calibrate's
+    wrong-minimum guard; here the noise-model fit guards against wrong minima)."""
+    return (config or DepthConfig()).model_copy(update={
+        "min_improvement_chi2": 0.0,
+        "max_correction_m": max((config or DepthConfig()).max_correction_m, 0.5),
+        "max_correction_deg": max((config or DepthConfig()).max_correction_deg, 30.0)})
+
+
 def _jobs(pairs: list[tuple[str, str]], T: dict[str, np.ndarray],
           unknown_scale: set[str]) -> list:
     return [(a, b, T[a], T[b], (a in unknown_scale, b in unknown_scale)) for a, b in pairs]
@@ -397,7 +442,7 @@ def check_rig(clouds: dict[str, CameraCloud], calib: Extrinsics,
     are ``unknown``."""
     from .refine import register_pairs
 
-    config = (config or DepthConfig()).model_copy(update={"min_improvement_chi2": 0.0})
+    config = check_config(config)
     t0 = time.perf_counter()
     T = {c: e.T_ref_cam for c, e in calib.cameras.items()}
     regs = register_pairs(clouds, _jobs(overlaps, T, set(unknown_scale)), method, config,
@@ -464,6 +509,36 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
 
 
 # --------------------------------------------------------------------------- fix
+def _sigmas(c: str, T: np.ndarray, C: np.ndarray) -> CameraExtrinsics:
+    return CameraExtrinsics(c, T, math.degrees(math.sqrt(max(np.trace(C[:3, :3]), 0.0))),
+                            1000.0 * math.sqrt(max(np.trace(C[3:, 3:]), 0.0)), C)
+
+
+def reexpress(cams: dict[str, CameraExtrinsics], ref: str,
+              covariance: dict[str, np.ndarray]) -> dict[str, CameraExtrinsics]:
+    """The rig in the frame of its reference camera as it is now (``cams[ref]`` is where it
+    moved to, in the old frame): ``T_new_c = inv(T_ref_now) @ T_c``. Each camera's covariance
+    (body frame, [rot, trans]) gains the reference's: a right perturbation ``xi`` of
+    ``T_ref_now`` is ``-Ad(inv(T_new_c)) xi`` of ``T_new_c``; ``covariance`` gives the other
+    cameras' own (the calibration's for the cameras in place)."""
+    T_now = cams[ref].T_ref_cam
+    C_ref = cams[ref].covariance
+    if C_ref is None or not np.all(np.isfinite(C_ref)):
+        C_ref = np.full((6, 6), np.nan)
+    T_new_old = invert_transform(T_now)
+    out = {}
+    for c, e in cams.items():
+        if c == ref:
+            out[c] = CameraExtrinsics(c, np.eye(4), 0.0, 0.0)  # exact by definition
+            continue
+        T = T_new_old @ e.T_ref_cam
+        Ad = gtsam.Pose3(invert_transform(T)).AdjointMap()
+        own = covariance.get(c, e.covariance)
+        own = own if own is not None else np.zeros((6, 6))
+        out[c] = _sigmas(c, T, Ad @ C_ref @ Ad.T + own)
+    return out
+
+
 def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckResult,
               overlaps: list[tuple[str, str]], method: str = "colored-icp",
               config: DepthConfig | None = None, max_passes: int = 3,
@@ -480,7 +555,7 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
     re-expressed in its new frame) and the last pass's pairs."""
     from .refine import register_pairs
 
-    config = (config or DepthConfig()).model_copy(update={"min_improvement_chi2": 0.0})
+    config = check_config(config)
     moved = set(check.moved)
     if not moved:
         return calib, []
@@ -513,16 +588,10 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
     cams = dict(calib.cameras)
     for c in moved:
         C = cov_now.get(c)
-        C = C if C is not None else np.full((6, 6), np.nan)
-        cams[c] = CameraExtrinsics(
-            c, T_now[c], math.degrees(math.sqrt(max(np.trace(C[:3, :3]), 0.0))),
-            1000.0 * math.sqrt(max(np.trace(C[3:, 3:]), 0.0)), C)
+        cams[c] = _sigmas(c, T_now[c], C if C is not None else np.full((6, 6), np.nan))
     ref = calib.reference
-    if ref in moved:  # the reference frame is the reference camera's: re-express
-        T_new_old = invert_transform(cams[ref].T_ref_cam)
-        cams = {c: CameraExtrinsics(c, np.eye(4) if c == ref else T_new_old @ e.T_ref_cam,
-                                    e.sigma_rotation_deg, e.sigma_translation_mm)
-                for c, e in cams.items()}
+    if ref in moved:
+        cams = reexpress(cams, ref, {c: cov[c] for c in cov if c not in moved})
     out = Extrinsics(ref, cams, dict(calib.unconnected))
     return out, [{**r.to_dict(), "re_registered_for": sorted({r.cam_a, r.cam_b} & moved)}
                  for r in regs]

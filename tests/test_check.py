@@ -227,3 +227,24 @@ def test_check_without_a_calibration_is_one_clear_line(bumped_rig, tmp_path):
     assert res.exit_code == 2
     assert "no extrinsics.yaml" in res.output and "--calib" in res.output
     assert not (tmp_path / "c").exists()
+
+
+def test_a_moved_reference_re_expresses_the_rig_with_its_uncertainty():
+    """The reference frame is the reference camera's: when it moved, every camera is given in
+    its new frame, and carries the reference's new uncertainty on top of its own."""
+    from rgbd_calib.check import reexpress
+
+    T_cal = _ring(4)
+    knock = _knock(np.random.default_rng(1), 50.0, 5.0)
+    C_ref = np.diag([1e-6] * 3 + [1e-6] * 3)  # 0.06 deg, 1 mm per axis
+    cams = {c: CameraExtrinsics(c, T, 0.005, 0.1, prior_covariance(
+        CameraExtrinsics(c, T, 0.005, 0.1))) for c, T in T_cal.items()}
+    cams["c0"] = CameraExtrinsics("c0", knock, 0.1, 1.7, C_ref)
+    out = reexpress(cams, "c0", {})
+    np.testing.assert_array_equal(out["c0"].T_ref_cam, np.eye(4))
+    for c in ("c1", "c2", "c3"):
+        np.testing.assert_allclose(out[c].T_ref_cam, invert_transform(knock) @ T_cal[c],
+                                   atol=1e-12)
+        # 1 mm per axis of the reference plus 1e-3 rad x ~2-4 m lever arms: several mm
+        assert out[c].sigma_translation_mm > math.sqrt(3) * 1.0
+        assert out[c].sigma_rotation_deg > math.degrees(math.sqrt(3e-6)) * 0.99
