@@ -6,9 +6,10 @@ decides per camera whether it is where the calibration says, from the depth clou
 
 1. a static cloud per camera, with the calibration's depth-scale factors;
 2. every overlapping pair registered (:func:`register_robust`): colored ICP from the
-   calibrated relative pose and, when that does not fit the D435 noise model (a camera knocked
-   5 cm / 5 deg is outside ICP's basin), a global alignment first (FPFH features + RANSAC,
-   Rusu et al. ICRA 2009 / Open3D) then the same ICP;
+   calibrated relative pose and, when that does not fit the depth noise model (a camera
+   knocked 5 cm / 5 deg is outside ICP's basin), the same ICP with a wider basin, then from a
+   global alignment guided by the calibration (FPFH features + RANSAC, Rusu et al. ICRA 2009 /
+   Open3D);
 3. a pose graph (GTSAM) of the measured pairs and one prior per camera at its calibrated pose
    with the calibration's sigmas. A camera that moved makes every pair it is in disagree with
    those priors. Which cameras moved is found greedily (:func:`locate_moved`): free the
@@ -218,8 +219,9 @@ def register_robust(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.ndar
                     config: DepthConfig | None = None,
                     free_scale: tuple[bool, bool] = (False, False)) -> PairRegistration:
     """Register a to b from the given extrinsics; if that registration does not fit (a
-    rejected pair: residuals far above the noise model, low fitness), start again from a
-    :func:`global_alignment` and keep the better of the two. The returned registration's
+    rejected pair: residuals far above the noise model, low fitness), again with a wider
+    basin (:func:`wide_config`), and if that does not fit either, from a
+    :func:`global_alignment`; the best fit wins (:func:`_better`). The returned registration's
     ``T_b_a_initial`` is always the one of the given extrinsics, so its correction is the
     move from them. No exception escapes: a failure rejects the pair."""
     config = config or DepthConfig()
