@@ -7,6 +7,7 @@ Heavy imports happen inside the commands so ``--help`` stays fast. Every user mi
 from __future__ import annotations
 
 import functools
+import math
 import os
 from pathlib import Path
 from typing import Annotated
@@ -265,6 +266,16 @@ def synth(
             rich_help_panel="Imperfections (docs/synthetic.md)",
         ),
     ] = 1.0,
+    bump: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="NAME:MM:DEG",
+            help="camera NAME knocked after the calibration: shifted MM and turned DEG in a "
+            "seeded direction (repeat for more cameras); render the same seed without it to "
+            "calibrate, with it to test `check` and `refine --fix-others`.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = None,
 ) -> None:
     """Render a synthetic RGB-D rig with ground truth (dataset folder + ground_truth.yaml).
 
@@ -289,11 +300,24 @@ def synth(
         glue=glue,
         thickness_error_mm=thickness_error,
         print_scale=print_scale,
+        bump=tuple(_parse_bump(text) for text in bump or ()),
     )
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
         ds = synthesize(out, layout, frames, seed, b, params, workers, progress=progress)
     console.print(f"wrote {len(ds.rig.cameras)} cameras x {frames} frames to {ds.path}")
+
+
+def _parse_bump(text: str) -> tuple[str, float, float]:
+    """``--bump NAME:MM:DEG`` as ``(name, mm, deg)``."""
+    from .errors import ConfigError
+
+    name, _, rest = text.partition(":")
+    try:
+        mm, deg = (float(x) for x in rest.split(":"))
+    except ValueError:
+        raise ConfigError(f"--bump {text!r}: give NAME:MM:DEG, e.g. left2:50:5") from None
+    return name, mm, deg
 
 
 NAMES_OPTION = typer.Option(
@@ -542,6 +566,14 @@ def refine(
                      "thesis board); with its report.json's board poses it masks the board and "
                      "gives each camera's depth scale."),
     ] = None,
+    fix_others: Annotated[
+        bool,
+        typer.Option("--fix-others", help="Only the cameras that moved since --init (found as "
+                     "`check` finds them) are registered again, from a global alignment "
+                     "(FPFH + RANSAC) then ICP, against the others, which keep --init exactly."),
+    ] = False,
+    tolerance_mm: Annotated[float, TOLERANCE_MM_OPTION] = 2.0,
+    tolerance_deg: Annotated[float, TOLERANCE_DEG_OPTION] = 0.2,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view)."""
     import math
@@ -560,6 +592,9 @@ def refine(
     init_ext = load_extrinsics(init, check_redundant=True)
     scales = load_depth_scales(init.parent / "report.json")
     T_ref_board, board_cameras = load_board_views(init.parent / "report.json")
+    if fix_others:
+        _fix_others(ds, init, init_ext, scales, method, out, tolerance_mm, tolerance_deg)
+        return
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
         ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress,
@@ -583,6 +618,139 @@ def refine(
     colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
     console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}")
     console.print(f"results in {out}/ (extrinsics.yaml, refine_report.json, fused.ply)")
+
+
+TOLERANCE_MM_OPTION = typer.Option(
+    "--tolerance-mm", help="A camera counts as moved only beyond this shift (mm) or turn, "
+    "and only if the depth says so significantly (chi-square 6 dof, 0.1 %).")
+TOLERANCE_DEG_OPTION = typer.Option("--tolerance-deg", help="Same, turn (deg).")
+
+
+def _check_table(result, title: str) -> None:
+    """Per camera: status, move and its sigma, pairs."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for col in ("camera", "status", "moved mm", "moved deg", "chi2", "pairs"):
+        table.add_column(col, justify="left" if col in ("camera", "status") else "right")
+    style = {"in_place": "green", "moved": "bold red", "unknown": "yellow"}
+    for c, r in result.cameras.items():
+        if r.status == "unknown" or not math.isfinite(r.moved_mm):
+            table.add_row(c, f"[{style[r.status]}]{r.status}[/]", "-", "-", "-", str(r.n_pairs))
+            continue
+        table.add_row(c, f"[{style[r.status]}]{r.status}[/]",
+                      f"{r.moved_mm:.2f} ± {r.sigma_mm:.2f}",
+                      f"{r.moved_deg:.3f} ± {r.sigma_deg:.3f}", f"{r.chi2:.1f}", str(r.n_pairs))
+    console.print(table)
+    for c in result.unknown:
+        console.print(f"[yellow]not checked[/]: {c}: {result.cameras[c].reason}",
+                      highlight=False, soft_wrap=True)
+
+
+def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg):
+    from .check import Tolerance, check_dataset
+
+    with stage_progress() as progress:
+        return check_dataset(ds, calib, scales, method,
+                             tolerance=Tolerance(tolerance_mm, tolerance_deg), progress=progress)
+
+
+def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolerance_deg):
+    """refine --fix-others: check, then re-register only the moved cameras."""
+    from .check import fix_moved
+    from .geometry import transform_error
+    from .outputs import write_fix_outputs
+    from .progress import start
+
+    run = _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg)
+    _check_table(run.result, f"{ds.path} against {init}")
+    unknown = {c for c, k in run.scale_source.items() if k == "unknown"}
+    with stage_progress() as progress:
+        tick = start(progress, "re-registering the moved cameras", 1)
+        fixed, pairs = fix_moved(run.clouds, calib, run.result, run.overlaps, method,
+                                 unknown_scale=unknown)
+        tick(1)
+    moved = run.result.moved
+    if not moved:
+        verdict = {"verdict": "unchanged", "message": "no camera moved beyond the tolerance: "
+                   "the extrinsics are --init's"}
+    else:
+        lost = [c for c in moved if not any(c in (p["cam_a"], p["cam_b"]) and p["accepted"]
+                                            for p in pairs)]
+        moves = []
+        for c in moved:
+            deg, mm = transform_error(fixed.T_ref_cam(c), calib.T_ref_cam(c))
+            e = fixed.cameras[c]
+            moves.append(f"{c} {mm:.1f} mm / {deg:.2f} deg (now sigma "
+                         f"{e.sigma_translation_mm:.2f} mm / {e.sigma_rotation_deg:.3f} deg)")
+        verdict = {"verdict": "check" if lost else "refined",
+                   "message": "re-registered " + "; ".join(moves)
+                   + (f"; {', '.join(lost)}: no pair fits after re-registration, kept the "
+                      "check's estimate" if lost else "")}
+    write_fix_outputs(fixed, run, pairs, out, method, init, verdict)
+    colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
+    console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}", highlight=False,
+                  soft_wrap=True)
+    console.print(f"results in {out}/ (extrinsics.yaml, refine_report.json, fused.ply)")
+
+
+@command()
+@user_errors
+def check(
+    dataset: Annotated[
+        list[Path],
+        typer.Argument(help="A frame set of the rig as it is now (a dataset folder with depth, "
+                       "or recordings as for calibrate); no board needed. A short still "
+                       "recording (8+ frames) is better than one frame.", show_default=False),
+    ],
+    calib: Annotated[
+        Path,
+        typer.Option("--calib", help="The calibration to check: its output folder (with "
+                     "extrinsics.yaml and report.json) or an extrinsics.yaml."),
+    ],
+    out: Annotated[Path, typer.Option("--out", help="Output folder (check.json).")] = Path(
+        "check_out"),
+    method: Annotated[str, typer.Option(help="colored-icp or geometric.")] = "colored-icp",
+    tolerance_mm: Annotated[float, TOLERANCE_MM_OPTION] = 2.0,
+    tolerance_deg: Annotated[float, TOLERANCE_DEG_OPTION] = 0.2,
+    names: Annotated[str | None, NAMES_OPTION] = None,
+    sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
+) -> None:
+    """Has a camera moved since the calibration? Exit 0: all in place; 1: moved (named)."""
+    from .errors import ConfigError
+    from .outputs import write_check_outputs
+    from .refine import load_depth_scales
+    from .results import load_extrinsics
+
+    if method not in ("colored-icp", "geometric"):
+        raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
+    if tolerance_mm < 0 or tolerance_deg < 0:
+        raise ConfigError("--tolerance-mm / --tolerance-deg must be >= 0")
+    path = calib / "extrinsics.yaml" if calib.is_dir() else calib
+    if not path.is_file():
+        raise ConfigError(f"{calib}: no extrinsics.yaml; give a calibrate output folder or an "
+                          "extrinsics.yaml with --calib")
+    _check_output_folder(out)
+    ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
+    ds.check_images()
+    ext = load_extrinsics(path, check_redundant=True)
+    scales = load_depth_scales(path.parent / "report.json")
+    run = _run_check(ds, ext, scales, method, tolerance_mm, tolerance_deg)
+    _check_table(run.result, f"{ds.path} against {path}")
+    if unknown := [c for c, k in run.scale_source.items() if k == "unknown"]:
+        console.print(f"depth scale unknown (no report.json with depth_scale_factor next to "
+                      f"{path.name}): {', '.join(unknown)}", highlight=False, soft_wrap=True)
+    write_check_outputs(run, out, path)
+    moved = run.result.moved
+    if moved:
+        console.print(f"[bold red]moved[/]: {', '.join(moved)} -> put back with: rgbd-calib "
+                      f"refine {' '.join(map(str, dataset))} --init {path} --fix-others "
+                      f"--out DIR", highlight=False, soft_wrap=True)
+        console.print(f"check: {out / 'check.json'}", highlight=False)
+        raise typer.Exit(1)
+    console.print("[green]in place[/]: no camera moved beyond "
+                  f"{tolerance_mm} mm / {tolerance_deg} deg", highlight=False)
+    console.print(f"check: {out / 'check.json'}", highlight=False)
 
 
 @command()

@@ -192,6 +192,7 @@ class PairRegistration:
     normalised_rms: float = float("nan")  # RMS(point-to-plane residual / model sigma)
     improvement_chi2: float = 0.0  # move^T information move: the Wald statistic of the move
     n_patches: int = 0  # surface patches of the sandwich covariance
+    start: str = "given"  # ICP started from the given extrinsics, or "global" (FPFH + RANSAC)
 
     @property
     def covariance(self) -> np.ndarray:
@@ -232,6 +233,7 @@ class PairRegistration:
             "normalised_rms": self.normalised_rms,
             "improvement_chi2": self.improvement_chi2,
             "n_patches": self.n_patches,
+            "start": self.start,
         }
 
 

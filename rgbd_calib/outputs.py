@@ -21,7 +21,9 @@ from typing import Any
 
 from .board import refined_board, save_board
 from .calibrate import CalibrationResult, pose_edges, refined_rig
+from .check import CheckRun
 from .config import write_config
+from .depth import fuse_clouds
 from .exports import write_exports
 from .ply import write_fused_ply
 from .posegraph_pipeline import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
@@ -145,6 +147,44 @@ def write_refine_outputs(
         report = {**(verdict or {}), "method": method, "init": str(init),
                   "depth": depth.status_dict(), "pairs": depth.pairs}
         (stage / REFINE_REPORT).write_text(json.dumps(to_builtin(report), indent=1, default=str))
+        write_extrinsics(extrinsics, stage / "extrinsics.yaml")
+        written = _written(stage, out_dir)
+    return written
+
+
+CHECK_REPORT = "check.json"
+
+
+def write_check_outputs(run: CheckRun, out_dir: Path, calib: Path) -> list[Path]:
+    """``check.json``: per camera its status and move, every pair, the tolerance
+    (docs/report_schema.md, "check.json")."""
+    out_dir = Path(out_dir)
+    with staged(out_dir) as stage:
+        report = {"calib": str(calib), "depth_scale_source": run.scale_source,
+                  **run.result.to_dict()}
+        (stage / CHECK_REPORT).write_text(
+            json.dumps(finite_or_null(to_builtin(report)), indent=1, allow_nan=False) + "\n")
+        written = _written(stage, out_dir)
+    return written
+
+
+def write_fix_outputs(extrinsics: Extrinsics, run: CheckRun, pairs: list[dict[str, Any]],
+                      out_dir: Path, method: str, init: Path,
+                      verdict: dict[str, Any]) -> list[Path]:
+    """``refine --fix-others``: ``fused.ply`` (at the fixed extrinsics),
+    ``refine_report.json`` (verdict, the check, the re-registered pairs) and
+    ``extrinsics.yaml`` (last)."""
+    out_dir = Path(out_dir)
+    with staged(out_dir, replaces=("fused.ply",)) as stage:
+        T_ref_cam = {c: e.T_ref_cam for c, e in extrinsics.cameras.items()}
+        pts, cols, idx = fuse_clouds(run.clouds, T_ref_cam)
+        write_fused_ply(stage / "fused.ply", pts, cols, idx,
+                        [c for c in run.clouds if c in T_ref_cam])
+        report = {**verdict, "method": method, "init": str(init), "fix_others": True,
+                  "check": {"depth_scale_source": run.scale_source, **run.result.to_dict()},
+                  "pairs": pairs}
+        (stage / REFINE_REPORT).write_text(
+            json.dumps(finite_or_null(to_builtin(report)), indent=1, allow_nan=False))
         write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written

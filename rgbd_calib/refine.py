@@ -208,13 +208,14 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
 
 
 _POOL_CLOUDS: dict[str, CameraCloud] = {}
-_POOL_ARGS: tuple[str, DepthConfig] | None = None
+_POOL_ARGS: tuple[str, DepthConfig, bool] | None = None
 
 
-def _pool_init(clouds: dict[str, CameraCloud], method: str, config: DepthConfig) -> None:
+def _pool_init(clouds: dict[str, CameraCloud], method: str, config: DepthConfig,
+               robust: bool = False) -> None:
     global _POOL_ARGS
     _POOL_CLOUDS.update(clouds)
-    _POOL_ARGS = (method, config)
+    _POOL_ARGS = (method, config, robust)
 
 
 Job = tuple[str, str, np.ndarray, np.ndarray, tuple[bool, bool]]
@@ -223,30 +224,33 @@ Job = tuple[str, str, np.ndarray, np.ndarray, tuple[bool, bool]]
 def _pool_job(job: Job) -> PairRegistration:
     assert _POOL_ARGS is not None
     a, b, T_ref_a, T_ref_b, free_scale = job
-    method, config = _POOL_ARGS
+    method, config, robust = _POOL_ARGS
     return _register_safely(_POOL_CLOUDS[a], _POOL_CLOUDS[b], T_ref_a, T_ref_b, method,
-                            config, free_scale)
+                            config, free_scale, robust)
 
 
 def register_pairs(clouds: dict[str, CameraCloud],
                    jobs: list[Job], method: RefineMethod,
                    config: DepthConfig, workers: int | None = None, tick=None,
-                   ) -> list[PairRegistration]:
+                   robust: bool = False) -> list[PairRegistration]:
     """Register every ``(cam_a, cam_b, T_ref_a, T_ref_b, free_scale)`` of ``jobs`` (in order), in a
     process pool of ``workers`` (default: all cores; 1 or a single job runs here). Each
-    worker receives the clouds once; a failing pair is rejected, never raised."""
+    worker receives the clouds once; a failing pair is rejected, never raised. ``robust``:
+    :func:`rgbd_calib.check.register_robust` (a global alignment when ICP from the given
+    extrinsics does not fit: a knocked camera)."""
     n = min(workers or os.cpu_count() or 1, len(jobs))
     if n <= 1:
         out = []
         for a, b, T_ref_a, T_ref_b, free_scale in jobs:
             out.append(_register_safely(clouds[a], clouds[b], T_ref_a, T_ref_b, method, config,
-                                        free_scale))
+                                        free_scale, robust))
             if tick:
                 tick(1)
         return out
     used = {c for a, b, *_ in jobs for c in (a, b)}
+    init_args = ({c: clouds[c] for c in used}, method, config, robust)
     with ProcessPoolExecutor(n, mp_context=process_context(), initializer=_pool_init,
-                             initargs=({c: clouds[c] for c in used}, method, config)) as pool:
+                             initargs=init_args) as pool:
         futures = [pool.submit(_pool_job, job) for job in jobs]
         out = []
         for (a, b, T_ref_a, T_ref_b, _), future in zip(jobs, futures):
@@ -287,12 +291,17 @@ def moved_beyond_board(board_only: dict[str, Any], joint: dict[str, Any]) -> dic
 
 def _register_safely(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.ndarray,
                      T_ref_b: np.ndarray, method: RefineMethod, config: DepthConfig,
-                     free_scale: tuple[bool, bool] = (False, False),
+                     free_scale: tuple[bool, bool] = (False, False), robust: bool = False,
                      ) -> PairRegistration:
-    """:func:`register_pair`, with any failure of this one pair turned into its rejection
-    (register_pair already catches the ICP libraries' own errors; this is the last net, so
-    that one pair never ends a run)."""
+    """:func:`register_pair` (or with ``robust`` :func:`rgbd_calib.check.register_robust`),
+    with any failure of this one pair turned into its rejection (both already catch the ICP
+    libraries' own errors; this is the last net, so that one pair never ends a run)."""
+    from .check import register_robust
+
     try:
+        if robust:
+            return register_robust(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config,
+                                   free_scale)
         return register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config, free_scale)
     except Exception as exc:  # noqa: BLE001 - deliberately any error of this pair
         T_b_a0 = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)

@@ -50,6 +50,7 @@ LIGHT_DIR_WORLD = np.array([0.3, -0.4, 0.87]) / np.linalg.norm([0.3, -0.4, 0.87]
 PAPER_WHITE, INK_BLACK, WOOD = 0.88, 0.07, 0.55
 RIG_DISTORTIONS = ("zeros", "truth")  # what rig.yaml lists under --distortion
 IMPERFECTION_STREAM = 0x5EED1  # rng stream of the rig.yaml intrinsics errors (seed, stream)
+BUMP_STREAM = 0xB0A7  # rng stream of the knocks of --bump (seed, stream, camera index)
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,8 @@ class SynthParams:
     glue: tuple[float, float, float] = (0.0, 0.0, 0.0)  # back sheet: dx mm, dy mm, rot deg
     thickness_error_mm: float = 0.0  # true panel thickness minus the board file's
     print_scale: float = 1.0  # printed size / board file size, both faces
+    # cameras knocked after the calibration: (name, mm, deg) each, moved in a seeded direction
+    bump: tuple[tuple[str, float, float], ...] = ()
 
 
 def check_params(params: SynthParams) -> None:
@@ -94,6 +97,10 @@ def check_params(params: SynthParams) -> None:
         )
     if not (0.5 < params.print_scale < 2.0):
         raise ConfigError(f"--print-scale {params.print_scale}: expected a factor near 1")
+    for name, mm, deg in params.bump:
+        if not (mm >= 0 and 0 <= deg < 90):
+            raise ConfigError(f"--bump {name} {mm} {deg}: give a shift >= 0 mm and a turn "
+                              "0 <= deg < 90")
 
 
 @dataclass(frozen=True)
@@ -251,6 +258,7 @@ def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
         )
         cameras.append(SynthCamera(name, _intrinsics(width, height, rng), T_world_cam, bias))
     cameras = _camera_imperfections(cameras, seed, params)
+    cameras = _bump(cameras, seed, params.bump)
     # race16: a central lower-tier camera (most views) rather than one at the race's end
     reference = [c.name for c in cameras].index("left_lo1") if layout == "race16" else 0
     return SynthRig(layout, cameras, scene, lo, hi, reference_index=reference)
@@ -293,6 +301,32 @@ def _camera_imperfections(
             replace(cam, intrinsics=truth, listed_intrinsics=None if listed is truth else listed)
         )
     return out
+
+
+def bump_transform(seed: int, index: int, mm: float, deg: float) -> np.ndarray:
+    """The knock ``T_cam_cam'`` of camera number ``index``: a turn of ``deg`` about a seeded
+    random axis through the optical centre and a shift of ``mm`` along a seeded random
+    direction (camera frame), from its own stream so the rest of the seed's rig stays."""
+    rng = np.random.default_rng([seed, BUMP_STREAM, index])
+    axis, direction = rng.normal(size=3), rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    direction /= np.linalg.norm(direction)
+    return make_transform(rotvec_to_matrix(axis * np.radians(deg)), direction * mm / 1000.0)
+
+
+def _bump(cameras: list[SynthCamera], seed: int,
+          bump: tuple[tuple[str, float, float], ...]) -> list[SynthCamera]:
+    """Cameras moved after the calibration (``--bump NAME MM DEG``): the same rig as the seed's
+    without it, but the named cameras' poses knocked by :func:`bump_transform`."""
+    names = [c.name for c in cameras]
+    knocks = {}
+    for name, mm, deg in bump:
+        if name not in names:
+            raise ConfigError(f"--bump {name}: no such camera; this layout has "
+                              f"{', '.join(names)}")
+        knocks[name] = bump_transform(seed, names.index(name), mm, deg)
+    return [replace(c, T_world_cam=c.T_world_cam @ knocks[c.name]) if c.name in knocks else c
+            for c in cameras]
 
 
 def _check_distortion(K: CameraIntrinsics, step_px: int = 8) -> None:
@@ -845,11 +879,17 @@ def synthesize(
                 },
                 "intrinsics": {c.name: c.intrinsics.to_dict() for c in rig.cameras},
                 "params": {
-                    k: (list(v) if isinstance(v, tuple) else v) for k, v in params.__dict__.items()
+                    k: _plain(v) for k, v in params.__dict__.items()
                 },
+                "bumped": {name: {"mm": mm, "deg": deg} for name, mm, deg in params.bump},
             },
         )
     return SynthDataset(out, rig, poses)
+
+
+def _plain(value):
+    """Tuples (nested too) as lists, for YAML."""
+    return [_plain(v) for v in value] if isinstance(value, (tuple, list)) else value
 
 
 RENDER_KEY = "render_key.json"  # beside a cached render: what it was rendered from

@@ -1,0 +1,250 @@
+"""A bumped camera (issue 14, item 4): `check` names the cameras that moved since the
+calibration (and only them) from depth alone, and `refine --fix-others` puts them back.
+
+The inference (which cameras moved) is tested on pose graphs with known truth: pairs measured
+with Gaussian noise of a known covariance, from rigs where chosen cameras were knocked. The
+whole path is tested on a rendered race rig whose camera left2 was knocked 5 cm / 5 deg after
+the calibration (``synth --bump``), against the ground truth of the rig before the knock."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from rgbd_calib.check import (
+    MOVED_CHI2,
+    Tolerance,
+    locate_moved,
+    prior_covariance,
+    variance_factor,
+)
+from rgbd_calib.cli import app
+from rgbd_calib.geometry import (
+    invert_transform,
+    look_at,
+    make_transform,
+    rotvec_to_matrix,
+    transform_error,
+)
+from rgbd_calib.graph import RelativePose
+from rgbd_calib.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
+
+PAIR_SIGMA_MM, PAIR_SIGMA_DEG = 1.0, 0.03  # a depth pair's sigma, per axis
+PRIOR_SIGMA_MM, PRIOR_SIGMA_DEG = 0.1, 0.005  # a board calibration's
+
+
+def _ring(n: int = 8) -> dict[str, np.ndarray]:
+    """n cameras on a circle looking at its centre; camera 0 is the reference."""
+    T_world = {f"c{k}": look_at([2 * math.cos(2 * math.pi * k / n),
+                                 2 * math.sin(2 * math.pi * k / n), 1.5], [0, 0, 1.0])
+               for k in range(n)}
+    T_world_ref = T_world["c0"]
+    return {c: invert_transform(T_world_ref) @ T for c, T in T_world.items()}
+
+
+def _knock(rng, mm: float, deg: float) -> np.ndarray:
+    axis, direction = rng.normal(size=3), rng.normal(size=3)
+    return make_transform(rotvec_to_matrix(axis / np.linalg.norm(axis) * math.radians(deg)),
+                          direction / np.linalg.norm(direction) * mm / 1000.0)
+
+
+def _pairs(T_true: dict[str, np.ndarray], rng, noise_scale: float = 1.0,
+           skip: set[str] = frozenset(), precision: float = 1.0) -> list[RelativePose]:
+    """Neighbours and next-neighbours measured with noise ``noise_scale`` times the sigma
+    their information claims (right perturbation, GTSAM [rot, trans] order); that sigma is
+    :data:`PAIR_SIGMA_MM` / :data:`PAIR_SIGMA_DEG` over ``precision``."""
+    names = sorted(T_true, key=lambda c: int(c[1:]))
+    sig = np.r_[np.full(3, math.radians(PAIR_SIGMA_DEG)),
+                np.full(3, PAIR_SIGMA_MM / 1e3)] / precision
+    info = np.diag(1.0 / sig**2)
+    out = []
+    for i, a in enumerate(names):
+        for step in (1, 2):
+            b = names[(i + step) % len(names)]
+            if a in skip or b in skip:
+                continue
+            T_b_a = invert_transform(T_true[b]) @ T_true[a]
+            xi = rng.normal(size=6) * sig * noise_scale
+            noise = make_transform(rotvec_to_matrix(xi[:3]), xi[3:])
+            out.append(RelativePose(a, b, T_b_a @ noise, info))
+    return out
+
+
+def _priors(T_cal: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {c: prior_covariance(CameraExtrinsics(c, T, PRIOR_SIGMA_DEG, PRIOR_SIGMA_MM))
+            for c, T in T_cal.items()}
+
+
+def _now(T_cal, knocked: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The rig after the knocks, still in the calibration's world frame."""
+    return {c: T @ knocked[c] if c in knocked else T for c, T in T_cal.items()}
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_still_rig_is_in_place(seed):
+    rng = np.random.default_rng(seed)
+    T_cal = _ring()
+    out = locate_moved(T_cal, _priors(T_cal), _pairs(T_cal, rng))
+    assert all(r.status == "in_place" for r in out.values()), {
+        c: (r.moved_mm, r.chi2) for c, r in out.items()}
+
+
+def test_optimistic_pair_sigmas_do_not_raise_alarms():
+    """Pairs 3x noisier than they claim (a sliding floor, one noisy frame): the variance
+    factor absorbs it, no camera is called moved, and the reported sigmas grow to match."""
+    rng = np.random.default_rng(3)
+    T_cal = _ring()
+    out = locate_moved(T_cal, _priors(T_cal), _pairs(T_cal, rng, noise_scale=3.0))
+    assert not [c for c, r in out.items() if r.status == "moved"]
+    ratios = [r.moved_mm / r.sigma_mm for c, r in out.items() if c != "c0"]
+    assert 0.2 < math.sqrt(np.mean(np.square(ratios))) < 2.0, ratios
+
+
+@pytest.mark.parametrize("knocked", [["c3"], ["c0"], ["c2", "c5"]])
+def test_the_knocked_cameras_and_only_they_are_named(knocked):
+    """One camera, the reference itself, two cameras: 5 cm / 5 deg each."""
+    rng = np.random.default_rng(11)
+    T_cal = _ring()
+    knocks = {c: _knock(rng, 50.0, 5.0) for c in knocked}
+    T_now = _now(T_cal, knocks)
+    out = locate_moved(T_cal, _priors(T_cal), _pairs(T_now, rng))
+    assert sorted(c for c, r in out.items() if r.status == "moved") == sorted(knocked)
+    for c in knocked:
+        r = out[c]
+        deg, mm = transform_error(r.T_ref_cam_now, T_now[c])
+        # the estimate of where it is now, relative to the cameras in place
+        assert mm < 4 * max(r.sigma_mm, 0.5) and deg < 4 * max(r.sigma_deg, 0.02)
+        assert r.moved_mm == pytest.approx(transform_error(T_now[c], T_cal[c])[1], abs=5.0)
+        assert r.chi2 > MOVED_CHI2
+
+
+def test_a_significant_knock_below_the_tolerance_is_in_place_and_still_measured():
+    """Pairs 10x as precise (0.1 mm): a 1 mm knock is significant, but below 2 mm / 0.2 deg
+    it is not an alarm; with no tolerance it is."""
+    rng = np.random.default_rng(5)
+    T_cal = _ring()
+    T_now = _now(T_cal, {"c4": _knock(rng, 1.0, 0.05)})
+    pairs = _pairs(T_now, rng, precision=10.0)
+    out = locate_moved(T_cal, _priors(T_cal), pairs, tolerance=Tolerance(mm=2.0, deg=0.2))
+    assert out["c4"].status == "in_place" and out["c4"].chi2 > MOVED_CHI2
+    assert out["c4"].moved_mm == pytest.approx(1.0, abs=3 * out["c4"].sigma_mm)
+    tight = locate_moved(T_cal, _priors(T_cal), pairs, tolerance=Tolerance(mm=0.0, deg=0.0))
+    assert [c for c, r in tight.items() if r.status == "moved"] == ["c4"]
+
+
+def test_a_camera_without_pairs_is_unknown_not_in_place():
+    rng = np.random.default_rng(2)
+    T_cal = _ring()
+    out = locate_moved(T_cal, _priors(T_cal), _pairs(T_cal, rng, skip={"c6"}))
+    assert out["c6"].status == "unknown" and "cannot be checked" in out["c6"].reason
+    assert locate_moved(T_cal, _priors(T_cal), [])["c1"].status == "unknown"
+
+
+def test_variance_factor_is_at_least_one():
+    class Sol:
+        chi2 = 5.0
+    assert variance_factor(Sol(), 4, 1) == 1.0
+    Sol.chi2 = 180.0
+    assert variance_factor(Sol(), 4, 1) == pytest.approx(10.0)
+    assert variance_factor(Sol(), 1, 1) == 1.0  # no redundancy: nothing to estimate from
+
+
+# --------------------------------------------------------------------------- whole path
+BUMPED, BUMP_MM, BUMP_DEG = "left2", 50.0, 5.0
+
+
+@pytest.fixture(scope="module")
+def bumped_rig(tmp_path_factory):
+    """A race rig rendered after left2 was knocked 5 cm / 5 deg (3 still frame sets, the
+    board somewhere in view), and the calibration of the same rig before the knock: the
+    ground truth with board-like sigmas (0.1 mm / 0.005 deg)."""
+    from rgbd_calib.board import thesis_board
+    from rgbd_calib.synth import SynthParams, make_rig, synthesize
+
+    root = tmp_path_factory.mktemp("bumped")
+    params = SynthParams(bump=((BUMPED, BUMP_MM, BUMP_DEG),))
+    ds = synthesize(root / "now", "race", 3, 31, thesis_board(), params, workers=2)
+    before = make_rig("race", 31, SynthParams())
+    cams = {c.name: CameraExtrinsics(c.name, before.T_ref_cam(c),
+                                     0.0 if c.name == before.reference else PRIOR_SIGMA_DEG,
+                                     0.0 if c.name == before.reference else PRIOR_SIGMA_MM)
+            for c in before.cameras}
+    calib = root / "calib"
+    calib.mkdir()
+    write_extrinsics(Extrinsics(before.reference, cams), calib / "extrinsics.yaml")
+    # the depth-scale factors a calibration's report.json gives (this render has no bias)
+    (calib / "report.json").write_text(json.dumps(
+        {"cameras": {c: {"depth_scale_factor": 1.0} for c in cams}}))
+    return ds.path, calib, ds.rig
+
+
+def test_check_names_the_knocked_camera_and_exits_1(bumped_rig, tmp_path):
+    data, calib, _ = bumped_rig
+    res = CliRunner().invoke(app, ["check", str(data), "--calib", str(calib),
+                                   "--out", str(tmp_path / "c")])
+    assert res.exit_code == 1, res.output
+    report = json.loads((tmp_path / "c" / "check.json").read_text())
+    assert report["moved"] == [BUMPED], (report["moved"], res.output)
+    assert "--fix-others" in res.output and BUMPED in res.output
+    r = report["cameras"][BUMPED]
+    assert r["moved_mm"] == pytest.approx(BUMP_MM, abs=5.0)
+    assert r["moved_deg"] == pytest.approx(BUMP_DEG, abs=0.3)
+    assert report["depth_scale_source"][BUMPED] == "given"
+
+
+def test_refine_fix_others_brings_it_back(bumped_rig, tmp_path):
+    """Within 2 mm / 0.1 deg of where it is now, with depth alone, the others untouched."""
+    data, calib, rig = bumped_rig
+    out = tmp_path / "fixed"
+    res = CliRunner().invoke(app, ["refine", str(data), "--init",
+                                   str(calib / "extrinsics.yaml"), "--fix-others",
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    fixed = load_extrinsics(out / "extrinsics.yaml")
+    init = load_extrinsics(calib / "extrinsics.yaml")
+    truth = {c.name: rig.T_ref_cam(c) for c in rig.cameras}
+    deg, mm = transform_error(fixed.T_ref_cam(BUMPED), truth[BUMPED])
+    sigma_mm = fixed.cameras[BUMPED].sigma_translation_mm
+    print(f"\n{BUMPED}: {mm:.2f} mm / {deg:.3f} deg from the truth, sigma {sigma_mm:.2f} mm")
+    assert mm <= 2.0 and deg <= 0.1, (mm, deg)
+    assert 0.1 < sigma_mm and mm / sigma_mm < 3.0  # an honest sigma
+    for c in init.cameras:
+        if c != BUMPED:
+            np.testing.assert_allclose(fixed.T_ref_cam(c), init.T_ref_cam(c), atol=1e-9)
+    report = json.loads((out / "refine_report.json").read_text())
+    assert report["verdict"] == "refined" and report["check"]["moved"] == [BUMPED]
+    assert (out / "fused.ply").is_file()
+
+
+def test_check_without_a_calibration_is_one_clear_line(bumped_rig, tmp_path):
+    data, _, _ = bumped_rig
+    res = CliRunner().invoke(app, ["check", str(data), "--calib", str(tmp_path / "nothing"),
+                                   "--out", str(tmp_path / "c")])
+    assert res.exit_code == 2
+    assert "no extrinsics.yaml" in res.output and "--calib" in res.output
+    assert not (tmp_path / "c").exists()
+
+
+def test_a_moved_reference_re_expresses_the_rig_with_its_uncertainty():
+    """The reference frame is the reference camera's: when it moved, every camera is given in
+    its new frame, and carries the reference's new uncertainty on top of its own."""
+    from rgbd_calib.check import reexpress
+
+    T_cal = _ring(4)
+    knock = _knock(np.random.default_rng(1), 50.0, 5.0)
+    C_ref = np.diag([1e-6] * 3 + [1e-6] * 3)  # 0.06 deg, 1 mm per axis
+    cams = {c: CameraExtrinsics(c, T, 0.005, 0.1, prior_covariance(
+        CameraExtrinsics(c, T, 0.005, 0.1))) for c, T in T_cal.items()}
+    cams["c0"] = CameraExtrinsics("c0", knock, 0.1, 1.7, C_ref)
+    out = reexpress(cams, "c0", {})
+    np.testing.assert_array_equal(out["c0"].T_ref_cam, np.eye(4))
+    for c in ("c1", "c2", "c3"):
+        np.testing.assert_allclose(out[c].T_ref_cam, invert_transform(knock) @ T_cal[c],
+                                   atol=1e-12)
+        # 1 mm per axis of the reference plus 1e-3 rad x ~2-4 m lever arms: several mm
+        assert out[c].sigma_translation_mm > math.sqrt(3) * 1.0
+        assert out[c].sigma_rotation_deg > math.degrees(math.sqrt(3e-6)) * 0.99
