@@ -309,6 +309,17 @@ def _solve(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray],
     return _Solution(T, 2.0 * graph.error(result), cov)
 
 
+def _try_solve(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray],
+               pairs: list[RelativePose], free: set[str]) -> _Solution | None:
+    """:func:`_solve`, or None when the pairs leave a free camera undetermined (GTSAM's
+    indeterminate system: e.g. one pair whose information lacks the direction an unknown
+    depth scale explains)."""
+    try:
+        return _solve(T_prior, cov_prior, pairs, free)
+    except RuntimeError:
+        return None
+
+
 def _components(names: list[str], pairs: list[RelativePose]) -> list[set[str]]:
     parent = {c: c for c in names}
 
@@ -368,8 +379,8 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
     checkable = [c for c in names if n_pairs[c]]
     moved: list[str] = []
     s2 = 1.0
-    if pairs:
-        base = _solve(T_prior, cov_prior, pairs, set())
+    base = _try_solve(T_prior, cov_prior, pairs, set()) if pairs else None
+    if base is not None:
         s2 = variance_factor(base, len(pairs), 0)
         while True:
             best = None
@@ -377,7 +388,9 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
                 free = set(moved) | {c}
                 if c in moved or not _anchored(names, pairs, free):
                     continue
-                sol = _solve(T_prior, cov_prior, pairs, free)
+                sol = _try_solve(T_prior, cov_prior, pairs, free)
+                if sol is None:
+                    continue
                 drop = (base.chi2 - sol.chi2) / variance_factor(sol, len(pairs), len(free))
                 if best is None or drop > best[1]:
                     best = (c, drop, sol)
@@ -398,16 +411,21 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
             continue
         held = set(moved) - {c}
         if c in moved:
-            with_prior = _solve(T_prior, cov_prior, pairs, held)
+            with_prior = _try_solve(T_prior, cov_prior, pairs, held)
             sol = base
             status: Status = "moved"
         elif _anchored(names, pairs, held | {c}):
             with_prior = base
-            sol = _solve(T_prior, cov_prior, pairs, held | {c})
+            sol = _try_solve(T_prior, cov_prior, pairs, held | {c})
             status = "in_place"
         else:  # its group has no other held camera: the move is relative to nothing
             out[c] = CameraCheck(c, "in_place", n_pairs=n_pairs[c], chi2=0.0,
                                  reason="the only held camera of its overlapping group")
+            continue
+        if sol is None or with_prior is None:
+            out[c] = CameraCheck(c, "moved" if c in moved else "unknown", n_pairs=n_pairs[c],
+                                 reason="its pairs leave its pose undetermined (e.g. one pair "
+                                 "and an unknown depth scale): cannot be measured alone")
             continue
         out[c] = _camera_check(c, sol, T_prior, cov_prior,
                                max(with_prior.chi2 - sol.chi2, 0.0) / s2, n_pairs[c], status, s2)
@@ -579,7 +597,9 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
         free = {c for c in moved if any(c in (r.cam_a, r.cam_b) for r in pairs)}
         if not free or not _anchored(sorted(held), pairs, free):
             break
-        sol = _solve({c: T_now[c] for c in held}, cov, pairs, free)
+        sol = _try_solve({c: T_now[c] for c in held}, cov, pairs, free)
+        if sol is None:
+            break
         s2 = variance_factor(sol, len(pairs), len(free))
         step = max((transform_error(sol.T[c], T_now[c]) for c in free),
                    key=lambda e: e[1])

@@ -248,3 +248,17 @@ def test_a_moved_reference_re_expresses_the_rig_with_its_uncertainty():
         # 1 mm per axis of the reference plus 1e-3 rad x ~2-4 m lever arms: several mm
         assert out[c].sigma_translation_mm > math.sqrt(3) * 1.0
         assert out[c].sigma_rotation_deg > math.degrees(math.sqrt(3e-6)) * 0.99
+
+
+def test_a_pair_that_leaves_a_direction_free_is_not_a_crash():
+    """One pair with no information along a direction (an unknown depth scale leaves the one
+    it explains out): freeing that camera leaves its pose undetermined; it is reported as
+    such, never a GTSAM exception."""
+    rng = np.random.default_rng(4)
+    T_cal = _ring()
+    pairs = [p for p in _pairs(T_cal, rng) if "c6" not in (p.cam_a, p.cam_b)]
+    info = np.diag([1e7] * 5 + [0.0])
+    pairs.append(RelativePose("c6", "c5", invert_transform(T_cal["c5"]) @ T_cal["c6"], info))
+    out = locate_moved(T_cal, _priors(T_cal), pairs)
+    assert out["c6"].status == "unknown" and "undetermined" in out["c6"].reason
+    assert all(r.status == "in_place" for c, r in out.items() if c != "c6")
