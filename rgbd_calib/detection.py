@@ -322,6 +322,7 @@ def _fit_edge_lines(
     config: DetectionConfig,
     intrinsics: CameraIntrinsics | None,
     blur_prior: tuple[float, float],
+    compiled: bool = True,
 ):
     """Fit a line to each outer edge of each marker with a model of its blurred image.
 
@@ -344,7 +345,9 @@ def _fit_edge_lines(
 
     Returns unit normals ``(M,4,2)`` (out of the marker), offsets ``rho`` ``(M,4)`` with
     ``normal . x = rho`` on the line (undistorted pixels when ``intrinsics`` has distortion),
-    a validity mask ``(M,4)`` and the fitted blur width per marker ``(M,)``.
+    a validity mask ``(M,4)`` and the fitted blur width per marker ``(M,)``. ``compiled``:
+    the model fitted by :mod:`rgbd_calib.edge_fit_jit` (numba), else by the numpy reference
+    :func:`_fit_edge_models` (same corners to ~1e-9 px, ~10x slower).
     """
     # each edge's frame in the image, then the marker's layout seen through the current corners
     frame = _edge_frames(corners)
@@ -357,9 +360,8 @@ def _fit_edge_lines(
         gray, frame, layout, band, tau_lo, tau_hi, config.edge_max_samples, curved
     )
     # the edge model fitted per marker
-    local, width, weight, contrast, resid = _fit_edge_models(
-        samples, band, blur_prior, config.edge_iterations
-    )
+    fit = _fit_edge_models_compiled if compiled else _fit_edge_models
+    local, width, weight, contrast, resid = fit(samples, band, blur_prior, config.edge_iterations)
     # which edges are usable
     ok = _edge_fit_ok(samples, local, width, weight, contrast, resid, band, n_expected, config)
     # the fitted edges as straight lines
@@ -754,6 +756,42 @@ def _fit_edge_models(
     return local, width, weight, contrast, resid
 
 
+#: the compiled fit stops a marker once its step is below this (px): results stay within
+#: ~1e-9 px of running every marker for ``edge_iterations`` like the numpy reference
+EDGE_STEP_TOL_PX = 1e-9
+
+
+def _fit_edge_models_compiled(
+    s: _EdgeSamples, band: np.ndarray, blur_prior: tuple[float, float], iterations: int
+):
+    """:func:`_fit_edge_models` by :func:`rgbd_calib.edge_fit_jit.fit_edge_models`, one
+    marker at a time with its own iteration count (stops when its step is below
+    :data:`EDGE_STEP_TOL_PX`, at most ``iterations``). numba is imported here, on the first
+    edge fit, so that importing the detection stage stays cheap."""
+    from .edge_fit_jit import fit_edge_models
+
+    n_pix = s.d0.shape[0]
+    edge_ptr = np.concatenate([[0], np.cumsum(s.edge_count)]).astype(np.int64)
+    pairs_per_pixel = np.bincount(s.pair_pix, minlength=n_pix)
+    pair_ptr = np.concatenate([[0], np.cumsum(pairs_per_pixel)]).astype(np.int64)
+    f64 = [np.ascontiguousarray(a, dtype=np.float64) for a in (s.d0, s.tn, s.tn2, s.values)]
+    local, width, weight, contrast, resid, _ = fit_edge_models(
+        edge_ptr,
+        *f64,
+        np.ascontiguousarray(s.m_pix, dtype=np.float64),
+        pair_ptr,
+        np.ascontiguousarray(s.pair_s, dtype=np.float64),
+        np.ascontiguousarray(s.pair_step, dtype=np.float64),
+        np.ascontiguousarray(band, dtype=np.float64),
+        float(blur_prior[0]),
+        float(blur_prior[1]),
+        int(iterations),
+        bool(s.curved),
+        EDGE_STEP_TOL_PX,
+    )
+    return local, width, weight, contrast, resid
+
+
 def _edge_fit_ok(
     s: _EdgeSamples,
     local: np.ndarray,
@@ -884,6 +922,7 @@ def refine_corners_edges(
     white: np.ndarray,
     config: DetectionConfig | None = None,
     intrinsics: CameraIntrinsics | None = None,
+    compiled: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Corners as intersections of lines fitted to the markers' outer edges.
 
@@ -893,6 +932,7 @@ def refine_corners_edges(
     see :func:`marker_pattern`). Returns the corners and a ``(N,4)`` mask of the corners the
     edge fit set; the others keep their input position (marker too small, edge off the image
     or occluded, poor fit, grazing intersection, or a jump beyond ``max_corner_shift_px``).
+    ``compiled=False`` runs the numpy reference of the edge model's fit (tests compare them).
     """
     config = config or DetectionConfig()
     gray = np.asarray(gray)  # any real dtype: the edge fit converts the pixels it reads
@@ -914,7 +954,7 @@ def refine_corners_edges(
     blur_prior = config.blur_prior_px
     for _ in range(config.edge_passes):
         nrm, rho, ok_line, width = _fit_edge_lines(
-            gray, current, white[sel], config, intrinsics, blur_prior
+            gray, current, white[sel], config, intrinsics, blur_prior, compiled
         )
         good = ok_line.all(axis=1)
         if np.any(good):  # later passes: the image's typical blur, a tighter prior
