@@ -107,9 +107,11 @@ def _model(
                     behind_w += -pair_step[j] * pdf * g
                 elif g > 0.0:
                     behind += pair_step[j]
-            phi_e, pe = _ndtr_pdf(e)
-            if e <= -_FAR:
-                phi_e = 0.0  # as the reference (exactly 0 there to double precision anyway)
+            # the data cells' step only where a white cell is behind and within _FAR blur
+            # widths (else its terms are 0, or below 1e-16 of the contrast for pdf(e))
+            phi_e = pe = 0.0
+            if e > -_FAR and (behind != 0.0 or behind_w != 0.0):
+                phi_e, pe = _ndtr_pdf(e)
             phi_z, pz = _ndtr_pdf(z)
             basis[i] = phi_z + phi_e * behind
             d_dist[i] = (pz - pe * behind) / wd
