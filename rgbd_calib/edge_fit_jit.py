@@ -227,10 +227,33 @@ def _lm_step(
 
 @njit(cache=True)
 def _upper_median(v):
-    """Element ``len // 2`` of the sorted ``v`` (0 when empty), as ``detection._edge_medians``."""
-    if v.size == 0:
+    """Element ``len // 2`` of the sorted ``v`` (0 when empty), as ``detection._edge_medians``;
+    by quickselect on ``v`` (reordered in place): O(n), and much quicker to compile than
+    ``np.sort``."""
+    n = v.size
+    if n == 0:
         return 0.0
-    return np.sort(v)[v.size // 2]
+    k = n // 2
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = v[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while v[i] < pivot:
+                i += 1
+            while v[j] > pivot:
+                j -= 1
+            if i <= j:
+                v[i], v[j] = v[j], v[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return v[k]
+    return v[k]
 
 
 @njit(cache=True)
@@ -258,6 +281,7 @@ def fit_edge_models(
     basis, d_dist, d_width = np.zeros(n_pix), np.zeros(n_pix), np.zeros(n_pix)
     t_basis, t_d_dist, t_d_width = np.zeros(n_pix), np.zeros(n_pix), np.zeros(n_pix)
     t_resid = np.zeros(n_pix)
+    scratch = np.zeros(n_pix)
     n_iter = np.zeros(m, dtype=np.int64)
     # outlier rejection at iterations 3 and 6 (as the reference): no stop before the last one
     last_reject = 6 if iterations > 6 else (3 if iterations > 3 else 0)
@@ -276,8 +300,12 @@ def fit_edge_models(
                 floor = 0.02 * abs(contrast) + 1.0
                 for k in range(4):
                     a, b = e0[k], e0[k + 1]
-                    sel = np.abs(resid[a:b])[weight[a:b] > 0]
-                    limit = max(4.0 * 1.4826 * _upper_median(sel), floor)
+                    n_in = 0
+                    for i in range(a, b):  # |residuals| of the edge's current inliers
+                        if weight[i] > 0:
+                            scratch[n_in] = abs(resid[i])
+                            n_in += 1
+                    limit = max(4.0 * 1.4826 * _upper_median(scratch[:n_in]), floor)
                     for i in range(a, b):
                         weight[i] = 1.0 if abs(resid[i]) <= limit else 0.0
                 cost, contrast = _solve_linear(
