@@ -343,3 +343,77 @@ def fit_edge_models(
         width_all[mk] = width
         contrast_all[mk] = contrast
     return local_all, width_all, weight, contrast_all, resid, n_iter
+
+
+@njit(cache=True)
+def edge_band_samples(
+    axis, c_lo, stride, n_used, half_minor, slope, mid, d, normal, band, tau_lo, tau_hi,
+    r_max, height, width, m_at0, m_slope, tau_scale, bound, step_at,
+):  # fmt: skip
+    """The band pixels of every edge and their (pixel, cell boundary) pairs, as flat arrays
+    ordered by edge (see ``detection._band_pixels`` and ``detection._edge_samples``, whose
+    arithmetic this repeats operation by operation, so the same pixels are selected).
+
+    Per edge ``(4M,)``: the major image axis (0: x), the first column ``c_lo`` and column
+    ``stride`` along it, the columns used, the band's extent along the minor axis and the
+    edge's slope (minor per major px), ``mid``/``d``/``normal`` ``(4M,2)``, ``band``,
+    ``tau_lo``/``tau_hi`` (px), the module width ``m_at0 + m_slope * tau`` and ``tau_scale``;
+    ``bound``/``step_at`` ``(4M,B)`` the cell boundaries along the edge and the change of
+    whiteness there. Returns ``edge_of``, pixel ``x``, ``y``, ``d0``, ``tau``, ``m_pix``,
+    ``tn``, the per-edge ``n_expected`` (ignoring the image border), and per pair its pixel,
+    ``s - c_i`` (px) and step."""
+    n_edges = axis.shape[0]
+    cap = 0
+    for e in range(n_edges):
+        cap += n_used[e] * r_max
+    edge_of = np.empty(cap, dtype=np.int64)
+    xs, ys = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
+    d0s, taus = np.empty(cap), np.empty(cap)
+    n_expected = np.zeros(n_edges, dtype=np.int64)
+    n = 0
+    for e in range(n_edges):
+        for j in range(n_used[e]):
+            col = c_lo[e] + j * stride[e]
+            line_minor = mid[e, 1 - axis[e]] + (col - mid[e, axis[e]]) * slope[e]
+            row0 = math.floor(line_minor - half_minor[e])
+            for r in range(r_max):
+                row = row0 + r
+                if axis[e] == 0:
+                    x, y = col, row
+                else:
+                    x, y = row, col
+                rel_x = x - mid[e, 0]
+                rel_y = y - mid[e, 1]
+                d0 = rel_x * normal[e, 0] + rel_y * normal[e, 1]
+                tau = rel_x * d[e, 0] + rel_y * d[e, 1]
+                if abs(d0) <= band[e] and tau >= tau_lo[e] and tau <= tau_hi[e]:
+                    n_expected[e] += 1
+                    if x >= 0 and y >= 0 and x <= width - 1 and y <= height - 1:
+                        edge_of[n] = e
+                        xs[n], ys[n] = int(x), int(y)
+                        d0s[n], taus[n] = d0, tau
+                        n += 1
+    edge_of, xs, ys, d0s, taus = edge_of[:n], xs[:n], ys[:n], d0s[:n], taus[:n]
+    m_pix = np.empty(n)
+    tn = np.empty(n)
+    n_b = step_at.shape[1]
+    n_pairs = 0
+    for i in range(n):
+        e = edge_of[i]
+        m_pix[i] = max(m_at0[e] + m_slope[e] * taus[i], 0.1)
+        tn[i] = taus[i] / tau_scale[e]
+        for b in range(n_b):
+            if step_at[e, b] != 0:
+                n_pairs += 1
+    pair_pix = np.empty(n_pairs, dtype=np.int64)
+    pair_s, pair_step = np.empty(n_pairs), np.empty(n_pairs)
+    k = 0
+    for i in range(n):
+        e = edge_of[i]
+        for b in range(n_b):
+            if step_at[e, b] != 0:
+                pair_pix[k] = i
+                pair_s[k] = taus[i] - bound[e, b]
+                pair_step[k] = step_at[e, b]
+                k += 1
+    return edge_of, xs, ys, d0s, taus, m_pix, tn, n_expected, pair_pix, pair_s, pair_step
