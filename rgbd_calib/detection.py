@@ -322,6 +322,7 @@ def _fit_edge_lines(
     config: DetectionConfig,
     intrinsics: CameraIntrinsics | None,
     blur_prior: tuple[float, float],
+    compiled: bool = True,
 ):
     """Fit a line to each outer edge of each marker with a model of its blurred image.
 
@@ -344,7 +345,9 @@ def _fit_edge_lines(
 
     Returns unit normals ``(M,4,2)`` (out of the marker), offsets ``rho`` ``(M,4)`` with
     ``normal . x = rho`` on the line (undistorted pixels when ``intrinsics`` has distortion),
-    a validity mask ``(M,4)`` and the fitted blur width per marker ``(M,)``.
+    a validity mask ``(M,4)`` and the fitted blur width per marker ``(M,)``. ``compiled``:
+    the model fitted by :mod:`rgbd_calib.edge_fit_jit` (numba), else by the numpy reference
+    :func:`_fit_edge_models` (same corners to ~1e-9 px, ~10x slower).
     """
     # each edge's frame in the image, then the marker's layout seen through the current corners
     frame = _edge_frames(corners)
@@ -354,12 +357,11 @@ def _fit_edge_lines(
     # the band's pixels as flat per-pixel arrays, ordered by edge
     curved = intrinsics is not None and intrinsics.has_distortion
     samples, n_expected, tau_scale = _edge_samples(
-        gray, frame, layout, band, tau_lo, tau_hi, config.edge_max_samples, curved
+        gray, frame, layout, band, tau_lo, tau_hi, config.edge_max_samples, curved, compiled
     )
     # the edge model fitted per marker
-    local, width, weight, contrast, resid = _fit_edge_models(
-        samples, band, blur_prior, config.edge_iterations
-    )
+    fit = _fit_edge_models_compiled if compiled else _fit_edge_models
+    local, width, weight, contrast, resid = fit(samples, band, blur_prior, config.edge_iterations)
     # which edges are usable
     ok = _edge_fit_ok(samples, local, width, weight, contrast, resid, band, n_expected, config)
     # the fitted edges as straight lines
@@ -448,6 +450,43 @@ def _edge_band(config: DetectionConfig, m_at0: np.ndarray, length: np.ndarray):
     return band, tau_lo, tau_hi
 
 
+@dataclass(frozen=True, eq=False)
+class _BandColumns:
+    """How each edge's band is walked, per edge ``(M,4)``: its major image axis (0: x,
+    1: y), the first pixel column ``c_lo`` along it, the column ``stride`` and the number of
+    columns used, the band's extent along the minor axis ``half_minor`` (px) and the edge's
+    ``slope`` (minor px per major px); ``r_max`` pixel rows per column cover every band."""
+
+    axis: np.ndarray
+    c_lo: np.ndarray
+    stride: np.ndarray
+    n_used: np.ndarray
+    half_minor: np.ndarray
+    slope: np.ndarray
+    r_max: int
+
+
+def _band_columns(
+    frame: _EdgeFrame, band: np.ndarray, tau_lo: np.ndarray, tau_hi: np.ndarray, max_samples: int
+) -> _BandColumns:
+    """The columns of each edge's band (at most ``max_samples`` per edge)."""
+    d, mid = frame.d, frame.mid
+    axis = (np.abs(d[..., 1]) > np.abs(d[..., 0])).astype(int)  # 0: x-major, 1: y-major
+    other = 1 - axis
+    d_major = np.take_along_axis(d, axis[..., None], -1)[..., 0]
+    d_minor = np.take_along_axis(d, other[..., None], -1)[..., 0]
+    ends = np.stack([mid + tau_lo[..., None] * d, mid + tau_hi[..., None] * d], axis=-2)
+    major_ends = np.take_along_axis(ends, np.repeat(axis[..., None, None], 2, -2), -1)[..., 0]
+    c_lo = np.ceil(major_ends.min(-1))
+    n_cols = np.maximum(np.floor(major_ends.max(-1)) - c_lo + 1, 0).astype(int)
+    stride = np.maximum(np.ceil(n_cols / max_samples), 1).astype(int)
+    n_used = np.ceil(n_cols / stride).astype(int)
+    half_minor = band / np.maximum(np.abs(d_major), 1e-6)  # band extent along the minor axis
+    r_max = int(np.ceil(2 * half_minor.max())) + 2
+    slope = d_minor / np.where(d_major == 0, 1e-6, d_major)
+    return _BandColumns(axis, c_lo, stride, n_used, half_minor, slope, r_max)
+
+
 def _band_pixels(
     image_shape: tuple[int, int],
     frame: _EdgeFrame,
@@ -463,28 +502,15 @@ def _band_pixels(
     ``n_expected`` ``(M,4)`` the band's pixel count ignoring the image border."""
     d, normal, mid = frame.d, frame.normal, frame.mid
     m = d.shape[0]
-    axis = (np.abs(d[..., 1]) > np.abs(d[..., 0])).astype(int)  # 0: x-major, 1: y-major
-    other = 1 - axis
-    d_major = np.take_along_axis(d, axis[..., None], -1)[..., 0]
-    d_minor = np.take_along_axis(d, other[..., None], -1)[..., 0]
-    ends = np.stack([mid + tau_lo[..., None] * d, mid + tau_hi[..., None] * d], axis=-2)
-    major_ends = np.take_along_axis(ends, np.repeat(axis[..., None, None], 2, -2), -1)[..., 0]
-    c_lo = np.ceil(major_ends.min(-1))
-    n_cols = np.maximum(np.floor(major_ends.max(-1)) - c_lo + 1, 0).astype(int)
-    stride = np.maximum(np.ceil(n_cols / max_samples), 1).astype(int)
-    n_used = np.ceil(n_cols / stride).astype(int)
+    cols = _band_columns(frame, band, tau_lo, tau_hi, max_samples)
+    axis, c_lo, stride, n_used = cols.axis, cols.c_lo, cols.stride, cols.n_used
+    half_minor, r_max = cols.half_minor, cols.r_max
     s_max = max(int(n_used.max()), 1)
-    half_minor = band / np.maximum(np.abs(d_major), 1e-6)  # band extent along the minor axis
-    r_max = int(np.ceil(2 * half_minor.max())) + 2
     j = np.arange(s_max)
     col = c_lo[..., None] + j * stride[..., None]  # (M,4,S)
     mid_major = np.take_along_axis(mid, axis[..., None], -1)[..., 0]
-    mid_minor = np.take_along_axis(mid, other[..., None], -1)[..., 0]
-    line_minor = (
-        mid_minor[..., None]
-        + (col - mid_major[..., None])
-        * (d_minor / np.where(d_major == 0, 1e-6, d_major))[..., None]
-    )
+    mid_minor = np.take_along_axis(mid, 1 - axis[..., None], -1)[..., 0]
+    line_minor = mid_minor[..., None] + (col - mid_major[..., None]) * cols.slope[..., None]
     row = np.floor(line_minor - half_minor[..., None])[..., None] + np.arange(r_max)
     col = np.broadcast_to(col[..., None], row.shape)  # (M,4,S,R)
     x = np.where(axis[..., None, None] == 0, col, row)
@@ -550,36 +576,62 @@ def _edge_samples(
     tau_hi: np.ndarray,
     max_samples: int,
     curved: bool,
+    compiled: bool = True,
 ):
     """The band's pixels of every edge (:func:`_band_pixels`) kept as :class:`_EdgeSamples`;
     also ``n_expected`` ``(M,4)`` and the along-edge scale ``tau_scale`` ``(M,4)`` (px) of
-    ``tn``."""
+    ``tn``. ``compiled``: the pixels and pairs from
+    :func:`rgbd_calib.edge_fit_jit.edge_band_samples` (the same arithmetic as the numpy
+    code below, without its padded ``(M,4,S,R)`` grids)."""
     m = frame.d.shape[0]
-    x, y, d0, tau, use, n_expected = _band_pixels(
-        gray.shape, frame, band, tau_lo, tau_hi, max_samples
-    )
-    # keep only the band's pixels, as flat arrays with their edge (m*4 + k) and marker index
-    sel = np.nonzero(use.reshape(m * 4, -1))
-    edge_of = sel[0]
-    marker_of = edge_of // 4
     n_edges = 4 * m
-    d0, tau = d0.reshape(m * 4, -1)[sel], tau.reshape(m * 4, -1)[sel]
-    px_x = x.reshape(m * 4, -1)[sel].astype(np.intp)
-    px_y = y.reshape(m * 4, -1)[sel].astype(np.intp)
-    values = gray[px_y, px_x].astype(np.float64)
-    m_at0, m_slope = layout.m_at0, layout.m_slope
-    m_pix = np.clip(m_at0.reshape(-1)[edge_of] + m_slope.reshape(-1)[edge_of] * tau, 0.1, None)
     tau_scale = np.maximum(0.5 * (tau_hi - tau_lo), 1.0)
-    tn = tau / tau_scale.reshape(-1)[edge_of]  # normalised along-edge coordinate in [-1, 1]
-    # (pixel, boundary) pairs where the data cells change colour (step_i != 0): s - c_i and
-    # step_i, ordered by pixel
     step_at = layout.step_at
     n_b = step_at.shape[-1]
-    pair = np.flatnonzero(step_at.reshape(n_edges, n_b)[edge_of] != 0)
-    pair_pix = pair // n_b
-    at_boundary = edge_of[pair_pix] * n_b + pair % n_b
-    pair_s = tau[pair_pix] - layout.bound.reshape(-1)[at_boundary]
-    pair_step = step_at.reshape(-1)[at_boundary]
+    if compiled:
+        from .edge_fit_jit import edge_band_samples
+
+        cols = _band_columns(frame, band, tau_lo, tau_hi, max_samples)
+        flat = [
+            np.ascontiguousarray(a.reshape(n_edges, *a.shape[2:]), dtype=np.float64)
+            for a in (
+                cols.c_lo, cols.half_minor, cols.slope, frame.mid, frame.d, frame.normal,
+                band, tau_lo, tau_hi, layout.m_at0, layout.m_slope, tau_scale, layout.bound,
+                step_at,
+            )
+        ]  # fmt: skip
+        ints = [np.ascontiguousarray(a.reshape(-1), dtype=np.int64) for a in
+                (cols.axis, cols.stride, cols.n_used)]  # fmt: skip
+        (edge_of, px_x, px_y, d0, tau, m_pix, tn, n_exp, pair_pix, pair_s, pair_step) = (
+            edge_band_samples(
+                ints[0], flat[0], ints[1], ints[2], *flat[1:9], cols.r_max,
+                gray.shape[0], gray.shape[1], *flat[9:],
+            )
+        )  # fmt: skip
+        n_expected = n_exp.reshape(m, 4)
+        marker_of = edge_of // 4
+    else:
+        x, y, d0, tau, use, n_expected = _band_pixels(
+            gray.shape, frame, band, tau_lo, tau_hi, max_samples
+        )
+        # keep only the band's pixels, as flat arrays with their edge (m*4 + k) and marker
+        sel = np.nonzero(use.reshape(m * 4, -1))
+        edge_of = sel[0]
+        marker_of = edge_of // 4
+        d0, tau = d0.reshape(m * 4, -1)[sel], tau.reshape(m * 4, -1)[sel]
+        px_x = x.reshape(m * 4, -1)[sel].astype(np.intp)
+        px_y = y.reshape(m * 4, -1)[sel].astype(np.intp)
+        m_at0, m_slope = layout.m_at0, layout.m_slope
+        m_pix = np.clip(m_at0.reshape(-1)[edge_of] + m_slope.reshape(-1)[edge_of] * tau, 0.1, None)
+        tn = tau / tau_scale.reshape(-1)[edge_of]  # normalised along-edge coordinate in [-1, 1]
+        # (pixel, boundary) pairs where the data cells change colour (step_i != 0): s - c_i
+        # and step_i, ordered by pixel
+        pair = np.flatnonzero(step_at.reshape(n_edges, n_b)[edge_of] != 0)
+        pair_pix = pair // n_b
+        at_boundary = edge_of[pair_pix] * n_b + pair % n_b
+        pair_s = tau[pair_pix] - layout.bound.reshape(-1)[at_boundary]
+        pair_step = step_at.reshape(-1)[at_boundary]
+    values = gray[px_y, px_x].astype(np.float64)
     # the pixels are ordered by edge (hence by marker), and the pairs by pixel: per-edge or
     # per-marker values spread to the pixels by np.repeat, sums per edge or marker are sums of
     # contiguous segments (np.add.reduceat); both much faster than fancy indexing/np.bincount
@@ -754,6 +806,42 @@ def _fit_edge_models(
     return local, width, weight, contrast, resid
 
 
+#: the compiled fit stops a marker once its step is below this (px): results stay within
+#: ~1e-9 px of running every marker for ``edge_iterations`` like the numpy reference
+EDGE_STEP_TOL_PX = 1e-9
+
+
+def _fit_edge_models_compiled(
+    s: _EdgeSamples, band: np.ndarray, blur_prior: tuple[float, float], iterations: int
+):
+    """:func:`_fit_edge_models` by :func:`rgbd_calib.edge_fit_jit.fit_edge_models`, one
+    marker at a time with its own iteration count (stops when its step is below
+    :data:`EDGE_STEP_TOL_PX`, at most ``iterations``). numba is imported here, on the first
+    edge fit, so that importing the detection stage stays cheap."""
+    from .edge_fit_jit import fit_edge_models
+
+    n_pix = s.d0.shape[0]
+    edge_ptr = np.concatenate([[0], np.cumsum(s.edge_count)]).astype(np.int64)
+    pairs_per_pixel = np.bincount(s.pair_pix, minlength=n_pix)
+    pair_ptr = np.concatenate([[0], np.cumsum(pairs_per_pixel)]).astype(np.int64)
+    f64 = [np.ascontiguousarray(a, dtype=np.float64) for a in (s.d0, s.tn, s.tn2, s.values)]
+    local, width, weight, contrast, resid, _ = fit_edge_models(
+        edge_ptr,
+        *f64,
+        np.ascontiguousarray(s.m_pix, dtype=np.float64),
+        pair_ptr,
+        np.ascontiguousarray(s.pair_s, dtype=np.float64),
+        np.ascontiguousarray(s.pair_step, dtype=np.float64),
+        np.ascontiguousarray(band, dtype=np.float64),
+        float(blur_prior[0]),
+        float(blur_prior[1]),
+        int(iterations),
+        bool(s.curved),
+        EDGE_STEP_TOL_PX,
+    )
+    return local, width, weight, contrast, resid
+
+
 def _edge_fit_ok(
     s: _EdgeSamples,
     local: np.ndarray,
@@ -884,6 +972,7 @@ def refine_corners_edges(
     white: np.ndarray,
     config: DetectionConfig | None = None,
     intrinsics: CameraIntrinsics | None = None,
+    compiled: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Corners as intersections of lines fitted to the markers' outer edges.
 
@@ -893,6 +982,7 @@ def refine_corners_edges(
     see :func:`marker_pattern`). Returns the corners and a ``(N,4)`` mask of the corners the
     edge fit set; the others keep their input position (marker too small, edge off the image
     or occluded, poor fit, grazing intersection, or a jump beyond ``max_corner_shift_px``).
+    ``compiled=False`` runs the numpy reference of the edge model's fit (tests compare them).
     """
     config = config or DetectionConfig()
     gray = np.asarray(gray)  # any real dtype: the edge fit converts the pixels it reads
@@ -914,7 +1004,7 @@ def refine_corners_edges(
     blur_prior = config.blur_prior_px
     for _ in range(config.edge_passes):
         nrm, rho, ok_line, width = _fit_edge_lines(
-            gray, current, white[sel], config, intrinsics, blur_prior
+            gray, current, white[sel], config, intrinsics, blur_prior, compiled
         )
         good = ok_line.all(axis=1)
         if np.any(good):  # later passes: the image's typical blur, a tighter prior

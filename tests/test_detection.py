@@ -24,8 +24,10 @@ from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.detection import (
     DetectionConfig,
     MarkerDetections,
+    _gray_float,
     detect_markers,
     marker_pattern,
+    refine_corners_edges,
 )
 from rgbd_calib.geometry import make_transform, rotvec_to_matrix, transform_points
 from rgbd_calib.scene import rect
@@ -270,8 +272,8 @@ def test_tiny_markers_keep_opencv_corners(board):
     assert len(det) == 2 and not det.refined.any()
 
 
-def test_edges_with_lens_distortion(board, rendered):
-    """Barrel-distorted view: with the intrinsics the edge fit follows the curved edges."""
+def distorted_view(rendered):
+    """The first view through a barrel-distorting lens: (image, T_cam_board, intrinsics)."""
     cam, views = rendered
     K0 = cam.intrinsics
     K = CameraIntrinsics(
@@ -292,6 +294,12 @@ def test_edges_with_lens_distortion(board, rendered):
         synth.SynthParams(blur_sigma_px=0.5, color_noise_dn=1.0),
         np.random.default_rng(0),
     )
+    return image, T, K
+
+
+def test_edges_with_lens_distortion(board, rendered):
+    """Barrel-distorted view: with the intrinsics the edge fit follows the curved edges."""
+    image, T, K = distorted_view(rendered)
     plain = detect_markers(image, board)
     aware = detect_markers(image, board, intrinsics=K)
 
@@ -302,6 +310,28 @@ def test_edges_with_lens_distortion(board, rendered):
 
     assert len(aware) > 15 and aware.refined.mean() > 0.9
     assert rms(aware) < 0.1 and rms(aware) <= rms(plain), (rms(aware), rms(plain))
+
+
+def test_compiled_edge_fit_equals_the_numpy_reference(board, rendered):
+    """The numba edge fit (default) gives the numpy reference's corners to 1e-6 px, with and
+    without lens distortion (the curved edge model)."""
+    views = [(img, None) for img, _, _ in finished(rendered, NOISY, seed=5)]
+    image, _, K = distorted_view(rendered)
+    views.append((image, K))
+    config = DetectionConfig()
+    n_corners = 0
+    for image, intrinsics in views:
+        det = detect_markers(image, board, DetectionConfig(refinement="none"))
+        white = np.stack([marker_pattern(board.dictionary, int(i)) for i in det.ids])
+        gray = _gray_float(image)
+        ref, ok_ref = refine_corners_edges(
+            gray, det.corners_px, white, config, intrinsics, compiled=False
+        )
+        fast, ok_fast = refine_corners_edges(gray, det.corners_px, white, config, intrinsics)
+        assert np.array_equal(ok_ref, ok_fast)
+        assert np.abs(fast - ref)[ok_ref].max() < 1e-6
+        n_corners += int(ok_ref.sum())
+    assert n_corners > 400
 
 
 def _detect_in_worker(args):

@@ -367,6 +367,17 @@ def test_no_library_chatter_on_stderr(clean, tmp_path, damage):
     assert len(lines) == 1 and str(bad) in lines[0], run.stderr
 
 
+def test_libpng_quiet_keeps_other_output(capfd):
+    """The decode's stderr capture drops libpng's own lines only: anything else written to
+    file descriptor 2 meanwhile (another thread's progress, a warning) comes out after it."""
+    from rgbd_calib.dataset import _libpng_quiet
+
+    with _libpng_quiet():
+        os.write(2, b"libpng error: bad adaptive filter value\n")
+        os.write(2, b"other output\n")
+    assert capfd.readouterr().err == "other output\n"
+
+
 # ----------------------------------------------------------------------------- rig.yaml
 RIG_CASES = {
     "NaN fx": (lambda r: r["cameras"]["cam8"].update(fx=float("nan")), "cameras.cam8.fx"),
