@@ -373,17 +373,20 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
     factor of the solve without that prior, above ``chi2_threshold``) and its move exceeds
     ``tolerance``; then every camera's move with its own prior removed (the moved ones stay
     free), its covariance scaled by the final variance factor. A camera in no pair is
-    ``unknown``."""
+    ``unknown``. When another camera's release explains the pairs about as well (its drop
+    within ``chi2_threshold`` of the chosen one's), the chosen camera's ``reason`` names it:
+    the depth cannot tell which of them moved."""
     names = sorted(T_prior)
     n_pairs = {c: sum(c in (r.cam_a, r.cam_b) for r in pairs) for c in names}
     checkable = [c for c in names if n_pairs[c]]
     moved: list[str] = []
+    ambiguous: dict[str, list[str]] = {}
     s2 = 1.0
     base = _try_solve(T_prior, cov_prior, pairs, set()) if pairs else None
     if base is not None:
         s2 = variance_factor(base, len(pairs), 0)
         while True:
-            best = None
+            drops: dict[str, tuple[float, _Solution]] = {}
             for c in checkable:
                 free = set(moved) | {c}
                 if c in moved or not _anchored(names, pairs, free):
@@ -392,14 +395,22 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
                 if sol is None:
                     continue
                 drop = (base.chi2 - sol.chi2) / variance_factor(sol, len(pairs), len(free))
-                if best is None or drop > best[1]:
-                    best = (c, drop, sol)
-            if best is None or best[1] <= chi2_threshold:
+                drops[c] = (drop, sol)
+            if not drops:
                 break
-            c, _, sol = best
+            c = max(drops, key=lambda k: drops[k][0])
+            drop, sol = drops[c]
+            if drop <= chi2_threshold:
+                break
             deg, mm = transform_error(sol.T[c], T_prior[c])
             if mm <= tolerance.mm and deg <= tolerance.deg:
                 break
+            # another camera whose release explains the pairs about as well: the depth cannot
+            # tell which of them moved (e.g. two cameras that overlap only each other)
+            rivals = sorted(k for k, (d, _) in drops.items()
+                            if k != c and d > chi2_threshold and d >= drop - chi2_threshold)
+            if rivals:
+                ambiguous[c] = rivals
             moved.append(c)
             base = sol
             s2 = variance_factor(sol, len(pairs), len(moved))
@@ -429,6 +440,11 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
             continue
         out[c] = _camera_check(c, sol, T_prior, cov_prior,
                                max(with_prior.chi2 - sol.chi2, 0.0) / s2, n_pairs[c], status, s2)
+        rivals = [k for k in ambiguous.get(c, []) if k not in moved]  # a moved one is no rival
+        if rivals:
+            out[c] = replace(out[c], reason=(
+                f"or {', '.join(rivals)}: the depth cannot tell which moved (releasing "
+                "either explains the pairs about as well; they overlap too few other cameras)"))
     return out
 
 

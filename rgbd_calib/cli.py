@@ -645,6 +645,10 @@ def _check_table(result, title: str) -> None:
     for c in result.unknown:
         console.print(f"[yellow]not checked[/]: {c}: {result.cameras[c].reason}",
                       highlight=False, soft_wrap=True)
+    for c in result.moved:
+        if result.cameras[c].reason:
+            console.print(f"[yellow]{c}[/] {result.cameras[c].reason}", highlight=False,
+                          soft_wrap=True)
 
 
 def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg):

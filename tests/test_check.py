@@ -262,3 +262,17 @@ def test_a_pair_that_leaves_a_direction_free_is_not_a_crash():
     out = locate_moved(T_cal, _priors(T_cal), pairs)
     assert out["c6"].status == "unknown" and "undetermined" in out["c6"].reason
     assert all(r.status == "in_place" for c, r in out.items() if c != "c6")
+
+
+def test_two_cameras_that_see_only_each_other_are_ambiguous():
+    """Two cameras, one pair: a disagreement could be either camera's move; the one named
+    says so and names the other."""
+    rng = np.random.default_rng(6)
+    T_cal = {c: T for c, T in _ring(8).items() if c in ("c0", "c1")}
+    T_now = _now(T_cal, {"c1": _knock(rng, 30.0, 3.0)})
+    pairs = [p for p in _pairs(T_now, rng) if {p.cam_a, p.cam_b} == {"c0", "c1"}]
+    out = locate_moved(T_cal, _priors(T_cal), pairs)
+    named = [c for c, r in out.items() if r.status == "moved"]
+    assert len(named) == 1
+    other = ({"c0", "c1"} - set(named)).pop()
+    assert other in out[named[0]].reason and "cannot tell" in out[named[0]].reason
