@@ -34,6 +34,8 @@ from typing import Any, Literal
 import gtsam
 import numpy as np
 import open3d as o3d
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .config import DepthConfig
@@ -50,7 +52,7 @@ from .depth import (
     voxel_mean,
 )
 from .errors import DatasetError
-from .geometry import invert_transform, transform_error
+from .geometry import covariance_sigmas, invert_transform, transform_error
 from .graph import RelativePose
 from .progress import Progress, start
 from .results import CameraExtrinsics, Extrinsics
@@ -130,7 +132,7 @@ class CheckResult:
 # --------------------------------------------------------------------------- registration
 def _fpfh_cloud(cloud: CameraCloud, voxel: float, config: DepthConfig):
     """Voxel means of the well-measured points with normals and FPFH features."""
-    keep = d435_sigma_z_ok(cloud, config)
+    keep = cloud.sigma_z <= config.icp_max_sigma_z_m  # the points registration uses
     pts, _, _ = voxel_mean(cloud.points[keep].astype(float), voxel)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
@@ -138,11 +140,6 @@ def _fpfh_cloud(cloud: CameraCloud, voxel: float, config: DepthConfig):
     feature = o3d.pipelines.registration.compute_fpfh_feature(
         pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
     return pcd, feature
-
-
-def d435_sigma_z_ok(cloud: CameraCloud, config: DepthConfig) -> np.ndarray:
-    """Points whose depth sigma is below ``icp_max_sigma_z_m`` (as registration uses)."""
-    return np.asarray(cloud.sigma_z) <= config.icp_max_sigma_z_m
 
 
 def global_alignment(cloud_a: CameraCloud, cloud_b: CameraCloud, T_b_a_guess: np.ndarray,
@@ -321,19 +318,13 @@ def _try_solve(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray],
 
 
 def _components(names: list[str], pairs: list[RelativePose]) -> list[set[str]]:
-    parent = {c: c for c in names}
-
-    def root(c: str) -> str:
-        while parent[c] != c:
-            parent[c] = parent[parent[c]]
-            c = parent[c]
-        return c
-    for r in pairs:
-        parent[root(r.cam_a)] = root(r.cam_b)
-    groups: dict[str, set[str]] = {}
-    for c in names:
-        groups.setdefault(root(c), set()).add(c)
-    return list(groups.values())
+    """The groups of cameras connected by pairs (scipy's connected components)."""
+    index = {c: i for i, c in enumerate(names)}
+    edges = np.array([[index[r.cam_a], index[r.cam_b]] for r in pairs], dtype=int).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])),
+                       shape=(len(names), len(names)))
+    _, label = connected_components(graph, directed=False)
+    return [{c for c, k in zip(names, label) if k == g} for g in np.unique(label)]
 
 
 def _anchored(names: list[str], pairs: list[RelativePose], free: set[str]) -> bool:
@@ -345,11 +336,9 @@ def _camera_check(c: str, sol: _Solution, T_prior: dict[str, np.ndarray],
                   cov_prior: dict[str, np.ndarray], chi2: float, n_pairs: int,
                   status: Status, s2: float = 1.0) -> CameraCheck:
     deg, mm = transform_error(sol.T[c], T_prior[c])
-    total = s2 * sol.covariance[c] + cov_prior[c]
+    sigma_deg, sigma_mm = covariance_sigmas(s2 * sol.covariance[c] + cov_prior[c])
     return CameraCheck(
-        c, status, moved_mm=mm, moved_deg=deg,
-        sigma_mm=1000.0 * math.sqrt(max(np.trace(total[3:, 3:]), 0.0)),
-        sigma_deg=math.degrees(math.sqrt(max(np.trace(total[:3, :3]), 0.0))),
+        c, status, moved_mm=mm, moved_deg=deg, sigma_mm=sigma_mm, sigma_deg=sigma_deg,
         chi2=chi2, n_pairs=n_pairs, T_ref_cam_now=sol.T[c],
         covariance_now=s2 * sol.covariance[c])
 
@@ -546,8 +535,7 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
 
 # --------------------------------------------------------------------------- fix
 def _sigmas(c: str, T: np.ndarray, C: np.ndarray) -> CameraExtrinsics:
-    return CameraExtrinsics(c, T, math.degrees(math.sqrt(max(np.trace(C[:3, :3]), 0.0))),
-                            1000.0 * math.sqrt(max(np.trace(C[3:, 3:]), 0.0)), C)
+    return CameraExtrinsics(c, T, *covariance_sigmas(C), C)
 
 
 def reexpress(cams: dict[str, CameraExtrinsics], ref: str,
@@ -617,11 +605,10 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
         if sol is None:
             break
         s2 = variance_factor(sol, len(pairs), len(free))
-        step = max((transform_error(sol.T[c], T_now[c]) for c in free),
-                   key=lambda e: e[1])
+        steps = [transform_error(sol.T[c], T_now[c]) for c in free]  # (deg, mm) each
         for c in free:
             T_now[c], cov_now[c] = sol.T[c], s2 * sol.covariance[c]
-        if step[1] < 0.1 and step[0] < 0.01:
+        if all(mm < 0.1 and deg < 0.01 for deg, mm in steps):
             break
     cams = dict(calib.cameras)
     for c in moved:

@@ -107,6 +107,14 @@ def user_errors(fn):
     return wrapper
 
 
+def _check_method(method: str) -> None:
+    """``--method`` of the depth-only commands: a registration method, not ``none``."""
+    from .errors import ConfigError
+
+    if method not in ("colored-icp", "geometric"):
+        raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
+
+
 def _check_output_folder(out: Path, option: str = "--out") -> None:
     """Fail before any long step when ``out`` cannot become a folder: it is a file, or the
     first existing folder above it is a file or not writable."""
@@ -579,13 +587,11 @@ def refine(
     import math
 
     from .board import load_board, thesis_board
-    from .errors import ConfigError
     from .outputs import write_refine_outputs
     from .refine import load_board_views, load_depth_scales, refine_extrinsics, refine_verdict
     from .results import load_extrinsics
 
-    if method not in ("colored-icp", "geometric"):
-        raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
+    _check_method(method)
     _check_output_folder(out)
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     ds.check_images()
@@ -726,8 +732,7 @@ def check(
     from .refine import load_depth_scales
     from .results import load_extrinsics
 
-    if method not in ("colored-icp", "geometric"):
-        raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
+    _check_method(method)
     if tolerance_mm < 0 or tolerance_deg < 0:
         raise ConfigError("--tolerance-mm / --tolerance-deg must be >= 0")
     path = calib / "extrinsics.yaml" if calib.is_dir() else calib

@@ -40,6 +40,7 @@ from .config import DepthConfig
 from .dataset import FolderDataset
 from .errors import DatasetError
 from .geometry import (
+    covariance_sigmas,
     invert_transform,
     matrix_to_rotvec,
     skew,
@@ -202,12 +203,12 @@ class PairRegistration:
     @property
     def sigma_rotation_deg(self) -> float:
         """1-sigma rotation (root of the trace of the rotation block: all three axes)."""
-        return float(np.degrees(np.sqrt(max(np.trace(self.covariance[:3, :3]), 0.0))))
+        return covariance_sigmas(self.covariance)[0]
 
     @property
     def sigma_translation_mm(self) -> float:
         """1-sigma translation (root of the trace of the translation block)."""
-        return float(1000.0 * np.sqrt(max(np.trace(self.covariance[3:, 3:]), 0.0)))
+        return covariance_sigmas(self.covariance)[1]
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -124,6 +124,16 @@ def transform_error(T_est: ArrayLike, T_true: ArrayLike) -> tuple[float, float]:
     return rotation_angle_deg(dR), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000.0)
 
 
+def covariance_sigmas(covariance: ArrayLike) -> tuple[float, float]:
+    """1-sigma rotation (deg) and translation (mm) of a 6x6 pose covariance in GTSAM order
+    ``[rot (rad), trans (m)]``: the roots of the traces of its rotation and translation blocks
+    (all three axes together, as ``sigma_rotation_deg`` / ``sigma_translation_mm`` of the
+    results); NaN in, NaN out."""
+    C = np.asarray(covariance, dtype=float)
+    return (float(np.degrees(np.sqrt(max(np.trace(C[:3, :3]), 0.0)))),
+            float(1000.0 * np.sqrt(max(np.trace(C[3:, 3:]), 0.0))))
+
+
 def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> Array:
     """``T_world_cam`` for an OpenCV optical camera (x right, y down, z forward) at ``eye``
     looking at ``target``; ``up`` is the world direction that appears upwards in the image."""

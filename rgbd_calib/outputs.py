@@ -139,17 +139,10 @@ def write_refine_outputs(
     """Write a depth-only refinement into ``out_dir``: ``fused.ply`` (at the refined
     extrinsics), ``refine_report.json`` (method, starting file, every pair) and
     ``extrinsics.yaml`` (last)."""
-    out_dir = Path(out_dir)
-    with staged(out_dir, replaces=("fused.ply",)) as stage:
-        T_ref_cam = {c: e.T_ref_cam for c, e in extrinsics.cameras.items()}
-        pts, cols, idx, names = depth.fused(T_ref_cam, fused_voxel_m)
-        write_fused_ply(stage / "fused.ply", pts, cols, idx, names)
-        report = {**(verdict or {}), "method": method, "init": str(init),
-                  "depth": depth.status_dict(), "pairs": depth.pairs}
-        (stage / REFINE_REPORT).write_text(json.dumps(to_builtin(report), indent=1, default=str))
-        write_extrinsics(extrinsics, stage / "extrinsics.yaml")
-        written = _written(stage, out_dir)
-    return written
+    report = {**(verdict or {}), "method": method, "init": str(init),
+              "depth": depth.status_dict(), "pairs": depth.pairs}
+    return _write_refined(extrinsics, depth.clouds, out_dir, fused_voxel_m,
+                          json.dumps(to_builtin(report), indent=1, default=str))
 
 
 CHECK_REPORT = "check.json"
@@ -157,7 +150,7 @@ CHECK_REPORT = "check.json"
 
 def write_check_outputs(run: CheckRun, out_dir: Path, calib: Path) -> list[Path]:
     """``check.json``: per camera its status and move, every pair, the tolerance
-    (docs/report_schema.md, "check.json")."""
+    (docs/formats.md, "Check output")."""
     out_dir = Path(out_dir)
     with staged(out_dir) as stage:
         report = {"calib": str(calib), "depth_scale_source": run.scale_source,
@@ -170,21 +163,28 @@ def write_check_outputs(run: CheckRun, out_dir: Path, calib: Path) -> list[Path]
 
 def write_fix_outputs(extrinsics: Extrinsics, run: CheckRun, pairs: list[dict[str, Any]],
                       out_dir: Path, method: str, init: Path,
-                      verdict: dict[str, Any]) -> list[Path]:
+                      verdict: dict[str, Any], fused_voxel_m: float = 0.005) -> list[Path]:
     """``refine --fix-others``: ``fused.ply`` (at the fixed extrinsics),
     ``refine_report.json`` (verdict, the check, the re-registered pairs) and
     ``extrinsics.yaml`` (last)."""
+    report = {**verdict, "method": method, "init": str(init), "fix_others": True,
+              "check": {"depth_scale_source": run.scale_source, **run.result.to_dict()},
+              "pairs": pairs}
+    return _write_refined(extrinsics, run.clouds, out_dir, fused_voxel_m, json.dumps(
+        finite_or_null(to_builtin(report)), indent=1, allow_nan=False))
+
+
+def _write_refined(extrinsics: Extrinsics, clouds: dict[str, Any], out_dir: Path,
+                   fused_voxel_m: float, report_text: str) -> list[Path]:
+    """The folder of a depth-only run, staged: ``fused.ply`` of ``clouds`` at
+    ``extrinsics``, ``refine_report.json`` (``report_text``), then ``extrinsics.yaml``."""
     out_dir = Path(out_dir)
     with staged(out_dir, replaces=("fused.ply",)) as stage:
         T_ref_cam = {c: e.T_ref_cam for c, e in extrinsics.cameras.items()}
-        pts, cols, idx = fuse_clouds(run.clouds, T_ref_cam)
+        pts, cols, idx = fuse_clouds(clouds, T_ref_cam, fused_voxel_m)  # index: names' order
         write_fused_ply(stage / "fused.ply", pts, cols, idx,
-                        [c for c in run.clouds if c in T_ref_cam])
-        report = {**verdict, "method": method, "init": str(init), "fix_others": True,
-                  "check": {"depth_scale_source": run.scale_source, **run.result.to_dict()},
-                  "pairs": pairs}
-        (stage / REFINE_REPORT).write_text(
-            json.dumps(finite_or_null(to_builtin(report)), indent=1, allow_nan=False))
+                        [c for c in clouds if c in T_ref_cam])
+        (stage / REFINE_REPORT).write_text(report_text)
         write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written
