@@ -276,3 +276,24 @@ def test_two_cameras_that_see_only_each_other_are_ambiguous():
     assert len(named) == 1
     other = ({"c0", "c1"} - set(named)).pop()
     assert other in out[named[0]].reason and "cannot tell" in out[named[0]].reason
+
+
+@pytest.mark.parametrize("bump, says", [
+    ("left2-5-5", "give NAME:MM:DEG"),
+    ("nosuch:5:5", "no such camera"),
+    ("left2:5:95", "0 <= deg < 90"),
+])
+def test_synth_bump_bad_input_is_one_line_and_writes_nothing(tmp_path, bump, says):
+    out = tmp_path / "d"
+    res = CliRunner().invoke(app, ["synth", str(out), "--layout", "race", "--frames", "1",
+                                   "--bump", bump])
+    assert res.exit_code == 2 and says in res.output and "Traceback" not in res.output
+    assert not out.exists()
+
+
+def test_check_rejects_a_bad_method_and_tolerance(tmp_path):
+    for args, says in ((["--method", "none"], "use colored-icp or geometric"),
+                       (["--tolerance-mm", "-1"], "must be >= 0")):
+        res = CliRunner().invoke(app, ["check", str(tmp_path), "--calib", str(tmp_path),
+                                       "--out", str(tmp_path / "c"), *args])
+        assert res.exit_code == 2 and says in res.output
