@@ -33,8 +33,13 @@ STAMP="$VENV/.rgbd-calib-stamp"
 WANT=$(cat pyproject.toml requirements.lock | sha256sum | cut -d' ' -f1)
 if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ]; then
   echo "setting up $VENV (pinned packages from requirements.lock) ..." >&2
-  "$PY" -m venv "$VENV" 2>/dev/null || {
-    echo "error: '$PY -m venv' failed; run 'sudo apt-get install python3-venv' and re-run" >&2; exit 1; }
+  # an existing environment is updated with its own interpreter: re-running `venv` over it
+  # with another Python (e.g. a system one without ensurepip) rewrites its pyvenv.cfg and
+  # breaks it before failing
+  if [ ! -x "$VENV/bin/python" ]; then
+    "$PY" -m venv "$VENV" 2>/dev/null || {
+      echo "error: '$PY -m venv' failed; run 'sudo apt-get install python3-venv' and re-run" >&2; exit 1; }
+  fi
   "$VENV/bin/python" -m pip install -q --upgrade pip 2>&1 | grep -v "is ignored: it is neither" >&2 || true
   # kiss-icp asks for typer[all], an extra typer no longer has (rich is pinned here anyway):
   # pip's one-line warning about it is noise, as are the index locations it ignores
