@@ -424,7 +424,8 @@ def write_exports(
         "nodes_csv": nodes_csv_text(
             {c: extrinsics.T_ref_cam(c) for c in _ordered(extrinsics)}, board_poses
         ),
-        "edges_csv": edges_csv_text(list(edges or [])),
+        "edges_csv": edges_csv_text(list(edges or []), list(board_poses or {}),
+                                    _ordered(extrinsics)),
         "g2o": g2o_text(
             extrinsics, edges, board_poses, default_sigma_rotation_deg, default_sigma_translation_mm
         ),

@@ -195,30 +195,54 @@ def _pose_fields(T: np.ndarray, order: tuple[str, ...] = POSE_XYZW) -> list[str]
     return [repr(float(values[key])) for key in order]
 
 
+def node_ids(cameras: list[str], views: list[str]) -> tuple[dict[str, str], dict[str, str]]:
+    """Camera and view node ids in the one id space of ``Nodes.csv``/``Edges.csv``.
+
+    A camera's id is its thesis number (``cam7`` -> ``7``) unless a view has that id; then it
+    keeps its name (``cam7``: read back, the name is the same camera). A view whose id is still
+    taken (a camera literally named like it) becomes ``view<id>``."""
+    view_set = set(views)
+    cams = {c: (n if (n := camera_node_id(c)) not in view_set else c) for c in cameras}
+    taken = set(cams.values())
+    out_views = {}
+    for v in views:
+        node = v
+        while node in taken:
+            node = f"view{node}"
+        out_views[v] = node
+        taken.add(node)
+    return cams, out_views
+
+
 def nodes_csv_text(
     T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, np.ndarray] | None = None
 ) -> str:
-    """Thesis-style ``Nodes.csv`` text: cameras first (ids ``cam7`` -> ``7``), then views."""
+    """Thesis-style ``Nodes.csv`` text: cameras first (ids ``cam7`` -> ``7``), then views
+    (ids by :func:`node_ids`)."""
     rows = [NODES_HEADER]
-    camera_ids = [camera_node_id(c) for c in T_ref_cam]
-    clash = sorted(set(camera_ids) & set(T_ref_board or {}))
-    if clash:
-        raise ConfigError(
-            f"Nodes.csv: camera node id(s) {', '.join(clash)} equal board view "
-            "id(s); rename the cameras or views so node ids are unique"
-        )
-    for node, T in zip(camera_ids, T_ref_cam.values(), strict=True):
-        rows.append(",".join([node, *_pose_fields(T)]))
-    for view, T in (T_ref_board or {}).items():
-        rows.append(",".join([view, *_pose_fields(T)]))
+    boards = T_ref_board or {}
+    cam_ids, view_ids = node_ids(list(T_ref_cam), list(boards))
+    for cam, T in T_ref_cam.items():
+        rows.append(",".join([cam_ids[cam], *_pose_fields(T)]))
+    for view, T in boards.items():
+        rows.append(",".join([view_ids[view], *_pose_fields(T)]))
     return "\n".join(rows) + "\n"
 
 
-def edges_csv_text(edges: list[PoseEdge]) -> str:
-    """Thesis-style ``Edges.csv`` text, one ``T_cam_board`` row per edge."""
+def edges_csv_text(edges: list[PoseEdge], views: list[str] | None = None,
+                   cameras: list[str] | None = None) -> str:
+    """Thesis-style ``Edges.csv`` text, one ``T_cam_board`` row per edge; ``views`` and
+    ``cameras`` (default: the edges') are the nodes of the ``Nodes.csv`` it goes with, so both
+    files number them alike (:func:`node_ids`)."""
+    views = list(views) if views is not None else list(dict.fromkeys(e.view for e in edges))
+    views += [v for v in dict.fromkeys(e.view for e in edges) if v not in set(views)]
+    cameras = list(cameras) if cameras is not None else []
+    cameras += [c for c in dict.fromkeys(e.camera for e in edges) if c not in set(cameras)]
+    cam_ids, view_ids = node_ids(cameras, views)
     rows = [EDGES_HEADER]
     rows += [
-        ",".join([camera_node_id(e.camera), e.view, *_pose_fields(e.T_cam_board)]) for e in edges
+        ",".join([cam_ids[e.camera], view_ids[e.view], *_pose_fields(e.T_cam_board)])
+        for e in edges
     ]
     return "\n".join(rows) + "\n"
 
