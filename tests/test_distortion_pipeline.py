@@ -42,8 +42,14 @@ SCALE_ATOL = 0.002
 # kept, error/sigma <= 1.8). Bounds at ~2.5x the distorted run, inside test_cli's 1 mm.
 WORST_MM, WORST_DEG = 0.8, 0.04
 # rig.yaml listing zeros for that lens (seed 3): default auto chooses fx fy cx cy k1 k2 p1 p2 k3,
-# detects again, worst 1.03 mm / 0.09 deg, all 4 kept; intrinsics fixed: 6.8 mm / 0.45 deg.
+# detects again, all 4 kept, worst 1.76 mm / 0.087 deg at sigmas of 1.2-2.0 mm / 0.045-0.069 deg
+# (error / sigma <= 1.03 in translation, 1.3 in rotation: 8 frames do not pin a lens down);
+# intrinsics fixed: 6.8 mm / 0.45 deg. (Before the bundle solved every camera jointly when
+# refining intrinsics, the pose graph's sound cameras were solved first: 1.03 mm, but with
+# rotation errors 2.5x the claimed sigma; seeds 4 and 5 take the joint solve either way.)
 UNLISTED_WORST_MM = 2.0
+UNLISTED_GAIN = 3.0  # fixed / auto worst translation error
+UNLISTED_ERR_SIGMA = 3.0
 
 
 @pytest.fixture(scope="module")
@@ -198,4 +204,8 @@ def test_unlisted_distortion_self_calibrated(distorted):
     assert ladder.chosen.distortion and ladder.redetected, [f.to_dict() for f in ladder.fits]
     assert len(auto.extrinsics.cameras) == len(ds.cameras)
     assert worst(auto) < UNLISTED_WORST_MM, worst(auto)
-    assert worst(runs["fixed"]) > 5 * worst(auto), (worst(runs["fixed"]), worst(auto))
+    assert worst(runs["fixed"]) > UNLISTED_GAIN * worst(auto), (worst(runs["fixed"]), worst(auto))
+    for c, e in auto.extrinsics.cameras.items():
+        if c != ds.rig.reference:
+            t = transform_error(e.T_ref_cam, gt.T_ref_cam[c])[1]
+            assert t < UNLISTED_ERR_SIGMA * e.sigma_translation_mm, (c, t, e.sigma_translation_mm)

@@ -42,7 +42,7 @@ import numpy as np
 from matplotlib.path import Path as Polygon
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_accuracy import _f, _rounded, code_hash  # noqa: E402
+from bench_accuracy import _f, _rounded, camera_record, code_hash  # noqa: E402
 from peers import thesis_method  # noqa: E402
 
 from rgbd_calib.board import Board, thesis_board  # noqa: E402
@@ -63,7 +63,7 @@ SETS["all"] = {**GLUE, **INTR, **DIST}
 IMAGES = {"intrinsics": "clean", "all": "glue+distortion"}  # sets that only change rig.yaml
 IMAGE_SETS = {**SETS, "glue+distortion": {**GLUE, **DIST}}
 METHODS = ("fixed", "auto", "thesis")
-RECORD_VERSION = 3
+RECORD_VERSION = 4
 
 
 def ensure_set(
@@ -164,7 +164,9 @@ def run_method(
                 continue
             rot, mm = transform_error(e.T_ref_cam, gt.T_ref_cam[c])
             sigmas = dict(sigma_rotation_deg=e.sigma_rotation_deg, sigma_mm=e.sigma_translation_mm)
-            rec["cameras"].append(dict(camera=c, rotation_deg=rot, translation_mm=mm, **sigmas))
+            nees = camera_record(c, e.T_ref_cam, gt.T_ref_cam[c], covariance=e.covariance)["nees"]
+            rec["cameras"].append(dict(camera=c, rotation_deg=rot, translation_mm=mm, nees=nees,
+                                       **sigmas))
         bundle = result.bundle
         if result.self_calibration is not None:
             rec["self_calibration"] = result.self_calibration.to_dict()
@@ -234,6 +236,8 @@ def summary(recs: list[dict[str, Any]]) -> dict[str, Any]:
         "nrms_r": _rms(
             [c["rotation_deg"] / c["sigma_rotation_deg"] for c in cams if c["sigma_rotation_deg"]]
         ),
+        "nees_rms": (float(np.sqrt(np.mean(nees))) if (nees := [
+            c["nees"] / 6.0 for c in cams if c.get("nees") is not None]) else None),
         "time_s": max((r["wall_s"] - r["detection_s"] for r in ok), default=None),
         "chosen": ", ".join(r.get("self_calibration", {}).get("chosen", "-") for r in ok) or "-",
         "refined": any(r["intrinsics_refined"] for r in ok),
@@ -258,10 +262,11 @@ def markdown(payload: dict[str, Any]) -> str:
         f"{meta['noise']['blur_sigma_px']} px, colour noise {meta['noise']['color_noise_dn']}"
         f" DN); load average {meta['load_start']} at start, {meta['load_end']} at the end "
         f"({meta['machine']}). Errors over the non-reference cameras; err/sigma is the RMS "
-        "of error / claimed 1-sigma (translation / rotation); s is the wall time without "
+        "of error / claimed 1-sigma (translation / rotation), NEES the RMS of "
+        "sqrt(xi^T C^-1 xi / 6) with the full 6x6 covariance (1 = honest); s is the wall time without "
         "the (cached) marker detection.\n\n"
     )
-    cols = ("kept", "worst mm / deg", "err/sigma t / r", "s")
+    cols = ("kept", "worst mm / deg", "err/sigma t / r / NEES", "s")
     ms = meta["methods"]
     lines = ["| layout | set | " + " | ".join(f"{m} {c}" for m in ms for c in cols) + " |"]
     lines.append("|---|---|" + "---|" * len(cols) * len(ms))
@@ -279,7 +284,8 @@ def markdown(payload: dict[str, Any]) -> str:
         cells = []
         for m, x in s.items():
             cells += [x["kept"], f"{_f(x['worst_mm'])} / {_f(x['worst_deg'], 4)}"]
-            cells += [f"{_f(x['nrms_t'], 2)} / {_f(x['nrms_r'], 2)}", _f(x["time_s"], 1)]
+            cells += [f"{_f(x['nrms_t'], 2)} / {_f(x['nrms_r'], 2)} / {_f(x.get('nees_rms'), 2)}",
+                      _f(x["time_s"], 1)]
             notes += [f"{key} {m}: {f}" for f in x["failures"]]
         lines.append(row + " | ".join(cells) + " |")
         if "auto" in s:
