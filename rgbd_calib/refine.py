@@ -189,7 +189,15 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             if weak is not None:
                 overlaps = [ov for ov in overlaps if ov.cam_a in weak or ov.cam_b in weak]
             tick = start(progress, f"registering pairs ({method})", len(overlaps))
-            known = set(scales) | set(depth_scales or {})
+            # In calibrate (``board_covariance`` given) the factors were measured against the
+            # board poses of this same, weak, board solve: their error is its board-pose error
+            # over the board distance (1-3e-4 on a 6-frame race rig, 2-5x the factor's sigma,
+            # which counts depth noise only), i.e. 0.3-1 mm on surfaces 2-3 m away, as large
+            # as the board error the pairs are to correct. So there every pair leaves the
+            # directions a scale error explains to the board (docs/depth.md, "Weak board
+            # data"). refine keeps given factors as known (issue 14, item 3).
+            known = (set() if board_covariance is not None
+                     else set(scales) | set(depth_scales or {}))
             jobs = [(ov.cam_a, ov.cam_b, T_ref_cam[ov.cam_a], T_ref_cam[ov.cam_b],
                      (ov.cam_a not in known, ov.cam_b not in known)) for ov in overlaps]
             for ov, reg in zip(overlaps, register_pairs(clouds, jobs, method, config, workers,

@@ -111,6 +111,8 @@ def test_refinement_helps_weak_board_data_and_never_hurts_strong(tmp_path_factor
         for cam, est in refined.depth.depth_scales.items():
             assert abs(est.factor - gt.depth_scale_bias[cam]) < SCALE_TOL
         if check == "weak":
+            # measured (2026-11-24): 0.801 -> 0.290 mm (-64 %); with the board-estimated depth
+            # scales taken as exact in the pairs it was -15 % (docs/depth.md, "Weak board data")
             mean_ref = np.mean([e_ref[c][1] for c in cams])
             mean_none = np.mean([e_none[c][1] for c in cams])
             assert mean_ref <= (1 - WEAK_GAIN) * mean_none, (mean_ref, mean_none)
