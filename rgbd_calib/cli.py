@@ -587,7 +587,7 @@ def refine(
     import math
 
     from .board import load_board, thesis_board
-    from .outputs import write_refine_outputs
+    from .outputs import DepthOnlyRun, write_refine_outputs
     from .refine import load_board_views, load_depth_scales, refine_extrinsics, refine_verdict
     from .results import load_extrinsics
 
@@ -613,7 +613,10 @@ def refine(
         if cams := [c for c, k in sources.items() if k == kind]:
             console.print(f"depth scale {what}: {', '.join(cams)}")
     verdict = refine_verdict(init_ext, ext, depth)
-    write_refine_outputs(ext, depth, out, method, init, verdict=verdict)
+    run = DepthOnlyRun(ds, init, method, verdict, depth.pairs, sources, scales,
+                       depth.status_dict(), depth.depth_scale_dict(), depth.timings_s)
+    write_refine_outputs(ext, depth, out, method, init, verdict=verdict, run=run,
+                         warn=_warn_line)
     for p in depth.pairs:
         state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
         before, final = p["rmse_before_mm"], p["rmse_final_mm"]
@@ -623,7 +626,12 @@ def refine(
         console.print(f"{p['cam_a']} -> {p['cam_b']}: {rmse}{state}")
     colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
     console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}")
-    console.print(f"results in {out}/ (extrinsics.yaml, refine_report.json, fused.ply)")
+    console.print(f"results in {out}/ (extrinsics.yaml, report.html, report.json, "
+                  "refine_report.json, fused.ply)")
+
+
+def _warn_line(message: str) -> None:
+    console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
 
 
 TOLERANCE_MM_OPTION = typer.Option(
@@ -668,9 +676,9 @@ def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg):
 def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolerance_deg):
     """refine --fix-others: check, then re-register only the moved cameras."""
     from .check import fix_moved
-    from .geometry import transform_error
-    from .outputs import write_fix_outputs
+    from .outputs import DepthOnlyRun, write_fix_outputs
     from .progress import start
+    from .refine import fix_verdict
 
     run = _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg)
     _check_table(run.result, f"{ds.path} against {init}")
@@ -681,27 +689,26 @@ def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolera
                                  unknown_scale=unknown)
         tick(1)
     moved = run.result.moved
-    if not moved:
-        verdict = {"verdict": "unchanged", "message": "no camera moved beyond the tolerance: "
-                   "the extrinsics are --init's"}
-    else:
-        lost = [c for c in moved if not any(c in (p["cam_a"], p["cam_b"]) and p["accepted"]
-                                            for p in pairs)]
-        moves = []
-        for c in moved:
-            deg, mm = transform_error(fixed.T_ref_cam(c), calib.T_ref_cam(c))
-            e = fixed.cameras[c]
-            moves.append(f"{c} {mm:.1f} mm / {deg:.2f} deg (now sigma "
-                         f"{e.sigma_translation_mm:.2f} mm / {e.sigma_rotation_deg:.3f} deg)")
-        verdict = {"verdict": "check" if lost else "refined",
-                   "message": "re-registered " + "; ".join(moves)
-                   + (f"; {', '.join(lost)}: no pair fits after re-registration, kept the "
-                      "check's estimate" if lost else "")}
-    write_fix_outputs(fixed, run, pairs, out, method, init, verdict)
+    verdict = fix_verdict(calib, fixed, moved, pairs)
+    status = ({"status": "skipped", "reason": "no camera moved beyond the tolerance",
+               "weak_cameras": {}} if not moved else
+              {"status": "used", "reason": None, "weak_cameras": {}}
+              if any(p["accepted"] for p in pairs) else
+              {"status": "fallback", "reason": "no pair of a moved camera fits after "
+               "re-registration", "weak_cameras": {}})
+    depth_only = DepthOnlyRun(ds, init, method, verdict, pairs, run.scale_source, scales,
+                              status, timings_s=run.result.timings_s, moved=moved)
+    write_fix_outputs(fixed, run, pairs, out, method, init, verdict, depth_only=depth_only,
+                      warn=_warn_line)
     colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
     console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}", highlight=False,
                   soft_wrap=True)
-    console.print(f"results in {out}/ (extrinsics.yaml, refine_report.json, fused.ply)")
+    console.print(f"results in {out}/ (extrinsics.yaml, report.html, report.json, "
+                  "refine_report.json, fused.ply)")
+
+
+def _warn_line(message: str) -> None:
+    console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
 
 
 @command()

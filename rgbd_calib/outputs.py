@@ -14,8 +14,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -23,13 +24,20 @@ from .board import refined_board, save_board
 from .calibrate import CalibrationResult, pose_edges, refined_rig
 from .check import CheckRun
 from .config import write_config
+from .dataset import FolderDataset
 from .depth import fuse_clouds
 from .exports import write_exports
 from .ply import write_fused_ply
 from .posegraph_pipeline import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
 from .progress import Progress
-from .refine import DepthRefinement
-from .report import dump_report, finite_or_null, report_dict, write_report_html
+from .refine import DepthRefinement, refine_summary
+from .report import (
+    depth_only_report_dict,
+    dump_report,
+    finite_or_null,
+    report_dict,
+    write_report_html,
+)
 from .results import Extrinsics, PoseEdge, write_extrinsics
 from .rig import Rig, save_rig
 from .yamlio import to_builtin, write_yaml
@@ -127,6 +135,37 @@ def write_outputs(
 REFINE_REPORT = "refine_report.json"
 
 
+@dataclass(frozen=True)
+class DepthOnlyRun:
+    """What a depth-only run (``rgbd-calib refine``) needs besides its extrinsics to write
+    the calibration report: the dataset it read, where it started and how, and its depth
+    measurements."""
+
+    dataset: FolderDataset
+    init: Path
+    method: str
+    verdict: dict[str, Any]  # refine_verdict / fix_verdict
+    pairs: list[dict[str, Any]]
+    scale_source: dict[str, str]  # camera -> board / given / unknown
+    given_scales: dict[str, float]  # camera -> factor from the report.json next to --init
+    depth_status: dict[str, Any]  # report.json ``depth``
+    board_scales: dict[str, dict[str, float]] = field(default_factory=dict)  # factor, sigma
+    timings_s: dict[str, float] = field(default_factory=dict)
+    moved: list[str] | None = None  # --fix-others: the cameras the check found moved
+
+    def report(self, extrinsics: Extrinsics) -> dict[str, Any]:
+        """report.json (schema 1.3, method ``depth``) of this run at ``extrinsics``."""
+        scales: dict[str, dict[str, float | None]] = {
+            c: {"factor": f, "sigma": None} for c, f in self.given_scales.items()
+            if self.scale_source.get(c) == "given"}
+        scales.update(self.board_scales)
+        return depth_only_report_dict(
+            extrinsics, self.dataset.rig, self.dataset.summary().to_dict(),
+            refine_summary(self.init, self.method, self.verdict, self.scale_source,
+                           self.moved),
+            self.pairs, self.depth_status, scales, self.timings_s)
+
+
 def write_refine_outputs(
     extrinsics: Extrinsics,
     depth: DepthRefinement,
@@ -135,14 +174,18 @@ def write_refine_outputs(
     init: Path,
     fused_voxel_m: float = 0.005,
     verdict: dict[str, Any] | None = None,
+    run: DepthOnlyRun | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> list[Path]:
     """Write a depth-only refinement into ``out_dir``: ``fused.ply`` (at the refined
-    extrinsics), ``refine_report.json`` (method, starting file, every pair) and
-    ``extrinsics.yaml`` (last)."""
+    extrinsics), ``refine_report.json`` (method, starting file, every pair), with ``run``
+    ``report.json`` and ``report.html`` (the calibration report, method ``depth``), and
+    ``extrinsics.yaml`` (last). A report.html that cannot be drawn is left out with
+    ``warn(why)``: the extrinsics are written all the same."""
     report = {**(verdict or {}), "method": method, "init": str(init),
               "depth": depth.status_dict(), "pairs": depth.pairs}
     return _write_refined(extrinsics, depth.clouds, out_dir, fused_voxel_m,
-                          json.dumps(to_builtin(report), indent=1, default=str))
+                          json.dumps(to_builtin(report), indent=1, default=str), run, warn)
 
 
 CHECK_REPORT = "check.json"
@@ -163,28 +206,43 @@ def write_check_outputs(run: CheckRun, out_dir: Path, calib: Path) -> list[Path]
 
 def write_fix_outputs(extrinsics: Extrinsics, run: CheckRun, pairs: list[dict[str, Any]],
                       out_dir: Path, method: str, init: Path,
-                      verdict: dict[str, Any], fused_voxel_m: float = 0.005) -> list[Path]:
+                      verdict: dict[str, Any], fused_voxel_m: float = 0.005,
+                      depth_only: DepthOnlyRun | None = None,
+                      warn: Callable[[str], None] | None = None) -> list[Path]:
     """``refine --fix-others``: ``fused.ply`` (at the fixed extrinsics),
-    ``refine_report.json`` (verdict, the check, the re-registered pairs) and
-    ``extrinsics.yaml`` (last)."""
+    ``refine_report.json`` (verdict, the check, the re-registered pairs), with
+    ``depth_only`` ``report.json`` and ``report.html``, and ``extrinsics.yaml`` (last)."""
     report = {**verdict, "method": method, "init": str(init), "fix_others": True,
               "check": {"depth_scale_source": run.scale_source, **run.result.to_dict()},
               "pairs": pairs}
     return _write_refined(extrinsics, run.clouds, out_dir, fused_voxel_m, json.dumps(
-        finite_or_null(to_builtin(report)), indent=1, allow_nan=False))
+        finite_or_null(to_builtin(report)), indent=1, allow_nan=False), depth_only, warn)
 
 
 def _write_refined(extrinsics: Extrinsics, clouds: dict[str, Any], out_dir: Path,
-                   fused_voxel_m: float, report_text: str) -> list[Path]:
+                   fused_voxel_m: float, report_text: str, run: DepthOnlyRun | None = None,
+                   warn: Callable[[str], None] | None = None) -> list[Path]:
     """The folder of a depth-only run, staged: ``fused.ply`` of ``clouds`` at
-    ``extrinsics``, ``refine_report.json`` (``report_text``), then ``extrinsics.yaml``."""
+    ``extrinsics``, ``refine_report.json`` (``report_text``), with ``run`` ``report.json``
+    and ``report.html`` (a figure that fails costs the page, with ``warn``, not the run),
+    then ``extrinsics.yaml``."""
     out_dir = Path(out_dir)
-    with staged(out_dir, replaces=("fused.ply",)) as stage:
+    with staged(out_dir, replaces=("fused.ply", "report.json", "report.html")) as stage:
         T_ref_cam = {c: e.T_ref_cam for c, e in extrinsics.cameras.items()}
         pts, cols, idx = fuse_clouds(clouds, T_ref_cam, fused_voxel_m)  # index: names' order
         write_fused_ply(stage / "fused.ply", pts, cols, idx,
                         [c for c in clouds if c in T_ref_cam])
         (stage / REFINE_REPORT).write_text(report_text)
+        if run is not None:
+            report = run.report(extrinsics)
+            (stage / "report.json").write_text(dump_report(report))
+            try:
+                write_report_html(report, stage)
+            except Exception as exc:  # noqa: BLE001 - the page is not worth the result
+                (stage / "report.html").unlink(missing_ok=True)
+                if warn is not None:
+                    warn(f"report.html not written ({type(exc).__name__}: {exc}); "
+                         f"report.json is complete: rgbd-calib report {out_dir} retries")
         write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written

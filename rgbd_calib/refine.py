@@ -189,7 +189,15 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             if weak is not None:
                 overlaps = [ov for ov in overlaps if ov.cam_a in weak or ov.cam_b in weak]
             tick = start(progress, f"registering pairs ({method})", len(overlaps))
-            known = set(scales) | set(depth_scales or {})
+            # In calibrate (``board_covariance`` given) the factors were measured against the
+            # board poses of this same, weak, board solve: their error is its board-pose error
+            # over the board distance (1-3e-4 on a 6-frame race rig, 2-5x the factor's sigma,
+            # which counts depth noise only), i.e. 0.3-1 mm on surfaces 2-3 m away, as large
+            # as the board error the pairs are to correct. So there every pair leaves the
+            # directions a scale error explains to the board (docs/depth.md, "Weak board
+            # data"). refine keeps given factors as known (issue 14, item 3).
+            known = (set() if board_covariance is not None
+                     else set(scales) | set(depth_scales or {}))
             jobs = [(ov.cam_a, ov.cam_b, T_ref_cam[ov.cam_a], T_ref_cam[ov.cam_b],
                      (ov.cam_a not in known, ov.cam_b not in known)) for ov in overlaps]
             for ov, reg in zip(overlaps, register_pairs(clouds, jobs, method, config, workers,
@@ -453,18 +461,67 @@ def load_board_views(report_json: Path) -> tuple[dict[str, np.ndarray], dict[str
     return poses, cams
 
 
-def refine_verdict(init: Extrinsics, result: Extrinsics, depth: DepthRefinement,
-                   ) -> dict[str, Any]:
-    """The refine run in one line plus its evidence: ``verdict`` ``refined`` (pairs used),
-    ``unchanged`` (no usable pair: the result is the initial calibration) or ``check``
-    (cameras moved by more than 3 of their initial sigmas, or depth scales unknown), the
-    ``message``, and per camera its move from ``init`` (mm, deg)."""
+def camera_moves(init: Extrinsics, result: Extrinsics) -> dict[str, dict[str, float]]:
+    """Per camera of both: its move from ``init`` to ``result`` (``moved_mm``, ``moved_deg``)
+    and its ``initial_sigma_mm`` (NaN when ``init`` has none)."""
     moves = {}
     for c, e in result.cameras.items():
         if c in init.cameras:
             deg, mm = transform_error(e.T_ref_cam, init.cameras[c].T_ref_cam)
             moves[c] = {"moved_mm": mm, "moved_deg": deg,
                         "initial_sigma_mm": init.cameras[c].sigma_translation_mm}
+    return moves
+
+
+def fix_verdict(init: Extrinsics, fixed: Extrinsics, moved: list[str],
+                pairs: list[dict[str, Any]]) -> dict[str, Any]:
+    """``refine --fix-others`` in one line: ``verdict`` ``unchanged`` (no camera moved),
+    ``refined`` (every moved camera fits a pair again) or ``check`` (one does not: its pose is
+    the check's estimate), the ``message`` and per camera its move (:func:`camera_moves`)."""
+    if not moved:
+        return {"verdict": "unchanged", "message": "no camera moved beyond the tolerance: "
+                "the extrinsics are --init's", "cameras": camera_moves(init, fixed)}
+    lost = [c for c in moved if not any(c in (p["cam_a"], p["cam_b"]) and p["accepted"]
+                                        for p in pairs)]
+    moves = []
+    for c in moved:
+        deg, mm = transform_error(fixed.T_ref_cam(c), init.T_ref_cam(c))
+        e = fixed.cameras[c]
+        moves.append(f"{c} {mm:.1f} mm / {deg:.2f} deg (now sigma "
+                     f"{e.sigma_translation_mm:.2f} mm / {e.sigma_rotation_deg:.3f} deg)")
+    return {"verdict": "check" if lost else "refined",
+            "message": "re-registered " + "; ".join(moves)
+            + (f"; {', '.join(lost)}: no pair fits after re-registration, kept the "
+               "check's estimate" if lost else ""),
+            "cameras": camera_moves(init, fixed)}
+
+
+def refine_summary(init_path: Path, method: str, verdict: dict[str, Any],
+                   scale_source: dict[str, str], moved: list[str] | None = None,
+                   ) -> dict[str, Any]:
+    """report.json ``refine`` (docs/report_schema.md) of a depth-only run from its verdict
+    (:func:`refine_verdict` or, with ``moved``, the ``--fix-others`` :func:`fix_verdict`) and
+    each camera's depth-scale source (``board`` / ``given`` / ``unknown``; ``none``: the
+    camera has no depth cloud)."""
+    return {
+        "init": str(Path(init_path).resolve()),
+        "registration": method,
+        "fix_others": moved is not None,
+        "outcome": verdict["verdict"],
+        "message": verdict["message"],
+        "moved_since_init": list(moved or []),
+        "cameras": {c: {**m, "depth_scale_source": scale_source.get(c, "none")}
+                    for c, m in verdict["cameras"].items()},
+    }
+
+
+def refine_verdict(init: Extrinsics, result: Extrinsics, depth: DepthRefinement,
+                   ) -> dict[str, Any]:
+    """The refine run in one line plus its evidence: ``verdict`` ``refined`` (pairs used),
+    ``unchanged`` (no usable pair: the result is the initial calibration) or ``check``
+    (cameras moved by more than 3 of their initial sigmas, or depth scales unknown), the
+    ``message``, and per camera its move from ``init`` (mm, deg)."""
+    moves = camera_moves(init, result)
     unknown = sorted(c for c, src in depth.scale_source.items() if src == "unknown")
     far = sorted(c for c, m in moves.items()
                  if np.isfinite(m["initial_sigma_mm"]) and m["initial_sigma_mm"] > 0

@@ -31,6 +31,7 @@ from rgbd_calib.geometry import (
     transform_error,
 )
 from rgbd_calib.graph import RelativePose
+from rgbd_calib.report import validate_report
 from rgbd_calib.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
 
 PAIR_SIGMA_MM, PAIR_SIGMA_DEG = 1.0, 0.03  # a depth pair's sigma, per axis
@@ -218,6 +219,14 @@ def test_refine_fix_others_brings_it_back(bumped_rig, tmp_path):
     report = json.loads((out / "refine_report.json").read_text())
     assert report["verdict"] == "refined" and report["check"]["moved"] == [BUMPED]
     assert (out / "fused.ply").is_file()
+    # the calibration report too (issue 14 item 3): method depth, the same verdict
+    full = json.loads((out / "report.json").read_text())
+    assert validate_report(full) == [] and full["method"] == "depth"
+    assert full["refine"]["fix_others"] and full["refine"]["moved_since_init"] == [BUMPED]
+    assert full["refine"]["outcome"] == "refined"
+    assert full["refine"]["cameras"][BUMPED]["moved_mm"] == pytest.approx(BUMP_MM, abs=5.0)
+    assert "refine_moved" not in {w["code"] for w in full["warnings"]}  # it was meant to move
+    assert "Depth-only refinement report" in (out / "report.html").read_text()
 
 
 def test_check_without_a_calibration_is_one_clear_line(bumped_rig, tmp_path):

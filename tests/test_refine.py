@@ -111,6 +111,8 @@ def test_refinement_helps_weak_board_data_and_never_hurts_strong(tmp_path_factor
         for cam, est in refined.depth.depth_scales.items():
             assert abs(est.factor - gt.depth_scale_bias[cam]) < SCALE_TOL
         if check == "weak":
+            # measured (2026-11-24): 0.801 -> 0.290 mm (-64 %); with the board-estimated depth
+            # scales taken as exact in the pairs it was -15 % (docs/depth.md, "Weak board data")
             mean_ref = np.mean([e_ref[c][1] for c in cams])
             mean_none = np.mean([e_none[c][1] for c in cams])
             assert mean_ref <= (1 - WEAK_GAIN) * mean_none, (mean_ref, mean_none)
@@ -118,3 +120,69 @@ def test_refinement_helps_weak_board_data_and_never_hurts_strong(tmp_path_factor
             for c in cams:
                 allowed = max(STRONG_RATIO * e_none[c][1], STRONG_MM)
                 assert e_ref[c][1] <= e_none[c][1] + allowed, (c, e_ref[c], e_none[c])
+
+
+# ----------------------------------------------------------------------------- refine's report
+def test_refine_writes_the_calibration_report_with_a_verdict(tiny_calibration, tmp_path):
+    """Issue 14, item 3: refine writes report.json (the calibrate schema, method ``depth``,
+    board sections empty) and report.html, with refine_report.json's verdict."""
+    from rgbd_calib.report import rebuild_report, validate_report
+
+    data, calib, _ = tiny_calibration
+    out = tmp_path / "refined"
+    res = CliRunner().invoke(app, ["refine", str(data), "--init", str(calib / "extrinsics.yaml"),
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "report.json").read_text())
+    assert validate_report(report) == []
+    legacy = json.loads((out / "refine_report.json").read_text())
+    assert report["method"] == "depth" and report["refine"]["fix_others"] is False
+    assert report["refine"]["outcome"] == legacy["verdict"]
+    assert report["refine"]["message"] == legacy["message"]
+    assert report["refine"]["init"] == str((calib / "extrinsics.yaml").resolve())
+    # the summary verdict follows the outcome: refined and nothing else found -> good
+    codes = {w["code"] for w in report["warnings"] if w["severity"] != "info"}
+    assert (report["summary"]["verdict"] == "good") == (legacy["verdict"] == "refined"
+                                                        and not codes)
+    # depth: every pair with its reason, the depth scales and where they came from
+    assert report["pairs"] and [p["cam_a"] for p in report["pairs"]] == [
+        p["cam_a"] for p in legacy["pairs"]]
+    assert all(p["accepted"] or p["reason"] for p in report["pairs"])
+    start = json.loads((calib / "report.json").read_text())
+    for cam, entry in report["cameras"].items():
+        assert entry["depth_scale_factor"] == start["cameras"][cam]["depth_scale_factor"]
+        assert report["refine"]["cameras"][cam]["depth_scale_source"] == "given"
+    assert report["depth"]["status"] == legacy["depth"]["status"]
+    # the cameras as extrinsics.yaml has them; no board section filled
+    ext = load_extrinsics(out / "extrinsics.yaml")
+    for cam, e in ext.cameras.items():
+        np.testing.assert_allclose(report["cameras"][cam]["T_ref_cam"], e.T_ref_cam, atol=1e-9)
+        assert report["cameras"][cam]["sigma_translation_mm"] == pytest.approx(
+            e.sigma_translation_mm)
+    assert report["views"] == report["board_views"] == report["markers"] == []
+    assert report["summary"]["reprojection_rms_px"] is None
+    page = (out / "report.html").read_text()
+    assert "Depth-only refinement report" in page and report["refine"]["init"] in page
+    assert "Reprojection error per camera" not in page and "Camera pairs (depth)" in page
+    # and `rgbd-calib report DIR` rebuilds it byte for byte
+    before = (out / "report.json").read_bytes(), (out / "report.html").read_bytes()
+    rebuild_report(out)
+    assert ((out / "report.json").read_bytes(), (out / "report.html").read_bytes()) == before
+
+
+def test_a_failing_figure_costs_the_page_not_the_refined_extrinsics(tiny_calibration, tmp_path,
+                                                                     monkeypatch):
+    from rgbd_calib.report import figures
+
+    def boom(*_):
+        raise RuntimeError("no display")
+
+    monkeypatch.setattr(figures, "fig_rig", boom)
+    data, calib, _ = tiny_calibration
+    out = tmp_path / "refined"
+    res = CliRunner().invoke(app, ["refine", str(data), "--init", str(calib / "extrinsics.yaml"),
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "report.html not written (RuntimeError: no display)" in res.output
+    assert not (out / "report.html").exists()
+    assert (out / "extrinsics.yaml").is_file() and (out / "report.json").is_file()

@@ -19,7 +19,7 @@ a preview cloud), ``layout`` (display frame, frusta), ``figures`` (matplotlib), 
 (``rgbd-calib report DIR``).
 """
 
-from .build import error_map, finalize_report, pair_entry, report_dict
+from .build import depth_only_report_dict, error_map, finalize_report, pair_entry, report_dict
 from .cloud import Cloud, load_cloud
 from .findings import RULES, findings
 from .html import render_html, write_report_html
@@ -42,6 +42,7 @@ __all__ = [
     "RULES",
     "Cloud",
     "ReportError",
+    "depth_only_report_dict",
     "dump_report",
     "error_map",
     "finalize_report",

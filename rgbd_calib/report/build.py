@@ -29,6 +29,7 @@ from .schema import (
 if TYPE_CHECKING:
     from ..calibrate import CalibrationResult
     from ..graph import BundleResult, PoseGraphResult
+    from ..results import Extrinsics
     from ..rig import Rig
 
 FACE_NAMES = {1: "front", -1: "back", 0: "both"}
@@ -91,6 +92,74 @@ def report_dict(
             report["bundle"]["self_calibration"] = result.self_calibration.to_dict()
     if getattr(result, "depth", None) is not None:
         report["depth"] = result.depth.status_dict()
+    return finalize_report(to_builtin(report))
+
+
+def depth_only_report_dict(
+    extrinsics: Extrinsics,
+    rig: Rig,
+    dataset_summary: dict[str, Any],
+    refine: dict[str, Any],
+    pairs: list[dict[str, Any]],
+    depth_status: dict[str, Any],
+    depth_scale: dict[str, dict[str, float | None]] | None = None,
+    timings_s: dict[str, float] | None = None,
+) -> dict[str, Any]:
+    """``report.json`` of a depth-only refinement (``rgbd-calib refine``, method ``depth``):
+    the same schema as a calibration's, the board sections empty (no view, board pose or
+    marker; ``board`` and ``pose_graph`` zero / null), plus ``refine``: where it started
+    (``init``), how (``registration``, ``fix_others``), its ``outcome`` and ``message`` (the
+    ``verdict`` and ``message`` of refine_report.json), the cameras found moved since ``init``
+    (``moved_since_init``, ``--fix-others`` only) and per camera its move from ``init`` and
+    where its depth-scale factor came from (``refine["cameras"]``).
+
+    ``pairs`` and ``depth_scale`` (camera -> ``{"factor", "sigma"}``, sigma may be None) as
+    for :func:`report_dict`; ``depth_status`` is report.json ``depth``."""
+    edges_px = histogram_edges_px(np.zeros(0))
+    zeros = [0] * (len(edges_px) - 1)
+    depth_scale = depth_scale or {}
+    cameras = {}
+    for name in rig.names:
+        scale = depth_scale.get(name) or {}
+        cameras[name] = {
+            "calibrated": name in extrinsics.cameras,
+            "views_used": 0,
+            "views_dropped": 0,
+            "dropped_reasons": {},
+            "pnp_reprojection_rms_px": None,
+            **_pose_entry(extrinsics, name, why_not=f"not in {refine['init']}"),
+            "intrinsics": rig.cameras[name].to_dict(),
+            "reprojection_px": None,
+            "reprojection_all_px": None,
+            "reprojection_histogram": {"used": list(zeros), "excluded": list(zeros)},
+            "edge_outliers": 0,
+            "depth_scale_factor": scale.get("factor"),
+            "depth_scale_sigma": scale.get("sigma"),
+        }
+    report: dict[str, Any] = {
+        "schema_version": REPORT_SCHEMA_VERSION,
+        "rgbd_calib_version": __version__,
+        "reference": extrinsics.reference,
+        "method": "depth",
+        "dataset": {
+            **dataset_summary,
+            "path": str(rig.source.parent.resolve()) if rig.source else None,
+        },
+        "board": {"markers_seen": 0, "extent_m": None, "thickness_m": None},
+        "cameras": cameras,
+        "unconnected": {c: cameras[c]["why_not"] for c in rig.names
+                        if not cameras[c]["calibrated"]},
+        "pose_graph": {"edges": 0, "used": 0, "stale": 0, "outliers": [], "model_error": []},
+        "views": [],
+        "board_views": [],
+        "markers": [],
+        "reprojection_histogram_edges_px": edges_px.tolist(),
+        "dropped_views": [],
+        "pairs": [pair_entry(p) for p in pairs],
+        "timings_s": dict(timings_s or {}),
+        "depth": depth_status,
+        "refine": refine,
+    }
     return finalize_report(to_builtin(report))
 
 
@@ -175,24 +244,14 @@ def _camera_entry(
     mine = [r for r in rows if r["obs"].camera == name and r["rms"] is not None]
     used = np.concatenate([r["rms"][r["used_markers"]] for r in mine]) if mine else []
     every = np.concatenate([r["rms"] for r in mine]) if mine else []
-    calibrated = name in result.extrinsics.cameras
     entry: dict[str, Any] = {
-        "calibrated": calibrated,
+        "calibrated": name in result.extrinsics.cameras,
         "views_used": len(obs),
         "views_dropped": len(rej),
         "dropped_reasons": _count([r.reason for r in rej]),
         "pnp_reprojection_rms_px": _percentiles([o.reprojection_rms_px for o in obs]),
-        "T_ref_cam": None,
-        "translation_m": None,
-        "quaternion_xyzw": None,
-        "sigma_rotation_deg": None,
-        "sigma_translation_mm": None,
-        "why_not": None,
+        **_pose_entry(result.extrinsics, name),
     }
-    if calibrated:
-        entry.update(result.extrinsics.cameras[name].to_dict())
-    else:
-        entry["why_not"] = result.extrinsics.unconnected.get(name, "unknown")
     if result.bundle is not None:
         res = [r[3] for r in result.bundle.residuals_px if r[0] == name]
         entry["bundle_marker_rms_px"] = _percentiles(res)
@@ -220,6 +279,25 @@ def _camera_entry(
             "depth_scale_sigma": scale.get("sigma"),
         }
     )
+    return entry
+
+
+def _pose_entry(extrinsics: Extrinsics, name: str, why_not: str = "unknown") -> dict[str, Any]:
+    """The extrinsics keys of ``cameras.<name>`` (``T_ref_cam`` ... ``why_not``): the camera's
+    pose and sigmas, or nulls and why it has none (``extrinsics.unconnected``, else
+    ``why_not``)."""
+    entry: dict[str, Any] = {
+        "T_ref_cam": None,
+        "translation_m": None,
+        "quaternion_xyzw": None,
+        "sigma_rotation_deg": None,
+        "sigma_translation_mm": None,
+        "why_not": None,
+    }
+    if name in extrinsics.cameras:
+        entry.update(extrinsics.cameras[name].to_dict())
+    else:
+        entry["why_not"] = extrinsics.unconnected.get(name, why_not)
     return entry
 
 

@@ -418,7 +418,9 @@ def render_figures(
     report: dict[str, Any], cloud: Cloud | None, frame: np.ndarray, tick: Tick
 ) -> dict[str, str | None]:
     """Every figure of the page by key (None: not drawn), ``tick(1)`` after each."""
-    figs = {}
+    figs: dict[str, str | None] = {}
+    board_only = ("hist", "edges", "covis", "coverage", "distance", "markers")
+    depth_only = report.get("refine") is not None  # no board result: no board figure
     for key, fn in (
         ("rig", lambda: fig_rig(report, frame)),
         ("hist", lambda: fig_histograms(report)),
@@ -435,6 +437,6 @@ def render_figures(
             ),
         ),
     ):
-        figs[key] = fn()
+        figs[key] = None if depth_only and key in board_only else fn()
         tick(1)
     return figs

@@ -35,6 +35,7 @@ from .schema import (
     PAIR_FINAL_EXCESS_MM,
     PAIR_FITNESS_MIN,
     PAIR_RMSE_MAX_MM,
+    REFINE_MOVE_SIGMAS,
     REPROJECTION_FACTOR,
     REPROJECTION_MIN_PX,
     RIG_REPROJECTION_MAX_PX,
@@ -605,23 +606,28 @@ def each_pair(*checks: Callable[[dict[str, Any]], Finding | None]) -> Rule:
 
 def depth_unused(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     """The depth stage ran but no pair went into the solve: the result is the board's alone
-    (not when the stage skipped registration because the board constrains every camera)."""
+    (not when the stage skipped registration because the board constrains every camera), or
+    in a depth-only refinement the initial extrinsics."""
     status = (report.get("depth") or {}).get("status")
     if status is not None and status != "fallback":
         return []
-    if "depth" not in report.get("timings_s", {}) or any(p["accepted"] for p in report["pairs"]):
+    ran = "depth" in report.get("timings_s", {}) or _depth_only(report)
+    if not ran or any(p["accepted"] for p in report["pairs"]):
         return []
+    start = "the initial extrinsics (--init)" if _depth_only(report) else "the board result"
     pairs = report["pairs"]
     reasons = sorted({str(p["reason"]).split(";")[0] for p in pairs if p["reason"]})
     why = (f"all {len(pairs)} camera pairs were rejected ({'; '.join(reasons[:3])}"
            f"{'; ...' if len(reasons) > 3 else ''})" if pairs
-           else "no camera pair overlapped under the board extrinsics")
+           else (report.get("depth") or {}).get("reason")
+           or "no camera pair overlapped under the board extrinsics")
     return [finding(
         "warning",
         "depth_unused",
         [],
-        f"Depth refinement added nothing: {why}; the extrinsics are the board result.",
-        "The board result stands on its own; see the pairs table for each pair's reason.",
+        f"Depth refinement added nothing: {why}; the extrinsics are {start}.",
+        f"{start[0].upper()}{start[1:]} stands on its own; see the pairs table for each "
+        "pair's reason.",
     )]
 
 
@@ -693,6 +699,71 @@ def depth_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]
     ]
 
 
+# ----------------------------------------------------------------------------- depth-only
+def _depth_only(report: dict[str, Any]) -> bool:
+    """A report of ``rgbd-calib refine`` (no board result; schema 1.3 ``refine``)."""
+    return report.get("refine") is not None
+
+
+def refine_moved(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Depth-only refinement: cameras the depth pairs moved by more than 3 of their initial
+    sigmas (not the ones ``--fix-others`` found moved: those were meant to move)."""
+    ref = report["refine"]
+    far = [(c, m) for c, m in ref["cameras"].items()
+           if c not in ref["moved_since_init"] and m["initial_sigma_mm"]
+           and m["moved_mm"] > REFINE_MOVE_SIGMAS * m["initial_sigma_mm"]]
+    if not far:
+        return []
+    return [finding(
+        "warning",
+        "refine_moved",
+        [c for c, _ in far],
+        "The depth pairs moved " + ", ".join(
+            f"{c} by {m['moved_mm']:.2f} mm ({m['moved_mm'] / m['initial_sigma_mm']:.0f} "
+            "initial sigmas)" for c, m in far)
+        + ": the depth and the initial calibration disagree.",
+        "Check those cameras' depth (scale, multipath on shiny surfaces) and whether they "
+        "moved since the calibration (rgbd-calib check); the initial extrinsics are in --init.",
+    )]
+
+
+def depth_scale_unknown(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Depth-only refinement: cameras whose depth-scale factor was neither in the report.json
+    next to --init nor measured from a board in view."""
+    unknown = [c for c, m in report["refine"]["cameras"].items()
+               if m["depth_scale_source"] == "unknown"]
+    if not unknown:
+        return []
+    return [finding(
+        "warning",
+        "depth_scale_unknown",
+        unknown,
+        f"Depth scale unknown for {', '.join(unknown)}: their pairs were not allowed to move "
+        "them along the directions a depth-scale error explains.",
+        "Keep the calibration's report.json next to the --init extrinsics.yaml (it holds "
+        "each camera's depth-scale factor), or record with the board in view.",
+    )]
+
+
+def refit_failed(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """``refine --fix-others``: a camera found moved that no pair fits after its
+    re-registration (its pose is the check's estimate)."""
+    ref = report["refine"]
+    lost = [c for c in ref["moved_since_init"]
+            if not any(p["accepted"] and c in (p["cam_a"], p["cam_b"]) for p in report["pairs"])]
+    if not lost:
+        return []
+    return [finding(
+        "warning",
+        "refit_failed",
+        lost,
+        f"{', '.join(lost)} moved since the calibration, and no camera pair fits after "
+        "re-registering: its pose is the check's rough estimate.",
+        f"Calibrate {', '.join(lost)} again with the board (or record frames where it overlaps "
+        "more of its neighbours' views).",
+    )]
+
+
 RULES: tuple[Rule, ...] = (
     not_calibrated,
     inconsistent_camera,
@@ -716,10 +787,23 @@ RULES: tuple[Rule, ...] = (
 )
 
 
+# a depth-only refinement has no board views: only these rules apply to it
+DEPTH_ONLY_RULES: tuple[Rule, ...] = (
+    not_calibrated,
+    each_pair(pair_disagrees, pair_rmse, pair_fitness),
+    depth_unused,
+    refine_moved,
+    depth_scale_unknown,
+    refit_failed,
+    board_scale,
+    depth_scale,
+)
+
+
 def findings(report: dict[str, Any]) -> list[Finding]:
-    """Every rule of :data:`RULES` over a report with its ``summary`` and coverage, errors
-    first, then warnings, then infos."""
+    """Every rule of :data:`RULES` (:data:`DEPTH_ONLY_RULES` for a depth-only refinement) over
+    a report with its ``summary`` and coverage, errors first, then warnings, then infos."""
     found: list[Finding] = []
-    for rule in RULES:
+    for rule in DEPTH_ONLY_RULES if _depth_only(report) else RULES:
         found += rule(report, found)
     return sorted(found, key=lambda w: SEVERITY_ORDER[w["severity"]])

@@ -111,13 +111,34 @@ def _head(report: dict[str, Any]) -> list[str]:
         "<meta name='viewport' content='width=device-width,initial-scale=1'>"
         f"<title>rgbd-calib report: {_e(ds.get('path') or '')}</title>"
         f"<style>{_CSS}</style><script>{_JS_GUARD}</script></head><body><main>",
-        f"<h1>Calibration report <span class='verdict {summ['verdict']}'>"
-        f"{_e(summ['verdict'].upper())}</span></h1>",
+        f"<h1>{'Depth-only refinement' if _depth_only(report) else 'Calibration'} report "
+        f"<span class='verdict {summ['verdict']}'>{_e(summ['verdict'].upper())}</span></h1>",
+        *_refine_head(report),
         f"<div class='sub'>dataset <code>{_e(ds.get('path'))}</code> &middot; method "
         f"<b>{_e(report['method'])}</b> &middot; reference camera <b>{_e(report['reference'])}"
         f"</b> (world frame = its colour optical frame: x right, y down, z forward) &middot; "
         f"rgbd-calib {_e(report['rgbd_calib_version'])}, report schema "
         f"{_e(report['schema_version'])}</div>",
+    ]
+
+
+def _depth_only(report: dict[str, Any]) -> bool:
+    """A report of ``rgbd-calib refine`` (method ``depth``): no board result."""
+    return report.get("refine") is not None
+
+
+def _refine_head(report: dict[str, Any]) -> list[str]:
+    """The line saying what a depth-only refinement is and where it started."""
+    if not _depth_only(report):
+        return []
+    ref = report["refine"]
+    what = ("only the cameras found moved since it were re-registered (--fix-others)"
+            if ref["fix_others"] else "every overlapping camera pair registered")
+    return [
+        f"<p><b>Depth-only refinement</b> ({_e(ref['registration'])}) starting from "
+        f"<code>{_e(ref['init'])}</code>: {what}. No board was used, so the board sections "
+        f"of a calibration report (views, markers, reprojection, coverage) are empty. "
+        f"Outcome <b>{_e(ref['outcome'])}</b>: {_e(ref['message'])}.</p>"
     ]
 
 
@@ -243,9 +264,61 @@ def _camera_row(
     ]
 
 
+def _depth_only_summary(report: dict[str, Any], colors: list, flagged: set[str]) -> list[str]:
+    """Summary and cameras tables of a depth-only refinement: pairs, sigmas, each camera's
+    move from the initial extrinsics and its depth-scale factor and source."""
+    summ, ref, pairs = report["summary"], report["refine"], report["pairs"]
+    worst_t = summ["worst_sigma_translation_mm"]
+    rows = [
+        ("cameras with extrinsics", f"{summ['n_calibrated']} / {summ['n_cameras']}", ""),
+        ("frame sets", summ["n_frames"], ""),
+        ("camera pairs accepted / registered",
+         f"{sum(bool(p['accepted']) for p in pairs)} / {len(pairs)}", ""),
+        ("median 1-sigma rotation / translation",
+         f"{_num(summ['median_sigma_rotation_deg'], 4)} / "
+         f"{_num(summ['median_sigma_translation_mm'], 3)}", "deg / mm"),
+        ("worst 1-sigma translation",
+         f"{worst_t['value']:.3f} ({_e(worst_t['camera'])})" if worst_t else "n/a", "mm"),
+        ("depth stage", _e(report["depth"]["status"]), _e(report["depth"]["reason"] or "")),
+    ]
+    cam_rows = []
+    for i, (name, c) in enumerate(report["cameras"].items()):
+        m = ref["cameras"].get(name) or {}
+        label = f"<span class='bad'>{_e(name)}</span>" if name in flagged else _e(name)
+        cam_rows.append([
+            "<i style='display:inline-block;width:10px;height:10px;margin-right:5px;"
+            f"background:{_swatch(colors[i])}'></i>" + label
+            + (" (ref)" if name == report["reference"] else ""),
+            "yes" if c["calibrated"] else "<span class='bad'>no</span>",
+            _num(c["sigma_rotation_deg"], 4),
+            _num(c["sigma_translation_mm"], 3),
+            " ".join(_num(v, 3) for v in c["translation_m"] or [None] * 3),
+            f"{_num(m.get('moved_mm'), 2)} / {_num(m.get('moved_deg'), 3)}",
+            _num(m.get("initial_sigma_mm"), 3),
+            _num(c["depth_scale_factor"], 4),
+            _e(m.get("depth_scale_source", "-")),
+        ])
+    return [
+        "<section><h2>Summary</h2>"
+        + _table(["quantity", "value", "unit"], [(a, str(b), c) for a, b, c in rows]),
+        "<h3>Cameras</h3>"
+        + _table(["camera", "has extrinsics", "&sigma; rot (deg)", "&sigma; trans (mm)",
+                  "x y z (m)", "moved from --init (mm / deg)", "initial &sigma; trans (mm)",
+                  "depth scale factor", "scale from"], cam_rows, left=(8,)),
+        "<p class='cap'>&sigma;: 1-sigma marginal uncertainty of T_ref_cam (largest single "
+        "axis) after the refinement. Moved: from the --init extrinsics. Depth scale: measured / "
+        "true depth; from <i>given</i> (the report.json next to --init), <i>board</i> "
+        "(estimated from the board in view), <i>unknown</i> (the camera's pairs were not "
+        "allowed to move it along what a scale error explains) or <i>none</i> (no depth "
+        "cloud).</p></section>",
+    ]
+
+
 def _summary_section(report: dict[str, Any], colors: list) -> list[str]:
     """The summary table and the cameras table."""
     flagged = {c for w in report["warnings"] if w["severity"] != "info" for c in w["cameras"]}
+    if _depth_only(report):
+        return _depth_only_summary(report, colors, flagged)
     rows = _summary_rows(report)
     cam_rows = [
         _camera_row(report, name, colors[i], flagged) for i, name in enumerate(report["cameras"])
@@ -441,6 +514,7 @@ def _pairs_section(report: dict[str, Any], figs: Figures) -> list[str]:
                     "ICP fitness",
                     "RMSE before (mm)",
                     "RMSE after (mm)",
+                    "RMSE final (mm)",
                     "correction (deg / mm)",
                     "accepted",
                 ],
@@ -451,11 +525,14 @@ def _pairs_section(report: dict[str, Any], figs: Figures) -> list[str]:
                         _num(p["fitness"], 2),
                         _num(p["rmse_before_mm"], 2),
                         _num(p["rmse_after_mm"], 2),
+                        _num(p["rmse_final_mm"], 2),
                         f"{_num(p['correction_deg'], 3)} / {_num(p['correction_mm'], 2)}",
-                        {True: "yes", False: "no"}.get(p["accepted"], "n/a"),
+                        {True: "yes", False: "no"}.get(p["accepted"], "n/a")
+                        + (f": {_e(p['reason'])}" if p["reason"] else ""),
                     ]
                     for p in report["pairs"]
                 ],
+                left=(7,),
             )
         )
         if figs["errmap"]:
@@ -544,6 +621,7 @@ def render_html(
     frame = display_frame(report)
     figs = render_figures(report, cloud, frame, tick)
     colors = palette(report)
+    board = not _depth_only(report)  # the board sections need a board result
     sections = (
         _head(report),
         _verdict_section(report),
@@ -552,11 +630,11 @@ def render_html(
         _rig_section(figs),
         _viewer_section(report, colors, cloud, no_cloud_reason),
         _cloud_section(figs, cloud, no_cloud_reason),
-        _residual_sections(figs),
-        _coverage_section(report, figs),
-        _markers_section(figs),
+        _residual_sections(figs) if board else [],
+        _coverage_section(report, figs) if board else [],
+        _markers_section(figs) if board else [],
         _pairs_section(report, figs),
-        _dropped_section(report),
+        _dropped_section(report) if board else [],
         _footer(report, cloud, frame),
     )
     return "\n".join(chunk for section in sections for chunk in section)

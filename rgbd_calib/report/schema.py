@@ -13,7 +13,7 @@ from typing import Any
 
 from ..errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.2"
+REPORT_SCHEMA_VERSION = "1.3"
 
 
 class ReportError(RgbdCalibError):
@@ -47,6 +47,7 @@ GLUE_MIN_DEG = 0.05  # ... or this rotation
 BOARD_SCALE_MIN = 0.01  # every camera's depth scale off by this much the same way: the print
 BOARD_SCALE_SPREAD = 0.003  # camera-to-camera depth-scale spread allowed on top of the sigmas
 DEPTH_SCALE_TOL = 0.003  # |factor - 1| above this: the camera's depth needs its scale
+REFINE_MOVE_SIGMAS = 3.0  # refine: a camera moved by more than this many initial sigmas
 INTRINSICS_SUPPORT_MAX = 0.5  # a refined parameter's sigma above this x its prior's: the
 # data added little to the rig.yaml value (few views, corners not reaching the image border)
 COVERAGE_GRID = (48, 27)  # sample points across, down, for the image coverage of a camera
@@ -252,6 +253,17 @@ REPORT_SCHEMA: dict[str, Any] = {
     "pairs": ListOf(PAIR_SCHEMA),
     "timings_s": MapOf("<stage>", N),
     "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S)},
+    "refine?": {
+        "init": S,
+        "registration": S,
+        "fix_others": B,
+        "outcome": S,
+        "message": S,
+        "moved_since_init": ListOf(S),
+        "cameras": MapOf("<camera>", {"moved_mm": N, "moved_deg": N,
+                                      "initial_sigma_mm": Nullable(N),
+                                      "depth_scale_source": S}),
+    },
     "bundle?": {
         "pixel_sigma_estimated": N,
         "iterations": INT,
@@ -294,7 +306,9 @@ REPORT_SCHEMA: dict[str, Any] = {
     "next_steps": ListOf(S),
 }
 ENUMS = {
-    "method": {"bundle", "posegraph"},
+    "method": {"bundle", "posegraph", "depth"},
+    "outcome": {"refined", "unchanged", "check"},
+    "depth_scale_source": {"board", "given", "unknown", "none"},
     "face": {"front", "back", "both"},
     "edge_status": {"used", "outlier", "stale", "unused"},
     "verdict": {"good", "check", "poor"},
