@@ -472,7 +472,7 @@ def _calibrate_and_write(ds, board, cfg, out: Path, fixed=None):
         result = run_calibration(
             ds, board, cfg, cache_dir=out / "cache", fixed_cameras=fixed, progress=progress
         )
-        write_outputs(result, ds.rig, out, progress=progress)
+        write_outputs(result, ds.rig, out, progress=progress, warn=_warn_line)
     return result
 
 
@@ -705,10 +705,6 @@ def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolera
                   soft_wrap=True)
     console.print(f"results in {out}/ (extrinsics.yaml, report.html, report.json, "
                   "refine_report.json, fused.ply)")
-
-
-def _warn_line(message: str) -> None:
-    console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
 
 
 @command()

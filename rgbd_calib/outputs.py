@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -47,8 +48,8 @@ from .yamlio import to_builtin, write_yaml
 def staged(out_dir: Path, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
     """A staging folder for one run's outputs; when the block ends without error every file
     in it is renamed into ``out_dir`` (sub-folders kept), ``extrinsics.yaml`` last, and each
-    name in ``replaces`` that the run did not write is removed from ``out_dir`` (it would
-    belong to an older run). On an error ``out_dir`` is left exactly as it was."""
+    name (file or folder) in ``replaces`` that the run did not write is removed from
+    ``out_dir`` (it would belong to an older run). On an error ``out_dir`` is left exactly as it was."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     stage = out_dir / f".staging-{os.getpid()}"
@@ -58,7 +59,10 @@ def staged(out_dir: Path, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
         yield stage
         for name in replaces:
             if not (stage / name).exists():
-                (out_dir / name).unlink(missing_ok=True)
+                if (out_dir / name).is_dir():
+                    shutil.rmtree(out_dir / name)
+                else:
+                    (out_dir / name).unlink(missing_ok=True)
         for path in sorted(stage.rglob("*"), key=lambda p: p.name == "extrinsics.yaml"):
             if not path.is_dir():
                 target = out_dir / path.relative_to(stage)
@@ -93,6 +97,7 @@ def write_outputs(
     pairs: list[dict[str, Any]] | None = None,
     depth_scale: dict[str, dict[str, float]] | None = None,
     progress: Progress | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> list[Path]:
     """Write extrinsics.yaml, report.json, report.html, config_resolved.yaml and exports/
     into out_dir (and fused.ply, copied from ``fused_ply`` when the depth stage made one;
@@ -101,9 +106,15 @@ def write_outputs(
     it, when it refined the board).
 
     Without ``fused_ply`` an older ``out_dir/fused.ply`` is removed (it would belong to another
-    run) and the report previews the cloud from the dataset's depth frames."""
+    run) and the report previews the cloud from the dataset's depth frames.
+
+    A finished calibration is never lost to its side products: when ``report.html`` or an
+    export cannot be made, that file (or ``exports/``) is left out and ``warn(why)`` says so
+    (default: a Python warning); extrinsics.yaml and report.json are written all the same."""
     out_dir = Path(out_dir)
-    with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED)) as stage:
+    warn = warn or _python_warning
+    with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED, "report.html",
+                                   "exports")) as stage:
         if result.bundle is not None and result.bundle.intrinsics:
             save_rig(refined_rig(rig, result.bundle), stage / RIG_REFINED)
         model = result.bundle.board if result.bundle is not None else None
@@ -122,14 +133,32 @@ def write_outputs(
         (stage / "report.json").write_text(dump_report(report))
         if fused_ply is not None:
             shutil.copyfile(fused_ply, stage / "fused.ply")
-        write_report_html(report, stage, progress=progress)
+        try:
+            write_report_html(report, stage, progress=progress)
+        except Exception as exc:  # noqa: BLE001 - the page is not worth the result
+            (stage / "report.html").unlink(missing_ok=True)
+            warn(f"report.html not written ({_one_line(exc)}); report.json is complete: "
+                 f"rgbd-calib report {out_dir} retries")
         write_config(result.config, stage / "config_resolved.yaml")
         boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
-        write_exports(result.extrinsics, stage, rig=rig, edges=used_edges(result),
-                      board_poses=boards)
+        try:
+            write_exports(result.extrinsics, stage, rig=rig, edges=used_edges(result),
+                          board_poses=boards)
+        except Exception as exc:  # noqa: BLE001 - an export is not worth the result
+            shutil.rmtree(stage / "exports", ignore_errors=True)
+            warn(f"exports/ not written ({_one_line(exc)}); extrinsics.yaml is complete "
+                 "(rgbd_calib.write_exports makes them from it)")
         write_extrinsics(result.extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written
+
+
+def _one_line(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}".splitlines()[0][:300]
+
+
+def _python_warning(message: str) -> None:
+    warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
 REFINE_REPORT = "refine_report.json"

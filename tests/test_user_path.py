@@ -371,3 +371,32 @@ def test_script_calling_at_import_time_despite_a_guard_word_gets_one_clear_error
 
 
 GUARD_TEXT = 'if __name__ == "__main__":'
+
+
+def test_a_failing_figure_or_export_never_loses_the_calibration(tiny_dataset, tmp_path,
+                                                                  monkeypatch):
+    """A figure of report.html and an export that raise: calibrate still writes
+    extrinsics.yaml and report.json, says what was left out in one warning each, exits 0, and
+    leaves no half-written exports/ (issue 16: a finished calibration is never lost)."""
+    from typer.testing import CliRunner
+
+    from rgbd_calib import exports
+    from rgbd_calib.cli import app
+    from rgbd_calib.report import figures
+
+    def boom(*_args, **_kwargs):
+        raise RuntimeError("broken on purpose")
+
+    out = tmp_path / "out"
+    (out / "exports").mkdir(parents=True)
+    (out / "exports" / "stale.txt").write_text("an older run's export")
+    monkeypatch.setattr(figures, "fig_rig", boom)
+    monkeypatch.setattr(exports, "urdf_text", boom)
+    res = CliRunner().invoke(app, ["calibrate", str(tiny_dataset), "--out", str(out),
+                                   "--refine", "none", "--workers", "1"])
+    assert res.exit_code == 0, res.output
+    assert "report.html not written (RuntimeError: broken on purpose)" in res.output
+    assert "exports/ not written (RuntimeError: broken on purpose)" in res.output
+    assert (out / "extrinsics.yaml").is_file() and (out / "report.json").is_file()
+    assert not (out / "report.html").exists() and not (out / "exports").exists()
+    assert load_extrinsics(out / "extrinsics.yaml").reference == "cam7"
