@@ -49,7 +49,8 @@ def staged(out_dir: Path, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
     """A staging folder for one run's outputs; when the block ends without error every file
     in it is renamed into ``out_dir`` (sub-folders kept), ``extrinsics.yaml`` last, and each
     name (file or folder) in ``replaces`` that the run did not write is removed from
-    ``out_dir`` (it would belong to an older run). On an error ``out_dir`` is left exactly as it was."""
+    ``out_dir`` (it would belong to an older run). On an error ``out_dir`` is left exactly
+    as it was."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     stage = out_dir / f".staging-{os.getpid()}"

@@ -263,8 +263,8 @@ def markdown(payload: dict[str, Any]) -> str:
         f" DN); load average {meta['load_start']} at start, {meta['load_end']} at the end "
         f"({meta['machine']}). Errors over the non-reference cameras; err/sigma is the RMS "
         "of error / claimed 1-sigma (translation / rotation), NEES the RMS of "
-        "sqrt(xi^T C^-1 xi / 6) with the full 6x6 covariance (1 = honest); s is the wall time without "
-        "the (cached) marker detection.\n\n"
+        "sqrt(xi^T C^-1 xi / 6) with the full 6x6 covariance (1 = honest); s is the wall "
+        "time without the (cached) marker detection.\n\n"
     )
     cols = ("kept", "worst mm / deg", "err/sigma t / r / NEES", "s")
     ms = meta["methods"]
