@@ -29,7 +29,8 @@ from .ply import write_fused_ply
 from .posegraph_pipeline import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
 from .progress import Progress
 from .refine import DepthRefinement
-from .report import dump_report, finite_or_null, report_dict, write_report_html
+from .report import finite_or_null, report_dict, write_report_html
+from .report.storage import VIEWS_FILE, VIEWS_INLINE_MAX, write_report_json
 from .results import Extrinsics, PoseEdge, write_extrinsics
 from .rig import Rig, save_rig
 from .yamlio import to_builtin, write_yaml
@@ -85,6 +86,7 @@ def write_outputs(
     pairs: list[dict[str, Any]] | None = None,
     depth_scale: dict[str, dict[str, float]] | None = None,
     progress: Progress | None = None,
+    views_inline_max: int = VIEWS_INLINE_MAX,
 ) -> list[Path]:
     """Write extrinsics.yaml, report.json, report.html, config_resolved.yaml and exports/
     into out_dir (and fused.ply, copied from ``fused_ply`` when the depth stage made one;
@@ -93,9 +95,11 @@ def write_outputs(
     it, when it refined the board).
 
     Without ``fused_ply`` an older ``out_dir/fused.ply`` is removed (it would belong to another
-    run) and the report previews the cloud from the dataset's depth frames."""
+    run) and the report previews the cloud from the dataset's depth frames. Above
+    ``views_inline_max`` views the per-view detail of report.json is written to
+    report_views.ndjson.gz (:mod:`rgbd_calib.report.storage`)."""
     out_dir = Path(out_dir)
-    with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED)) as stage:
+    with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED, VIEWS_FILE)) as stage:
         if result.bundle is not None and result.bundle.intrinsics:
             save_rig(refined_rig(rig, result.bundle), stage / RIG_REFINED)
         model = result.bundle.board if result.bundle is not None else None
@@ -111,7 +115,8 @@ def write_outputs(
                     T_ref_cam, result.config.depth.fused_voxel_m)
                 write_fused_ply(stage / "fused.ply", pts, cols, idx, names)
         report = report_dict(result, rig, pairs, depth_scale)
-        (stage / "report.json").write_text(dump_report(report))
+        # above views_inline_max views, the per-view detail goes to report_views.ndjson.gz
+        write_report_json(report, stage, views_inline_max)
         if fused_ply is not None:
             shutil.copyfile(fused_ply, stage / "fused.ply")
         write_report_html(report, stage, progress=progress)
