@@ -128,7 +128,13 @@ def connect(scheduler: str, timeout_s: float | None = None):
     try:
         with ThreadPoolExecutor(1) as thread:
             thread.submit(asyncio.run, probe()).result()
-    except (OSError, TimeoutError, ValueError, TypeError) as exc:
+    except (ValueError, TypeError) as exc:
+        why = " ".join(str(exc).split()) or type(exc).__name__
+        raise ConfigError(
+            f"--scheduler {scheduler}: not a Dask scheduler address ({why}); give it as "
+            f"tcp://HOST:8786 ({DASK_HINT})"
+        ) from None
+    except (OSError, TimeoutError) as exc:
         why = " ".join(str(exc).split()) or type(exc).__name__
         raise ConfigError(
             f"--scheduler {scheduler}: no Dask scheduler answered there within "

@@ -161,6 +161,11 @@ def test_a_scheduler_without_workers_is_one_line(monkeypatch):
             executor(scheduler=empty.scheduler_address)
 
 
+def test_a_malformed_address_is_one_line():
+    with pytest.raises(ConfigError, match=r"^--scheduler foo://h:1: not a Dask scheduler address"):
+        parallel.connect("foo://h:1")
+
+
 def test_without_dask_installed_the_error_names_the_extra(monkeypatch):
     monkeypatch.setitem(__import__("sys").modules, "distributed", None)
     with pytest.raises(ConfigError, match=r"rgbd-calib\[dask\]"):
