@@ -104,7 +104,9 @@ def test_initializer_runs_on_every_worker_and_map_keeps_order(tiny_dataset, clus
 def test_leaving_by_ctrl_c_cancels_the_tasks_and_closes_the_client(cluster):
     with pytest.raises(KeyboardInterrupt):
         with executor(scheduler=cluster) as ex:
-            futures = [ex.submit(time.sleep, 30) for _ in range(4)]
+            # a running task cannot be stopped (Dask cancels what has not started; a thread
+            # runs on): short sleeps, so the next test does not wait for them
+            futures = [ex.submit(time.sleep, 2) for _ in range(4)]
             raise KeyboardInterrupt
     assert ex._client.status == "closed"
     with Client(cluster, set_as_default=False) as client:
