@@ -38,7 +38,7 @@ from .graph import (
     bundle_adjust,
     calibrate_pose_graph,
 )
-from .parallel import WorkerPool
+from .parallel import executor as make_executor
 from .pose import BoardObservation, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
 from .refine import (
@@ -117,8 +117,10 @@ def detect_dataset(
     cache_path: Path | None = None,
     workers: int | None = None,
     progress: Tick | None = None,
+    scheduler: str | None = None,
 ) -> dict[tuple[str, str], MarkerDetections]:
-    """Detect markers in every colour image, in a process pool, reusing a cache.
+    """Detect markers in every colour image, in a process pool (or on the Dask cluster of
+    ``scheduler``, :func:`rgbd_calib.parallel.executor`), reusing a cache.
 
     The cache (JSON) is keyed by the board and detection settings and, per image, by file
     size and modification time; it is saved every few hundred images so an interrupted run
@@ -162,17 +164,17 @@ def detect_dataset(
     workers = workers or os.cpu_count() or 1
     done_since_save = 0
     executor = None
+    if scheduler and jobs:
+        # connected before the try: a scheduler that does not answer writes no cache
+        executor = make_executor(scheduler=scheduler, initializer=init_detector,
+                                 initargs=(board, config))
+    elif workers > 1 and len(jobs) >= 8:
+        executor = make_executor(workers, initializer=init_detector, initargs=(board, config))
     try:
-        if workers <= 1 or len(jobs) < 8:
+        if executor is None:
             init_detector(board, config, threads=-1)
             iterator = map(detect_job, jobs)
-            executor = None
         else:
-            executor = WorkerPool(
-                workers,
-                initializer=init_detector,
-                initargs=(board, config),
-            )
             iterator = executor.map(detect_job, jobs, chunksize=4)
         for cam, frame, det in iterator:
             results[(cam, frame)] = MarkerDetections.from_dict(det)
@@ -185,7 +187,7 @@ def detect_dataset(
     finally:
         if jobs:
             save()
-        if jobs and executor is not None:
+        if executor is not None:
             executor.shutdown(cancel_futures=True)
     return results
 
@@ -211,7 +213,8 @@ def calibrate(
     with timed(timings, "detection"):
         tick = start(progress, "detecting markers", n_images)
         cache = cache_dir / "detections.json" if cache_dir is not None else None
-        detections = detect_dataset(dataset, board, config.detection, cache, config.workers, tick)
+        detections = detect_dataset(dataset, board, config.detection, cache, config.workers, tick,
+                                    config.scheduler)
     # 2. one board pose per view (PnP, covariance, gates)
     with timed(timings, "pose"):
         observations, rejected = board_poses(detections, board, rig, config.pose)
@@ -238,7 +241,7 @@ def calibrate(
                 tick = start(progress, "detecting markers with the refined lens", n_images)
                 cache = cache_dir / "detections_refined_lens.json" if cache_dir else None
                 detections = detect_dataset(relens, board, config.detection, cache,
-                                            config.workers, tick)
+                                            config.workers, tick, config.scheduler)
                 observations, rejected = board_poses(detections, board, lens_rig, config.pose)
             with timed(timings, "bundle"):
                 measurements = marker_measurements(observations, pg, rig, True, board, True)
@@ -268,7 +271,7 @@ def calibrate(
                                       bundle.T_ref_board, refine, config.depth, progress,
                                       board_covariance={c: e.covariance
                                                         for c, e in cameras.items()},
-                                      workers=config.workers)
+                                      workers=config.workers, scheduler=config.scheduler)
             # 6. joint solve: corners and the accepted depth pairs
             if depth.used:
                 try:

@@ -458,20 +458,20 @@ def check_rig(clouds: dict[str, CameraCloud], calib: Extrinsics,
               overlaps: list[tuple[str, str]], method: str = "colored-icp",
               config: DepthConfig | None = None, tolerance: Tolerance = Tolerance(),
               unknown_scale: set[str] = frozenset(), workers: int | None = None,
-              tick=None) -> CheckResult:
+              tick=None, scheduler: str | None = None) -> CheckResult:
     """:func:`register_robust` for each overlapping ``(cam_a, cam_b)`` from the calibrated
-    extrinsics (in a process pool of ``workers``), then :func:`locate_moved` on the pairs that
-    fit (``accepted``; the check needs the measurements that confirm the calibration too, so
-    ``min_improvement_chi2`` is 0). Cameras in ``unknown_scale`` have no depth-scale factor:
-    their pairs leave out what a scale error explains. Cameras of ``calib`` without a cloud
-    are ``unknown``."""
+    extrinsics (in a process pool of ``workers``, or on the Dask cluster of ``scheduler``),
+    then :func:`locate_moved` on the pairs that fit (``accepted``; the check needs the
+    measurements that confirm the calibration too, so ``min_improvement_chi2`` is 0). Cameras
+    in ``unknown_scale`` have no depth-scale factor: their pairs leave out what a scale error
+    explains. Cameras of ``calib`` without a cloud are ``unknown``."""
     from .refine import register_pairs
 
     config = check_config(config)
     t0 = time.perf_counter()
     T = {c: e.T_ref_cam for c, e in calib.cameras.items()}
     regs = register_pairs(clouds, _jobs(overlaps, T, set(unknown_scale)), method, config,
-                          workers, tick, robust=True)
+                          workers, tick, robust=True, scheduler=scheduler)
     t_reg = time.perf_counter() - t0
     pairs = [RelativePose(r.cam_a, r.cam_b, r.T_b_a, r.information) for r in regs if r.accepted]
     held = {c: T[c] for c in clouds if c in T}
@@ -499,7 +499,8 @@ class CheckRun:
 def check_dataset(dataset: FolderDataset, calib: Extrinsics,
                   depth_scales: dict[str, float] | None = None, method: str = "colored-icp",
                   config: DepthConfig | None = None, tolerance: Tolerance = Tolerance(),
-                  workers: int | None = None, progress: Progress | None = None) -> CheckRun:
+                  workers: int | None = None, progress: Progress | None = None,
+                  scheduler: str | None = None) -> CheckRun:
     """Check ``dataset`` (one or a few frame sets of the rig as it is now; no board needed,
     anything in view is scene) against ``calib``: a static cloud per calibrated camera with
     depth (its ``depth_scales`` factor from the calibration), the pairs that overlap under
@@ -526,7 +527,7 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
     tick = start(progress, f"registering pairs ({method})", len(overlaps))
     unknown = {c for c in clouds if c not in scales}
     result = check_rig(clouds, calib, overlaps, method, config, tolerance, unknown, workers,
-                       tick)
+                       tick, scheduler)
     for c, why in skipped.items():
         result.cameras[c] = CameraCheck(c, "unknown", reason=f"no depth cloud: {why}")
     return CheckRun(result, clouds, overlaps,
@@ -567,6 +568,7 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
               overlaps: list[tuple[str, str]], method: str = "colored-icp",
               config: DepthConfig | None = None, max_passes: int = 3,
               unknown_scale: set[str] = frozenset(), workers: int | None = None,
+              scheduler: str | None = None,
               ) -> tuple[Extrinsics, list[dict[str, Any]]]:
     """Re-register the moved cameras of ``check`` against the others and solve for them with
     the others held at their calibration (priors with its sigmas); only pairs with a moved
@@ -595,7 +597,7 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
     regs: list[PairRegistration] = []
     for _ in range(max_passes):
         regs = register_pairs(clouds, _jobs(jobs, T_now, set(unknown_scale)), method, config,
-                              workers, robust=True)
+                              workers, robust=True, scheduler=scheduler)
         pairs = [RelativePose(r.cam_a, r.cam_b, r.T_b_a, r.information)
                  for r in regs if r.accepted]
         free = {c for c in moved if any(c in (r.cam_a, r.cam_b) for r in pairs)}

@@ -365,6 +365,14 @@ def _open_dataset(sources: list[Path], out: Path, names: str | None, sync_tolera
     return FolderDataset(folder)
 
 
+SCHEDULER_OPTION = typer.Option(
+    "--scheduler",
+    help="Address of a Dask scheduler (tcp://HOST:8786): its workers run the detection and "
+    "the depth pair registrations instead of local processes; they must see the dataset at "
+    "the same path (README, Running on a Dask cluster).",
+)
+
+
 @command()
 @user_errors
 def calibrate(
@@ -424,15 +432,19 @@ def calibrate(
     ] = None,
     names: Annotated[str | None, NAMES_OPTION] = None,
     sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
+    scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
 ) -> None:
     """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports."""
     from .board import load_board, thesis_board
     from .config import load_config
+    from .parallel import check_scheduler
     from .results import load_extrinsics
 
     _check_output_folder(out)
     cfg = load_config(config, method=method, workers=workers, refine=refine,
+                      scheduler=scheduler,
                       **{"bundle.intrinsics": intrinsics, "bundle.board": board_model})
+    check_scheduler(cfg.scheduler)
     b = load_board(board_file) if board_file else thesis_board()
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     fixed = None
@@ -582,30 +594,34 @@ def refine(
     ] = False,
     tolerance_mm: Annotated[float, TOLERANCE_MM_OPTION] = 2.0,
     tolerance_deg: Annotated[float, TOLERANCE_DEG_OPTION] = 0.2,
+    scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view)."""
     import math
 
     from .board import load_board, thesis_board
     from .outputs import DepthOnlyRun, write_refine_outputs
+    from .parallel import check_scheduler
     from .refine import load_board_views, load_depth_scales, refine_extrinsics, refine_verdict
     from .results import load_extrinsics
 
     _check_method(method)
     _check_output_folder(out)
+    check_scheduler(scheduler)
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     ds.check_images()
     init_ext = load_extrinsics(init, check_redundant=True)
     scales = load_depth_scales(init.parent / "report.json")
     T_ref_board, board_cameras = load_board_views(init.parent / "report.json")
     if fix_others:
-        _fix_others(ds, init, init_ext, scales, method, out, tolerance_mm, tolerance_deg)
+        _fix_others(ds, init, init_ext, scales, method, out, tolerance_mm, tolerance_deg,
+                    scheduler)
         return
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
         ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress,
                                        depth_scales=scales, board=b, T_ref_board=T_ref_board,
-                                       board_cameras=board_cameras)
+                                       board_cameras=board_cameras, scheduler=scheduler)
     sources = depth.scale_source
     for kind, what in (("given", "from the report.json next to --init"),
                        ("board", "estimated from the board in view"),
@@ -665,28 +681,30 @@ def _check_table(result, title: str) -> None:
                           soft_wrap=True)
 
 
-def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg):
+def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler=None):
     from .check import Tolerance, check_dataset
 
     with stage_progress() as progress:
         return check_dataset(ds, calib, scales, method,
-                             tolerance=Tolerance(tolerance_mm, tolerance_deg), progress=progress)
+                             tolerance=Tolerance(tolerance_mm, tolerance_deg), progress=progress,
+                             scheduler=scheduler)
 
 
-def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolerance_deg):
+def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolerance_deg,
+                scheduler=None):
     """refine --fix-others: check, then re-register only the moved cameras."""
     from .check import fix_moved
     from .outputs import DepthOnlyRun, write_fix_outputs
     from .progress import start
     from .refine import fix_verdict
 
-    run = _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg)
+    run = _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler)
     _check_table(run.result, f"{ds.path} against {init}")
     unknown = {c for c, k in run.scale_source.items() if k == "unknown"}
     with stage_progress() as progress:
         tick = start(progress, "re-registering the moved cameras", 1)
         fixed, pairs = fix_moved(run.clouds, calib, run.result, run.overlaps, method,
-                                 unknown_scale=unknown)
+                                 unknown_scale=unknown, scheduler=scheduler)
         tick(1)
     moved = run.result.moved
     verdict = fix_verdict(calib, fixed, moved, pairs)
@@ -728,10 +746,12 @@ def check(
     tolerance_deg: Annotated[float, TOLERANCE_DEG_OPTION] = 0.2,
     names: Annotated[str | None, NAMES_OPTION] = None,
     sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
+    scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
 ) -> None:
     """Has a camera moved since the calibration? Exit 0: all in place; 1: moved (named)."""
     from .errors import ConfigError
     from .outputs import write_check_outputs
+    from .parallel import check_scheduler
     from .refine import load_depth_scales
     from .results import load_extrinsics
 
@@ -743,11 +763,12 @@ def check(
         raise ConfigError(f"{calib}: no extrinsics.yaml; give a calibrate output folder or an "
                           "extrinsics.yaml with --calib")
     _check_output_folder(out)
+    check_scheduler(scheduler)
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
     ds.check_images()
     ext = load_extrinsics(path, check_redundant=True)
     scales = load_depth_scales(path.parent / "report.json")
-    run = _run_check(ds, ext, scales, method, tolerance_mm, tolerance_deg)
+    run = _run_check(ds, ext, scales, method, tolerance_mm, tolerance_deg, scheduler)
     _check_table(run.result, f"{ds.path} against {path}")
     if unknown := [c for c, k in run.scale_source.items() if k == "unknown"]:
         console.print(f"depth scale unknown (no report.json with depth_scale_factor next to "

@@ -706,6 +706,13 @@ class CalibrationConfig(BaseModel):
         "(initialised from the pose graph) or the pose graph alone (the thesis method)",
     )
     workers: int | None = Field(None, ge=1, description="detection processes; default: all cores")
+    scheduler: str | None = Field(
+        None,
+        pattern=r"^\S+$",
+        description="address of a Dask distributed scheduler (tcp://HOST:8786) whose workers "
+        "run the detection and the depth pair registrations instead of local processes "
+        "(workers then does not apply); they must see the dataset at the same path",
+    )
     edge_covariance: bool = Field(
         True,
         description="weight pose-graph edges by their PnP "

@@ -684,6 +684,19 @@ def _overlap_fraction(points_a: np.ndarray, T_b_a: np.ndarray, intr_b: CameraInt
     return near / points_a.shape[0], near
 
 
+# threads of one registration: all (0 / Open3D's default) when it runs alone; one in a worker
+# process of a pool or Dask cluster, where the processes already use the cores. The same count
+# everywhere also keeps the result bit-identical on any worker: parallel reductions sum in an
+# order that depends on the thread count (~1e-15 apart)
+_THREADS: dict[str, int] = {"kiss": 0}
+
+
+def limit_registration_threads(threads: int) -> None:
+    """Threads Open3D and kiss-icp may use in each registration of this process (>= 1)."""
+    o3d.utility.set_max_threads(threads)
+    _THREADS["kiss"] = threads
+
+
 def find_overlapping_pairs(
     clouds: dict[str, CameraCloud],
     T_ref_cam: dict[str, np.ndarray],
@@ -1161,7 +1174,7 @@ def register_pair(
     T = T_b_a0.copy()
     finest: tuple[_Level, _Level] | None = None
     kiss = Registration(max_num_iterations=config.kiss_max_iterations,
-                        convergence_criterion=1e-5, max_num_threads=0)
+                        convergence_criterion=1e-5, max_num_threads=_THREADS["kiss"])
     # 2. coarse to fine
     for voxel, iterations in zip(config.voxel_schedule_m, config.iterations):
         src = _make_level(cloud_a, keep_a, voxel, normals_a)

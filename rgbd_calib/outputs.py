@@ -39,6 +39,7 @@ from .report import (
     report_dict,
     write_report_html,
 )
+from .report.storage import VIEWS_FILE, VIEWS_INLINE_MAX, write_report_json
 from .results import Extrinsics, PoseEdge, write_extrinsics
 from .rig import Rig, save_rig
 from .yamlio import to_builtin, write_yaml
@@ -99,6 +100,7 @@ def write_outputs(
     depth_scale: dict[str, dict[str, float]] | None = None,
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
+    views_inline_max: int = VIEWS_INLINE_MAX,
 ) -> list[Path]:
     """Write extrinsics.yaml, report.json, report.html, config_resolved.yaml and exports/
     into out_dir (and fused.ply, copied from ``fused_ply`` when the depth stage made one;
@@ -107,15 +109,17 @@ def write_outputs(
     it, when it refined the board).
 
     Without ``fused_ply`` an older ``out_dir/fused.ply`` is removed (it would belong to another
-    run) and the report previews the cloud from the dataset's depth frames.
+    run) and the report previews the cloud from the dataset's depth frames. Above
+    ``views_inline_max`` views the per-view detail of report.json is written to
+    report_views.ndjson.gz (:mod:`rgbd_calib.report.storage`).
 
     A finished calibration is never lost to its side products: when ``report.html`` or an
     export cannot be made, that file (or ``exports/``) is left out and ``warn(why)`` says so
     (default: a Python warning); extrinsics.yaml and report.json are written all the same."""
     out_dir = Path(out_dir)
     warn = warn or _python_warning
-    with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED, "report.html",
-                                   "exports")) as stage:
+    with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED, VIEWS_FILE,
+                                   "report.html", "exports")) as stage:
         if result.bundle is not None and result.bundle.intrinsics:
             save_rig(refined_rig(rig, result.bundle), stage / RIG_REFINED)
         model = result.bundle.board if result.bundle is not None else None
@@ -131,7 +135,8 @@ def write_outputs(
                     T_ref_cam, result.config.depth.fused_voxel_m)
                 write_fused_ply(stage / "fused.ply", pts, cols, idx, names)
         report = report_dict(result, rig, pairs, depth_scale)
-        (stage / "report.json").write_text(dump_report(report))
+        # above views_inline_max views, the per-view detail goes to report_views.ndjson.gz
+        write_report_json(report, stage, views_inline_max)
         if fused_ply is not None:
             shutil.copyfile(fused_ply, stage / "fused.ply")
         try:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -34,6 +33,7 @@ from .depth import (
     failed_registration,
     find_overlapping_pairs,
     fuse_clouds,
+    limit_registration_threads,
     one_line_error,
     pair_rmse_mm,
     register_pair,
@@ -43,7 +43,7 @@ from .depth import (
 from .errors import CalibrationError, DatasetError
 from .geometry import invert_transform, transform_error
 from .graph import RelativePose, bundle_adjust
-from .parallel import process_context
+from .parallel import executor
 from .progress import Progress, Tick, start, timed
 from .results import CameraExtrinsics, Extrinsics, cameras_from_solve
 
@@ -122,6 +122,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                   board_covariance: dict[str, np.ndarray | None] | None = None,
                   workers: int | None = None,
                   depth_scales: dict[str, float] | None = None,
+                  scheduler: str | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
 
@@ -132,7 +133,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     With ``board_covariance`` (camera -> 6x6 marginal of the board solve) only pairs with a
     camera the board constrains weakly (:func:`weak_cameras`) are registered, and nothing but
     the depth scale is measured when the board constrains every camera well: depth adds no
-    information there. Pairs run in ``workers`` processes (default: all cores).
+    information there. Pairs run in ``workers`` processes (default: all cores) or on the Dask
+    cluster of ``scheduler``.
 
     ``depth_scales`` (camera -> factor, e.g. from the report.json of the calibration being
     refined) are used for cameras the board gives no factor for. A camera with neither has an
@@ -201,7 +203,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             jobs = [(ov.cam_a, ov.cam_b, T_ref_cam[ov.cam_a], T_ref_cam[ov.cam_b],
                      (ov.cam_a not in known, ov.cam_b not in known)) for ov in overlaps]
             for ov, reg in zip(overlaps, register_pairs(clouds, jobs, method, config, workers,
-                                                         tick)):
+                                                         tick, scheduler=scheduler)):
                 pairs.append({**ov.to_dict(), **reg.to_dict()})
                 if reg.accepted:
                     relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
@@ -221,7 +223,11 @@ _POOL_ARGS: tuple[str, DepthConfig, bool] | None = None
 
 def _pool_init(clouds: dict[str, CameraCloud], method: str, config: DepthConfig,
                robust: bool = False) -> None:
+    """Worker initializer (local pool or Dask worker): the clouds and settings of this run
+    (replacing an earlier run's on a long-lived Dask worker), one thread per registration."""
     global _POOL_ARGS
+    limit_registration_threads(1)
+    _POOL_CLOUDS.clear()
     _POOL_CLOUDS.update(clouds)
     _POOL_ARGS = (method, config, robust)
 
@@ -240,14 +246,16 @@ def _pool_job(job: Job) -> PairRegistration:
 def register_pairs(clouds: dict[str, CameraCloud],
                    jobs: list[Job], method: RefineMethod,
                    config: DepthConfig, workers: int | None = None, tick=None,
-                   robust: bool = False) -> list[PairRegistration]:
+                   robust: bool = False, scheduler: str | None = None,
+                   ) -> list[PairRegistration]:
     """Register every ``(cam_a, cam_b, T_ref_a, T_ref_b, free_scale)`` of ``jobs`` (in order), in a
-    process pool of ``workers`` (default: all cores; 1 or a single job runs here). Each
-    worker receives the clouds once; a failing pair is rejected, never raised. ``robust``:
+    process pool of ``workers`` (default: all cores; 1 or a single job runs here), or on the
+    Dask cluster of ``scheduler`` (:func:`rgbd_calib.parallel.executor`). Each worker receives
+    the clouds once; a failing pair is rejected, never raised. ``robust``:
     :func:`rgbd_calib.check.register_robust` (a global alignment when ICP from the given
     extrinsics does not fit: a knocked camera)."""
     n = min(workers or os.cpu_count() or 1, len(jobs))
-    if n <= 1:
+    if n <= 1 and not (scheduler and len(jobs) > 1):
         out = []
         for a, b, T_ref_a, T_ref_b, free_scale in jobs:
             out.append(_register_safely(clouds[a], clouds[b], T_ref_a, T_ref_b, method, config,
@@ -257,8 +265,7 @@ def register_pairs(clouds: dict[str, CameraCloud],
         return out
     used = {c for a, b, *_ in jobs for c in (a, b)}
     init_args = ({c: clouds[c] for c in used}, method, config, robust)
-    with ProcessPoolExecutor(n, mp_context=process_context(), initializer=_pool_init,
-                             initargs=init_args) as pool:
+    with executor(n, scheduler, initializer=_pool_init, initargs=init_args) as pool:
         futures = [pool.submit(_pool_job, job) for job in jobs]
         out = []
         for (a, b, T_ref_a, T_ref_b, _), future in zip(jobs, futures):
@@ -356,6 +363,7 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
                       workers: int | None = None, board: Board | None = None,
                       T_ref_board: dict[str, np.ndarray] | None = None,
                       board_cameras: dict[str, list[str]] | None = None,
+                      scheduler: str | None = None,
                       ) -> tuple[Extrinsics, DepthRefinement]:
     """Depth-only refinement of an existing calibration (no board in view): register the
     overlapping pairs from ``init`` and solve a pose graph of the accepted pairs, the
@@ -388,7 +396,8 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
                     views.setdefault(c, {})[frame] = (invert_transform(T_init[c])
                                                       @ T_ref_board[frame])
     depth = measure_depth(dataset, board, T_init, views, T_ref_board, method, config,
-                          progress, workers=workers, depth_scales=depth_scales)
+                          progress, workers=workers, depth_scales=depth_scales,
+                          scheduler=scheduler)
     if not depth.used:
         return init, finish_pairs(depth, T_init, config)
     priors = initial_pose_priors(init, T_init)

@@ -39,7 +39,7 @@ from .geometry import (
     rotvec_to_matrix,
     transform_points,
 )
-from .parallel import WorkerPool
+from .parallel import executor
 from .progress import Progress, start
 from .rig import Rig
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
@@ -836,7 +836,7 @@ def synthesize(
         if workers <= 1:
             backgrounds = [render_background(rig.scene, cam) for cam in rig.cameras]
         else:
-            with WorkerPool(workers) as ex:
+            with executor(workers) as ex:
                 backgrounds = list(
                     ex.map(render_background, [rig.scene] * len(rig.cameras), rig.cameras)
                 )
@@ -857,7 +857,7 @@ def synthesize(
                 _render_frame(job)
                 tick(1)
         else:
-            with WorkerPool(workers, initializer=_init_worker, initargs=(state,)) as ex:
+            with executor(workers, initializer=_init_worker, initargs=(state,)) as ex:
                 for _ in ex.map(_render_frame, jobs, chunksize=1):
                     tick(1)
         T_world_ref = rig.cameras[rig.reference_index].T_world_cam

@@ -46,7 +46,7 @@ if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ]; 
   "$VENV/bin/python" -m pip install -q -r requirements.lock 2>&1 \
     | grep -v -e "is ignored: it is neither" -e "does not provide the extra 'all'" >&2 || true
   # setuptools' "Editable installation" BuildBackendWarning is advice for package authors
-  PYTHONWARNINGS=ignore "$VENV/bin/python" -m pip install -q --no-deps -e ".[dev,ros]" 2>&1 \
+  PYTHONWARNINGS=ignore "$VENV/bin/python" -m pip install -q --no-deps -e ".[dev,ros,dask]" 2>&1 \
     | grep -v "is ignored: it is neither" >&2 || true
   "$VENV/bin/python" -c "import rgbd_calib, cv2, gtsam, open3d, pyrealsense2" \
     || { echo "error: the environment in $VENV is incomplete; delete it and re-run" >&2; exit 1; }

@@ -35,11 +35,14 @@ from .schema import (
     schema_paths,
     validate_report,
 )
+from .storage import VIEWS_FILE, VIEWS_INLINE_MAX, load_report, write_report_json
 
 __all__ = [
     "REPORT_SCHEMA",
     "REPORT_SCHEMA_VERSION",
     "RULES",
+    "VIEWS_FILE",
+    "VIEWS_INLINE_MAX",
     "Cloud",
     "ReportError",
     "depth_only_report_dict",
@@ -50,6 +53,7 @@ __all__ = [
     "finite_or_null",
     "histogram_edges_px",
     "load_cloud",
+    "load_report",
     "pair_entry",
     "rebuild_report",
     "render_html",
@@ -59,4 +63,5 @@ __all__ = [
     "stats",
     "validate_report",
     "write_report_html",
+    "write_report_json",
 ]

@@ -13,34 +13,37 @@ import numpy as np
 from ..progress import Progress
 from .build import finalize_report
 from .html import write_report_html
-from .schema import REPORT_SCHEMA_VERSION, ReportError, dump_report, validate_report
+from .schema import REPORT_SCHEMA_VERSION, ReportError, validate_report
+from .storage import VIEWS_INLINE_MAX, load_report, write_report_json
 
 
 def rebuild_report(out_dir: Path, progress: Progress | None = None) -> Path:
     """Rebuild ``report.json`` and ``report.html`` of a calibration folder from its saved
     results alone (``report.json``, ``extrinsics.yaml``, ``fused.ply`` and the dataset folder
-    recorded in the report). The derived sections are recomputed, so a report of this schema
-    comes back byte-identical. Returns the path of ``report.html``."""
-    from ..yamlio import atomic_write_text
-
+    recorded in the report; its per-view side file when it has one). The derived sections are
+    recomputed, so a report of this schema comes back byte-identical, its side file too.
+    Returns the path of ``report.html``."""
     out_dir = Path(out_dir)
     path = out_dir / "report.json"
-    report = _refinalize(_read_report(path, out_dir), path)
+    report, had_side_file = _read_report(path, out_dir)
+    report = _refinalize(report, path)
     _check_extrinsics(report, out_dir / "extrinsics.yaml", path)
-    atomic_write_text(path, dump_report(report))
+    write_report_json(report, out_dir, 0 if had_side_file else VIEWS_INLINE_MAX)
     return write_report_html(report, out_dir, progress)
 
 
-def _read_report(path: Path, out_dir: Path) -> dict[str, Any]:
-    """The saved ``report.json``, checked to be a report of this schema's major version."""
+def _read_report(path: Path, out_dir: Path) -> tuple[dict[str, Any], bool]:
+    """The saved ``report.json`` with its views inline, checked to be a report of this
+    schema's major version, and whether its views were in a side file."""
     if not path.is_file():
         raise ReportError(
             f"{path}: missing; is {out_dir} the --out folder of rgbd-calib calibrate?"
         )
     try:
-        report = json.loads(path.read_text(encoding="utf-8"))
-    except ValueError as exc:
-        raise ReportError(f"{path}: not valid JSON ({exc}); re-run calibrate") from None
+        had_side_file = "views_file" in json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, TypeError):
+        had_side_file = False  # load_report says what is wrong
+    report = load_report(path)
     if not isinstance(report, dict) or "cameras" not in report:
         raise ReportError(f"{path}: not an rgbd-calib report; re-run calibrate")
     version = str(report.get("schema_version", "?"))
@@ -49,7 +52,7 @@ def _read_report(path: Path, out_dir: Path) -> dict[str, Any]:
             f"{path}: report schema {version} cannot be read by this rgbd-calib "
             f"(schema {REPORT_SCHEMA_VERSION}); re-run calibrate"
         )
-    return report
+    return report, had_side_file
 
 
 def _refinalize(report: dict[str, Any], path: Path) -> dict[str, Any]:

@@ -13,7 +13,7 @@ from typing import Any
 
 from ..errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.3"
+REPORT_SCHEMA_VERSION = "1.4"
 
 
 class ReportError(RgbdCalibError):
@@ -218,7 +218,8 @@ REPORT_SCHEMA: dict[str, Any] = {
             }
         ),
     },
-    "views": ListOf(
+    "views_file?": {"path": S, "format": S, "count": INT, "sha256": S},
+    "views?": ListOf(
         {
             "camera": S,
             "frame": S,
@@ -364,6 +365,8 @@ def validate_report(report: Any) -> list[str]:
     required and unknown keys, enumerations, finite numbers."""
     errors: list[str] = []
     _check(report, REPORT_SCHEMA, "", errors)
+    if isinstance(report, dict) and ("views" in report) == ("views_file" in report):
+        errors.append("<root>: needs exactly one of views (inline) and views_file (large rig)")
     return errors
 
 
