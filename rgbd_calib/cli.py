@@ -781,8 +781,12 @@ def check(
                       f"--out DIR", highlight=False, soft_wrap=True)
         console.print(f"check: {out / 'check.json'}", highlight=False)
         raise typer.Exit(1)
-    console.print("[green]in place[/]: no camera moved beyond "
-                  f"{tolerance_mm} mm / {tolerance_deg} deg", highlight=False)
+    unchecked = run.result.unknown
+    if unchecked:  # exit 0 is "every checked camera in place": say which were not checked
+        console.print(f"[yellow]not checked[/]: {', '.join(unchecked)} (no depth pair of theirs "
+                      "could tell; reasons in check.json)", highlight=False, soft_wrap=True)
+    console.print(f"[green]in place[/]: {'every checked camera' if unchecked else 'every camera'} "
+                  f"within {tolerance_mm} mm / {tolerance_deg} deg", highlight=False)
     console.print(f"check: {out / 'check.json'}", highlight=False)
 
 

@@ -306,3 +306,25 @@ def test_check_rejects_a_bad_method_and_tolerance(tmp_path):
         res = CliRunner().invoke(app, ["check", str(tmp_path), "--calib", str(tmp_path),
                                        "--out", str(tmp_path / "c"), *args])
         assert res.exit_code == 2 and says in res.output
+
+
+def test_check_names_the_cameras_it_could_not_check(tiny_calibration, tmp_path, monkeypatch):
+    """Exit 0 means every *checked* camera is in place: a camera no pair could measure is
+    named on the console as not checked (and listed in check.json), not silently passed."""
+    from rgbd_calib import cli
+    from rgbd_calib.check import CameraCheck, CheckResult, CheckRun, Tolerance
+
+    data, calib, _ = tiny_calibration
+    ext = load_extrinsics(calib / "extrinsics.yaml")
+    cams = list(ext.cameras)
+    status = {c: CameraCheck(c, "in_place", 0.1, 0.01, 0.5, 0.02, 1.0, 2) for c in cams[:-1]}
+    status[cams[-1]] = CameraCheck(cams[-1], "unknown", reason="no overlapping depth")
+    run = CheckRun(CheckResult(status, [], Tolerance()), {}, [], {c: "given" for c in cams})
+    monkeypatch.setattr(cli, "_run_check", lambda *args, **kwargs: run)
+    res = CliRunner().invoke(app, ["check", str(data), "--calib", str(calib),
+                                   "--out", str(tmp_path / "check")])
+    assert res.exit_code == 0, res.output
+    assert f"not checked: {cams[-1]}" in res.output
+    assert "every checked camera within" in res.output
+    report = json.loads((tmp_path / "check" / "check.json").read_text())
+    assert report["unknown"] == [cams[-1]]
