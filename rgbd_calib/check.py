@@ -48,10 +48,8 @@ from .depth import (
     find_overlapping_pairs,
     one_line_error,
     register_pair,
-    static_cloud,
     voxel_mean,
 )
-from .errors import DatasetError
 from .geometry import covariance_sigmas, invert_transform, transform_error
 from .graph import RelativePose
 from .progress import Progress, start
@@ -509,16 +507,11 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
     config = config or DepthConfig()
     scales = depth_scales or {}
     cams = [c for c in dataset.cameras if c in calib.cameras and dataset.has_depth(c)]
-    clouds: dict[str, CameraCloud] = {}
-    skipped: dict[str, str] = {}
-    tick = start(progress, "static clouds", len(cams))
-    for c in cams:
-        try:
-            clouds[c] = static_cloud(dataset, c, {}, calib.T_ref_cam(c), None, config,
-                                     depth_scale_factor=scales.get(c, 1.0))
-        except (DatasetError, ValueError, MemoryError) as exc:  # this camera only
-            skipped[c] = one_line_error(exc)
-        tick(1)
+    from .refine import static_clouds
+
+    clouds, skipped = static_clouds(
+        dataset, [(c, calib.T_ref_cam(c), scales.get(c, 1.0)) for c in cams], {}, None, config,
+        workers, start(progress, "static clouds", len(cams)), scheduler)
     T = {c: calib.T_ref_cam(c) for c in clouds}
     wide = config.model_copy(update={"overlap_distance_m": max(config.overlap_distance_m,
                                                                0.15)})

@@ -160,19 +160,12 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                         pass  # too few board pixels with depth: the factor stays 1 (reported)
                 tick(1)
 
-    clouds: dict[str, CameraCloud] = {}
-    skipped: dict[str, str] = {}
     with timed(timings, "clouds"):
-        tick = start(progress, "static clouds", len(cams))
-        for c in cams:
-            factor = (scales[c].factor if c in scales
-                      else (depth_scales or {}).get(c, 1.0))
-            try:
-                clouds[c] = static_cloud(dataset, c, T_ref_board or {}, T_ref_cam[c], board,
-                                         config, depth_scale_factor=factor)
-            except (DatasetError, ValueError, MemoryError) as exc:  # this camera only
-                skipped[c] = str(exc)
-            tick(1)
+        jobs = [(c, T_ref_cam[c], scales[c].factor if c in scales
+                 else (depth_scales or {}).get(c, 1.0)) for c in cams]
+        clouds, skipped = static_clouds(dataset, jobs, T_ref_board or {}, board, config,
+                                        workers, start(progress, "static clouds", len(cams)),
+                                        scheduler)
 
     if method != "none" and weak is not None and not weak:
         # the clouds are still built: fused.ply and the report's cloud checks use them
@@ -278,6 +271,50 @@ def register_pairs(clouds: dict[str, CameraCloud],
             if tick:
                 tick(1)
         return out
+
+
+def _cloud_job(dataset: FolderDataset, camera: str, T_ref_board: dict[str, np.ndarray],
+               T_ref_cam: np.ndarray, board: Board | None, config: DepthConfig,
+               factor: float) -> tuple[CameraCloud | None, str | None]:
+    """One camera's :func:`~rgbd_calib.depth.static_cloud`, or why it has none (a failure
+    here costs this camera only)."""
+    try:
+        return static_cloud(dataset, camera, T_ref_board, T_ref_cam, board, config,
+                            depth_scale_factor=factor), None
+    except (DatasetError, ValueError, MemoryError) as exc:
+        return None, one_line_error(exc)
+
+
+def static_clouds(dataset: FolderDataset, jobs: list[tuple[str, np.ndarray, float]],
+                  T_ref_board: dict[str, np.ndarray], board: Board | None,
+                  config: DepthConfig, workers: int | None = None, tick: Tick | None = None,
+                  scheduler: str | None = None,
+                  ) -> tuple[dict[str, CameraCloud], dict[str, str]]:
+    """The static cloud of every ``(camera, T_ref_cam, depth-scale factor)`` of ``jobs``, one
+    camera per task in a process pool of ``workers`` (default: all cores; one camera or one
+    worker runs here) or on the Dask cluster of ``scheduler``
+    (:func:`rgbd_calib.parallel.executor`): ``(clouds, skipped)``, skipped = camera -> why
+    it has no cloud. The workers read the depth frames themselves (a Dask worker must see
+    the dataset at the same path)."""
+    n = min(workers or os.cpu_count() or 1, len(jobs))
+    args = [(dataset, c, T_ref_board, T, board, config, f) for c, T, f in jobs]
+    if n <= 1 and not (scheduler and len(jobs) > 1):
+        results = []
+        for a in args:
+            results.append(_cloud_job(*a))
+            if tick:
+                tick(1)
+    else:
+        with executor(n, scheduler) as pool:
+            futures = [pool.submit(_cloud_job, *a) for a in args]
+            results = []
+            for future in futures:
+                results.append(future.result())
+                if tick:
+                    tick(1)
+    clouds = {c: cloud for (c, _, _), (cloud, _) in zip(jobs, results) if cloud is not None}
+    skipped = {c: why for (c, _, _), (_, why) in zip(jobs, results) if why is not None}
+    return clouds, skipped
 
 
 BEYOND_BOARD_CHI2 = 16.81  # chi-square, 6 dof, 1 %

@@ -70,6 +70,33 @@ def test_pair_registrations_on_dask_are_bit_identical_to_the_local_pool(tiny_dat
         assert np.array_equal(a.information, b.information)
 
 
+def test_static_clouds_in_a_pool_and_on_dask_equal_the_ones_made_here(tiny_dataset, cluster,
+                                                                     tmp_path):
+    """The depth stage's per-camera clouds go through the same executor: identical points
+    made here, in the local pool and on the cluster; a camera whose depth cannot be read
+    costs that camera only, with its reason."""
+    import shutil
+
+    from rgbd_calib.refine import static_clouds
+
+    data = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, data)
+    for png in (data / "cam9" / "depth").glob("*.png"):
+        png.write_bytes(b"not a png")  # cam9's depth unreadable
+    ds = FolderDataset(data)
+    T = load_ground_truth(data).T_ref_cam
+    config = DepthConfig(max_frames=2)
+    jobs = [(c, T[c], 1.0) for c in ("cam7", "cam8", "cam9")]
+    here = static_clouds(ds, jobs, {}, None, config, workers=1)
+    pool = static_clouds(ds, jobs, {}, None, config, workers=2)
+    remote = static_clouds(ds, jobs, {}, None, config, scheduler=cluster)
+    assert set(here[0]) == {"cam7", "cam8"} and set(here[1]) == {"cam9"}, here[1]
+    for clouds, skipped in (pool, remote):
+        assert skipped == here[1]
+        for c, cloud in here[0].items():
+            assert np.array_equal(cloud.points, clouds[c].points), c
+
+
 def test_calibrate_through_a_cluster_gives_the_same_extrinsics(tiny_calibration, cluster,
                                                                tmp_path):
     dataset, local_out, _ = tiny_calibration
