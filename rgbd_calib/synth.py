@@ -596,8 +596,11 @@ class _BoardModel:
                     n = cells.shape[0]
                     val = cells[(v[pick] * n).astype(int), (u[pick] * n).astype(int)]
                     out[sel[pick]] = np.where(val > 127, PAPER_WHITE, INK_BLACK)
-            if self.board.charuco is not None and self.board.charuco.inverted:
-                out[sel] = PAPER_WHITE + INK_BLACK - out[sel]  # white on black
+            spec = self.board.charuco
+            if spec is not None and spec.inverted:  # white on black within the chessboard
+                inv = sel[(xy[:, 0] >= 0) & (xy[:, 0] < spec.squares_x * spec.square_length)
+                          & (xy[:, 1] >= 0) & (xy[:, 1] < spec.height)]
+                out[inv] = PAPER_WHITE + INK_BLACK - out[inv]
         return out
 
     def _squares(self, xy: np.ndarray) -> np.ndarray:
