@@ -26,9 +26,10 @@ CALISCOPE_DATA = SHARED_DATA / "caliscope-charuco-4cam"
 # axis, scatter 0.027/0.031 px; OpenCV's own corners 0.13/0.15 px
 MAX_CORNER_BIAS_PX = 0.02
 MAX_CORNER_SCATTER_PX = 0.06
-# end to end on the render: the ArUco board's end-to-end bounds (tests/test_cli.py E2E_MM,
-# E2E_DEG); measured 0.19-0.36 mm / 0.007-0.014 deg (claimed sigmas 0.10-0.14 mm)
-E2E_MM, E2E_DEG = 1.0, 0.05
+# end to end on the render: the ArUco board's thesis-line bound (issue 3, tests/
+# test_accuracy.py BOUNDS["thesis-line"], met there with 40 frames); measured here with 6
+# frames: 0.19-0.36 mm / 0.007-0.014 deg (claimed sigmas 0.10-0.14 mm)
+E2E_MM, E2E_DEG = 0.5, 0.05
 MAX_SIGMAS = 4.0  # no camera further off than this many claimed sigmas (measured 2.6)
 PRINT_CORNER_PX = 0.1  # saddles found on the printed PNG vs where the print put them
 
