@@ -467,7 +467,7 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
     if raw.get("type", "aruco") != "aruco":
         raise BoardError(f"{where}: type must be 'aruco' (default) or 'charuco', "
                          f"got {str(raw['type'])[:40]!r}")
-    data = _read_board_mapping(path, where)
+    data = _check_board_mapping(raw, where)
     # the keys both forms share
     dictionary = str(data["dictionary"])
     try:
@@ -487,6 +487,7 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
 
 
 def _read_raw_mapping(path: Path) -> dict:
+    """The board file's top-level mapping, unchecked (a BoardError when it is not one)."""
     try:
         return read_yaml_mapping(path, "board file")
     except BoardError:
@@ -542,15 +543,9 @@ def _load_charuco(data: dict, path: Path, where: str) -> Board:
                               str(data.get("name", path.stem)), path, thickness)
 
 
-def _read_board_mapping(path: Path, where: str) -> dict:
-    """The board file's top-level mapping: known keys only, the required ones present, and
-    exactly one of the grid and explicit forms (every failure a BoardError)."""
-    try:
-        data = read_yaml_mapping(path, "board file")
-    except BoardError:
-        raise
-    except ConfigError as exc:
-        raise BoardError(str(exc)) from None
+def _check_board_mapping(data: dict, where: str) -> dict:
+    """An ArUco board file's top-level mapping: known keys only, the required ones present,
+    and exactly one of the grid and explicit forms (every failure a BoardError)."""
     try:
         check_keys(data, _TOP_KEYS, where, required=("dictionary", "thickness"))
     except ConfigError as exc:
