@@ -385,7 +385,10 @@ def _paint_markers(gray: np.ndarray, marker_corners, spec) -> np.ndarray:
 
 
 def _square_px(px: np.ndarray, ids: np.ndarray, spec) -> np.ndarray:
-    """Pixels per chessboard square at each detected corner ``(M,2)``: the distance to the
+    """Size of a chessboard square at each detected corner ``(M,2)`` in pixels, its narrowest
+    extent: with both grid neighbours along x and y detected, the height of the parallelogram
+    they span (an oblique view shears the squares: a window sized by the side alone reached
+    the next corners and pulled the refinement several pixels off); else the distance to the
     nearest other corner over their grid distance."""
     if len(px) < 2:
         return np.full(len(px), 8.0)
@@ -395,7 +398,16 @@ def _square_px(px: np.ndarray, ids: np.ndarray, spec) -> np.ndarray:
     grid = np.stack([ids % nx, ids // nx], axis=1)
     steps = np.abs(grid[:, None] - grid[None]).max(axis=-1).astype(float)
     steps[steps == 0] = 1.0  # (only the corner itself, whose distance is inf)
-    return np.min(d / steps, axis=1)
+    out = np.min(d / steps, axis=1)
+    where = {(int(c), int(r)): k for k, (c, r) in enumerate(grid)}
+    for k, (c, r) in enumerate(grid):
+        ex = [px[where[(c + s, r)]] - px[k] for s in (1, -1) if (c + s, r) in where]
+        ey = [px[where[(c, r + s)]] - px[k] for s in (1, -1) if (c, r + s) in where]
+        if ex and ey:
+            a, b = ex[0], ey[0]
+            cross = abs(a[0] * b[1] - a[1] * b[0])
+            out[k] = min(out[k], cross / max(np.linalg.norm(a), np.linalg.norm(b)))
+    return out
 
 
 def _saddle_subpix(
