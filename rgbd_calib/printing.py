@@ -565,6 +565,13 @@ def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,
                           "use a lower dpi")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if board.charuco is not None:
+        x0, x1, y0, y1 = _marker_boxes_mm(board)[0] / 1000.0
+        px0, px1, py0, py1 = board.panel
+        tol = FIT_TOL_MM / 1000.0
+        if x0 < px0 - tol or x1 > px1 + tol or y0 < py0 - tol or y1 > py1 + tol:
+            raise BoardError(f"{_where(board)}: the chessboard [0, {x1:g}, 0, {y1:g}] does not "
+                             f"fit the panel {list(board.panel)}; enlarge the panel")
     outside = [] if board.charuco is not None else _markers_outside_panel(board)
     if outside:
         raise BoardError(f"{_where(board)}: marker(s) {outside} lie outside the panel "

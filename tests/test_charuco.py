@@ -111,6 +111,18 @@ def test_cli_board_rejects_bad_file_and_writes_nothing(tmp_path):
 
 
 # ----------------------------------------------------------------------------- printing
+def test_print_rejects_a_panel_smaller_than_the_chessboard(tmp_path):
+    from rgbd_calib.printing import write_printable_board
+
+    data = yaml.safe_load(CALISCOPE.read_text())
+    data["panel"] = [0.0, 0.2, 0.0, 0.27]  # the chessboard is 0.216 x 0.27 m
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(BoardError, match=r"small.yaml: the chessboard .* does not fit the panel"):
+        write_printable_board(load_board(path), tmp_path / "out")
+    assert not (tmp_path / "out" / "board.pdf").exists()
+
+
 @pytest.mark.parametrize("config", [A3, CALISCOPE])
 def test_printed_board_detects_at_true_scale(tmp_path, config):
     """The printed PNG (inverted for the Caliscope board) gives every saddle quad, each
