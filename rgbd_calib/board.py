@@ -56,6 +56,7 @@ class Board:
     name: str = "board"
     grid: dict[str, Any] | None = None
     source: Path | None = field(default=None, compare=False)
+    charuco: CharucoSpec | None = None  # a ChArUco board: ids/corners are saddle-corner quads
 
     @cached_property
     def index_of(self) -> dict[int, int]:
@@ -92,6 +93,10 @@ class Board:
         return np.array([0.0, 0.0, float(face)])
 
     def to_dict(self) -> dict[str, Any]:
+        if self.charuco is not None:
+            return {"name": self.name, "type": "charuco", "dictionary": self.dictionary,
+                    **self.charuco.to_dict(), "thickness": self.thickness,
+                    "panel": list(self.panel)}
         out: dict[str, Any] = {
             "name": self.name,
             "dictionary": self.dictionary,
@@ -104,6 +109,123 @@ class Board:
             out["markers"] = {int(i): c.tolist() for i, c in zip(self.ids, self.corners)}
         out["panel"] = list(self.panel)
         return out
+
+
+@dataclass(frozen=True)
+class CharucoSpec:
+    """A ChArUco board as OpenCV defines it (``cv2.aruco.CharucoBoard``): ``squares_x`` x
+    ``squares_y`` chessboard squares of ``square_length`` m, an ArUco marker of
+    ``marker_length`` m centred in every white square, ids from ``first_id`` row-major from
+    the top-left. ``inverted``: printed white-on-black (the image is inverted before detection).
+
+    Its measurements are the chessboard *saddle* corners (OpenCV's ChArUco corners, id
+    ``r * (squares_x - 1) + c`` row-major from the top-left). The pipeline's unit of
+    measurement is a quad of 4 points (a "marker"), so the saddle grid is tiled into 2x2 quads
+    of neighbouring corners (one chessboard square each) with stride 2; an odd number of corner
+    columns (rows) adds a last quad column (row) overlapping the one before, so every corner is
+    in at least one quad and a few (those in the overlap) are used twice."""
+
+    squares_x: int
+    squares_y: int
+    square_length: float
+    marker_length: float
+    legacy_pattern: bool = False
+    first_id: int = 0
+    inverted: bool = False
+
+    @property
+    def n_markers(self) -> int:
+        return (self.squares_x * self.squares_y) // 2
+
+    @property
+    def height(self) -> float:
+        return self.squares_y * self.square_length
+
+    def cv_board(self, dictionary: cv2.aruco.Dictionary) -> cv2.aruco.CharucoBoard:
+        """OpenCV's board (built on demand: cv2 objects cannot be pickled to workers)."""
+        ids = np.arange(self.first_id, self.first_id + self.n_markers, dtype=np.int32)
+        b = cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_length,
+                                   self.marker_length, dictionary, ids)
+        b.setLegacyPattern(bool(self.legacy_pattern))
+        return b
+
+    def to_board_frame(self, xy_cv: np.ndarray) -> np.ndarray:
+        """OpenCV's board points (x right, y down from the top-left, m) -> the board frame
+        (origin bottom-left, y up, z out of the printed face)."""
+        p = np.asarray(xy_cv, dtype=float).reshape(-1, 3).copy()
+        p[:, 1] = self.height - p[:, 1]
+        p[:, 2] = 0.0
+        return p
+
+    def quads(self) -> np.ndarray:
+        """Saddle-corner ids ``(Q,4)`` of each quad, TL, TR, BR, BL as seen from the front."""
+        nx, ny = self.squares_x - 1, self.squares_y - 1
+
+        def starts(n: int) -> list[int]:
+            s = list(range(0, n - 1, 2))
+            return s + [n - 2] if n % 2 else s
+
+        return np.array([[r * nx + c, r * nx + c + 1, (r + 1) * nx + c + 1, (r + 1) * nx + c]
+                         for r in starts(ny) for c in starts(nx)], dtype=int)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "squares_x": self.squares_x,
+            "squares_y": self.squares_y,
+            "square_length": self.square_length,
+            "marker_length": self.marker_length,
+            "legacy_pattern": self.legacy_pattern,
+            "first_id": self.first_id,
+            "inverted": self.inverted,
+        }
+
+
+def charuco_markers(spec: CharucoSpec, dictionary: str) -> tuple[np.ndarray, np.ndarray]:
+    """The printed ArUco markers: ids ``(K,)`` and corners ``(K,4,3)`` in the board frame (m),
+    TL, TR, BR, BL as seen from the front (what the renderer draws, not measurements)."""
+    b = spec.cv_board(aruco_dictionary(dictionary))
+    corners = np.array([spec.to_board_frame(c) for c in b.getObjPoints()])
+    return np.asarray(b.getIds(), dtype=int).reshape(-1), corners
+
+
+def charuco_saddles(spec: CharucoSpec, dictionary: str) -> np.ndarray:
+    """The saddle corners ``(C,3)`` in the board frame (m), in OpenCV's ChArUco corner order."""
+    b = spec.cv_board(aruco_dictionary(dictionary))
+    return spec.to_board_frame(b.getChessboardCorners())
+
+
+def charuco_black_squares(spec: CharucoSpec, dictionary: str) -> np.ndarray:
+    """``(squares_y, squares_x)`` bool, True where a square is printed black (row 0 at the
+    top): every square without a marker (before ``inverted``)."""
+    ids, corners = charuco_markers(spec, dictionary)
+    black = np.ones((spec.squares_y, spec.squares_x), dtype=bool)
+    centre = corners.mean(axis=1)
+    cols = np.floor(centre[:, 0] / spec.square_length).astype(int)
+    rows = np.floor((spec.height - centre[:, 1]) / spec.square_length).astype(int)
+    black[rows, cols] = False
+    return black
+
+
+def board_from_charuco(
+    dictionary: str,
+    spec: CharucoSpec,
+    panel: tuple[float, float, float, float] | None = None,
+    margin: float | None = None,
+    name: str = "charuco",
+    source: Path | None = None,
+    thickness: float = 0.003,
+) -> Board:
+    """A one-faced ChArUco :class:`Board`: its "markers" are the saddle-corner quads of
+    :meth:`CharucoSpec.quads` (ids 0..Q-1), the panel the chessboard plus ``margin`` (default
+    half a square) unless given. ``thickness`` (m) is the panel's (the renderer and the depth
+    stage use it; no marker is on the back)."""
+    saddles = charuco_saddles(spec, dictionary)
+    quads = spec.quads()
+    if panel is None:
+        m = spec.square_length / 2 if margin is None else margin
+        panel = (-m, spec.squares_x * spec.square_length + m, -m, spec.height + m)
+    return Board(dictionary, np.arange(len(quads)), saddles[quads], np.ones(len(quads), int),
+                 thickness, tuple(map(float, panel)), name, None, source, spec)
 
 
 def grid_corners(
@@ -294,6 +416,11 @@ _TOP_KEYS = {
     "corner_order",
     "panel",
     "margin",
+    "type",
+}
+_CHARUCO_KEYS = {
+    "name", "type", "dictionary", "squares_x", "squares_y", "square_length", "marker_length",
+    "legacy_pattern", "first_id", "inverted", "panel", "margin", "thickness",
 }
 _GRID_KEYS = {"rows", "cols", "marker_length", "separation", "front_first_id", "back_first_id"}
 
@@ -334,7 +461,13 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
     of rejecting them."""
     path = Path(path)
     where = str(path)
-    data = _read_board_mapping(path, where)
+    raw = _read_raw_mapping(path)
+    if raw.get("type", "aruco") == "charuco":
+        return _load_charuco(raw, path, where)
+    if raw.get("type", "aruco") != "aruco":
+        raise BoardError(f"{where}: type must be 'aruco' (default) or 'charuco', "
+                         f"got {str(raw['type'])[:40]!r}")
+    data = _check_board_mapping(raw, where)
     # the keys both forms share
     dictionary = str(data["dictionary"])
     try:
@@ -353,15 +486,66 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
     )
 
 
-def _read_board_mapping(path: Path, where: str) -> dict:
-    """The board file's top-level mapping: known keys only, the required ones present, and
-    exactly one of the grid and explicit forms (every failure a BoardError)."""
+def _read_raw_mapping(path: Path) -> dict:
+    """The board file's top-level mapping, unchecked (a BoardError when it is not one)."""
     try:
-        data = read_yaml_mapping(path, "board file")
+        return read_yaml_mapping(path, "board file")
     except BoardError:
         raise
     except ConfigError as exc:
         raise BoardError(str(exc)) from None
+
+
+def _bool(value: Any, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise BoardError(f"{where}: expected true or false, got {str(value)[:40]!r}")
+    return value
+
+
+def _load_charuco(data: dict, path: Path, where: str) -> Board:
+    """A ``type: charuco`` board file (docs/formats.md): every key checked, one line per
+    mistake naming the file, the key and the fix."""
+    try:
+        check_keys(data, _CHARUCO_KEYS, where, required=(
+            "dictionary", "squares_x", "squares_y", "square_length", "marker_length"))
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    dictionary = str(data["dictionary"])
+    try:
+        d = aruco_dictionary(dictionary)
+    except BoardError as exc:
+        raise BoardError(f"{where}: dictionary: {exc}") from None
+    spec = CharucoSpec(
+        _int(data["squares_x"], f"{where}: squares_x", 3),
+        _int(data["squares_y"], f"{where}: squares_y", 3),
+        _number(data["square_length"], f"{where}: square_length"),
+        _number(data["marker_length"], f"{where}: marker_length"),
+        _bool(data.get("legacy_pattern", False), f"{where}: legacy_pattern"),
+        _int(data.get("first_id", 0), f"{where}: first_id"),
+        _bool(data.get("inverted", False), f"{where}: inverted"),
+    )
+    if spec.marker_length >= spec.square_length:
+        raise BoardError(
+            f"{where}: marker_length ({spec.marker_length}) must be smaller than square_length "
+            f"({spec.square_length}); both in metres, the marker sits inside a white square")
+    n_dict = d.bytesList.shape[0]
+    if spec.first_id + spec.n_markers > n_dict:
+        raise BoardError(
+            f"{where}: first_id {spec.first_id} + {spec.n_markers} markers exceeds {dictionary} "
+            f"({n_dict} ids); use a larger dictionary or a smaller first_id")
+    if spec.squares_x * spec.squares_y > 10000:
+        raise BoardError(f"{where}: squares_x x squares_y is more than 10000 squares; "
+                         "check squares_x and squares_y")
+    margin = data.get("margin")
+    margin = None if margin is None else _number(margin, f"{where}: margin", allow_zero=True)
+    thickness = _number(data.get("thickness", 0.003), f"{where}: thickness")
+    return board_from_charuco(dictionary, spec, _panel(data.get("panel"), where), margin,
+                              str(data.get("name", path.stem)), path, thickness)
+
+
+def _check_board_mapping(data: dict, where: str) -> dict:
+    """An ArUco board file's top-level mapping: known keys only, the required ones present,
+    and exactly one of the grid and explicit forms (every failure a BoardError)."""
     try:
         check_keys(data, _TOP_KEYS, where, required=("dictionary", "thickness"))
     except ConfigError as exc:
@@ -440,7 +624,7 @@ def _board_from_grid_form(
         board.name,
         board.grid,
         path,
-    )
+    )  # (an ArUco board: charuco stays None)
 
 
 def _board_from_explicit_form(

@@ -38,6 +38,14 @@ class DetectionConfig(BaseModel, extra="forbid"):
         "refined=False); 'subpix', 'none' and 'contour' are OpenCV's CORNER_REFINE_* methods "
         "(biased 0.2-0.6 px towards the marker centre).",
     )
+    charuco_corners: Literal["painted", "subpix", "opencv"] = Field(
+        "painted",
+        description="ChArUco boards: saddle-corner refinement of the corners OpenCV's "
+        "CharucoDetector interpolated. 'painted' fills the detected markers with their "
+        "square's white, then cornerSubPix on a window of 0.4 square; 'subpix' runs "
+        "cornerSubPix on the raw image within the white margin around the markers; 'opencv' "
+        "keeps the detector's own corners (docs/accuracy.md compares them).",
+    )
     min_marker_perimeter_px: float = Field(
         40.0,
         gt=0,

@@ -1,4 +1,4 @@
-"""ArUco marker detection with an unbiased subpixel corner refinement.
+"""ArUco marker detection with an unbiased subpixel corner refinement; ChArUco saddle corners.
 
 OpenCV's corner refinements sit inside the true marker corner (measured on the synthetic
 renders: ~0.5 px with ``CORNER_REFINE_NONE``/``CONTOUR``, 0.2-0.45 px with ``SUBPIX``), which
@@ -9,6 +9,17 @@ across the edge, fitted to the raw pixels of a band about one module wide along 
 the edge (see :func:`_fit_edge_lines`): the step from quiet zone to border, the marker's own
 data cells behind the one-module border (known from its id), and a Gaussian blur whose width
 is fitted. Corner regions, where blur rounds the square, are not used.
+
+ChArUco boards (``board.charuco``, :func:`detect_charuco`): the chessboard saddle corners are
+the measurements, the markers only identify them. They are returned in the same
+:class:`MarkerDetections` as ArUco markers, so the cache, the per-view PnP, the pose graph,
+the bundle adjustment and the report take them unchanged: each "marker" is a quad of 4 saddle
+corners (ids and board points from :meth:`rgbd_calib.board.CharucoSpec.quads`, 2x2 blocks of
+neighbouring corners with stride 2), reported when all 4 were found. The price: a corner whose
+quad lost another corner is not used, and on a board with an odd number of corner columns or
+rows the overlapping last quad column/row uses those corners twice (slightly optimistic
+covariances). A measurement of any number of points would need the bundle's and PnP's
+per-marker (4-point) structures generalised.
 
 ``detect_markers`` is a pure function of ``(image, board, config)`` so callers can run it in a
 process pool; it never touches ``board.aruco_dict`` (a cached ``cv2`` object that cannot be
@@ -195,6 +206,8 @@ def detect_markers(
     maps the corners back to distorted pixels.
     """
     config = config or DetectionConfig()
+    if board.charuco is not None:
+        return detect_charuco(image, board, config)
     gray = to_gray(image)
     size = (int(gray.shape[1]), int(gray.shape[0]))
     dictionary = aruco_dictionary(board.dictionary)
@@ -270,6 +283,151 @@ def _subpix_fallback(
     for w in np.unique(win[mask.any(axis=1)]):
         sel = mask & (win == w)[:, None]
         pts = corners_px[sel].astype(np.float32).reshape(-1, 1, 2)
+        cv2.cornerSubPix(gray, pts, (int(w), int(w)), (-1, -1), criteria)
+        out[sel] = pts.reshape(-1, 2)
+    return out
+
+
+# --------------------------------------------------------------------------- ChArUco
+CHARUCO_WIN_FRACTION = 0.8  # cornerSubPix half-window / the white margin around a marker
+
+
+def detect_charuco(
+    image: np.ndarray, board: Board, config: DetectionConfig | None = None,
+    corners: str | None = None,
+) -> MarkerDetections:
+    """The saddle corners of a ChArUco board (``board.charuco``) in a BGR or grey image, as
+    the board's saddle-corner quads (see :class:`rgbd_calib.board.CharucoSpec`): a quad is
+    reported when all its 4 corners were found, ``corners_px`` ``(N,4,2)`` in its order.
+
+    Steps: an inverted print is inverted back (so OpenCV sees black markers); OpenCV's
+    ``CharucoDetector.detectBoard`` finds the markers (identification only) and interpolates
+    the saddle corners from them; each corner is then refined (``corners``, default
+    ``config.charuco_corners``): ``"painted"`` fills every detected marker with the white of
+    its margin (:func:`_paint_markers`), so a ``cv2.cornerSubPix`` window of
+    :data:`PAINTED_WIN_FRACTION` of a square sees only the four chessboard squares;
+    ``"subpix"`` runs cornerSubPix on the raw image with a window inside the white margin
+    (:data:`CHARUCO_WIN_FRACTION`; a larger one reaches the markers and is pulled off);
+    ``"opencv"`` keeps the detector's corners. docs/accuracy.md has their bias and scatter on
+    renders (painted: bias < 0.003 px, scatter 0.03 px)."""
+    config = config or DetectionConfig()
+    spec = board.charuco
+    method = corners or config.charuco_corners
+    gray = to_gray(image)
+    if spec.inverted:
+        gray = 255 - gray
+    size = (int(gray.shape[1]), int(gray.shape[0]))
+    dictionary = aruco_dictionary(board.dictionary)
+    cv_board = spec.cv_board(dictionary)
+    params = cv2.aruco.DetectorParameters()
+    params.minMarkerPerimeterRate = config.min_marker_perimeter_px / max(size)
+    params.errorCorrectionRate = config.error_correction_rate
+    params.adaptiveThreshWinSizeMin = config.adaptive_thresh_win_size_min
+    params.adaptiveThreshWinSizeMax = config.adaptive_thresh_win_size_max
+    params.adaptiveThreshWinSizeStep = config.adaptive_thresh_win_size_step
+    detector = cv2.aruco.CharucoDetector(cv_board, cv2.aruco.CharucoParameters(), params)
+    ch_corners, ch_ids, marker_corners, marker_ids = detector.detectBoard(gray)
+    foreign = np.zeros(0, dtype=int)
+    if marker_ids is not None:
+        m = np.asarray(marker_ids, dtype=int).reshape(-1)
+        foreign = np.unique(m[(m < spec.first_id) | (m >= spec.first_id + spec.n_markers)])
+    empty = MarkerDetections(np.zeros(0, dtype=int), np.zeros((0, 4, 2)),
+                             np.zeros((0, 4), bool), foreign, np.zeros(0, dtype=int), size,
+                             "charuco")
+    if ch_ids is None or len(ch_ids) == 0:
+        return empty
+    ids = np.asarray(ch_ids, dtype=int).reshape(-1)
+    px = np.asarray(ch_corners, dtype=np.float64).reshape(-1, 2)
+    if method == "subpix":
+        px = _saddle_subpix(gray, px, ids, spec, config)
+    elif method == "painted":
+        painted = _paint_markers(gray, marker_corners, spec)
+        px = _saddle_subpix(painted, px, ids, spec, config, fraction=PAINTED_WIN_FRACTION,
+                            of_square=True)
+    found = dict(zip(ids.tolist(), px))
+    quads = spec.quads()
+    full = np.array([all(int(k) in found for k in q) for q in quads], dtype=bool)
+    if not full.any():
+        return empty
+    q_ids = np.nonzero(full)[0]
+    q_px = np.array([[found[int(k)] for k in quads[i]] for i in q_ids])
+    return MarkerDetections(q_ids, q_px, np.ones((len(q_ids), 4), bool), foreign,
+                            np.zeros(0, dtype=int), size, "charuco")
+
+
+PAINTED_WIN_FRACTION = 0.4  # half-window / square, markers painted out
+PAINT_GROW_PX = 1.5  # a painted marker extends this far beyond its detected outline
+
+
+def _paint_markers(gray: np.ndarray, marker_corners, spec) -> np.ndarray:
+    """A float32 copy of ``gray`` with each detected marker (outline grown by
+    :data:`PAINT_GROW_PX`) filled with the white of its square (the median of the white
+    margin ring between the grown marker and the square shrunk by as much; a fixed
+    percentile of the square instead left a 100-200 ppm outward scale bias on renders):
+    around a saddle corner only the chessboard remains."""
+    out = gray.astype(np.float32)
+    if marker_corners is None:
+        return out
+    grow_sq = spec.square_length / spec.marker_length
+    for c in marker_corners:
+        c = np.asarray(c, dtype=np.float64).reshape(4, 2)
+        centre = c.mean(axis=0)
+        side = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1).mean()
+        grown = centre + (c - centre) * (1.0 + 2.0 * PAINT_GROW_PX / max(side, 1.0))
+        square = centre + (c - centre) * (grow_sq - 2.0 * PAINT_GROW_PX / max(side, 1.0))
+        mask = np.zeros(gray.shape, np.uint8)
+        cv2.fillConvexPoly(mask, np.round(square * 16).astype(np.int32), 1, cv2.LINE_8, 4)
+        cv2.fillConvexPoly(mask, np.round(grown * 16).astype(np.int32), 2, cv2.LINE_8, 4)
+        ring = gray[mask == 1]  # the white margin between the marker and the black squares
+        white = float(np.median(ring)) if ring.size else float(np.percentile(gray[mask > 0], 90))
+        out[mask == 2] = white
+    return out
+
+
+def _square_px(px: np.ndarray, ids: np.ndarray, spec) -> np.ndarray:
+    """Size of a chessboard square at each detected corner ``(M,2)`` in pixels, its narrowest
+    extent: with both grid neighbours along x and y detected, the height of the parallelogram
+    they span (an oblique view shears the squares: a window sized by the side alone reached
+    the next corners and pulled the refinement several pixels off); else the distance to the
+    nearest other corner over their grid distance."""
+    if len(px) < 2:
+        return np.full(len(px), 8.0)
+    d = np.linalg.norm(px[:, None] - px[None], axis=-1)
+    d[np.arange(len(px)), np.arange(len(px))] = np.inf
+    nx = spec.squares_x - 1
+    grid = np.stack([ids % nx, ids // nx], axis=1)
+    steps = np.abs(grid[:, None] - grid[None]).max(axis=-1).astype(float)
+    steps[steps == 0] = 1.0  # (only the corner itself, whose distance is inf)
+    out = np.min(d / steps, axis=1)
+    where = {(int(c), int(r)): k for k, (c, r) in enumerate(grid)}
+    for k, (c, r) in enumerate(grid):
+        ex = [px[where[(c + s, r)]] - px[k] for s in (1, -1) if (c + s, r) in where]
+        ey = [px[where[(c, r + s)]] - px[k] for s in (1, -1) if (c, r + s) in where]
+        if ex and ey:
+            a, b = ex[0], ey[0]
+            cross = abs(a[0] * b[1] - a[1] * b[0])
+            out[k] = min(out[k], cross / max(np.linalg.norm(a), np.linalg.norm(b)))
+    return out
+
+
+def _saddle_subpix(
+    gray: np.ndarray, px: np.ndarray, ids: np.ndarray, spec, config: DetectionConfig,
+    fraction: float | None = None, of_square: bool = False,
+) -> np.ndarray:
+    """``cv2.cornerSubPix`` of saddle corners ``(M,2)``, half-window ``fraction`` (default
+    :data:`CHARUCO_WIN_FRACTION`) of the white margin around the markers, or of the square
+    with ``of_square``, in the image near each corner (:func:`_square_px`), 2 to 25 px."""
+    out = px.copy()
+    square_px = _square_px(px, ids, spec)
+    margin_px = square_px * (1.0 - spec.marker_length / spec.square_length) / 2
+    size_px = square_px if of_square else margin_px
+    fraction = CHARUCO_WIN_FRACTION if fraction is None else fraction
+    win = np.clip(np.floor(fraction * size_px), 2, 25).astype(int)
+    criteria = (cv2.TERM_CRITERIA_MAX_ITER | cv2.TERM_CRITERIA_EPS,
+                config.subpix_max_iterations, 0.001)
+    for w in np.unique(win):
+        sel = win == w
+        pts = px[sel].astype(np.float32).reshape(-1, 1, 2)
         cv2.cornerSubPix(gray, pts, (int(w), int(w)), (-1, -1), criteria)
         out[sel] = pts.reshape(-1, 2)
     return out

@@ -28,7 +28,7 @@ from PIL import Image, ImageDraw, ImageFont
 from reportlab.pdfbase.pdfmetrics import stringWidth
 from reportlab.pdfgen.canvas import Canvas
 
-from .board import BACK, FRONT, Board
+from .board import BACK, FRONT, Board, charuco_black_squares, charuco_markers
 from .errors import BoardError, ConfigError
 
 MM_PER_INCH = 25.4
@@ -162,12 +162,37 @@ def board_to_page_mm(board: Board, face: int, xy_m: np.ndarray,
 
 def _module_mm(board: Board) -> float:
     """One marker module (cell) in mm: the minimum quiet zone around every marker."""
-    return board.marker_length * 1000.0 / (board.bits + 2)
+    length = board.marker_length if board.charuco is None else board.charuco.marker_length
+    return length * 1000.0 / (board.bits + 2)
+
+
+def _printed(board: Board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ArUco markers printed on the board: ids, corners ``(K,4,3)`` (m, detection order)
+    and faces; a ChArUco board's are its markers, not its saddle-corner quads."""
+    if board.charuco is None:
+        return board.ids, board.corners, board.faces
+    ids, corners = charuco_markers(board.charuco, board.dictionary)
+    return ids, corners, np.full(len(ids), FRONT)
+
+
+def _charuco_squares_mm(board: Board) -> list[tuple[float, float, float, float]]:
+    """A ChArUco board's black squares as board-frame boxes ``(xmin, xmax, ymin, ymax)`` mm."""
+    spec = board.charuco
+    sq = spec.square_length * 1000.0
+    top = spec.height * 1000.0
+    black = charuco_black_squares(spec, board.dictionary)
+    return [(c * sq, (c + 1) * sq, top - (r + 1) * sq, top - r * sq)
+            for r, c in zip(*np.nonzero(black))]
 
 
 def _marker_boxes_mm(board: Board) -> np.ndarray:
     """Axis-aligned board-frame boxes ``(M,4)`` ``(xmin, xmax, ymin, ymax)`` in mm of all
-    markers of both faces (both sheets share the alignment marks, so both must avoid them)."""
+    markers of both faces (both sheets share the alignment marks, so both must avoid them);
+    a ChArUco board's whole chessboard."""
+    if board.charuco is not None:
+        spec = board.charuco
+        return np.array([[0.0, spec.squares_x * spec.square_length * 1000.0, 0.0,
+                          spec.height * 1000.0]])
     xy = board.corners[:, :, :2] * 1000.0
     return np.stack([xy[..., 0].min(1), xy[..., 0].max(1), xy[..., 1].min(1),
                      xy[..., 1].max(1)], axis=1)
@@ -229,6 +254,13 @@ def _block_height(font_mm: float) -> float:
 def _info_lines(board: Board, face: int) -> tuple[str, str]:
     side = "FRONT" if face == FRONT else "BACK"
     where = "front" if face == FRONT else "back"
+    if board.charuco is not None:
+        c = board.charuco
+        first = (f"{board.name}  |  ChArUco {c.squares_x} x {c.squares_y} squares of "
+                 f"{c.square_length * 1000:.1f} mm  |  {board.dictionary}, ids "
+                 f"{c.first_id}-{c.first_id + c.n_markers - 1}  |  marker "
+                 f"{c.marker_length * 1000:.1f} mm" + ("  |  inverted" if c.inverted else ""))
+        return first, "print at 100% / actual size, check: this bar = 100 mm"
     ids = board.face_ids(face)
     first = (f"{board.name}  |  {side} face: glue on the {where}, this side out, top edge up  |  "
              f"{board.dictionary}, ids {int(ids.min())}-{int(ids.max())}  |  marker "
@@ -296,10 +328,10 @@ def _rects_for_sheet(board: Board, face: int, page_size_mm: tuple[float, float],
     return rects
 
 
-def _marker_quads(board: Board, marker_index: int, corners_page: np.ndarray) -> list[np.ndarray]:
+def _marker_quads(board: Board, marker_id: int, corners_page: np.ndarray) -> list[np.ndarray]:
     """Black runs of one marker as page-mm quads ``(4,2)``: each row's consecutive black cells
     (border included) merged, mapped through the marker's own corners (TL, TR, BR, BL)."""
-    cells = board.marker_cells(int(board.ids[marker_index])) == 0
+    cells = board.marker_cells(int(marker_id)) == 0
     n = cells.shape[0]
     tl, tr, _, bl = corners_page
     ex, ey = (tr - tl) / n, (bl - tl) / n
@@ -320,6 +352,24 @@ def _marker_quads(board: Board, marker_index: int, corners_page: np.ndarray) -> 
     return quads
 
 
+def _chessboard_page_mm(board: Board, page_size_mm: tuple[float, float]):
+    """A ChArUco board's chessboard area on the front sheet ``(u0, v0, u1, v1)`` page mm."""
+    spec = board.charuco
+    corners = np.array([[0.0, spec.height], [spec.squares_x * spec.square_length, 0.0]])
+    (u0, v0), (u1, v1) = board_to_page_mm(board, FRONT, corners, page_size_mm)
+    return u0, v0, u1, v1
+
+
+def _charuco_squares_page_mm(board: Board, page_size_mm: tuple[float, float]):
+    """A ChArUco board's black squares as page rectangles ``(u0, v0, u1, v1)`` mm."""
+    out = []
+    for x0, x1, y0, y1 in _charuco_squares_mm(board):
+        corners = np.array([[x0, y1], [x1, y0]]) / 1000.0
+        (u0, v0), (u1, v1) = board_to_page_mm(board, FRONT, corners, page_size_mm)
+        out.append((u0, v0, u1, v1))
+    return out
+
+
 # ----------------------------------------------------------------------------- PDF
 
 
@@ -331,16 +381,32 @@ def _draw_pdf_page(canvas: Canvas, board: Board, face: int, page_size_mm: tuple[
     def pt(u: float, v: float) -> tuple[float, float]:
         return u * PT_PER_MM, (H - v) * PT_PER_MM
 
-    canvas.setFillGray(0.0)
+    ink = 0.0
+    inverted = board.charuco is not None and board.charuco.inverted
+    if inverted:  # white on black: a black chessboard area, the usual shapes in white
+        canvas.setFillGray(0.0)
+        u0, v0, u1, v1 = _chessboard_page_mm(board, page_size_mm)
+        x0, y1 = pt(u0, v0)
+        x1, y0 = pt(u1, v1)
+        canvas.rect(x0, y0, x1 - x0, y1 - y0, stroke=0, fill=1)
+        ink = 1.0
+    canvas.setFillGray(ink)
     canvas.setStrokeGray(0.0)
-    for k in np.flatnonzero(board.faces == face):
+    if board.charuco is not None:
+        for u0, v0, u1, v1 in _charuco_squares_page_mm(board, page_size_mm):
+            x0, y1 = pt(u0, v0)
+            x1, y0 = pt(u1, v1)
+            canvas.rect(x0, y0, x1 - x0, y1 - y0, stroke=0, fill=1)
+    ids, _, faces = _printed(board)
+    for k in np.flatnonzero(faces == face):
         path = canvas.beginPath()
-        for quad in _marker_quads(board, int(k), corners_page[k]):
+        for quad in _marker_quads(board, int(ids[k]), corners_page[k]):
             path.moveTo(*pt(*quad[0]))
             for q in quad[1:]:
                 path.lineTo(*pt(*q))
             path.close()
         canvas.drawPath(path, stroke=0, fill=1)
+    canvas.setFillGray(0.0)
     for u0, v0, u1, v1 in _rects_for_sheet(board, face, page_size_mm, marks, text):
         x0, y1 = pt(u0, v0)
         x1, y0 = pt(u1, v1)
@@ -358,7 +424,7 @@ def _draw_pdf_page(canvas: Canvas, board: Board, face: int, page_size_mm: tuple[
 def _new_canvas(path: Path, board: Board, page_size_mm: tuple[float, float]) -> Canvas:
     c = Canvas(str(path), pagesize=(page_size_mm[0] * PT_PER_MM, page_size_mm[1] * PT_PER_MM),
                invariant=True)
-    c.setTitle(f"{board.name} ArUco board, {board.dictionary}")
+    c.setTitle(f"{board.name} {'ChArUco' if board.charuco else 'ArUco'} board, {board.dictionary}")
     c.setCreator("rgbd_calib.printing")
     c.setViewerPreference("PrintScaling", "None")  # ask viewers to print at actual size
     return c
@@ -450,9 +516,18 @@ def _render_png(path: Path, board: Board, face: int, page_size_mm: tuple[float, 
     px_per_mm = dpi / MM_PER_INCH
     w, h = (int(round(s * px_per_mm)) for s in page_size_mm)
     img = np.full((h, w), 255, dtype=np.uint8)
-    for k in np.flatnonzero(board.faces == face):
-        cells = board.marker_cells(int(board.ids[k])) == 0
+    if board.charuco is not None:
+        for rect in _charuco_squares_page_mm(board, page_size_mm):
+            _raster_rect(img, px_per_mm, *rect)
+    ids, _, faces = _printed(board)
+    for k in np.flatnonzero(faces == face):
+        cells = board.marker_cells(int(ids[k])) == 0
         _raster_marker(img, px_per_mm, cells, corners_page[k])
+    if board.charuco is not None and board.charuco.inverted:  # white on black
+        u0, v0, u1, v1 = _chessboard_page_mm(board, page_size_mm)
+        c0, c1 = (int(round(u * px_per_mm)) for u in (u0, u1))
+        r0, r1 = (int(round(v * px_per_mm)) for v in (v0, v1))
+        img[r0:r1, c0:c1] = 255 - img[r0:r1, c0:c1]
     for rect in _rects_for_sheet(board, face, page_size_mm, marks, text):
         _raster_rect(img, px_per_mm, *rect)
     pil = Image.fromarray(img)  # 2-D uint8: 8-bit grey
@@ -490,7 +565,14 @@ def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,
                           "use a lower dpi")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    outside = _markers_outside_panel(board)
+    if board.charuco is not None:
+        x0, x1, y0, y1 = _marker_boxes_mm(board)[0] / 1000.0
+        px0, px1, py0, py1 = board.panel
+        tol = FIT_TOL_MM / 1000.0
+        if x0 < px0 - tol or x1 > px1 + tol or y0 < py0 - tol or y1 > py1 + tol:
+            raise BoardError(f"{_where(board)}: the chessboard [0, {x1:g}, 0, {y1:g}] does not "
+                             f"fit the panel {list(board.panel)}; enlarge the panel")
+    outside = [] if board.charuco is not None else _markers_outside_panel(board)
     if outside:
         raise BoardError(f"{_where(board)}: marker(s) {outside} lie outside the panel "
                          f"{list(board.panel)}; enlarge the panel to cover every marker")
@@ -500,20 +582,21 @@ def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,
         notes.append("no room for the info text and 100 mm scale bar outside the markers' "
                       "quiet zone; check the print scale on the markers themselves")
 
-    faces = [f for f in (FRONT, BACK) if np.any(board.faces == f)]
+    printed_ids, printed_corners, printed_faces = _printed(board)
+    faces = [f for f in (FRONT, BACK) if np.any(printed_faces == f)]
     combined = _new_canvas(out_dir / "board.pdf", board, page_size)
     sheets, files = [], []
     for face in faces:
         name = FACE_NAMES[face]
-        corners_page = board_to_page_mm(board, face, board.corners[:, :, :2], page_size)
+        corners_page = board_to_page_mm(board, face, printed_corners[:, :, :2], page_size)
         pdf, png = out_dir / f"board_{name}.pdf", out_dir / f"board_{name}.png"
         single = _new_canvas(pdf, board, page_size)
         for canvas in (single, combined):
             _draw_pdf_page(canvas, board, face, page_size, corners_page, marks, text)
         single.save()
         png_size = _render_png(png, board, face, page_size, dpi, corners_page, marks, text)
-        on_face = board.faces == face
-        sheets.append(PrintedSheet(face, board.ids[on_face].copy(), corners_page[on_face],
+        on_face = printed_faces == face
+        sheets.append(PrintedSheet(face, printed_ids[on_face].copy(), corners_page[on_face],
                                    pdf, png))
         files += [pdf, png]
     combined.save()

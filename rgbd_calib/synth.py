@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .board import BACK, FRONT, Board
+from .board import BACK, FRONT, Board, charuco_black_squares, charuco_markers
 from .camera import DISTORTION_LENGTHS, CameraIntrinsics
 from .dataset import FolderWriter, staged_folder
 from .errors import ConfigError
@@ -425,6 +425,8 @@ def marker_visibility(
     count = 0
     for face in (FRONT, BACK):
         sel = board.faces == face
+        if not np.any(sel):  # a one-faced board (ChArUco)
+            continue
         pts = board.corners[sel].reshape(-1, 3) @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
         if np.any(pts[:, 2] < 0.2):
             continue
@@ -518,6 +520,10 @@ class _BoardModel:
     rects: list[Rect] = field(init=False)
     trees: dict[int, cKDTree] = field(init=False)
     cells: dict[int, np.ndarray] = field(init=False)
+    ids: np.ndarray = field(init=False)  # the printed ArUco markers, corners and faces
+    corners: np.ndarray = field(init=False)
+    faces: np.ndarray = field(init=False)
+    black_squares: np.ndarray | None = field(init=False)  # ChArUco only: (rows, cols)
 
     @property
     def thickness(self) -> float:
@@ -536,12 +542,21 @@ class _BoardModel:
             rect((x0, y0, -t), (0, 0, t), (0, h, 0), (1, 1, 1), 0),  # left edge
             rect((x1, y0, -t), (0, h, 0), (0, 0, t), (1, 1, 1), 0),  # right edge
         ]
+        # the printed markers: the board's own, or a ChArUco board's ArUco markers (its
+        # "markers" are saddle-corner quads, see board.CharucoSpec) and its black squares
+        self.black_squares = None
+        if b.charuco is not None:
+            self.ids, self.corners = charuco_markers(b.charuco, b.dictionary)
+            self.faces = np.full(len(self.ids), FRONT)
+            self.black_squares = charuco_black_squares(b.charuco, b.dictionary)
+        else:
+            self.ids, self.corners, self.faces = b.ids, b.corners, b.faces
         self.trees = {
-            f: cKDTree(b.corners[b.faces == f].mean(axis=1)[:, :2])
+            f: cKDTree(self.corners[self.faces == f].mean(axis=1)[:, :2])
             for f in (FRONT, BACK)
-            if np.any(b.faces == f)
+            if np.any(self.faces == f)
         }
-        self.cells = {int(i): b.marker_cells(int(i)) for i in b.ids}
+        self.cells = {int(i): b.marker_cells(int(i)) for i in self.ids}
 
     def reflectance(self, hit_index: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Reflectance of board hits: ink, paper or the panel's edge."""
@@ -561,8 +576,10 @@ class _BoardModel:
             )
             if self.printed is not None and not self.printed.is_nominal:
                 xy = self.printed.file_xy(face, xy)
-            ids = self.board.ids[self.board.faces == face]
-            corners = self.board.corners[self.board.faces == face][:, :, :2]
+            if self.black_squares is not None:
+                out[sel] = self._squares(xy)
+            ids = self.ids[self.faces == face]
+            corners = self.corners[self.faces == face][:, :, :2]
             k = min(2, len(ids))
             _, cand = self.trees[face].query(xy, k=k)
             cand = cand.reshape(len(sel), k)
@@ -579,6 +596,23 @@ class _BoardModel:
                     n = cells.shape[0]
                     val = cells[(v[pick] * n).astype(int), (u[pick] * n).astype(int)]
                     out[sel[pick]] = np.where(val > 127, PAPER_WHITE, INK_BLACK)
+            spec = self.board.charuco
+            if spec is not None and spec.inverted:  # white on black within the chessboard
+                inv = sel[(xy[:, 0] >= 0) & (xy[:, 0] < spec.squares_x * spec.square_length)
+                          & (xy[:, 1] >= 0) & (xy[:, 1] < spec.height)]
+                out[inv] = PAPER_WHITE + INK_BLACK - out[inv]
+        return out
+
+    def _squares(self, xy: np.ndarray) -> np.ndarray:
+        """Paper or ink of a ChArUco board's chessboard at board-frame points ``(N,2)`` (m)."""
+        spec = self.board.charuco
+        col = np.floor(xy[:, 0] / spec.square_length).astype(int)
+        row = np.floor((spec.height - xy[:, 1]) / spec.square_length).astype(int)
+        inside = (col >= 0) & (col < spec.squares_x) & (row >= 0) & (row < spec.squares_y)
+        out = np.full(len(xy), PAPER_WHITE)
+        black = np.zeros(len(xy), dtype=bool)
+        black[inside] = self.black_squares[row[inside], col[inside]]
+        out[black] = INK_BLACK
         return out
 
 

@@ -1,0 +1,289 @@
+"""ChArUco boards: board file, printing, saddle-corner detection, end to end on a render."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from conftest import CONFIGS, SHARED_DATA, shared_data_missing
+from typer.testing import CliRunner
+
+from rgbd_calib.board import (
+    Board,
+    charuco_black_squares,
+    load_board,
+    save_board,
+)
+from rgbd_calib.errors import BoardError
+from rgbd_calib.geometry import invert_transform, transform_error
+
+A3 = CONFIGS / "board_charuco_a3.yaml"
+CALISCOPE = CONFIGS / "board_charuco_caliscope.yaml"
+CALISCOPE_DATA = SHARED_DATA / "caliscope-charuco-4cam"
+
+# saddle corners on the render below, measured (painted refinement): bias +0.002 px per
+# axis, scatter 0.027/0.031 px; OpenCV's own corners 0.13/0.15 px
+MAX_CORNER_BIAS_PX = 0.02
+MAX_CORNER_SCATTER_PX = 0.06
+# end to end on the render: the ArUco board's thesis-line bound (issue 3, tests/
+# test_accuracy.py BOUNDS["thesis-line"], met there with 40 frames); measured here with 6
+# frames: 0.19-0.36 mm / 0.007-0.014 deg (claimed sigmas 0.10-0.14 mm)
+E2E_MM, E2E_DEG = 0.5, 0.05
+MAX_SIGMAS = 4.0  # no camera further off than this many claimed sigmas (measured 2.6)
+PRINT_CORNER_PX = 0.1  # saddles found on the printed PNG vs where the print put them
+
+
+# ----------------------------------------------------------------------------- board file
+def test_board_file_loads_and_round_trips(tmp_path):
+    board = load_board(CALISCOPE)
+    spec = board.charuco
+    assert spec is not None and spec.inverted and (spec.squares_x, spec.squares_y) == (4, 5)
+    # 3 x 4 saddle corners in quads of a square each (stride 2, last column overlapping)
+    assert board.corners.shape == (4, 4, 3)
+    sides = np.linalg.norm(np.roll(board.corners, -1, axis=1) - board.corners, axis=-1)
+    np.testing.assert_allclose(sides, 0.054, atol=1e-12)
+    assert len(np.unique(board.corners.reshape(-1, 3), axis=0)) == 12  # every corner used
+    # black squares as OpenCV prints them (sampled at each square's centre)
+    img = spec.cv_board(board.aruco_dict).generateImage((400, 500), marginSize=0)
+    black = img[50::100, 50::100] < 128
+    expected = charuco_black_squares(spec, board.dictionary)
+    assert np.array_equal(black & expected, expected)  # a marker's centre may be black too
+    save_board(board, tmp_path / "b.yaml")
+    again = load_board(tmp_path / "b.yaml")
+    assert again.charuco == spec and again.panel == board.panel
+    np.testing.assert_array_equal(again.corners, board.corners)
+
+
+@pytest.mark.parametrize("squares, quads", [((4, 5), 4), ((8, 6), 12), ((5, 5), 4), ((3, 3), 1)])
+def test_quads_cover_every_saddle_corner(squares, quads):
+    from rgbd_calib.board import CharucoSpec
+
+    spec = CharucoSpec(squares[0], squares[1], 0.05, 0.035)
+    q = spec.quads()
+    nx = spec.squares_x - 1
+    assert len(q) == quads
+    assert set(q.ravel().tolist()) == set(range(nx * (spec.squares_y - 1)))
+    # each quad is one square: TL, TR, BR, BL neighbours on the corner grid
+    assert np.all(q[:, 1] - q[:, 0] == 1) and np.all(q[:, 3] - q[:, 0] == nx)
+    assert np.all(q[:, 2] - q[:, 3] == 1)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"square_length": None}, r"missing required key\(s\) square_length"),
+        ({"marker_length": 0.06}, r"marker_length \(0.06\) must be smaller than square_length"),
+        ({"squares_x": 2}, r"squares_x: expected a whole number >= 3"),
+        ({"inverted": "yes"}, r"inverted: expected true or false"),
+        ({"dictionary": "DICT_9X9"}, r"dictionary: unknown ArUco dictionary"),
+        ({"first_id": 995}, r"first_id 995 \+ 10 markers exceeds DICT_4X4_1000"),
+        ({"rows": 4}, r"unknown key\(s\) rows"),
+        ({"type": "chessboard"}, r"type must be 'aruco' \(default\) or 'charuco'"),
+    ],
+)
+def test_bad_board_file_names_file_and_key(tmp_path, change, message):
+    data = yaml.safe_load(CALISCOPE.read_text())
+    for k, v in change.items():
+        if v is None:
+            data.pop(k)
+        else:
+            data[k] = v
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(BoardError, match=message) as err:
+        load_board(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_cli_board_rejects_bad_file_and_writes_nothing(tmp_path):
+    from rgbd_calib.cli import app
+
+    data = yaml.safe_load(CALISCOPE.read_text())
+    data["marker_length"] = 0.054
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "print"
+    result = CliRunner().invoke(app, ["board", str(path), "--out", str(out)])
+    assert result.exit_code != 0
+    assert "marker_length" in result.output and "Traceback" not in result.output
+    assert not out.exists() or not any(out.iterdir())
+
+
+# ----------------------------------------------------------------------------- printing
+def test_print_rejects_a_panel_smaller_than_the_chessboard(tmp_path):
+    from rgbd_calib.printing import write_printable_board
+
+    data = yaml.safe_load(CALISCOPE.read_text())
+    data["panel"] = [0.0, 0.2, 0.0, 0.27]  # the chessboard is 0.216 x 0.27 m
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(BoardError, match=r"small.yaml: the chessboard .* does not fit the panel"):
+        write_printable_board(load_board(path), tmp_path / "out")
+    assert not (tmp_path / "out" / "board.pdf").exists()
+
+
+@pytest.mark.parametrize("config", [A3, CALISCOPE])
+def test_printed_board_detects_at_true_scale(tmp_path, config):
+    """The printed PNG (inverted for the Caliscope board) gives every saddle quad, each
+    corner where the print put it at 1 mm = 1 mm."""
+    from rgbd_calib.detection import detect_charuco
+    from rgbd_calib.printing import board_to_page_mm, write_printable_board
+
+    board = load_board(config)
+    dpi = 100
+    result = write_printable_board(board, tmp_path, dpi=dpi)
+    gray = cv2.imread(str(tmp_path / "board_front.png"), cv2.IMREAD_GRAYSCALE)
+    det = detect_charuco(cv2.GaussianBlur(gray, (0, 0), 1.0), board)
+    assert det.ids.tolist() == board.ids.tolist()
+    page = board_to_page_mm(board, 1, board.corners[det.ids][:, :, :2], result.page_size_mm)
+    expected_px = page * dpi / 25.4 - 0.5  # pixel centres at integer coordinates
+    assert np.abs(det.corners_px - expected_px).max() < PRINT_CORNER_PX
+
+
+# ----------------------------------------------------------------------------- renders
+@pytest.fixture(scope="module")
+def charuco_line(tmp_path_factory):
+    """The ChArUco A3 board in small_line's setting (thesis-line, 1280x720, 6 frames, seed
+    3, default noise: blur 0.6 px, colour noise 2 DN). About 20 s."""
+    from rgbd_calib.synth import SynthParams, synthesize
+
+    out = tmp_path_factory.mktemp("charuco") / "line"
+    return synthesize(out, "thesis-line", 6, 3, load_board(A3), SynthParams(), workers=2).path
+
+
+def corner_errors(path, board: Board, method: str | None, invert: bool = False):
+    """Detected minus true saddle corners ``(K,2)`` px over every image of a render."""
+    from rgbd_calib.detection import detect_charuco
+    from rgbd_calib.synth import load_ground_truth
+
+    gt = load_ground_truth(path)
+    errs = []
+    for cam, K in gt.intrinsics.items():
+        for frame, T_ref_board in gt.T_ref_board.items():
+            img = cv2.imread(str(path / cam / "color" / f"{frame}.png"))
+            det = detect_charuco(255 - img if invert else img, board, corners=method)
+            if len(det) == 0:
+                continue
+            T_cam_board = invert_transform(gt.T_ref_cam[cam]) @ T_ref_board
+            P = board.corners[det.ids].reshape(-1, 3)
+            uv = K.project(P @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]).reshape(-1, 2)
+            errs.append(det.corners_px.reshape(-1, 2) - uv)
+    return np.concatenate(errs)
+
+
+def test_saddle_corners_unbiased_on_render(charuco_line):
+    board = load_board(A3)
+    e = corner_errors(charuco_line, board, None)  # the default: painted
+    assert len(e) >= 400
+    assert np.all(np.abs(e.mean(axis=0)) < MAX_CORNER_BIAS_PX), e.mean(axis=0)
+    assert np.all(e.std(axis=0) < MAX_CORNER_SCATTER_PX), e.std(axis=0)
+    opencv = corner_errors(charuco_line, board, "opencv")
+    assert np.all(e.std(axis=0) < opencv.std(axis=0) / 2), (e.std(axis=0), opencv.std(axis=0))
+
+
+def test_inverted_board_detects_the_same_corners(charuco_line):
+    """An inverted print seen in an image is the normal one with the grey levels flipped."""
+    board = load_board(A3)
+    spec = board.charuco
+    inverted = Board(board.dictionary, board.ids, board.corners, board.faces, board.thickness,
+                     board.panel, board.name, None, None,
+                     type(spec)(**{**spec.to_dict(), "inverted": True}))
+    e = corner_errors(charuco_line, inverted, None, invert=True)
+    assert len(e) >= 400 and np.all(e.std(axis=0) < MAX_CORNER_SCATTER_PX)
+
+
+def test_inverted_render_flips_the_chessboard():
+    from rgbd_calib.board import board_from_charuco
+    from rgbd_calib.synth import INK_BLACK, PAPER_WHITE, _BoardModel
+
+    board = load_board(A3)
+    inverted = board_from_charuco(board.dictionary, type(board.charuco)(
+        **{**board.charuco.to_dict(), "inverted": True}))
+    x0, _, y0, _ = board.panel
+    # panel coordinates of the top-left square's centre (black) and of the panel's margin
+    a = np.array([0.025 - x0, -0.01 - x0])
+    b = np.array([0.275 - y0, -0.01 - y0])
+    hit = np.zeros(2, dtype=int)
+    normal = _BoardModel(board).reflectance(hit, a, b)
+    flipped = _BoardModel(inverted).reflectance(hit, a, b)
+    assert normal.tolist() == pytest.approx([INK_BLACK, PAPER_WHITE])
+    assert flipped.tolist() == pytest.approx([PAPER_WHITE, PAPER_WHITE])  # margin stays white
+
+
+def test_charuco_calibration_end_to_end(charuco_line, tmp_path):
+    """rgbd-calib calibrate on the ChArUco render: PnP, pose graph, bundle adjustment (fixed
+    intrinsics), report and exports, within the ArUco board's end-to-end bounds."""
+    from rgbd_calib.cli import app
+    from rgbd_calib.synth import load_ground_truth
+
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["calibrate", str(charuco_line), "--board", str(A3),
+                                      "--out", str(out), "--workers", "2"])
+    assert result.exit_code == 0, result.output
+    assert (out / "report.html").is_file() and (out / "exports" / "Edges.csv").is_file()
+    data = yaml.safe_load((out / "extrinsics.yaml").read_text())
+    gt = load_ground_truth(charuco_line)
+    assert set(data["cameras"]) == set(gt.T_ref_cam)
+    for name, cam in data["cameras"].items():
+        if name == gt.reference:
+            continue
+        deg, mm = transform_error(np.asarray(cam["T_ref_cam"]), gt.T_ref_cam[name])
+        assert mm < E2E_MM and deg < E2E_DEG, (name, mm, deg)
+        assert mm <= MAX_SIGMAS * cam["sigma_translation_mm"], (name, mm, cam)
+
+
+# ----------------------------------------------------------------------------- real video
+@pytest.mark.skipif(not CALISCOPE_DATA.is_dir(), reason=shared_data_missing(
+    "caliscope-charuco-4cam"))
+def test_real_video_saddle_corners_found():
+    """Detection only, on Caliscope's real webcam video (inverted print): frames 70-110 of
+    cam_0 hold the whole board; every saddle quad is found and the refinement moves OpenCV's
+    corners by well under a pixel."""
+    from rgbd_calib.detection import detect_charuco
+
+    board = load_board(CALISCOPE)
+    cap = cv2.VideoCapture(str(CALISCOPE_DATA / "cam_0.mp4"))
+    found, moved = {}, []
+    k = 0
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        if k in (70, 80, 90, 100, 110):
+            det = detect_charuco(img, board)
+            raw = detect_charuco(img, board, corners="opencv")
+            found[k] = det.ids.tolist()
+            if len(det) and det.ids.tolist() == raw.ids.tolist():
+                moved.append(np.abs(det.corners_px - raw.corners_px).max())
+        k += 1
+    cap.release()
+    assert found == {k: [0, 1, 2, 3] for k in (70, 80, 90, 100, 110)}, found
+    assert max(moved) < 1.0, moved
+
+
+# ----------------------------------------------------------------------------- slow tier
+SLOW_FRAMES, SLOW_SEED = 40, 0  # tests/test_accuracy.py's slow tier setting
+# thesis-line bound (issue 3, tests/test_accuracy.py BOUNDS); measured (docs/accuracy.md):
+# 0.0004-0.0011 deg / 0.011-0.020 mm, errors 0.5-1.4 claimed sigmas
+THESIS_LINE_DEG, THESIS_LINE_MM = 0.05, 0.5
+
+
+@pytest.mark.slow
+def test_charuco_thesis_line_within_the_aruco_bound(tmp_path):
+    """The issue 3 acceptance setting with the ChArUco board (about 2 min on 2 cores)."""
+    from rgbd_calib import CalibrationConfig, FolderDataset, calibrate
+    from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize
+
+    board = load_board(A3)
+    path = synthesize(tmp_path / "line40", "thesis-line", SLOW_FRAMES, SLOW_SEED, board,
+                      SynthParams(), workers=2).path
+    gt = load_ground_truth(path)
+    result = calibrate(FolderDataset(path), board, CalibrationConfig(workers=2, refine="none"))
+    assert not result.extrinsics.unconnected
+    for name, e in result.extrinsics.cameras.items():
+        if name == gt.reference:
+            continue
+        deg, mm = transform_error(e.T_ref_cam, gt.T_ref_cam[name])
+        assert deg < THESIS_LINE_DEG and mm < THESIS_LINE_MM, (name, deg, mm)
+        assert mm <= MAX_SIGMAS * e.sigma_translation_mm, (name, mm, e.sigma_translation_mm)
