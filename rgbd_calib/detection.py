@@ -123,16 +123,23 @@ def marker_pattern(dictionary: str, marker_id: int) -> np.ndarray:
     return out
 
 
-def _detector(
-    dictionary: cv2.aruco.Dictionary, config: DetectionConfig, image_size: tuple[int, int]
-) -> cv2.aruco.ArucoDetector:
+def _marker_parameters(config: DetectionConfig,
+                       image_size: tuple[int, int]) -> cv2.aruco.DetectorParameters:
+    """OpenCV's marker-finding parameters from ``config`` (ArUco and ChArUco boards alike)."""
     params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = _CV_REFINE[config.refinement]
     params.minMarkerPerimeterRate = config.min_marker_perimeter_px / max(image_size)
     params.errorCorrectionRate = config.error_correction_rate
     params.adaptiveThreshWinSizeMin = config.adaptive_thresh_win_size_min
     params.adaptiveThreshWinSizeMax = config.adaptive_thresh_win_size_max
     params.adaptiveThreshWinSizeStep = config.adaptive_thresh_win_size_step
+    return params
+
+
+def _detector(
+    dictionary: cv2.aruco.Dictionary, config: DetectionConfig, image_size: tuple[int, int]
+) -> cv2.aruco.ArucoDetector:
+    params = _marker_parameters(config, image_size)
+    params.cornerRefinementMethod = _CV_REFINE[config.refinement]
     params.cornerRefinementWinSize = config.subpix_win_size_px
     params.relativeCornerRefinmentWinSize = config.subpix_relative_win_size  # (sic)
     params.cornerRefinementMaxIterations = config.subpix_max_iterations
@@ -319,13 +326,8 @@ def detect_charuco(
     size = (int(gray.shape[1]), int(gray.shape[0]))
     dictionary = aruco_dictionary(board.dictionary)
     cv_board = spec.cv_board(dictionary)
-    params = cv2.aruco.DetectorParameters()
-    params.minMarkerPerimeterRate = config.min_marker_perimeter_px / max(size)
-    params.errorCorrectionRate = config.error_correction_rate
-    params.adaptiveThreshWinSizeMin = config.adaptive_thresh_win_size_min
-    params.adaptiveThreshWinSizeMax = config.adaptive_thresh_win_size_max
-    params.adaptiveThreshWinSizeStep = config.adaptive_thresh_win_size_step
-    detector = cv2.aruco.CharucoDetector(cv_board, cv2.aruco.CharucoParameters(), params)
+    detector = cv2.aruco.CharucoDetector(cv_board, cv2.aruco.CharucoParameters(),
+                                         _marker_parameters(config, size))
     ch_corners, ch_ids, marker_corners, marker_ids = detector.detectBoard(gray)
     foreign = np.zeros(0, dtype=int)
     if marker_ids is not None:
