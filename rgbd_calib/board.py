@@ -188,6 +188,16 @@ def charuco_markers(spec: CharucoSpec, dictionary: str) -> tuple[np.ndarray, np.
     return np.asarray(b.getIds(), dtype=int).reshape(-1), corners
 
 
+def printed_markers(board: Board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ArUco markers printed on ``board``: ids ``(K,)``, corners ``(K,4,3)`` (board frame,
+    m, TL TR BR BL) and faces ``(K,)``; a ChArUco board's are its markers (one face), not the
+    saddle-corner quads it measures with."""
+    if board.charuco is None:
+        return board.ids, board.corners, board.faces
+    ids, corners = charuco_markers(board.charuco, board.dictionary)
+    return ids, corners, np.full(len(ids), FRONT)
+
+
 def charuco_saddles(spec: CharucoSpec, dictionary: str) -> np.ndarray:
     """The saddle corners ``(C,3)`` in the board frame (m), in OpenCV's ChArUco corner order."""
     b = spec.cv_board(aruco_dictionary(dictionary))

@@ -28,7 +28,7 @@ from PIL import Image, ImageDraw, ImageFont
 from reportlab.pdfbase.pdfmetrics import stringWidth
 from reportlab.pdfgen.canvas import Canvas
 
-from .board import BACK, FRONT, Board, charuco_black_squares, charuco_markers
+from .board import BACK, FRONT, Board, charuco_black_squares, printed_markers
 from .errors import BoardError, ConfigError
 
 MM_PER_INCH = 25.4
@@ -164,15 +164,6 @@ def _module_mm(board: Board) -> float:
     """One marker module (cell) in mm: the minimum quiet zone around every marker."""
     length = board.marker_length if board.charuco is None else board.charuco.marker_length
     return length * 1000.0 / (board.bits + 2)
-
-
-def _printed(board: Board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The ArUco markers printed on the board: ids, corners ``(K,4,3)`` (m, detection order)
-    and faces; a ChArUco board's are its markers, not its saddle-corner quads."""
-    if board.charuco is None:
-        return board.ids, board.corners, board.faces
-    ids, corners = charuco_markers(board.charuco, board.dictionary)
-    return ids, corners, np.full(len(ids), FRONT)
 
 
 def _charuco_squares_mm(board: Board) -> list[tuple[float, float, float, float]]:
@@ -397,7 +388,7 @@ def _draw_pdf_page(canvas: Canvas, board: Board, face: int, page_size_mm: tuple[
             x0, y1 = pt(u0, v0)
             x1, y0 = pt(u1, v1)
             canvas.rect(x0, y0, x1 - x0, y1 - y0, stroke=0, fill=1)
-    ids, _, faces = _printed(board)
+    ids, _, faces = printed_markers(board)
     for k in np.flatnonzero(faces == face):
         path = canvas.beginPath()
         for quad in _marker_quads(board, int(ids[k]), corners_page[k]):
@@ -519,7 +510,7 @@ def _render_png(path: Path, board: Board, face: int, page_size_mm: tuple[float, 
     if board.charuco is not None:
         for rect in _charuco_squares_page_mm(board, page_size_mm):
             _raster_rect(img, px_per_mm, *rect)
-    ids, _, faces = _printed(board)
+    ids, _, faces = printed_markers(board)
     for k in np.flatnonzero(faces == face):
         cells = board.marker_cells(int(ids[k])) == 0
         _raster_marker(img, px_per_mm, cells, corners_page[k])
@@ -582,7 +573,7 @@ def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,
         notes.append("no room for the info text and 100 mm scale bar outside the markers' "
                       "quiet zone; check the print scale on the markers themselves")
 
-    printed_ids, printed_corners, printed_faces = _printed(board)
+    printed_ids, printed_corners, printed_faces = printed_markers(board)
     faces = [f for f in (FRONT, BACK) if np.any(printed_faces == f)]
     combined = _new_canvas(out_dir / "board.pdf", board, page_size)
     sheets, files = [], []

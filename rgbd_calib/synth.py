@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .board import BACK, FRONT, Board, charuco_black_squares, charuco_markers
+from .board import BACK, FRONT, Board, charuco_black_squares, printed_markers
 from .camera import DISTORTION_LENGTHS, CameraIntrinsics
 from .dataset import FolderWriter, staged_folder
 from .errors import ConfigError
@@ -544,13 +544,9 @@ class _BoardModel:
         ]
         # the printed markers: the board's own, or a ChArUco board's ArUco markers (its
         # "markers" are saddle-corner quads, see board.CharucoSpec) and its black squares
-        self.black_squares = None
-        if b.charuco is not None:
-            self.ids, self.corners = charuco_markers(b.charuco, b.dictionary)
-            self.faces = np.full(len(self.ids), FRONT)
-            self.black_squares = charuco_black_squares(b.charuco, b.dictionary)
-        else:
-            self.ids, self.corners, self.faces = b.ids, b.corners, b.faces
+        self.ids, self.corners, self.faces = printed_markers(b)
+        self.black_squares = (None if b.charuco is None
+                              else charuco_black_squares(b.charuco, b.dictionary))
         self.trees = {
             f: cKDTree(self.corners[self.faces == f].mean(axis=1)[:, :2])
             for f in (FRONT, BACK)
