@@ -560,6 +560,24 @@ def _print_summary(result, out: Path, verdict: bool = True) -> None:
         print_verdict(out)
 
 
+def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms,
+             scheduler: str | None, extrinsics: Path):
+    """What refine and check start from: the output folder and the scheduler checked before
+    anything is read, the dataset of the rig as it is now opened (its images checked), the
+    calibration's ``extrinsics`` and the depth scales of the report.json beside them:
+    ``(dataset, extrinsics, scales)``."""
+    from .parallel import check_scheduler
+    from .refine import load_depth_scales
+    from .results import load_extrinsics
+
+    _check_output_folder(out)
+    check_scheduler(scheduler)
+    ds = _open_dataset(sources, out, names, sync_tolerance_ms)
+    ds.check_images()
+    return (ds, load_extrinsics(extrinsics, check_redundant=True),
+            load_depth_scales(extrinsics.parent / "report.json"))
+
+
 @command()
 @user_errors
 def refine(
@@ -601,17 +619,10 @@ def refine(
 
     from .board import load_board, thesis_board
     from .outputs import DepthOnlyRun, write_refine_outputs
-    from .parallel import check_scheduler
-    from .refine import load_board_views, load_depth_scales, refine_extrinsics, refine_verdict
-    from .results import load_extrinsics
+    from .refine import load_board_views, refine_extrinsics, refine_verdict
 
     _check_method(method)
-    _check_output_folder(out)
-    check_scheduler(scheduler)
-    ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
-    ds.check_images()
-    init_ext = load_extrinsics(init, check_redundant=True)
-    scales = load_depth_scales(init.parent / "report.json")
+    ds, init_ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, init)
     T_ref_board, board_cameras = load_board_views(init.parent / "report.json")
     if fix_others:
         _fix_others(ds, init, init_ext, scales, method, out, tolerance_mm, tolerance_deg,
@@ -751,9 +762,6 @@ def check(
     """Has a camera moved since the calibration? Exit 0: all in place; 1: moved (named)."""
     from .errors import ConfigError
     from .outputs import write_check_outputs
-    from .parallel import check_scheduler
-    from .refine import load_depth_scales
-    from .results import load_extrinsics
 
     _check_method(method)
     if tolerance_mm < 0 or tolerance_deg < 0:
@@ -762,12 +770,7 @@ def check(
     if not path.is_file():
         raise ConfigError(f"{calib}: no extrinsics.yaml; give a calibrate output folder or an "
                           "extrinsics.yaml with --calib")
-    _check_output_folder(out)
-    check_scheduler(scheduler)
-    ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
-    ds.check_images()
-    ext = load_extrinsics(path, check_redundant=True)
-    scales = load_depth_scales(path.parent / "report.json")
+    ds, ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, path)
     run = _run_check(ds, ext, scales, method, tolerance_mm, tolerance_deg, scheduler)
     _check_table(run.result, f"{ds.path} against {path}")
     if unknown := [c for c, k in run.scale_source.items() if k == "unknown"]:

@@ -139,12 +139,7 @@ def write_outputs(
         write_report_json(report, stage, views_inline_max)
         if fused_ply is not None:
             shutil.copyfile(fused_ply, stage / "fused.ply")
-        try:
-            write_report_html(report, stage, progress=progress)
-        except Exception as exc:  # noqa: BLE001 - the page is not worth the result
-            (stage / "report.html").unlink(missing_ok=True)
-            warn(f"report.html not written ({_one_line(exc)}); report.json is complete: "
-                 f"rgbd-calib report {out_dir} retries")
+        _html_or_warning(report, stage, out_dir, warn, progress)
         write_config(result.config, stage / "config_resolved.yaml")
         boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
         try:
@@ -161,6 +156,20 @@ def write_outputs(
 
 def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}".splitlines()[0][:300]
+
+
+def _html_or_warning(report: dict[str, Any], stage: Path, out_dir: Path,
+                     warn: Callable[[str], None] | None, progress: Progress | None = None,
+                     ) -> None:
+    """``report.html`` into ``stage``; a page that cannot be drawn is left out with
+    ``warn(why)`` (the result is worth more than its page)."""
+    try:
+        write_report_html(report, stage, progress=progress)
+    except Exception as exc:  # noqa: BLE001 - the page is not worth the result
+        (stage / "report.html").unlink(missing_ok=True)
+        if warn is not None:
+            warn(f"report.html not written ({_one_line(exc)}); report.json is complete: "
+                 f"rgbd-calib report {out_dir} retries")
 
 
 def _python_warning(message: str) -> None:
@@ -271,13 +280,7 @@ def _write_refined(extrinsics: Extrinsics, clouds: dict[str, Any], out_dir: Path
         if run is not None:
             report = run.report(extrinsics)
             (stage / "report.json").write_text(dump_report(report))
-            try:
-                write_report_html(report, stage)
-            except Exception as exc:  # noqa: BLE001 - the page is not worth the result
-                (stage / "report.html").unlink(missing_ok=True)
-                if warn is not None:
-                    warn(f"report.html not written ({type(exc).__name__}: {exc}); "
-                         f"report.json is complete: rgbd-calib report {out_dir} retries")
+            _html_or_warning(report, stage, out_dir, warn)
         write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written

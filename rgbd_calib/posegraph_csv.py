@@ -234,10 +234,8 @@ def edges_csv_text(edges: list[PoseEdge], views: list[str] | None = None,
     """Thesis-style ``Edges.csv`` text, one ``T_cam_board`` row per edge; ``views`` and
     ``cameras`` (default: the edges') are the nodes of the ``Nodes.csv`` it goes with, so both
     files number them alike (:func:`node_ids`)."""
-    views = list(views) if views is not None else list(dict.fromkeys(e.view for e in edges))
-    views += [v for v in dict.fromkeys(e.view for e in edges) if v not in set(views)]
-    cameras = list(cameras) if cameras is not None else []
-    cameras += [c for c in dict.fromkeys(e.camera for e in edges) if c not in set(cameras)]
+    views = list(dict.fromkeys([*(views or []), *(e.view for e in edges)]))
+    cameras = list(dict.fromkeys([*(cameras or []), *(e.camera for e in edges)]))
     cam_ids, view_ids = node_ids(cameras, views)
     rows = [EDGES_HEADER]
     rows += [

@@ -299,10 +299,9 @@ def static_clouds(dataset: FolderDataset, jobs: list[tuple[str, np.ndarray, floa
     """The static cloud of every ``(camera, T_ref_cam, depth-scale factor)`` of ``jobs``, one
     camera per task in a process pool of ``workers`` (default: all cores; fewer than
     :data:`CLOUD_POOL_MIN_CAMERAS` cameras or one worker run here) or on the Dask cluster of
-    ``scheduler``
-    (:func:`rgbd_calib.parallel.executor`): ``(clouds, skipped)``, skipped = camera -> why
-    it has no cloud. The workers read the depth frames themselves (a Dask worker must see
-    the dataset at the same path)."""
+    ``scheduler`` (:func:`rgbd_calib.parallel.executor`): ``(clouds, skipped)``, skipped =
+    camera -> why it has no cloud. The workers read the depth frames themselves (a Dask
+    worker must see the dataset at the same path)."""
     n = min(workers or os.cpu_count() or 1, len(jobs))
     if len(jobs) < CLOUD_POOL_MIN_CAMERAS:
         n = 1  # starting the workers costs more than they save
@@ -532,22 +531,20 @@ def fix_verdict(init: Extrinsics, fixed: Extrinsics, moved: list[str],
     """``refine --fix-others`` in one line: ``verdict`` ``unchanged`` (no camera moved),
     ``refined`` (every moved camera fits a pair again) or ``check`` (one does not: its pose is
     the check's estimate), the ``message`` and per camera its move (:func:`camera_moves`)."""
+    cameras = camera_moves(init, fixed)
     if not moved:
         return {"verdict": "unchanged", "message": "no camera moved beyond the tolerance: "
-                "the extrinsics are --init's", "cameras": camera_moves(init, fixed)}
+                "the extrinsics are --init's", "cameras": cameras}
     lost = [c for c in moved if not any(c in (p["cam_a"], p["cam_b"]) and p["accepted"]
                                         for p in pairs)]
-    moves = []
-    for c in moved:
-        deg, mm = transform_error(fixed.T_ref_cam(c), init.T_ref_cam(c))
-        e = fixed.cameras[c]
-        moves.append(f"{c} {mm:.1f} mm / {deg:.2f} deg (now sigma "
-                     f"{e.sigma_translation_mm:.2f} mm / {e.sigma_rotation_deg:.3f} deg)")
+    moves = [f"{c} {cameras[c]['moved_mm']:.1f} mm / {cameras[c]['moved_deg']:.2f} deg (now "
+             f"sigma {fixed.cameras[c].sigma_translation_mm:.2f} mm / "
+             f"{fixed.cameras[c].sigma_rotation_deg:.3f} deg)" for c in moved]
     return {"verdict": "check" if lost else "refined",
             "message": "re-registered " + "; ".join(moves)
             + (f"; {', '.join(lost)}: no pair fits after re-registration, kept the "
                "check's estimate" if lost else ""),
-            "cameras": camera_moves(init, fixed)}
+            "cameras": cameras}
 
 
 def refine_summary(init_path: Path, method: str, verdict: dict[str, Any],
