@@ -271,7 +271,8 @@ def calibrate(
                                       bundle.T_ref_board, refine, config.depth, progress,
                                       board_covariance={c: e.covariance
                                                         for c, e in cameras.items()},
-                                      workers=config.workers, scheduler=config.scheduler)
+                                      workers=config.workers, scheduler=config.scheduler,
+                                      intrinsics_sigma=bundle.intrinsics_sigma)
             # 6. joint solve: corners and the accepted depth pairs
             if depth.used:
                 try:

@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import re
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 from typing import Any, Literal
 
@@ -94,6 +94,9 @@ class CameraCloud:
     depth_scale_factor: float = 1.0
     normals: np.ndarray | None = None
     correlation_px: float = 1.0  # pixels within this square share their depth error
+    # variance (px^2 / unitless^2) of the parameters of ``intrinsics`` that were estimated
+    # (e.g. refined in the bundle adjustment): name -> variance; empty means exact
+    intrinsics_variance: dict[str, float] = field(default_factory=dict)
 
     @property
     def n_points(self) -> int:
@@ -986,11 +989,61 @@ class _WhitenedRows:
     patch: np.ndarray  # (M,) patch index in [0, n_patches)
     n_patches: int
     n_geometric: int  # the first n_geometric rows are point-to-plane, the rest photometric
+    # d(whitened residual)/d(lens parameter) (M,P) and the parameters' variances (P,): the
+    # intrinsics the two clouds were back-projected with are uncertain (None: exact)
+    D: np.ndarray | None = None
+    lens_variance: np.ndarray | None = None
+
+
+def back_projection_jacobian(points: np.ndarray, intr: CameraIntrinsics,
+                             names: list[str]) -> np.ndarray:
+    """d p / d theta ``(N,3,P)`` of points ``p = z * ray(u, v)`` back-projected from fixed
+    pixels at fixed depth, for the intrinsics ``names`` (fx fy cx cy k1 k2 p1 p2 k3), to
+    first order in the distortion: a pixel's normalised coordinates are
+    ``x = (u - cx) / fx - delta_x(x, y)`` with the Brown-Conrady offset ``delta``, so e.g.
+    ``dX/dfx = -X / fx``, ``dX/dcx = -Z / fx`` and ``d(X, Y)/dk1 = -r^2 (X, Y)``."""
+    p = np.asarray(points, dtype=float)
+    X, Y, Z = p[:, 0], p[:, 1], p[:, 2]
+    x, y = X / Z, Y / Z
+    r2 = x * x + y * y
+    zero = np.zeros_like(X)
+    cols = {
+        "fx": (-X / intr.fx, zero), "fy": (zero, -Y / intr.fy),
+        "cx": (-Z / intr.fx, zero), "cy": (zero, -Z / intr.fy),
+        "k1": (-X * r2, -Y * r2), "k2": (-X * r2**2, -Y * r2**2),
+        "k3": (-X * r2**3, -Y * r2**3),
+        "p1": (-Z * 2 * x * y, -Z * (r2 + 2 * y * y)),
+        "p2": (-Z * (r2 + 2 * x * x), -Z * 2 * x * y),
+    }
+    out = np.zeros((p.shape[0], 3, len(names)))
+    for k, name in enumerate(names):
+        out[:, 0, k], out[:, 1, k] = cols[name]
+    return out
+
+
+Lens = tuple[CameraIntrinsics, dict[str, float]]
+
+
+def _lens_columns(v_b: np.ndarray, T_b_a: np.ndarray, src: np.ndarray, tgt: np.ndarray,
+                  lenses: tuple[Lens, Lens]) -> np.ndarray:
+    """d r / d theta of residuals ``r = v_b . (T_b_a p_a - q_b) + ...`` (``v_b``: the target
+    normal, or the colour gradient) for the uncertain intrinsics of a, then of b."""
+    (intr_a, var_a), (intr_b, var_b) = lenses
+    cols = []
+    if var_a:
+        v_a = v_b @ T_b_a[:3, :3]
+        cols.append(np.einsum("ij,ijk->ik", v_a, back_projection_jacobian(src, intr_a,
+                                                                           list(var_a))))
+    if var_b:
+        cols.append(-np.einsum("ij,ijk->ik", v_b, back_projection_jacobian(tgt, intr_b,
+                                                                            list(var_b))))
+    return np.hstack(cols) if cols else np.zeros((src.shape[0], 0))
 
 
 def whitened_rows(matches: _Matches, T_b_a: np.ndarray, patch_m: float,
                   colour: tuple[_Level, _Level, np.ndarray] | None = None,
-                  free_scale: tuple[bool, bool] = (False, False)) -> _WhitenedRows:
+                  free_scale: tuple[bool, bool] = (False, False),
+                  lenses: tuple[Lens, Lens] | None = None) -> _WhitenedRows:
     """Point-to-plane residuals over their noise-model sigma (:func:`_match`), and, with
     ``colour = (src, tgt, gradients_b)``, the photometric residuals of colored ICP over their
     RMS (colour has no noise model: its variance comes from the residuals). Rows are grouped
@@ -998,7 +1051,13 @@ def whitened_rows(matches: _Matches, T_b_a: np.ndarray, patch_m: float,
 
     ``free_scale`` adds a column per camera (a, b) whose depth scale is unknown: the
     derivative of the residual for ``p_a -> (1 + d_a) p_a`` (``m . p_a``) or
-    ``q_b -> (1 + d_b) q_b`` (``-n_b . q_b``)."""
+    ``q_b -> (1 + d_b) q_b`` (``-n_b . q_b``).
+
+    ``lenses`` ``((intrinsics_a, variance_a), (intrinsics_b, variance_b))``: each camera's
+    intrinsics and the variances of those that were estimated (name -> variance; empty:
+    exact); their derivatives (:func:`back_projection_jacobian`) become ``D`` for
+    :func:`noise_model_information`."""
+    lenses = lenses if lenses is not None and (lenses[0][1] or lenses[1][1]) else None
     m = matches.normals_b @ T_b_a[:3, :3]
     cols = [np.cross(matches.src, m), m]
     if free_scale[0]:
@@ -1007,6 +1066,8 @@ def whitened_rows(matches: _Matches, T_b_a: np.ndarray, patch_m: float,
         cols.append(-np.einsum("ij,ij->i", matches.normals_b, matches.tgt)[:, None])
     J = np.hstack(cols) / matches.sigma[:, None]
     r = matches.residual / matches.sigma
+    D = (_lens_columns(matches.normals_b, T_b_a, matches.src, matches.tgt, lenses)
+         / matches.sigma[:, None] if lenses is not None else None)
     n_geo = r.size
     if colour is not None and r.size >= 7:
         src, tgt, gradients_b = colour
@@ -1024,13 +1085,18 @@ def whitened_rows(matches: _Matches, T_b_a: np.ndarray, patch_m: float,
             cols.append(-np.einsum("ij,ij->i", d_q, matches.tgt)[:, None])
         J = np.vstack([J, np.hstack(cols) / sigma_c])
         r = np.concatenate([r, rc / sigma_c])
+        if D is not None:
+            D = np.vstack([D, _lens_columns(d_q, T_b_a, matches.src, matches.tgt, lenses)
+                           / sigma_c])
+    variance = (np.array([*lenses[0][1].values(), *lenses[1][1].values()], dtype=float)
+                if lenses is not None else None)
     if n_geo == 0:
         return _WhitenedRows(np.zeros((0, J.shape[1])), np.zeros(0), np.zeros(0, int), 0, 0)
     _, patch = np.unique(_voxel_keys(matches.src, patch_m), return_inverse=True)
     patch = patch.ravel()
     n_patches = int(patch.max()) + 1
     # a photometric row belongs to the patch of its point-to-plane row
-    return _WhitenedRows(J, r, np.tile(patch, r.size // n_geo), n_patches, n_geo)
+    return _WhitenedRows(J, r, np.tile(patch, r.size // n_geo), n_patches, n_geo, D, variance)
 
 
 def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
@@ -1052,7 +1118,13 @@ def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
     point-to-plane residuals' mean square ``s^2`` is ~0.5 on the synthetic pairs) do not make
     the estimate better than the noise allows: M is divided by ``min(s^2, 1)``. The per-row meat
     ``sum (r_i J_i)^T (r_i J_i)`` over G is added to M so that a direction no patch's score
-    happened to span keeps a finite variance. The result is the inverse of ``Cov``."""
+    happened to span keeps a finite variance.
+
+    Intrinsics that were estimated (``rows.D``, ``rows.lens_variance``) move every point of a
+    cloud together, so their error does not average out over points: the estimate moves by
+    ``S dtheta`` with ``S = -H^-1 J^T D`` (the Gauss-Newton step for residuals changed by
+    ``D dtheta``), which adds ``S diag(var) S^T`` to ``Cov``. The result is the inverse of
+    ``Cov``'s pose block."""
     k = rows.J.shape[1]
     if rows.n_geometric < k or rows.n_patches < 2:
         return np.zeros((6, 6))
@@ -1069,8 +1141,12 @@ def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
     M = M / min(max(s2, 1e-6), 1.0)
     try:
         H_inv = np.linalg.inv(H)
+        cov = H_inv @ M @ H_inv
+        if rows.D is not None and rows.lens_variance is not None:
+            S = H_inv @ (rows.J.T @ rows.D)
+            cov = cov + (S * rows.lens_variance) @ S.T
         # columns beyond the pose (free depth scales) are marginalised: pose block of Cov
-        info = np.linalg.inv((H_inv @ M @ H_inv)[:6, :6])
+        info = np.linalg.inv(cov[:6, :6])
     except np.linalg.LinAlgError:
         return np.zeros((6, 6))
     return 0.5 * (info + info.T)
@@ -1215,7 +1291,9 @@ def register_pair(
     if method == "colored-icp" and config.lambda_geometric < 1.0 and n_corr >= 7:
         colour = (src, tgt, color_gradients(tgt.points, tgt.normals, tgt.colors,
                                             at=final.tgt_index))
-    rows = whitened_rows(final, T, config.information_patch_m, colour, free_scale)
+    rows = whitened_rows(final, T, config.information_patch_m, colour, free_scale,
+                         ((cloud_a.intrinsics, cloud_a.intrinsics_variance),
+                          (cloud_b.intrinsics, cloud_b.intrinsics_variance)))
     # the noise model's Gauss-Newton information says which directions the overlap
     # constrains (conditioning); the sandwich over patches says how well (information)
     cond = conditioning(rows.J[:, :6].T @ rows.J[:, :6], final.src) if n_corr else 0.0

@@ -123,6 +123,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                   workers: int | None = None,
                   depth_scales: dict[str, float] | None = None,
                   scheduler: str | None = None,
+                  intrinsics_sigma: dict[str, dict[str, float]] | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
 
@@ -139,7 +140,11 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     ``depth_scales`` (camera -> factor, e.g. from the report.json of the calibration being
     refined) are used for cameras the board gives no factor for. A camera with neither has an
     unknown depth scale: its pairs' information leaves out the directions a depth-scale error
-    would explain (:func:`rgbd_calib.depth.whitened_rows`, ``free_scale``)."""
+    would explain (:func:`rgbd_calib.depth.whitened_rows`, ``free_scale``).
+
+    ``intrinsics_sigma`` (camera -> {parameter: marginal sigma}) names intrinsics of the rig
+    that were estimated (the bundle's refined ones): each pair's information then includes
+    their uncertainty, times ``config.lens_sigma_factor``."""
     config = config or DepthConfig()
     cams = [c for c in dataset.cameras if c in T_ref_cam and dataset.has_depth(c)]
     weak: dict[str, str] | None = None
@@ -166,6 +171,10 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
         clouds, skipped = static_clouds(dataset, jobs, T_ref_board or {}, board, config,
                                         workers, start(progress, "static clouds", len(cams)),
                                         scheduler)
+    factor2 = config.lens_sigma_factor**2
+    clouds = {c: replace(cloud, intrinsics_variance={
+        name: factor2 * sigma**2 for name, sigma in (intrinsics_sigma or {}).get(c, {}).items()})
+        for c, cloud in clouds.items()}
 
     if method != "none" and weak is not None and not weak:
         # the clouds are still built: fused.ply and the report's cloud checks use them

@@ -1,10 +1,15 @@
 """Issue 14 item 2: how honest each pair's information is, on a synthetic rig with ground truth.
 
 Usage: python tools/measure_pair_information.py DATASET PERTURB_MM PERTURB_DEG [key=value ...]
-(DepthConfig overrides, e.g. information_patch_m=0.3).
+(DepthConfig overrides, e.g. information_patch_m=0.3; ``calibration=OUT`` back-projects with
+OUT/rig_refined.yaml and gives each cloud the variances of its refined intrinsics from
+OUT/report.json, times lens_sigma_factor, as calibrate does).
 """
+import copy
+import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -13,14 +18,26 @@ from rgbd_calib.board import thesis_board
 from rgbd_calib.config import DepthConfig
 from rgbd_calib.dataset import FolderDataset
 from rgbd_calib.geometry import invert_transform, make_transform, rotvec_to_matrix
+from rgbd_calib.rig import load_rig
 from rgbd_calib.synth import load_ground_truth
 
 
-def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, **cfg):
+def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, calibration=None,
+         **cfg):
     ds, gt = FolderDataset(path), load_ground_truth(path)
     config = DepthConfig(max_frames=max_frames, **cfg)
+    variances = {}
+    if calibration is not None:
+        ds = copy.copy(ds)
+        ds.rig = load_rig(Path(calibration) / "rig_refined.yaml")
+        report = json.loads((Path(calibration) / "report.json").read_text())
+        variances = {c: {k: (config.lens_sigma_factor * v["sigma"]) ** 2
+                         for k, v in (cam.get("intrinsics_refined") or {}).items()}
+                     for c, cam in report["cameras"].items()}
     clouds = {c: D.static_cloud(ds, c, gt.T_ref_board, gt.T_ref_cam[c], thesis_board(), config,
-                                depth_scale_factor=gt.depth_scale_bias[c]) for c in ds.cameras}
+                                depth_scale_factor=gt.depth_scale_bias.get(c, 1.0))
+              for c in ds.cameras}
+    clouds = {c: D.replace(cl, intrinsics_variance=variances.get(c, {})) for c, cl in clouds.items()}
     pairs = D.find_overlapping_pairs(clouds, gt.T_ref_cam, None, config)
     rng = np.random.default_rng(1)
     zs = []
@@ -57,5 +74,6 @@ def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, **c
 
 if __name__ == "__main__":
     kw = dict(a.split("=") for a in sys.argv[4:])
-    kw = {k: (float(v) if "." in v else int(v) if v.isdigit() else v) for k, v in kw.items()}
+    kw = {k: (v if k == "calibration" else float(v) if "." in v else int(v) if v.isdigit()
+              else v) for k, v in kw.items()}
     main(sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), **kw)
