@@ -253,7 +253,7 @@ def calibrate(
             ladder = replace(ladder, redetected=True)
         cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg, solve)
         if bundle.intrinsics:
-            # the depth stage back-projects with the refined intrinsics
+            # the depth stage back-projects with the refined intrinsics (and their sigmas)
             dataset = copy.copy(dataset)  # same frames, another rig: no re-scan
             dataset.rig = refined_rig(rig, bundle)
         refine = _refine_method(config.refine, dataset, cameras)
@@ -271,8 +271,7 @@ def calibrate(
                                       bundle.T_ref_board, refine, config.depth, progress,
                                       board_covariance={c: e.covariance
                                                         for c, e in cameras.items()},
-                                      workers=config.workers, scheduler=config.scheduler,
-                                      intrinsics_sigma=bundle.intrinsics_sigma)
+                                      workers=config.workers, scheduler=config.scheduler)
             # 6. joint solve: corners and the accepted depth pairs
             if depth.used:
                 try:
@@ -560,7 +559,7 @@ def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:
     """``rig`` with the bundle adjustment's refined intrinsics (cameras it did not refine keep
     their rig.yaml model): what ``rig_refined.yaml`` holds."""
     cameras = {c: bundle.intrinsics.get(c, intr) for c, intr in rig.cameras.items()}
-    return Rig(cameras, rig.reference, rig.source)
+    return Rig(cameras, rig.reference, rig.source, dict(bundle.intrinsics_sigma))
 
 
 def bundle_sound_first(

@@ -563,17 +563,22 @@ def _print_summary(result, out: Path, verdict: bool = True) -> None:
 def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms,
              scheduler: str | None, extrinsics: Path):
     """What refine and check start from: the output folder and the scheduler checked before
-    anything is read, the dataset of the rig as it is now opened (its images checked), the
-    calibration's ``extrinsics`` and the depth scales of the report.json beside them:
+    anything is read, the dataset of the rig as it is now opened (its images checked) with the
+    intrinsics the calibration refined (its rig_refined.yaml, if any), the calibration's
+    ``extrinsics`` and the depth scales of the report.json beside them:
     ``(dataset, extrinsics, scales)``."""
     from .parallel import check_scheduler
-    from .refine import load_depth_scales
+    from .refine import load_depth_scales, with_refined_intrinsics
     from .results import load_extrinsics
 
     _check_output_folder(out)
     check_scheduler(scheduler)
     ds = _open_dataset(sources, out, names, sync_tolerance_ms)
     ds.check_images()
+    ds.rig, changed = with_refined_intrinsics(ds.rig, extrinsics.parent)
+    if changed:
+        console.print(f"intrinsics: the refined ones of {extrinsics.parent / 'rig_refined.yaml'}"
+                      f" for {', '.join(changed)}", highlight=False, soft_wrap=True)
     return (ds, load_extrinsics(extrinsics, check_redundant=True),
             load_depth_scales(extrinsics.parent / "report.json"))
 

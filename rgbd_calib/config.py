@@ -653,6 +653,14 @@ class DepthConfig(BaseModel, extra="forbid"):
         "exceed this chi-square with 6 dof (12.59: 5 % false-alarm rate). 0 accepts pairs "
         "that confirm the current extrinsics too.",
     )
+    max_board_chi2: float = Field(
+        22.46,
+        gt=0,
+        description="calibrate rejects a pair whose ICP move from the board's extrinsics is "
+        "beyond what the board's uncertainty of the two cameras' relative pose plus the pair's "
+        "own allows (chi-square, 6 dof; 22.46: 0.1 %): a wrong local minimum (ring rigs: "
+        "facing cameras' pairs moved 5-320 mm from a board result good to 1 mm).",
+    )
     min_correspondences: int = Field(
         500, ge=6, description="Reject a pair with fewer correspondences at the finest level."
     )

@@ -397,7 +397,9 @@ def static_cloud(
     depth spreads over frames by more than ``motion_k`` sigma_z (:func:`depth_noise`) are
     moving and dropped; so are depth edges and depths out of range. Depth is divided by
     ``depth_scale_factor`` (the camera's :func:`estimate_depth_scale` factor) before anything
-    else. Points are back-projected with the rig intrinsics (depth_scale from the rig)."""
+    else. Points are back-projected with the rig intrinsics (depth_scale from the rig); the
+    intrinsics the rig marks as estimated (``rig.sigmas``) give the cloud its
+    ``intrinsics_variance``, their sigma times ``config.lens_sigma_factor``."""
     config = config or DepthConfig()
     intr = dataset.rig.cameras[camera]
     frames = [
@@ -489,6 +491,8 @@ def static_cloud(
         frames=tuple(picked),
         depth_scale_factor=float(depth_scale_factor),
         correlation_px=noise.correlation_px,
+        intrinsics_variance={name: (config.lens_sigma_factor * sigma) ** 2
+                             for name, sigma in dataset.rig.sigmas.get(camera, {}).items()},
     )
 
 

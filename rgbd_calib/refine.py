@@ -41,11 +41,12 @@ from .depth import (
     tangent_error,
 )
 from .errors import CalibrationError, DatasetError
-from .geometry import invert_transform, transform_error
+from .geometry import adjoint, invert_transform, transform_error
 from .graph import RelativePose, bundle_adjust
 from .parallel import executor
 from .progress import Progress, Tick, start, timed
 from .results import CameraExtrinsics, Extrinsics, cameras_from_solve
+from .rig import Rig, load_rig
 
 RefineMethod = Literal["colored-icp", "geometric", "none"]
 
@@ -123,7 +124,6 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                   workers: int | None = None,
                   depth_scales: dict[str, float] | None = None,
                   scheduler: str | None = None,
-                  intrinsics_sigma: dict[str, dict[str, float]] | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
 
@@ -140,11 +140,9 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     ``depth_scales`` (camera -> factor, e.g. from the report.json of the calibration being
     refined) are used for cameras the board gives no factor for. A camera with neither has an
     unknown depth scale: its pairs' information leaves out the directions a depth-scale error
-    would explain (:func:`rgbd_calib.depth.whitened_rows`, ``free_scale``).
-
-    ``intrinsics_sigma`` (camera -> {parameter: marginal sigma}) names intrinsics of the rig
-    that were estimated (the bundle's refined ones): each pair's information then includes
-    their uncertainty, times ``config.lens_sigma_factor``."""
+    would explain (:func:`rgbd_calib.depth.whitened_rows`, ``free_scale``). Intrinsics the
+    rig marks as estimated (``dataset.rig.sigmas``) carry their uncertainty into each pair
+    (:func:`rgbd_calib.depth.static_cloud`)."""
     config = config or DepthConfig()
     cams = [c for c in dataset.cameras if c in T_ref_cam and dataset.has_depth(c)]
     weak: dict[str, str] | None = None
@@ -171,10 +169,6 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
         clouds, skipped = static_clouds(dataset, jobs, T_ref_board or {}, board, config,
                                         workers, start(progress, "static clouds", len(cams)),
                                         scheduler)
-    factor2 = config.lens_sigma_factor**2
-    clouds = {c: replace(cloud, intrinsics_variance={
-        name: factor2 * sigma**2 for name, sigma in (intrinsics_sigma or {}).get(c, {}).items()})
-        for c, cloud in clouds.items()}
 
     if method != "none" and weak is not None and not weak:
         # the clouds are still built: fused.ply and the report's cloud checks use them
@@ -206,6 +200,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                      (ov.cam_a not in known, ov.cam_b not in known)) for ov in overlaps]
             for ov, reg in zip(overlaps, register_pairs(clouds, jobs, method, config, workers,
                                                          tick, scheduler=scheduler)):
+                if reg.accepted and board_covariance is not None:
+                    reg = consistent_with_board(reg, board_covariance, T_ref_cam, config)
                 pairs.append({**ov.to_dict(), **reg.to_dict()})
                 if reg.accepted:
                     relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
@@ -331,6 +327,34 @@ def static_clouds(dataset: FolderDataset, jobs: list[tuple[str, np.ndarray, floa
     clouds = {c: cloud for (c, _, _), (cloud, _) in zip(jobs, results) if cloud is not None}
     skipped = {c: why for (c, _, _), (_, why) in zip(jobs, results) if why is not None}
     return clouds, skipped
+
+
+def consistent_with_board(reg: PairRegistration, board_covariance: dict[str, np.ndarray | None],
+                          T_ref_cam: dict[str, np.ndarray], config: DepthConfig,
+                          ) -> PairRegistration:
+    """``reg``, rejected when ICP's move from the board's ``T_b_a`` is beyond what the board
+    and the pair allow together: ``xi^T (C_rel + C_pair)^-1 xi > config.max_board_chi2`` with
+    ``C_rel = C_a + Ad(T_a_b) C_b Ad(T_a_b)^T`` the board marginals of the two cameras
+    carried to the right perturbation of ``T_b_a`` (``T_b_a Exp(xi_a - Ad(T_a_b) xi_b)``;
+    their correlation is left out, which widens the gate) and ``C_pair`` the pair's own
+    covariance. Such a move is a wrong local minimum or a depth error, not a correction."""
+    a, b = reg.cam_a, reg.cam_b
+    covs = [board_covariance.get(c) for c in (a, b)]
+    if any(c is None or not np.all(np.isfinite(c)) for c in covs):
+        return reg
+    Ad = adjoint(invert_transform(T_ref_cam[a]) @ T_ref_cam[b])
+    total = covs[0] + Ad @ covs[1] @ Ad.T + reg.covariance
+    xi = tangent_error(reg.T_b_a_initial, reg.T_b_a)
+    try:
+        chi2 = float(xi @ np.linalg.solve(total, xi))
+    except np.linalg.LinAlgError:
+        return reg
+    if chi2 <= config.max_board_chi2:
+        return reg
+    return replace(reg, accepted=False, reason=(
+        f"ICP moved {reg.correction_mm:.2f} mm / {reg.correction_deg:.3f} deg from the board's "
+        f"extrinsics, beyond their uncertainty and the pair's (chi2 {chi2:.0f} > "
+        f"{config.max_board_chi2}, 6 dof): a wrong local minimum or a depth error"))
 
 
 BEYOND_BOARD_CHI2 = 16.81  # chi-square, 6 dof, 1 %
@@ -506,6 +530,42 @@ def load_depth_scales(report_json: Path) -> dict[str, float]:
                            "repair it") from exc
     return {c: float(v["depth_scale_factor"]) for c, v in cams.items()
             if isinstance(v, dict) and v.get("depth_scale_factor") is not None}
+
+
+def with_refined_intrinsics(rig: Rig, calib_dir: Path) -> tuple[Rig, list[str]]:
+    """``rig`` with the intrinsics the calibration in ``calib_dir`` refined (its
+    ``rig_refined.yaml``), marked with their marginal sigmas from its report.json
+    (``cameras.<camera>.intrinsics_refined.<parameter>.sigma``; without them the refined
+    values are taken as exact), and the cameras that changed. A calibration without
+    rig_refined.yaml leaves ``rig`` as it is: depth back-projected with intrinsics other than
+    those the extrinsics were solved with is off by millimetres (0.5 % in fx: 5-16 mm between
+    cameras 2-3 m apart, docs/depth.md)."""
+    path = Path(calib_dir) / "rig_refined.yaml"
+    if not path.is_file():
+        return rig, []
+    refined = load_rig(path)
+    report_json = Path(calib_dir) / "report.json"
+    try:
+        cams = (json.loads(report_json.read_text()).get("cameras", {})
+                if report_json.is_file() else {})
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{report_json}: not a readable report.json ({exc}); remove it or "
+                           "repair it") from exc
+    cameras, sigmas, changed = dict(rig.cameras), dict(rig.sigmas), []
+    for c, intr in refined.cameras.items():
+        if c not in cameras or intr == cameras[c]:
+            continue
+        if (intr.width, intr.height) != (cameras[c].width, cameras[c].height):
+            raise DatasetError(
+                f"{path}: camera {c} is {intr.width}x{intr.height}, the dataset's "
+                f"{cameras[c].width}x{cameras[c].height}; give the calibration of this "
+                "resolution, or remove rig_refined.yaml to use rig.yaml's intrinsics")
+        cameras[c] = intr
+        entry = cams.get(c, {}).get("intrinsics_refined") or {}
+        sigmas[c] = {k: float(v["sigma"]) for k, v in entry.items()
+                     if isinstance(v, dict) and v.get("sigma") is not None}
+        changed.append(c)
+    return replace(rig, cameras=cameras, sigmas=sigmas), changed
 
 
 def load_board_views(report_json: Path) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:

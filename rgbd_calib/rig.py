@@ -22,11 +22,16 @@ _ADVICE = "copy the colour intrinsics of the recorded resolution (rs-enumerate-d
 
 @dataclass(frozen=True)
 class Rig:
-    """Cameras by name, in file order; ``reference`` is the calibration's world frame."""
+    """Cameras by name, in file order; ``reference`` is the calibration's world frame.
+
+    ``sigmas`` (camera -> {parameter: marginal sigma}) marks intrinsics that were estimated,
+    e.g. refined by a bundle adjustment (``rig_refined.yaml`` with its report.json): the depth
+    stage carries their uncertainty into every pair. Empty: the intrinsics are taken as exact."""
 
     cameras: dict[str, CameraIntrinsics]
     reference: str
     source: Path | None = field(default=None, compare=False)
+    sigmas: dict[str, dict[str, float]] = field(default_factory=dict, compare=False)
 
     @property
     def names(self) -> list[str]:
