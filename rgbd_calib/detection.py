@@ -319,6 +319,41 @@ def detect_charuco(
     renders (painted: bias < 0.003 px, scatter 0.03 px)."""
     config = config or DetectionConfig()
     spec = board.charuco
+    size = (int(np.asarray(image).shape[1]), int(np.asarray(image).shape[0]))
+    ids, px, foreign = _saddles(image, board, config, corners)
+    empty = MarkerDetections(np.zeros(0, dtype=int), np.zeros((0, 4, 2)),
+                             np.zeros((0, 4), bool), foreign, np.zeros(0, dtype=int), size,
+                             "charuco")
+    if len(ids) == 0:
+        return empty
+    found = dict(zip(ids.tolist(), px))
+    quads = spec.quads()
+    full = np.array([all(int(k) in found for k in q) for q in quads], dtype=bool)
+    if not full.any():
+        return empty
+    q_ids = np.nonzero(full)[0]
+    q_px = np.array([[found[int(k)] for k in quads[i]] for i in q_ids])
+    return MarkerDetections(q_ids, q_px, np.ones((len(q_ids), 4), bool), foreign,
+                            np.zeros(0, dtype=int), size, "charuco")
+
+
+def detect_saddles(
+    image: np.ndarray, board: Board, config: DetectionConfig | None = None,
+    corners: str | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The refined saddle corners of a ChArUco board one by one (not in quads, as
+    :func:`detect_charuco` reports them): OpenCV's ChArUco corner ids ``(K,)`` and pixels
+    ``(K,2)``, refined by ``corners`` (default ``config.charuco_corners``)."""
+    ids, px, _ = _saddles(image, board, config or DetectionConfig(), corners)
+    return ids, px
+
+
+def _saddles(
+    image: np.ndarray, board: Board, config: DetectionConfig, corners: str | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Saddle-corner ids ``(K,)``, refined pixels ``(K,2)`` and the foreign marker ids seen
+    (the steps of :func:`detect_charuco`)."""
+    spec = board.charuco
     method = corners or config.charuco_corners
     gray = to_gray(image)
     if spec.inverted:
@@ -333,11 +368,8 @@ def detect_charuco(
     if marker_ids is not None:
         m = np.asarray(marker_ids, dtype=int).reshape(-1)
         foreign = np.unique(m[(m < spec.first_id) | (m >= spec.first_id + spec.n_markers)])
-    empty = MarkerDetections(np.zeros(0, dtype=int), np.zeros((0, 4, 2)),
-                             np.zeros((0, 4), bool), foreign, np.zeros(0, dtype=int), size,
-                             "charuco")
     if ch_ids is None or len(ch_ids) == 0:
-        return empty
+        return np.zeros(0, dtype=int), np.zeros((0, 2)), foreign
     ids = np.asarray(ch_ids, dtype=int).reshape(-1)
     px = np.asarray(ch_corners, dtype=np.float64).reshape(-1, 2)
     if method == "subpix":
@@ -346,15 +378,7 @@ def detect_charuco(
         painted = _paint_markers(gray, marker_corners, spec)
         px = _saddle_subpix(painted, px, ids, spec, config, fraction=PAINTED_WIN_FRACTION,
                             of_square=True)
-    found = dict(zip(ids.tolist(), px))
-    quads = spec.quads()
-    full = np.array([all(int(k) in found for k in q) for q in quads], dtype=bool)
-    if not full.any():
-        return empty
-    q_ids = np.nonzero(full)[0]
-    q_px = np.array([[found[int(k)] for k in quads[i]] for i in q_ids])
-    return MarkerDetections(q_ids, q_px, np.ones((len(q_ids), 4), bool), foreign,
-                            np.zeros(0, dtype=int), size, "charuco")
+    return ids, px, foreign
 
 
 PAINTED_WIN_FRACTION = 0.4  # half-window / square, markers painted out
