@@ -38,6 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from rgbd_calib import detection  # noqa: E402
 from rgbd_calib.board import Board, charuco_saddles, load_board, marker_board  # noqa: E402
 from rgbd_calib.camera import CameraIntrinsics  # noqa: E402
 from rgbd_calib.config import DetectionConfig, PoseConfig  # noqa: E402
@@ -59,8 +60,10 @@ from rgbd_calib.pose import BoardObservation, estimate_board_pose  # noqa: E402
 DATA = ROOT.parent / "shared" / "data" / "caliscope-charuco-4cam"
 BOARD = ROOT / "configs" / "board_charuco_caliscope.yaml"
 METHODS = ("edges", "edges_dist", "subpix", "contour", "none")
-RADIUS_SQUARES = 1.5  # saddles within this many squares (Chebyshev) of the marker's centre
+RADIUS_SQUARES = 2.0  # saddles within this many squares (Chebyshev) of the marker's centre
+LOOSE_POSE = PoseConfig(max_reprojection_rms_px=1e3)  # the pose error of every method
 MIN_SADDLES = 6  # a local homography from at least this many (8 unknowns, 2 per corner)
+EDGE_TESTS = ("contrast", "inliers", "offset", "blur_floor", "blur_cap", "residual")
 
 
 def caliscope_intrinsics(path: Path) -> dict[int, CameraIntrinsics]:
@@ -98,6 +101,25 @@ def _method_config(method: str) -> tuple[DetectionConfig, bool]:
     return DetectionConfig(refinement=method), False
 
 
+class EdgeTestLog:
+    """The edge fit's tests (``detection._edge_tests``, by name, ``(M,4)``) of its last pass
+    in the ``with`` block: why edges fell back to SUBPIX."""
+
+    def __enter__(self) -> EdgeTestLog:
+        self.last: dict[str, np.ndarray] | None = None
+        self._tests = detection._edge_tests
+
+        def spy(*args, **kwargs):
+            self.last = self._tests(*args, **kwargs)
+            return self.last
+
+        detection._edge_tests = spy
+        return self
+
+    def __exit__(self, *exc) -> None:
+        detection._edge_tests = self._tests
+
+
 @dataclass
 class ViewResult:
     """One frame of one camera: the compared corners' errors per method and the bookkeeping."""
@@ -109,11 +131,15 @@ class ViewResult:
     normal: dict[str, np.ndarray] = field(default_factory=dict)  # method -> (N,4) px
     tangent: dict[str, np.ndarray] = field(default_factory=dict)
     error: dict[str, np.ndarray] = field(default_factory=dict)  # method -> (N,4,2) px
+    edge_set: np.ndarray | None = None  # (N,4) True where the edge fit set the compared corner
     markers: dict[str, int] = field(default_factory=dict)  # found per method
     edge_markers_partial: int = 0  # markers with 1-3 corners set by the edge fit
     edge_markers_none: int = 0  # markers with no corner set by the edge fit
+    edge_failed: dict[str, int] = field(default_factory=dict)  # edges failing each test
+    edges_tested: int = 0
     pose_kept: dict[str, str] = field(default_factory=dict)  # method -> "" or reject reason
     pose_error: dict[str, tuple[float, float]] = field(default_factory=dict)  # (deg, mm)
+    saddle_pose: str = ""  # "" or why the saddle quads gave no pose
 
 
 def measure_view(
@@ -146,8 +172,12 @@ def measure_view(
     dets: dict[str, MarkerDetections] = {}
     for m in methods:
         config, bent = _method_config(m)
-        dets[m] = detect_markers(inverted, markers, config, intrinsics if bent else None)
+        with EdgeTestLog() as log:
+            dets[m] = detect_markers(inverted, markers, config, intrinsics if bent else None)
         out.markers[m] = len(dets[m])
+        if m == "edges" and log.last is not None:
+            out.edges_tested = int(next(iter(log.last.values())).size)
+            out.edge_failed = {k: int((~v).sum()) for k, v in log.last.items()}
     if "edges" in dets:
         n_set = dets["edges"].refined.sum(axis=1)
         out.edge_markers_partial = int(np.sum((n_set > 0) & (n_set < 4)))
@@ -167,12 +197,17 @@ def measure_view(
         measured = d.corners_px[rows].reshape(-1, 4, 2)
         out.normal[m], out.tangent[m] = corner_components(measured, pred)
         out.error[m] = measured - pred
+        if m == "edges":
+            out.edge_set = d.refined[rows].reshape(-1, 4)
     # per-view pose: each method's markers vs the saddle quads (Caliscope's intrinsics)
     ref = estimate_board_pose(detect_charuco(image, board, corners=reference), board,
                               intrinsics, PoseConfig())
+    out.saddle_pose = "" if isinstance(ref, BoardObservation) else ref.reason
     for m, d in dets.items():
         obs = estimate_board_pose(d, markers, intrinsics, PoseConfig())
         out.pose_kept[m] = "" if isinstance(obs, BoardObservation) else obs.reason
+        # the pose error without the RMS gate, so that every method is compared on one set
+        obs = estimate_board_pose(d, markers, intrinsics, LOOSE_POSE)
         if isinstance(obs, BoardObservation) and isinstance(ref, BoardObservation):
             out.pose_error[m] = transform_error(obs.T_cam_board, ref.T_cam_board)
     return out
@@ -211,30 +246,57 @@ def summarise(views: list[ViewResult], methods: tuple[str, ...]) -> dict:
                              else None},
             "edge_fallback": {"markers": int(sum(v.markers.get("edges", 0) for v in vs)),
                               "partial": int(sum(v.edge_markers_partial for v in vs)),
-                              "none": int(sum(v.edge_markers_none for v in vs))},
+                              "none": int(sum(v.edge_markers_none for v in vs)),
+                              "views_none_set": int(sum(
+                                  v.edge_markers_none == v.markers.get("edges", 0) > 0
+                                  for v in vs)),
+                              "edges_tested": int(sum(v.edges_tested for v in vs)),
+                              "edges_failed": {k: int(sum(v.edge_failed.get(k, 0) for v in vs))
+                                               for k in EDGE_TESTS}},
             "methods": {},
         }
-        for m in methods:
-            s = BiasSummary.of(
-                np.concatenate([v.normal[m].ravel() for v in vs]) if vs else np.zeros(0),
-                np.concatenate([v.tangent[m].ravel() for v in vs]) if vs else np.zeros(0),
-                np.concatenate([v.error[m].reshape(-1, 2) for v in vs]) if vs else np.zeros(0),
-            )
+        # poses on the views every method and the saddle reference solved
+        both = [v for v in vs if all(m in v.pose_error for m in methods)]
+        entry["pose_views_compared"] = len(both)
+        for m in _rows(methods):
+            entry["methods"][m] = asdict(_summary(vs, m))
+            if m not in methods:
+                continue
             reasons: dict[str, int] = {}
             for v in vs:
-                r = v.pose_kept.get(m, "")
-                reasons[r or "kept"] = reasons.get(r or "kept", 0) + 1
-            pe = np.array([v.pose_error[m] for v in vs if m in v.pose_error]).reshape(-1, 2)
-            entry["methods"][m] = {
-                **asdict(s),
+                r = v.pose_kept.get(m, "") or "kept"
+                reasons[r] = reasons.get(r, 0) + 1
+            pe = np.array([v.pose_error[m] for v in both]).reshape(-1, 2)
+            entry["methods"][m].update({
                 "pose_views": reasons,
                 "pose_deg_median": float(np.median(pe[:, 0])) if len(pe) else None,
                 "pose_mm_median": float(np.median(pe[:, 1])) if len(pe) else None,
                 "pose_mm_p90": float(np.percentile(pe[:, 1], 90)) if len(pe) else None,
-                "pose_compared": int(len(pe)),
-            }
+            })
+        reasons = {}
+        for v in vs:
+            r = v.saddle_pose or "kept"
+            reasons[r] = reasons.get(r, 0) + 1
+        entry["saddle_pose_views"] = reasons
         out[g] = entry
     return out
+
+
+def _rows(methods: tuple[str, ...]) -> tuple[str, ...]:
+    """The table's rows: each method, and "edges:set" (only the corners the edge fit set;
+    the pose stage drops a marker with any other, ``PoseConfig.use_unrefined_corners``)."""
+    return methods + (("edges:set",) if "edges" in methods else ())
+
+
+def _summary(vs: list[ViewResult], row: str) -> BiasSummary:
+    m, only_set = row.split(":")[0], row.endswith(":set")
+    pick = [(v.normal[m], v.tangent[m], v.error[m],
+             v.edge_set if only_set else np.ones(v.normal[m].shape, bool)) for v in vs]
+    if not pick:
+        return BiasSummary.of(np.zeros(0), np.zeros(0), np.zeros((0, 2)))
+    return BiasSummary.of(np.concatenate([n[k] for n, _, _, k in pick]),
+                          np.concatenate([t[k] for _, t, _, k in pick]),
+                          np.concatenate([e[k] for _, _, e, k in pick]))
 
 
 def print_tables(summary: dict, methods: tuple[str, ...]) -> None:
@@ -242,32 +304,44 @@ def print_tables(summary: dict, methods: tuple[str, ...]) -> None:
           "tangent bias (px) | tangent scatter (px) | RMS (px) |")
     print("|---|---|---|---|---|---|---|---|---|")
     for g, e in summary.items():
-        for m in methods:
+        for m in _rows(methods):
             s = e["methods"][m]
             print(f"| {g} | {m} | {e['views']} | {s['corners']} | {s['normal_bias_px']:+.3f} | "
                   f"{s['normal_scatter_px']:.3f} | {s['tangent_bias_px']:+.3f} | "
                   f"{s['tangent_scatter_px']:.3f} | {s['rms_px']:.3f} |")
-    print("\n| camera | saddle corners (LOO) | bias x / y (px) | RMS (px) | edge-fit markers | "
-          "partly SUBPIX | all SUBPIX |")
+    print("\n| camera | saddle corners (LOO) | bias x / y (px) | RMS (px) |")
+    print("|---|---|---|---|")
+    for g, e in summary.items():
+        f = e["saddle_floor"]
+        print(f"| {g} | {f['corners']} | {f['bias_x_px']:+.3f} / {f['bias_y_px']:+.3f} | "
+              f"{f['rms_px']:.3f} |")
+    print("\n| camera | edge-fit markers | partly SUBPIX | all SUBPIX | views with no corner "
+          "set | edges tested | failed: " + " / ".join(EDGE_TESTS) + " |")
     print("|---|---|---|---|---|---|---|")
     for g, e in summary.items():
-        f, fb = e["saddle_floor"], e["edge_fallback"]
-        print(f"| {g} | {f['corners']} | {f['bias_x_px']:+.3f} / {f['bias_y_px']:+.3f} | "
-              f"{f['rms_px']:.3f} | {fb['markers']} | {fb['partial']} | {fb['none']} |")
-    print("\n| camera | method | PnP views kept (rejected: reason) | compared | rotation median "
-          "(deg) | translation median / p90 (mm) |")
-    print("|---|---|---|---|---|---|")
+        fb = e["edge_fallback"]
+        failed = " / ".join(str(fb["edges_failed"][k]) for k in EDGE_TESTS)
+        print(f"| {g} | {fb['markers']} | {fb['partial']} | {fb['none']} | "
+              f"{fb['views_none_set']} | {fb['edges_tested']} | {failed} |")
+    print("\n| camera | method | PnP views kept, default gates (rejected: reason) | "
+          "rotation median (deg) | "
+          "translation median / p90 (mm) |")
+    print("|---|---|---|---|---|")
     for g, e in summary.items():
+        sad = e["saddle_pose_views"]
+        rej = ", ".join(f"{r} {n}" for r, n in sad.items() if r != "kept")
+        print(f"| {g} | saddles | {sad.get('kept', 0)} ({rej or '-'}) | reference | "
+              f"reference |")
         for m in methods:
             s = e["methods"][m]
             kept = s["pose_views"].get("kept", 0)
             rej = ", ".join(f"{r} {n}" for r, n in s["pose_views"].items() if r != "kept")
-            if s["pose_compared"]:
-                print(f"| {g} | {m} | {kept} ({rej or '-'}) | {s['pose_compared']} | "
-                      f"{s['pose_deg_median']:.3f} | {s['pose_mm_median']:.2f} / "
-                      f"{s['pose_mm_p90']:.2f} |")
-            else:
-                print(f"| {g} | {m} | {kept} ({rej or '-'}) | 0 | - | - |")
+            if s["pose_deg_median"] is None:
+                print(f"| {g} | {m} | {kept} ({rej or '-'}) | - | - |")
+                continue
+            print(f"| {g} | {m} | {kept} ({rej or '-'}) | {s['pose_deg_median']:.3f} | "
+                  f"{s['pose_mm_median']:.2f} / {s['pose_mm_p90']:.2f} |")
+        print(f"| {g} | (views compared) | {e['pose_views_compared']} | | |")
 
 
 def main() -> None:
