@@ -54,7 +54,7 @@ from rgbd_calib.detection import (  # noqa: E402
     detect_markers,
     detect_saddles,
 )
-from rgbd_calib.geometry import transform_error  # noqa: E402
+from rgbd_calib.geometry import covariance_sigmas, transform_error  # noqa: E402
 from rgbd_calib.pose import BoardObservation, estimate_board_pose  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "caliscope-charuco-4cam"
@@ -140,6 +140,8 @@ class ViewResult:
     pose_kept: dict[str, str] = field(default_factory=dict)  # method -> "" or reject reason
     pose_error: dict[str, tuple[float, float]] = field(default_factory=dict)  # (deg, mm)
     saddle_pose: str = ""  # "" or why the saddle quads gave no pose
+    # translation difference to the saddle pose over its claimed sigma (both poses' sigmas)
+    pose_z: dict[str, float] = field(default_factory=dict)
 
 
 def measure_view(
@@ -206,6 +208,11 @@ def measure_view(
     for m, d in dets.items():
         obs = estimate_board_pose(d, markers, intrinsics, PoseConfig())
         out.pose_kept[m] = "" if isinstance(obs, BoardObservation) else obs.reason
+        if isinstance(obs, BoardObservation) and isinstance(ref, BoardObservation):
+            mm = transform_error(obs.T_cam_board, ref.T_cam_board)[1]
+            sigma_mm = np.hypot(covariance_sigmas(obs.covariance)[1],
+                                covariance_sigmas(ref.covariance)[1])
+            out.pose_z[m] = mm / sigma_mm
         # the pose error without the RMS gate, so that every method is compared on one set
         obs = estimate_board_pose(d, markers, intrinsics, LOOSE_POSE)
         if isinstance(obs, BoardObservation) and isinstance(ref, BoardObservation):
@@ -267,8 +274,13 @@ def summarise(views: list[ViewResult], methods: tuple[str, ...]) -> dict:
                 r = v.pose_kept.get(m, "") or "kept"
                 reasons[r] = reasons.get(r, 0) + 1
             pe = np.array([v.pose_error[m] for v in both]).reshape(-1, 2)
+            z = [v.pose_z[m] for v in vs if m in v.pose_z]
             entry["methods"][m].update({
                 "pose_views": reasons,
+                # views this method keeps and the edge fit does not
+                "kept_lost_by_edges": int(sum(not v.pose_kept.get(m, "x")
+                                              and bool(v.pose_kept.get("edges", "")) for v in vs)),
+                "pose_z_median": float(np.median(z)) if z else None,
                 "pose_deg_median": float(np.median(pe[:, 0])) if len(pe) else None,
                 "pose_mm_median": float(np.median(pe[:, 1])) if len(pe) else None,
                 "pose_mm_p90": float(np.percentile(pe[:, 1], 90)) if len(pe) else None,
@@ -323,25 +335,27 @@ def print_tables(summary: dict, methods: tuple[str, ...]) -> None:
         failed = " / ".join(str(fb["edges_failed"][k]) for k in EDGE_TESTS)
         print(f"| {g} | {fb['markers']} | {fb['partial']} | {fb['none']} | "
               f"{fb['views_none_set']} | {fb['edges_tested']} | {failed} |")
-    print("\n| camera | method | PnP views kept, default gates (rejected: reason) | "
-          "rotation median (deg) | "
-          "translation median / p90 (mm) |")
-    print("|---|---|---|---|---|")
+    print("\n| camera | method | PnP views kept, default gates (rejected: reason) | kept, "
+          "lost by edges | rotation median (deg) | translation median / p90 (mm) | "
+          "error / claimed sigma, median |")
+    print("|---|---|---|---|---|---|---|")
     for g, e in summary.items():
         sad = e["saddle_pose_views"]
         rej = ", ".join(f"{r} {n}" for r, n in sad.items() if r != "kept")
-        print(f"| {g} | saddles | {sad.get('kept', 0)} ({rej or '-'}) | reference | "
-              f"reference |")
+        print(f"| {g} | saddles | {sad.get('kept', 0)} ({rej or '-'}) | | reference | "
+              f"reference | |")
         for m in methods:
             s = e["methods"][m]
             kept = s["pose_views"].get("kept", 0)
             rej = ", ".join(f"{r} {n}" for r, n in s["pose_views"].items() if r != "kept")
+            z = "-" if s["pose_z_median"] is None else f"{s['pose_z_median']:.1f}"
+            lost = s["kept_lost_by_edges"] if m != "edges" else ""
             if s["pose_deg_median"] is None:
-                print(f"| {g} | {m} | {kept} ({rej or '-'}) | - | - |")
+                print(f"| {g} | {m} | {kept} ({rej or '-'}) | {lost} | - | - | {z} |")
                 continue
-            print(f"| {g} | {m} | {kept} ({rej or '-'}) | {s['pose_deg_median']:.3f} | "
-                  f"{s['pose_mm_median']:.2f} / {s['pose_mm_p90']:.2f} |")
-        print(f"| {g} | (views compared) | {e['pose_views_compared']} | | |")
+            print(f"| {g} | {m} | {kept} ({rej or '-'}) | {lost} | {s['pose_deg_median']:.3f} "
+                  f"| {s['pose_mm_median']:.2f} / {s['pose_mm_p90']:.2f} | {z} |")
+        print(f"| {g} | (views compared) | {e['pose_views_compared']} | | | | |")
 
 
 def main() -> None:
