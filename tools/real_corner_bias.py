@@ -220,8 +220,24 @@ def measure_view(
     return out
 
 
+def pose_reasons(image: np.ndarray, board: Board, markers: Board,
+                 intrinsics: CameraIntrinsics, methods: tuple[str, ...]) -> dict[str, str]:
+    """Per method, "" when the per-view PnP (default ``PoseConfig``) keeps the frame, else
+    why not: for the frames that are not views (too few saddle corners to compare)."""
+    inverted = 255 - image if board.charuco.inverted else image
+    out = {}
+    for m in methods:
+        config, bent = _method_config(m)
+        det = detect_markers(inverted, markers, config, intrinsics if bent else None)
+        obs = estimate_board_pose(det, markers, intrinsics, PoseConfig())
+        out[m] = "" if isinstance(obs, BoardObservation) else obs.reason
+    return out
+
+
 def run(data: Path, cameras: list[int], step: int = 1, frames: list[int] | None = None,
-        **kwargs) -> list[ViewResult]:
+        every_frame: list | None = None, **kwargs) -> list[ViewResult]:
+    """The views of the given cameras' frames; with ``every_frame`` (a list), also appends
+    ``(camera, frame, {method: PnP reject reason or ""})`` for every frame read."""
     board = load_board(BOARD)
     markers = marker_board(board)
     intrinsics = caliscope_intrinsics(data / "camera_array.toml")
@@ -232,7 +248,23 @@ def run(data: Path, cameras: list[int], step: int = 1, frames: list[int] | None 
                              **kwargs)
             if v is not None:
                 views.append(v)
+            if every_frame is not None:
+                reasons = dict(v.pose_kept) if v is not None else pose_reasons(
+                    image, board, markers, intrinsics[cam],
+                    kwargs.get("methods", METHODS))
+                every_frame.append((cam, k, reasons))
     return views
+
+
+def every_frame_summary(rows: list, methods: tuple[str, ...]) -> dict:
+    """PnP on every frame read: per method the frames it keeps and those it rejects as
+    too_few_markers while another method keeps them."""
+    return {m: {"frames": len(rows),
+                "kept": sum(r[m] == "" for _, _, r in rows),
+                "too_few_kept_by_another": sum(
+                    r[m] == "too_few_markers" and any(v == "" for v in r.values())
+                    for _, _, r in rows)}
+            for m in methods}
 
 
 def summarise(views: list[ViewResult], methods: tuple[str, ...]) -> dict:
@@ -372,11 +404,17 @@ def main() -> None:
     args = ap.parse_args()
     methods = tuple(args.methods.split(","))
     t0 = time.perf_counter()
+    every: list = []
     views = run(args.data, [int(c) for c in args.cameras.split(",")], args.step,
-                methods=methods, reference=args.reference, plane=args.plane,
-                radius_squares=args.radius)
+                every_frame=every, methods=methods, reference=args.reference,
+                plane=args.plane, radius_squares=args.radius)
     summary = summarise(views, methods)
     print_tables(summary, methods)
+    summary["every_frame"] = every_frame_summary(every, methods)
+    print("\n| method | frames | PnP keeps | too_few_markers, kept by another method |")
+    print("|---|---|---|---|")
+    for m, e in summary["every_frame"].items():
+        print(f"| {m} | {e['frames']} | {e['kept']} | {e['too_few_kept_by_another']} |")
     print(f"\n{len(views)} views, {time.perf_counter() - t0:.0f} s")
     if args.json:
         args.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
