@@ -198,6 +198,18 @@ def printed_markers(board: Board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return ids, corners, np.full(len(ids), FRONT)
 
 
+def marker_board(board: Board) -> Board:
+    """An ArUco :class:`Board` of the markers ``board`` prints (a ChArUco board's own markers
+    instead of its saddle-corner quads; an ArUco board itself): to measure the marker corners
+    of a ChArUco board against its saddle corners (``tools/real_corner_bias.py``). Detect on
+    the inverted image when ``board.charuco.inverted``."""
+    if board.charuco is None:
+        return board
+    ids, corners, faces = printed_markers(board)
+    return Board(board.dictionary, ids, corners, faces, board.thickness, board.panel,
+                 f"{board.name}_markers", None, board.source)
+
+
 def charuco_saddles(spec: CharucoSpec, dictionary: str) -> np.ndarray:
     """The saddle corners ``(C,3)`` in the board frame (m), in OpenCV's ChArUco corner order."""
     b = spec.cv_board(aruco_dictionary(dictionary))

@@ -124,7 +124,19 @@ class DetectionConfig(BaseModel, extra="forbid"):
         0.08,
         gt=0,
         description="Largest RMS residual of an edge fit as a fraction of the "
-        "edge's contrast (occlusion or a wrong edge make it large).",
+        "edge's contrast (occlusion or a wrong edge make it large); raised per image by "
+        "edge_residual_factor.",
+    )
+    edge_residual_factor: float | None = Field(
+        1.5,
+        gt=0,
+        description="The residual bound adapts to the image: at least this many times the "
+        "median relative residual of the image's edges (a real camera's sharpening and "
+        "compression leave ~0.10 on every edge, renders 0.01-0.02), at most "
+        "max_edge_residual_cap. None: the fixed max_edge_residual.",
+    )
+    max_edge_residual_cap: float = Field(
+        0.25, gt=0, description="Upper limit of the adapted residual bound (see above)."
     )
     edge_passes: int = Field(
         2,

@@ -26,6 +26,7 @@ from rgbd_calib.detection import (
     MarkerDetections,
     _gray_float,
     detect_markers,
+    edge_residual_bound,
     marker_pattern,
     refine_corners_edges,
 )
@@ -310,6 +311,23 @@ def test_edges_with_lens_distortion(board, rendered):
 
     assert len(aware) > 15 and aware.refined.mean() > 0.9
     assert rms(aware) < 0.1 and rms(aware) <= rms(plain), (rms(aware), rms(plain))
+
+
+def test_residual_bound_adapts_to_poor_images_only(board, rendered):
+    """The edge residual bound: the fixed max_edge_residual where edges fit the model (renders:
+    median relative residual 0.01-0.02, corners identical to the fixed bound), 1.5x the
+    image's median where every edge fits worse (webcams: ~0.10, tests/test_real_corners.py),
+    never above the cap."""
+    config = DetectionConfig()
+    assert edge_residual_bound(np.full(8, 0.015), config) == config.max_edge_residual
+    assert edge_residual_bound(np.full(8, 0.10), config) == pytest.approx(0.15)
+    assert edge_residual_bound(np.full(8, 0.5), config) == config.max_edge_residual_cap
+    assert edge_residual_bound(np.zeros(0), config) == config.max_edge_residual
+    fixed = DetectionConfig(edge_residual_factor=None)
+    for image, _, _ in finished(rendered, NOISY, seed=2):
+        a, b = detect_markers(image, board), detect_markers(image, board, fixed)
+        np.testing.assert_array_equal(a.corners_px, b.corners_px)
+        np.testing.assert_array_equal(a.refined, b.refined)
 
 
 def test_compiled_edge_fit_equals_the_numpy_reference(board, rendered):
