@@ -38,6 +38,7 @@ from .graph import (
     bundle_adjust,
     calibrate_pose_graph,
 )
+from .intrinsics_init import PRIOR_SCALE, InitialIntrinsics, initialise_intrinsics
 from .parallel import executor as make_executor
 from .pose import BoardObservation, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
@@ -83,6 +84,10 @@ class CalibrationResult:
     board: Board | None = None  # the board file calibrated with (board_refined.yaml's base)
     # bundle.board / bundle.intrinsics auto: the models tried and the one chosen
     self_calibration: SelfCalibration | None = None
+    # cameras rig.yaml gave only the size of: their first intrinsics, from their own views
+    initial_intrinsics: dict[str, InitialIntrinsics] = field(default_factory=dict)
+    # the rig the solve started from: the dataset's, with those first intrinsics filled in
+    rig: Rig | None = None
 
 
 # ----------------------------------------------------------------------------- detection stage
@@ -215,6 +220,17 @@ def calibrate(
         cache = cache_dir / "detections.json" if cache_dir is not None else None
         detections = detect_dataset(dataset, board, config.detection, cache, config.workers, tick,
                                     config.scheduler)
+    initial: dict[str, InitialIntrinsics] = {}
+    if rig.unknown_intrinsics:
+        # 1b. the cameras rig.yaml gives only the size of: intrinsics from their own views,
+        #     refined jointly in the bundle adjustment under a loose prior
+        with timed(timings, "intrinsics_init"):
+            initial = initialise_intrinsics(detections, board, rig)
+        rig = rig.with_intrinsics({c: i.intrinsics for c, i in initial.items()})
+        dataset = copy.copy(dataset)  # same frames, another rig: no re-scan
+        dataset.rig = rig
+        config = _with_scratch_intrinsics(config)
+    prior_scale = dict.fromkeys(initial, PRIOR_SCALE)
     # 2. one board pose per view (PnP, covariance, gates)
     with timed(timings, "pose"):
         observations, rejected = board_poses(detections, board, rig, config.pose)
@@ -230,8 +246,10 @@ def calibrate(
         #    model as the data supports (bundle.board / bundle.intrinsics: auto)
         with timed(timings, "bundle"):
             bundle, measurements, solve, ladder = self_calibrated_bundle(
-                observations, pg, rig, board, config, fixed_cameras, progress)
-        if ladder is not None and ladder.chosen.distortion:
+                observations, pg, rig, board, config, fixed_cameras, progress, prior_scale)
+        lens_refined = (ladder.chosen.distortion if ladder is not None
+                        else bool(initial) and _refines_distortion(config.bundle))
+        if lens_refined and (ladder is not None or board.charuco is None):
             # the corners were fitted along straight edges; with the refined lens the edges
             # are curved: detect again with it and solve the chosen model once more
             with timed(timings, "redetection"):
@@ -249,8 +267,10 @@ def calibrate(
                                             {**pg.T_ref_cam, **bundle.T_ref_cam},
                                             {**pg.T_ref_board, **bundle.T_ref_board}, solve,
                                             pg, fixed_cameras, intrinsics=rig.cameras,
-                                            back_centre=back_centre(board))
-            ladder = replace(ladder, redetected=True)
+                                            back_centre=back_centre(board),
+                                            intrinsics_prior_scale=prior_scale)
+            if ladder is not None:
+                ladder = replace(ladder, redetected=True)
         cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg, solve)
         if bundle.intrinsics:
             # the depth stage back-projects with the refined intrinsics
@@ -281,7 +301,8 @@ def calibrate(
                                                    bundle.T_ref_board, solve, pg,
                                                    fixed_cameras, depth.relative_poses,
                                                    intrinsics=rig.cameras,
-                                                   back_centre=back_centre(board))
+                                                   back_centre=back_centre(board),
+                                                   intrinsics_prior_scale=prior_scale)
                 except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
                     depth = depth.with_fallback(f"the joint solve with the depth pairs failed "
                                                 f"({type(exc).__name__}: {exc})".replace(
@@ -305,7 +326,23 @@ def calibrate(
     )
     return CalibrationResult(extrinsics, observations, rejected, pg, bundle, config, n_images,
                              timings, dataset.summary().to_dict(), depth, board_only,
-                             model_error_factor=factors, board=board, self_calibration=ladder)
+                             model_error_factor=factors, board=board, self_calibration=ladder,
+                             initial_intrinsics=initial, rig=rig)
+
+
+def _with_scratch_intrinsics(config: CalibrationConfig) -> CalibrationConfig:
+    """``config`` for a rig with cameras calibrated from scratch: the bundle adjustment refines
+    the intrinsics (``bundle.intrinsics: refine``; ``auto`` and ``fixed`` would hold the
+    first estimates of those cameras as exact)."""
+    if config.bundle.intrinsics == "refine":
+        return config
+    return config.model_copy(update={
+        "bundle": config.bundle.model_copy(update={"intrinsics": "refine"})})
+
+
+def _refines_distortion(bundle: BundleConfig) -> bool:
+    return bundle.intrinsics == "refine" and any(
+        p not in selfcal.FOCAL_CENTRE for p in bundle.intrinsics_params)
 
 
 # ----------------------------------------------------------------------------- stages
@@ -442,6 +479,7 @@ def self_calibrated_bundle(
     config: CalibrationConfig,
     fixed_cameras: dict[str, np.ndarray] | None = None,
     progress: Progress | None = None,
+    intrinsics_prior_scale: dict[str, float] | None = None,
 ) -> tuple[BundleResult, list[MarkerMeasurement], CalibrationConfig, SelfCalibration | None]:
     """The bundle adjustment with ``config.bundle``'s board and intrinsics models.
 
@@ -463,7 +501,8 @@ def self_calibrated_bundle(
                                    refined_intrinsics=level.intrinsics == "refine",
                                    board=board, keep_outlier_views=freed)
         result = bundle_sound_first(meas, K, rig.reference, init_cam, init_board, cfg, pg,
-                                    fixed_cameras, intrinsics=rig.cameras, back_centre=centre)
+                                    fixed_cameras, intrinsics=rig.cameras, back_centre=centre,
+                                    intrinsics_prior_scale=intrinsics_prior_scale)
         return result, meas, cfg
 
     if not selfcal.is_auto(b):
@@ -574,6 +613,7 @@ def bundle_sound_first(
     relative_poses: list[RelativePose] = (),
     intrinsics: dict[str, CameraIntrinsics] | None = None,
     back_centre: np.ndarray | None = None,
+    intrinsics_prior_scale: dict[str, float] | None = None,
 ) -> BundleResult:
     """:func:`~rgbd_calib.graph.bundle_adjust`, so that a camera with a model error does not
     pull the others.
@@ -604,16 +644,19 @@ def bundle_sound_first(
     if joint:
         return bundle_adjust(measurements, K, reference, init_T_ref_cam, init_T_ref_board,
                              config.bundle, fixed_cameras, relative_poses,
-                             intrinsics=intrinsics, back_centre=back_centre)
+                             intrinsics=intrinsics, back_centre=back_centre,
+                             intrinsics_prior_scale=intrinsics_prior_scale)
     first = bundle_adjust([m for m in measurements if m.camera in sound], K, reference,
                           init_T_ref_cam, init_T_ref_board, config.bundle, fixed_cameras,
                           [r for r in relative_poses if {r.cam_a, r.cam_b} <= sound],
-                          intrinsics=intrinsics, back_centre=back_centre)
+                          intrinsics=intrinsics, back_centre=back_centre,
+                          intrinsics_prior_scale=intrinsics_prior_scale)
     held = {**first.T_ref_cam, **fixed}
     boards = {**init_T_ref_board, **first.T_ref_board}
     second = bundle_adjust(measurements, K, reference, {**init_T_ref_cam, **held}, boards,
                            config.bundle, held, relative_poses, intrinsics=intrinsics,
-                           back_centre=back_centre)
+                           back_centre=back_centre,
+                           intrinsics_prior_scale=intrinsics_prior_scale)
     keep = set(first.T_ref_cam)
     return replace(
         second,

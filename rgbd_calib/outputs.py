@@ -118,6 +118,7 @@ def write_outputs(
     (default: a Python warning); extrinsics.yaml and report.json are written all the same."""
     out_dir = Path(out_dir)
     warn = warn or _python_warning
+    rig = result.rig or rig  # with the first intrinsics of cameras calibrated from scratch
     with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED, VIEWS_FILE,
                                    "report.html", "exports")) as stage:
         if result.bundle is not None and result.bundle.intrinsics:

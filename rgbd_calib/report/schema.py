@@ -129,6 +129,8 @@ CAMERA_SCHEMA: dict[str, Any] = {
         "distortion": ListOf(N),
         "depth_scale": N,
     },
+    "intrinsics_initial?": {"views": INT, "corners": INT, "rms_px": N, "image_fraction": N,
+                            "fx": N, "fy": N, "cx": N, "cy": N, "distortion": ListOf(N)},
     "intrinsics_refined?": MapOf(
         "<param>",
         {"prior": N, "prior_sigma": Nullable(N), "refined": N, "sigma": Nullable(N),
