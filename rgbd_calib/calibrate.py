@@ -38,7 +38,7 @@ from .graph import (
     bundle_adjust,
     calibrate_pose_graph,
 )
-from .intrinsics_init import PRIOR_SCALE, InitialIntrinsics, initialise_intrinsics
+from .intrinsics_init import InitialIntrinsics, initialise_intrinsics
 from .parallel import executor as make_executor
 from .pose import BoardObservation, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
@@ -223,14 +223,13 @@ def calibrate(
     initial: dict[str, InitialIntrinsics] = {}
     if rig.unknown_intrinsics:
         # 1b. the cameras rig.yaml gives only the size of: intrinsics from their own views,
-        #     refined jointly in the bundle adjustment under a loose prior
+        #     then refined jointly in the bundle adjustment with the others (their prior)
         with timed(timings, "intrinsics_init"):
             initial = initialise_intrinsics(detections, board, rig)
         rig = rig.with_intrinsics({c: i.intrinsics for c, i in initial.items()})
         dataset = copy.copy(dataset)  # same frames, another rig: no re-scan
         dataset.rig = rig
         config = _with_scratch_intrinsics(config)
-    prior_scale = dict.fromkeys(initial, PRIOR_SCALE)
     # 2. one board pose per view (PnP, covariance, gates)
     with timed(timings, "pose"):
         observations, rejected = board_poses(detections, board, rig, config.pose)
@@ -246,7 +245,7 @@ def calibrate(
         #    model as the data supports (bundle.board / bundle.intrinsics: auto)
         with timed(timings, "bundle"):
             bundle, measurements, solve, ladder = self_calibrated_bundle(
-                observations, pg, rig, board, config, fixed_cameras, progress, prior_scale)
+                observations, pg, rig, board, config, fixed_cameras, progress)
         lens_refined = (ladder.chosen.distortion if ladder is not None
                         else bool(initial) and _refines_distortion(config.bundle))
         if lens_refined and (ladder is not None or board.charuco is None):
@@ -267,8 +266,7 @@ def calibrate(
                                             {**pg.T_ref_cam, **bundle.T_ref_cam},
                                             {**pg.T_ref_board, **bundle.T_ref_board}, solve,
                                             pg, fixed_cameras, intrinsics=rig.cameras,
-                                            back_centre=back_centre(board),
-                                            intrinsics_prior_scale=prior_scale)
+                                            back_centre=back_centre(board))
             if ladder is not None:
                 ladder = replace(ladder, redetected=True)
         cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg, solve)
@@ -301,8 +299,7 @@ def calibrate(
                                                    bundle.T_ref_board, solve, pg,
                                                    fixed_cameras, depth.relative_poses,
                                                    intrinsics=rig.cameras,
-                                                   back_centre=back_centre(board),
-                                                   intrinsics_prior_scale=prior_scale)
+                                                   back_centre=back_centre(board))
                 except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
                     depth = depth.with_fallback(f"the joint solve with the depth pairs failed "
                                                 f"({type(exc).__name__}: {exc})".replace(
@@ -479,7 +476,6 @@ def self_calibrated_bundle(
     config: CalibrationConfig,
     fixed_cameras: dict[str, np.ndarray] | None = None,
     progress: Progress | None = None,
-    intrinsics_prior_scale: dict[str, float] | None = None,
 ) -> tuple[BundleResult, list[MarkerMeasurement], CalibrationConfig, SelfCalibration | None]:
     """The bundle adjustment with ``config.bundle``'s board and intrinsics models.
 
@@ -501,8 +497,7 @@ def self_calibrated_bundle(
                                    refined_intrinsics=level.intrinsics == "refine",
                                    board=board, keep_outlier_views=freed)
         result = bundle_sound_first(meas, K, rig.reference, init_cam, init_board, cfg, pg,
-                                    fixed_cameras, intrinsics=rig.cameras, back_centre=centre,
-                                    intrinsics_prior_scale=intrinsics_prior_scale)
+                                    fixed_cameras, intrinsics=rig.cameras, back_centre=centre)
         return result, meas, cfg
 
     if not selfcal.is_auto(b):
@@ -613,7 +608,6 @@ def bundle_sound_first(
     relative_poses: list[RelativePose] = (),
     intrinsics: dict[str, CameraIntrinsics] | None = None,
     back_centre: np.ndarray | None = None,
-    intrinsics_prior_scale: dict[str, float] | None = None,
 ) -> BundleResult:
     """:func:`~rgbd_calib.graph.bundle_adjust`, so that a camera with a model error does not
     pull the others.
@@ -644,19 +638,16 @@ def bundle_sound_first(
     if joint:
         return bundle_adjust(measurements, K, reference, init_T_ref_cam, init_T_ref_board,
                              config.bundle, fixed_cameras, relative_poses,
-                             intrinsics=intrinsics, back_centre=back_centre,
-                             intrinsics_prior_scale=intrinsics_prior_scale)
+                             intrinsics=intrinsics, back_centre=back_centre)
     first = bundle_adjust([m for m in measurements if m.camera in sound], K, reference,
                           init_T_ref_cam, init_T_ref_board, config.bundle, fixed_cameras,
                           [r for r in relative_poses if {r.cam_a, r.cam_b} <= sound],
-                          intrinsics=intrinsics, back_centre=back_centre,
-                          intrinsics_prior_scale=intrinsics_prior_scale)
+                          intrinsics=intrinsics, back_centre=back_centre)
     held = {**first.T_ref_cam, **fixed}
     boards = {**init_T_ref_board, **first.T_ref_board}
     second = bundle_adjust(measurements, K, reference, {**init_T_ref_cam, **held}, boards,
                            config.bundle, held, relative_poses, intrinsics=intrinsics,
-                           back_centre=back_centre,
-                           intrinsics_prior_scale=intrinsics_prior_scale)
+                           back_centre=back_centre)
     keep = set(first.T_ref_cam)
     return replace(
         second,

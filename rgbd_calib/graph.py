@@ -1294,8 +1294,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
                   fixed_cameras: dict[str, np.ndarray] | None = None,
                   relative_poses: list[RelativePose] = (),
                   intrinsics: dict[str, CameraIntrinsics] | None = None,
-                  back_centre: np.ndarray | None = None,
-                  intrinsics_prior_scale: dict[str, float] | None = None) -> BundleResult:
+                  back_centre: np.ndarray | None = None) -> BundleResult:
     """Joint bundle adjustment of camera poses ``T_ref_cam`` and board poses ``T_ref_board``
     on the marker corners (one GTSAM CustomFactor per camera view holding all its markers,
     robust per marker: :func:`_view_factor`), optionally joined by camera-to-camera
@@ -1306,8 +1305,7 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     measurements are undistorted pinhole pixels. With ``"refine"`` each camera also gets a
     vector variable of the parameters ``config.intrinsics_params`` under a Gaussian prior at
     ``intrinsics`` (the rig.yaml models, required then; sigmas from
-    :func:`intrinsics_prior_sigmas`, times ``intrinsics_prior_scale[camera]`` when given: a
-    camera calibrated from scratch), and the measurements are the RAW detected pixels,
+    :func:`intrinsics_prior_sigmas`), and the measurements are the RAW detected pixels,
     projected through the full model (:func:`_view_factor_intrinsics`). The reference camera
     (and any ``fixed_cameras``) carry a tight pose prior. Marginal covariances come from the
     converged graph, scaled by the a-posteriori variance factor when ``config.estimate_sigma``
@@ -1342,10 +1340,8 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     if refine:
         kept = [m for m in kept if m.camera in intr_key]
         x0 = {c: intrinsics_vector(intrinsics[c], names) for c in intr_key}
-        scale = intrinsics_prior_scale or {}
         prior_intr = {c: gtsam.noiseModel.Diagonal.Sigmas(
-            intrinsics_prior_sigmas(intrinsics[c], names, config) * scale.get(c, 1.0))
-            for c in intr_key}
+            intrinsics_prior_sigmas(intrinsics[c], names, config)) for c in intr_key}
 
     problem = _BundleProblem(config, K, cam_key, view_key, intr_key, intrinsics, names,
                              x0 if refine else {}, prior_intr if refine else {}, fixed,

@@ -4,9 +4,16 @@ Each such camera is calibrated on its own from its board views (Zhang's method a
 ``cv2.calibrateCamera`` implements it: closed-form pinhole from the views' homographies, then
 Levenberg-Marquardt on pinhole + Brown-Conrady ``k1 k2 p1 p2 k3``; Zhang, "A flexible new
 technique for camera calibration", PAMI 2000). That estimate starts everything that needs a
-camera model before the bundle adjustment (PnP, the pose graph), and is the prior, loosened
-:data:`PRIOR_SCALE` times, of the joint refinement of the bundle adjustment
-(``bundle.intrinsics: refine``), which sees every camera's views at once.
+camera model before the bundle adjustment (PnP, the pose graph), and is the prior of the joint
+refinement in the bundle adjustment (``bundle.intrinsics: refine``, the usual prior sigmas
+``bundle.intrinsics_prior_*`` around it), which sees every camera's views at once.
+
+Why the usual prior, not a looser one (measured, docs/accuracy.md "Intrinsics from scratch"):
+on the 4 unsynchronised webcams of shared/data/caliscope-charuco-4cam the bundle's one board
+pose per frame set meets a board seen up to 22 ms apart, and priors 10x wider let the
+intrinsics soak that up (cam_1: fx 780 -> 946 px, cy 388 -> 630 px; held-out cross-camera RMS
+3.18 px); at the usual sigmas 2.99 px, and 1.06 instead of 1.37 px on cam_3. On a synthetic
+render both give fx within 0.2 % of the truth.
 
 The measurements are the detected marker corners (a ChArUco board's are its saddle corners,
 each once per view). A view gives one face of the board (the face with most corners), so its
@@ -29,7 +36,7 @@ from .rig import Rig
 
 MIN_VIEWS = 4  # views with MIN_CORNERS corners a camera needs to be calibrated from scratch
 MIN_CORNERS = 6
-PRIOR_SCALE = 10.0  # the bundle's intrinsics priors are this many times wider for such a camera
+INIT_FLAGS = cv2.CALIB_FIX_K3  # k3 starts at 0; the bundle frees it when intrinsics_params has it
 COVERAGE_GRID = (32, 18)  # sample points across, down, for the image fraction the corners reach
 
 
@@ -100,7 +107,8 @@ def initialise_camera(camera: str, views: list[tuple[np.ndarray, np.ndarray]],
     img = [p.astype(np.float32).reshape(-1, 1, 2) for _, p in usable]
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-10)
     try:
-        rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, size, None, None, criteria=criteria)
+        rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, size, None, None, flags=INIT_FLAGS,
+                                                 criteria=criteria)
     except cv2.error as exc:
         raise CalibrationError(
             f"camera {camera!r}: calibrating its intrinsics from scratch failed on "
