@@ -328,10 +328,10 @@ def calibrate(
 
 
 def _with_scratch_intrinsics(config: CalibrationConfig) -> CalibrationConfig:
-    """``config`` for a rig with cameras calibrated from scratch: the bundle adjustment refines
-    the intrinsics (``bundle.intrinsics: refine``; ``auto`` and ``fixed`` would hold the
-    first estimates of those cameras as exact)."""
-    if config.bundle.intrinsics == "refine":
+    """``config`` for a rig with cameras calibrated from scratch: ``bundle.intrinsics: auto``
+    (the default) becomes ``refine`` (auto would hold those cameras' first estimates as exact
+    unless the pose graph found a model error); an explicit ``fixed`` holds them."""
+    if config.bundle.intrinsics != "auto":
         return config
     return config.model_copy(update={
         "bundle": config.bundle.model_copy(update={"intrinsics": "refine"})})

@@ -167,11 +167,16 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--params", default=None,
                     help="bundle.intrinsics_params, space-separated (default: the config's)")
+    ap.add_argument("--intrinsics", default="auto", choices=("auto", "fixed", "refine"),
+                    help="bundle.intrinsics (auto: refined, the cameras are from scratch; "
+                    "fixed: the single-camera first estimates held)")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     board = load_board(BOARD)
     converted = convert(args.work)
     config = CalibrationConfig(workers=1, refine="none")
+    config = config.model_copy(update={"bundle": config.bundle.model_copy(
+        update={"intrinsics": args.intrinsics})})
     if args.params:
         config = config.model_copy(update={"bundle": config.bundle.model_copy(
             update={"intrinsics_params": args.params.split()})})
@@ -210,7 +215,8 @@ def main() -> None:
         intr = {}
         for label, rig in (("all", rig_all), ("even", rig_even)):
             mine, ref = rig.cameras[cam].parameters, theirs_intr[cam].parameters
-            sig = (res_all if label == "all" else res_even).bundle.intrinsics_sigma.get(cam, {})
+            res = res_all if label == "all" else res_even
+            sig = res.bundle.intrinsics_sigma.get(cam, {}) if res.bundle else {}
             intr[label] = {p: {"ours": mine.get(p, 0.0), "sigma": sig.get(p),
                                "caliscope": ref.get(p, 0.0)} for p in PARAMS}
         row["intrinsics"] = intr
