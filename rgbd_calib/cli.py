@@ -410,7 +410,8 @@ def calibrate(
             help="auto (default): estimate them in the bundle adjustment only when the "
             "views disagree camera by camera and the corners fit better for it (writes "
             "rig_refined.yaml then); fixed: trust the rig.yaml intrinsics; refine: always "
-            "estimate them."
+            "estimate them. A camera whose rig.yaml gives only width/height is calibrated from "
+            "scratch from its own views first (auto then refines; fixed holds that estimate)."
         ),
     ] = None,
     board_model: Annotated[
