@@ -227,3 +227,24 @@ def test_convert_real_webcam_clips_with_timestamps(tmp_path):
             views += 1
     assert views >= 4, result.output
     shutil.rmtree(out)
+
+
+def test_board_motion_is_the_largest_corner_move_to_either_neighbour():
+    from rgbd_calib.sources.video import board_motion
+
+    c = np.zeros((4, 2))
+    frames = [{1: c}, {1: c + [3.0, 0.0]}, {1: c + [3.0, 0.5], 2: c}, {}, {2: c}]
+    motion = board_motion(frames)
+    np.testing.assert_allclose(motion[:3], [3.0, 3.0, 0.5])
+    assert np.isnan(motion[3])  # no board
+    assert motion[4] == np.inf  # no neighbour with a common marker: cannot tell
+
+
+def test_timestamps_csv_without_its_columns_is_one_line(tmp_path):
+    from rgbd_calib.errors import DatasetError
+    from rgbd_calib.sources.video import read_timestamps
+
+    path = tmp_path / "ts.csv"
+    path.write_text("frame,time\n0,0.1\n")
+    with pytest.raises(DatasetError, match="sync_index,cam_id,frame_index,frame_time"):
+        read_timestamps(path)
