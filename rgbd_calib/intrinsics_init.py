@@ -9,11 +9,11 @@ refinement in the bundle adjustment (``bundle.intrinsics: refine``, the usual pr
 ``bundle.intrinsics_prior_*`` around it), which sees every camera's views at once.
 
 Why the usual prior, not a looser one (measured, docs/accuracy.md "Intrinsics from scratch"):
-on the 4 unsynchronised webcams of shared/data/caliscope-charuco-4cam the bundle's one board
-pose per frame set meets a board seen up to 22 ms apart, and priors 10x wider let the
-intrinsics soak that up (cam_1: fx 780 -> 946 px, cy 388 -> 630 px; held-out cross-camera RMS
-3.18 px); at the usual sigmas 2.99 px, and 1.06 instead of 1.37 px on cam_3. On a synthetic
-render both give fx within 0.2 % of the truth.
+on the 4 unsynchronised webcams of shared/data/caliscope-charuco-4cam the cameras disagree
+about where the board was by 1-3 px (held out), the bundle has one board pose per frame set,
+and priors 10x wider let the intrinsics soak that up (cam_1: fx 780 -> 946 px, cy 388 -> 630
+px; held-out cross-camera RMS 3.18 px); at the usual sigmas 2.99 px, and 1.06 instead of
+1.37 px on cam_3. On a synthetic render both give fx within 0.2 % of the truth.
 
 The measurements are the detected marker corners (a ChArUco board's are its saddle corners,
 each once per view). A view gives one face of the board (the face with most corners), so its
