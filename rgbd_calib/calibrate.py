@@ -38,6 +38,7 @@ from .graph import (
     bundle_adjust,
     calibrate_pose_graph,
 )
+from .intrinsics_init import InitialIntrinsics, initialise_intrinsics
 from .parallel import executor as make_executor
 from .pose import BoardObservation, RejectedView, estimate_board_pose
 from .progress import Progress, Tick, start, timed
@@ -83,6 +84,10 @@ class CalibrationResult:
     board: Board | None = None  # the board file calibrated with (board_refined.yaml's base)
     # bundle.board / bundle.intrinsics auto: the models tried and the one chosen
     self_calibration: SelfCalibration | None = None
+    # cameras rig.yaml gave only the size of: their first intrinsics, from their own views
+    initial_intrinsics: dict[str, InitialIntrinsics] = field(default_factory=dict)
+    # the rig the solve started from: the dataset's, with those first intrinsics filled in
+    rig: Rig | None = None
 
 
 # ----------------------------------------------------------------------------- detection stage
@@ -215,6 +220,16 @@ def calibrate(
         cache = cache_dir / "detections.json" if cache_dir is not None else None
         detections = detect_dataset(dataset, board, config.detection, cache, config.workers, tick,
                                     config.scheduler)
+    initial: dict[str, InitialIntrinsics] = {}
+    if rig.unknown_intrinsics:
+        # 1b. the cameras rig.yaml gives only the size of: intrinsics from their own views,
+        #     then refined jointly in the bundle adjustment with the others (their prior)
+        with timed(timings, "intrinsics_init"):
+            initial = initialise_intrinsics(detections, board, rig)
+        rig = rig.with_intrinsics({c: i.intrinsics for c, i in initial.items()})
+        dataset = copy.copy(dataset)  # same frames, another rig: no re-scan
+        dataset.rig = rig
+        config = _with_scratch_intrinsics(config)
     # 2. one board pose per view (PnP, covariance, gates)
     with timed(timings, "pose"):
         observations, rejected = board_poses(detections, board, rig, config.pose)
@@ -231,7 +246,9 @@ def calibrate(
         with timed(timings, "bundle"):
             bundle, measurements, solve, ladder = self_calibrated_bundle(
                 observations, pg, rig, board, config, fixed_cameras, progress)
-        if ladder is not None and ladder.chosen.distortion:
+        lens_refined = (ladder.chosen.distortion if ladder is not None
+                        else bool(initial) and _refines_distortion(config.bundle))
+        if lens_refined and (ladder is not None or board.charuco is None):
             # the corners were fitted along straight edges; with the refined lens the edges
             # are curved: detect again with it and solve the chosen model once more
             with timed(timings, "redetection"):
@@ -250,7 +267,8 @@ def calibrate(
                                             {**pg.T_ref_board, **bundle.T_ref_board}, solve,
                                             pg, fixed_cameras, intrinsics=rig.cameras,
                                             back_centre=back_centre(board))
-            ladder = replace(ladder, redetected=True)
+            if ladder is not None:
+                ladder = replace(ladder, redetected=True)
         cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg, solve)
         if bundle.intrinsics:
             # the depth stage back-projects with the refined intrinsics (and their sigmas)
@@ -305,7 +323,23 @@ def calibrate(
     )
     return CalibrationResult(extrinsics, observations, rejected, pg, bundle, config, n_images,
                              timings, dataset.summary().to_dict(), depth, board_only,
-                             model_error_factor=factors, board=board, self_calibration=ladder)
+                             model_error_factor=factors, board=board, self_calibration=ladder,
+                             initial_intrinsics=initial, rig=rig)
+
+
+def _with_scratch_intrinsics(config: CalibrationConfig) -> CalibrationConfig:
+    """``config`` for a rig with cameras calibrated from scratch: ``bundle.intrinsics: auto``
+    (the default) becomes ``refine`` (auto would hold those cameras' first estimates as exact
+    unless the pose graph found a model error); an explicit ``fixed`` holds them."""
+    if config.bundle.intrinsics != "auto":
+        return config
+    return config.model_copy(update={
+        "bundle": config.bundle.model_copy(update={"intrinsics": "refine"})})
+
+
+def _refines_distortion(bundle: BundleConfig) -> bool:
+    return bundle.intrinsics == "refine" and any(
+        p not in selfcal.FOCAL_CENTRE for p in bundle.intrinsics_params)
 
 
 # ----------------------------------------------------------------------------- stages
@@ -559,7 +593,8 @@ def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:
     """``rig`` with the bundle adjustment's refined intrinsics (cameras it did not refine keep
     their rig.yaml model): what ``rig_refined.yaml`` holds."""
     cameras = {c: bundle.intrinsics.get(c, intr) for c, intr in rig.cameras.items()}
-    return Rig(cameras, rig.reference, rig.source, dict(bundle.intrinsics_sigma))
+    return Rig(cameras, rig.reference, rig.source,
+               rig.unknown_intrinsics - set(bundle.intrinsics), dict(bundle.intrinsics_sigma))
 
 
 def bundle_sound_first(

@@ -17,7 +17,7 @@ from rich.console import Console
 
 from . import __version__
 from .console import console, print_verdict, stage_progress
-from .errors import RgbdCalibError
+from .errors import ConfigError, RgbdCalibError
 
 app = typer.Typer(
     name="rgbd-calib",
@@ -410,7 +410,8 @@ def calibrate(
             help="auto (default): estimate them in the bundle adjustment only when the "
             "views disagree camera by camera and the corners fit better for it (writes "
             "rig_refined.yaml then); fixed: trust the rig.yaml intrinsics; refine: always "
-            "estimate them."
+            "estimate them. A camera whose rig.yaml gives only width/height is calibrated from "
+            "scratch from its own views first (auto then refines; fixed holds that estimate)."
         ),
     ] = None,
     board_model: Annotated[
@@ -912,7 +913,8 @@ DEMO_GOOD_DEG = 0.05
 def convert(
     sources: Annotated[
         list[Path],
-        typer.Argument(help="RealSense .bag/.db3 files (one per camera) or ROS 1/ROS 2 bags."),
+        typer.Argument(help="RealSense .bag/.db3 files (one per camera), ROS 1/ROS 2 bags, or "
+                       "video files (one per camera: .mp4, .avi, ...)."),
     ],
     out: Annotated[Path, typer.Option("--out", help="Dataset folder to write.")],
     names: Annotated[
@@ -928,11 +930,46 @@ def convert(
             "frame period."
         ),
     ] = None,
+    timestamps: Annotated[
+        Path | None,
+        typer.Option(help="Videos: CSV sync_index,cam_id,frame_index,frame_time grouping the "
+                     "frames into sets (default: frame k of every video is set k)."),
+    ] = None,
+    board_file: Annotated[
+        Path | None,
+        typer.Option("--board", help="Videos: keep only frames where this board is seen and "
+                     "still (see --still-px-s)."),
+    ] = None,
+    still_px_s: Annotated[
+        float | None,
+        typer.Option(help="Videos with --board: a view is still when its corners move at most "
+                     "this many pixels per second (default 100)."),
+    ] = None,
+    step: Annotated[
+        int, typer.Option(help="Videos without --board: keep every STEP-th frame set.")
+    ] = 1,
 ) -> None:
-    """Convert RealSense SDK recordings or ROS bags into the dataset folder form."""
-    from .console import cli_convert
+    """Convert RealSense SDK recordings, ROS bags or one video per camera into the dataset
+    folder form (videos: colour only, rig.yaml with the image sizes: intrinsics calibrated from
+    scratch)."""
+    from .sources import is_video
 
     _check_output_folder(out)
+    videos = [is_video(s) for s in sources]
+    if any(videos):
+        from .console import cli_convert_videos
+
+        if not all(videos):
+            raise ConfigError("convert: give either video files or recordings, not both")
+        board = None
+        if board_file is not None:
+            from .board import load_board
+
+            board = load_board(board_file)
+        cli_convert_videos(sources, out, _name_list(names), timestamps, board, step, still_px_s)
+        return
+    from .console import cli_convert
+
     cli_convert(sources, out, _name_list(names), sync_tolerance_ms)
 
 

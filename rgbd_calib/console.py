@@ -203,6 +203,21 @@ def cli_convert(
     return report
 
 
+def cli_convert_videos(videos: Sequence[Path], out: Path, names: Sequence[str] | None = None,
+                       timestamps: Path | None = None, board=None, step: int = 1,
+                       still_px_s: float | None = None):
+    """Run :func:`~rgbd_calib.sources.convert_videos` with progress bars and print a table of
+    the result."""
+    from .sources import convert_videos
+    from .sources.video import STILL_PX_S
+
+    with stage_progress() as progress:
+        report = convert_videos(videos, out, names, timestamps, board, step,
+                                still_px_s or STILL_PX_S, progress)
+    print_conversion_report(report)
+    return report
+
+
 # --------------------------------------------------------------------------- record
 def cli_record(
     out: Path,

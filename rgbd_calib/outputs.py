@@ -104,7 +104,8 @@ def write_outputs(
 ) -> list[Path]:
     """Write extrinsics.yaml, report.json, report.html, config_resolved.yaml and exports/
     into out_dir (and fused.ply, copied from ``fused_ply`` when the depth stage made one;
-    rig_refined.yaml, rig.yaml's format, when the bundle adjustment refined the intrinsics;
+    rig_refined.yaml, rig.yaml's format, when the bundle adjustment refined the intrinsics or
+    some were calibrated from scratch;
     board_refined.yaml, the board file with the back sheet where the bundle adjustment found
     it, when it refined the board).
 
@@ -118,10 +119,13 @@ def write_outputs(
     (default: a Python warning); extrinsics.yaml and report.json are written all the same."""
     out_dir = Path(out_dir)
     warn = warn or _python_warning
+    rig = result.rig or rig  # with the first intrinsics of cameras calibrated from scratch
     with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED, VIEWS_FILE,
                                    "report.html", "exports")) as stage:
         if result.bundle is not None and result.bundle.intrinsics:
             save_rig(refined_rig(rig, result.bundle), stage / RIG_REFINED)
+        elif getattr(result, "initial_intrinsics", None):
+            save_rig(rig, stage / RIG_REFINED)  # intrinsics from scratch, held as first found
         model = result.bundle.board if result.bundle is not None else None
         if model is not None and not model.held and result.board is not None:
             save_board(refined_board(result.board, model.T_front_back), stage / BOARD_REFINED)

@@ -565,7 +565,8 @@ def with_refined_intrinsics(rig: Rig, calib_dir: Path) -> tuple[Rig, list[str]]:
         sigmas[c] = {k: float(v["sigma"]) for k, v in entry.items()
                      if isinstance(v, dict) and v.get("sigma") is not None}
         changed.append(c)
-    return replace(rig, cameras=cameras, sigmas=sigmas), changed
+    return replace(rig, cameras=cameras, sigmas=sigmas,
+                   unknown_intrinsics=rig.unknown_intrinsics - set(changed)), changed
 
 
 def load_board_views(report_json: Path) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:

@@ -60,6 +60,18 @@ def small_line(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def charuco_line(tmp_path_factory):
+    """The ChArUco A3 board in small_line's setting (thesis-line, 1280x720, 6 frames, seed
+    3, default noise: blur 0.6 px, colour noise 2 DN). About 20 s."""
+    from rgbd_calib.board import load_board
+    from rgbd_calib.synth import SynthParams, synthesize
+
+    out = tmp_path_factory.mktemp("charuco") / "line"
+    board = load_board(CONFIGS / "board_charuco_a3.yaml")
+    return synthesize(out, "thesis-line", 6, 3, board, SynthParams(), workers=2).path
+
+
+@pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory):
     """A tiny thesis-line rig with depth (4 cameras, 640x360, 4 frames): the README's example
     rig. About 6 s."""

@@ -142,16 +142,7 @@ def test_printed_board_detects_at_true_scale(tmp_path, config):
 
 
 # ----------------------------------------------------------------------------- renders
-@pytest.fixture(scope="module")
-def charuco_line(tmp_path_factory):
-    """The ChArUco A3 board in small_line's setting (thesis-line, 1280x720, 6 frames, seed
-    3, default noise: blur 0.6 px, colour noise 2 DN). About 20 s."""
-    from rgbd_calib.synth import SynthParams, synthesize
-
-    out = tmp_path_factory.mktemp("charuco") / "line"
-    return synthesize(out, "thesis-line", 6, 3, load_board(A3), SynthParams(), workers=2).path
-
-
+# charuco_line: tests/conftest.py (shared with test_scratch_intrinsics.py)
 def corner_errors(path, board: Board, method: str | None, invert: bool = False):
     """Detected minus true saddle corners ``(K,2)`` px over every image of a render."""
     from rgbd_calib.detection import detect_charuco

@@ -261,6 +261,9 @@ def _camera_entry(
                 rig.cameras[name], result.bundle.intrinsics[name],
                 result.bundle.intrinsics_sigma.get(name, {}),
                 result.bundle.intrinsics_prior_sigma.get(name, {}))
+    initial = getattr(result, "initial_intrinsics", {})
+    if name in initial:
+        entry["intrinsics_initial"] = initial[name].to_dict()
     entry.update(
         {
             "intrinsics": rig.cameras[name].to_dict(),

@@ -358,6 +358,8 @@ def lens_coverage(report: dict[str, Any], earlier: list[Finding]) -> list[Findin
     px inside the covered region, 6 to ~1000 px in corners no view reached)."""
     thin = {}
     for name, cam in report["cameras"].items():
+        if cam.get("intrinsics_initial"):
+            continue  # scratch_coverage says it for a camera calibrated from scratch
         refined = cam.get("intrinsics_refined") or {}
         cov = cam.get("coverage") or {}
         if any(p not in ("fx", "fy", "cx", "cy") for p in refined) \
@@ -377,6 +379,34 @@ def lens_coverage(report: dict[str, Any], earlier: list[Finding]) -> list[Findin
             "the board went and is an extrapolation towards the image corners.",
             "Before using rig_refined.yaml's distortion for the whole image, record views with "
             "the board reaching the image corners and calibrate again.",
+        )
+    ]
+
+
+def scratch_coverage(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """A camera calibrated from scratch (rig.yaml gave only its size) whose board views
+    reached little of the image: its focal length, centre and distortion rest on that part."""
+    thin = {
+        name: cam["intrinsics_initial"]
+        for name, cam in report["cameras"].items()
+        if cam.get("intrinsics_initial")
+        and cam["intrinsics_initial"]["image_fraction"] < COVERAGE_MIN
+    }
+    if not thin:
+        return []
+    return [
+        finding(
+            "warning",
+            "scratch_coverage",
+            list(thin),
+            "Intrinsics calibrated from scratch from views whose corners reached little of the "
+            "image ("
+            + ", ".join(f"{n} {i['image_fraction']:.0%} in {i['views']} views"
+                        for n, i in thin.items())
+            + f", under {COVERAGE_MIN:.0%}): the lens model (rig_refined.yaml) is fitted there "
+            "and extrapolated elsewhere, and the focal length trades against the distances.",
+            "Record more views with these cameras, the board reaching every image region and "
+            "tilted, or give their intrinsics in rig.yaml.",
         )
     ]
 
@@ -775,6 +805,7 @@ RULES: tuple[Rule, ...] = (
     board_distance,
     board_tilt,
     intrinsics_unsupported,
+    scratch_coverage,
     lens_coverage,
     outlier_views,
     marker,

@@ -13,7 +13,7 @@ from typing import Any
 
 from ..errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.4"
+REPORT_SCHEMA_VERSION = "1.5"
 
 
 class ReportError(RgbdCalibError):
@@ -129,6 +129,8 @@ CAMERA_SCHEMA: dict[str, Any] = {
         "distortion": ListOf(N),
         "depth_scale": N,
     },
+    "intrinsics_initial?": {"views": INT, "corners": INT, "rms_px": N, "image_fraction": N,
+                            "fx": N, "fy": N, "cx": N, "cy": N, "distortion": ListOf(N)},
     "intrinsics_refined?": MapOf(
         "<param>",
         {"prior": N, "prior_sigma": Nullable(N), "refined": N, "sigma": Nullable(N),

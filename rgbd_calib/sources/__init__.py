@@ -4,6 +4,8 @@
   ``.db3`` (SDK 2.56+), read by :mod:`.realsense`.
 - realsense-ros bags: ROS 1 ``.bag``, ROS 2 folders (sqlite3 or mcap) or their bare
   ``.db3``/``.mcap`` files, read by :mod:`.ros`.
+- Video files, one per camera (colour only, intrinsics unknown), with an optional timestamps
+  CSV: :func:`convert_videos` (:mod:`.video`) keeps the frames where the board is still.
 
 Readers stage decoded frames (:mod:`.staging`); :mod:`.sync` pairs colour with depth and
 matches cameras by timestamp; :func:`convert` (:mod:`.conversion`) writes the frame sets;
@@ -20,19 +22,23 @@ from .conversion import (
     is_recording,
 )
 from .sync import match_frames
+from .video import VIDEO_SUFFIXES, convert_videos, is_video
 
 __all__ = [
     "CACHE_MARKER",
     "RECORDING_SUFFIXES",
+    "VIDEO_SUFFIXES",
     "CameraCounts",
     "ConversionReport",
     "align_depth_to_color",
     "cached_report",
     "convert",
     "convert_to_cache",
+    "convert_videos",
     "dataset_folder",
     "distortion_from_realsense",
     "extrinsics_matrix",
     "is_recording",
+    "is_video",
     "match_frames",
 ]
