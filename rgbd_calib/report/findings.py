@@ -104,6 +104,12 @@ def not_calibrated(report: dict[str, Any], earlier: list[Finding]) -> list[Findi
     return out
 
 
+def _lens_source(cam: dict[str, Any]) -> str:
+    """Where a camera's starting intrinsics came from, for advice."""
+    return ("its first estimate from scratch (rig.yaml gave only its size)"
+            if cam.get("intrinsics_initial") else "rig.yaml")
+
+
 def inconsistent_camera(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     cams = report["cameras"]
     rig_p50 = median_or_none(
@@ -121,8 +127,9 @@ def inconsistent_camera(report: dict[str, Any], earlier: list[Finding]) -> list[
                     "inconsistent_camera",
                     [name],
                     f"{name}: " + "; ".join(parts) + ".",
-                    f"Check {name}'s intrinsics in rig.yaml (fx, fy, cx, cy and distortion for "
-                    "the recorded resolution), then its frame synchronisation; re-run calibrate.",
+                    f"Check {name}'s intrinsics, from {_lens_source(cam)} (fx, fy, cx, cy and "
+                    "distortion for the recorded resolution), then its frame synchronisation; "
+                    "re-run calibrate.",
                 )
             )
     return out
@@ -150,9 +157,10 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
                     else "The refined board / intrinsics explain it: its corners fit like the "
                     "rest of the rig, and its uncertainty is not inflated."
                 ),
-                f"Likely causes: {name}'s intrinsics (fx, fy, cx, cy) or lens distortion in "
-                "rig.yaml; the board (back sheet glued off, thickness, print scale) when it "
-                "sees one face; its frame synchronisation. Fix the model and re-run calibrate.",
+                f"Likely causes: {name}'s intrinsics (fx, fy, cx, cy) or lens distortion, "
+                f"from {_lens_source(report['cameras'].get(name, {}))}; the board (back sheet "
+                "glued off, thickness, print scale) when it sees one face; its frame "
+                "synchronisation. Fix the model and re-run calibrate.",
             )
         )
     return out
@@ -344,7 +352,8 @@ def intrinsics_unsupported(report: dict[str, Any], earlier: list[Finding]) -> li
             "The board views hardly constrain some refined intrinsics (marginal sigma above "
             f"{INTRINSICS_SUPPORT_MAX:.0%} of the prior's): "
             + "; ".join(f"{n}: {' '.join(p)}" for n, p in weak.items())
-            + ". Their refined values are mostly the rig.yaml ones.",
+            + ". Their refined values are mostly the starting ones (rig.yaml's, or the first "
+            "estimate of a camera calibrated from scratch).",
             "Record more views with the board at several distances and tilts, reaching the "
             "image corners (distortion), or refine fewer parameters "
             "(bundle.intrinsics_params, e.g. fx fy cx cy).",
