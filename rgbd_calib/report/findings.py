@@ -106,7 +106,7 @@ def not_calibrated(report: dict[str, Any], earlier: list[Finding]) -> list[Findi
 
 def _lens_source(cam: dict[str, Any]) -> str:
     """Where a camera's starting intrinsics came from, for advice."""
-    return ("its first estimate from scratch (rig.yaml gave only its size)"
+    return ("its first estimate from scratch, rig.yaml giving only its size"
             if cam.get("intrinsics_initial") else "rig.yaml")
 
 
@@ -127,9 +127,9 @@ def inconsistent_camera(report: dict[str, Any], earlier: list[Finding]) -> list[
                     "inconsistent_camera",
                     [name],
                     f"{name}: " + "; ".join(parts) + ".",
-                    f"Check {name}'s intrinsics, from {_lens_source(cam)} (fx, fy, cx, cy and "
-                    "distortion for the recorded resolution), then its frame synchronisation; "
-                    "re-run calibrate.",
+                    f"Check {name}'s intrinsics (fx, fy, cx, cy and distortion for the "
+                    f"recorded resolution; from {_lens_source(cam)}), then its frame "
+                    "synchronisation; re-run calibrate.",
                 )
             )
     return out
