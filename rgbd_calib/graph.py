@@ -136,6 +136,12 @@ class PoseGraphResult:
         return tuple(r.index for r in self.residuals if r.outlier and not r.stale)
 
     @property
+    def rejected_edges(self) -> tuple[int, ...]:
+        """Outlier edges the solve left out (``reject_outliers``); with rejection off the
+        outliers stay in the graph and are only flagged, so this is empty."""
+        return tuple(r.index for r in self.residuals if r.outlier and not r.stale and not r.used)
+
+    @property
     def used_edges(self) -> tuple[int, ...]:
         return tuple(r.index for r in self.residuals if r.used)
 
