@@ -399,7 +399,8 @@ def pose_edges(observations: list[BoardObservation], config: CalibrationConfig) 
     residual's ``index`` names its edge), weighted by the PnP covariance unless
     ``config.edge_covariance`` is off."""
     return [
-        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance if config.edge_covariance else None)
+        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance, o.model_error_covariance)
+        if config.edge_covariance else PoseEdge(o.camera, o.frame, o.T_cam_board)
         for o in observations
     ]
 
