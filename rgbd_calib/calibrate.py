@@ -399,7 +399,8 @@ def pose_edges(observations: list[BoardObservation], config: CalibrationConfig) 
     residual's ``index`` names its edge), weighted by the PnP covariance unless
     ``config.edge_covariance`` is off."""
     return [
-        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance if config.edge_covariance else None)
+        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance, o.model_error_covariance)
+        if config.edge_covariance else PoseEdge(o.camera, o.frame, o.T_cam_board)
         for o in observations
     ]
 
@@ -437,7 +438,8 @@ def marker_measurements(
     keep_outlier_views: bool = False,
 ) -> list[MarkerMeasurement]:
     """The bundle adjustment's measurements: every marker of every view the pose graph kept
-    (its cameras and boards solved, the view not an outlier or stale edge), in undistorted
+    (its cameras and boards solved, the view not a stale edge nor an outlier the pose graph
+    rejected: with ``graph.reject_outliers`` off, flagged outliers stay in), in undistorted
     pinhole pixels.
 
     With ``refined_intrinsics`` the pixels are the detected ones (the bundle adjustment
@@ -452,7 +454,7 @@ def marker_measurements(
     the glue error, and the pose graph flags them all). ``board`` gives each measurement its
     face (front when None)."""
     keep = refined_intrinsics or keep_outlier_views
-    edges = pg.stale_edges if keep else pg.outlier_edges
+    edges = pg.stale_edges if keep else pg.rejected_edges
     dropped = {pg.residuals[i].view + "/" + pg.residuals[i].camera for i in edges}
     measurements = []
     for o in observations:

@@ -234,6 +234,17 @@ class PoseConfig(BaseModel, extra="forbid"):
         "noise towards the (larger) all-residual estimate; matters for views with few "
         "markers (see _pose_covariance).",
     )
+    model_error_px: float = Field(
+        0.5,
+        ge=0,
+        description="Per-view model-error floor (px): sigma of a systematic pixel error "
+        "shared by all corners of a view (a common 2-D affine map of its corners: offset, "
+        "scale, stretch, shear; intrinsics or distortion slightly off, a marker bias, a "
+        "rolling shutter), propagated through the PnP and added to the pose covariance "
+        "(rgbd_calib/pose.py::model_error_covariance). The corner-noise estimate cannot see "
+        "it (the pose absorbs it), so without it the pose graph judges real-camera views by "
+        "covariances far too small. 0 turns it off.",
+    )
     outlier_factor: float = Field(
         5.0,
         gt=1,

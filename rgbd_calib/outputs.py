@@ -122,8 +122,11 @@ def write_outputs(
     rig = result.rig or rig  # with the first intrinsics of cameras calibrated from scratch
     with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED, VIEWS_FILE,
                                    "report.html", "exports")) as stage:
+        # the exports carry the intrinsics the extrinsics were solved with: the refined ones
+        export_rig = rig
         if result.bundle is not None and result.bundle.intrinsics:
-            save_rig(refined_rig(rig, result.bundle), stage / RIG_REFINED)
+            export_rig = refined_rig(rig, result.bundle)
+            save_rig(export_rig, stage / RIG_REFINED)
         elif getattr(result, "initial_intrinsics", None):
             save_rig(rig, stage / RIG_REFINED)  # intrinsics from scratch, held as first found
         model = result.bundle.board if result.bundle is not None else None
@@ -147,7 +150,7 @@ def write_outputs(
         write_config(result.config, stage / "config_resolved.yaml")
         boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
         try:
-            write_exports(result.extrinsics, stage, rig=rig, edges=used_edges(result),
+            write_exports(result.extrinsics, stage, rig=export_rig, edges=used_edges(result),
                           board_poses=boards)
         except Exception as exc:  # noqa: BLE001 - an export is not worth the result
             shutil.rmtree(stage / "exports", ignore_errors=True)

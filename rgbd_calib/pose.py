@@ -10,7 +10,8 @@ Pipeline per view: physically impossible detections out (markers of both faces a
 minority face is dropped), planar PnP (IPPE: both solutions of the planar ambiguity and their
 errors), Levenberg-Marquardt refinement, per-marker outlier rejection (a stray marker carrying
 a board id is far off the pose of the others), gates, then the covariance
-``sigma^2 (J^T J)^-1`` with ``J`` the Jacobian of the reprojection residuals.
+``sigma^2 (J^T J)^-1`` with ``J`` the Jacobian of the reprojection residuals, plus a per-view
+model-error floor (:func:`model_error_covariance`, ``PoseConfig.model_error_px``).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ class BoardObservation:
     tangent). ``face`` is +1 (front), -1 (back) or 0 (both, only with ``allow_both_faces``).
     ``ids``/``corners_px`` ``(N,4,2)``/``object_points`` ``(N,4,3)`` are the markers used;
     ``dropped`` lists markers left out and why (``outlier``, ``minority_face``, ``unrefined``).
+    ``model_error_covariance`` is the per-view model-error floor included in ``covariance``
+    (:func:`model_error_covariance`; None when ``PoseConfig.model_error_px`` is 0).
     """
 
     camera: str
@@ -52,6 +55,7 @@ class BoardObservation:
     ambiguity_ratio: float
     sigma_px: float
     dropped: dict[str, list[int]] = field(default_factory=dict)
+    model_error_covariance: np.ndarray | None = None
 
     @property
     def sigma_rotation_deg(self) -> float:
@@ -249,6 +253,38 @@ def _pose_covariance(
     return 0.5 * (covariance + covariance.T), sigma
 
 
+def model_error_covariance(
+    J: np.ndarray, corners_px: np.ndarray, sigma_model_px: float
+) -> np.ndarray:
+    """6x6 pose covariance (``[rot rad, trans m]``, board frame) from a systematic pixel error
+    shared by all corners of one view, propagated through the least-squares PnP.
+
+    The shared error is the first-order (Taylor) expansion of any smooth pixel-error field
+    over the view's extent: a common 2-D affine map of the view's corners, ``delta_k = t +
+    L (p_k - c) / r`` with ``c`` the corners' centroid and ``r`` their RMS distance from it
+    (px), its 6 coefficients (offset ``t``, linear part ``L``) independent with sigma
+    ``sigma_model_px`` (so a linear term moves a corner at distance ``r`` by that many px).
+    That covers the misfits no corner-noise estimate sees, because the pose absorbs most of
+    them: intrinsics or distortion slightly off across the board (an offset plus a scale or
+    stretch), a marker print or detector bias that makes every marker look larger, a rolling
+    shutter's shear on a moving board. The pose moves by ``-G delta``,
+    ``G = (J^T J)^-1 J^T``, so the covariance is ``sigma^2 (G A)(G A)^T`` with ``A`` the
+    ``(2M,6)`` basis of the affine map. ``J`` is the ``(2M,6)`` reprojection Jacobian
+    (:func:`pose_jacobian`), ``corners_px`` the matching ``(...,2)`` pixels."""
+    pts = np.asarray(corners_px, dtype=float).reshape(-1, 2)
+    d = pts - pts.mean(axis=0)
+    radius = float(np.sqrt((d**2).sum(axis=1).mean())) or 1.0
+    d = d / radius
+    A = np.zeros((2 * len(pts), 6))
+    A[0::2, 0] = 1.0  # offset u
+    A[1::2, 1] = 1.0  # offset v
+    A[0::2, 2], A[0::2, 3] = d[:, 0], d[:, 1]  # u from (du, dv)
+    A[1::2, 4], A[1::2, 5] = d[:, 0], d[:, 1]  # v from (du, dv)
+    GA = np.linalg.solve(J.T @ J, J.T @ A)
+    cov = sigma_model_px**2 * (GA @ GA.T)
+    return 0.5 * (cov + cov.T)
+
+
 def _faces_camera(T_cam_board: np.ndarray, object_points: np.ndarray, face: int) -> bool:
     """True when the camera is on the outer side of the seen face (else the pose is a
     mirror solution: the markers could not be seen from there)."""
@@ -338,6 +374,10 @@ def estimate_board_pose(
     J = pose_jacobian(T_cam_board, obj, intrinsics)
     try:
         covariance, sigma = _pose_covariance(J, resid, config)
+        floor = None
+        if config.model_error_px > 0:
+            floor = model_error_covariance(J, corners, config.model_error_px)
+            covariance = covariance + floor
     except np.linalg.LinAlgError:
         return reject("degenerate", "the reprojection Jacobian is singular")
     return BoardObservation(
@@ -354,4 +394,5 @@ def estimate_board_pose(
         ratio,
         sigma,
         dropped,
+        floor,
     )

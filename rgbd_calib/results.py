@@ -23,12 +23,16 @@ class PoseEdge:
     """One detection: board view ``view`` seen by ``camera`` as ``T_cam_board`` (4x4, metres).
 
     ``covariance`` is 6x6 in GTSAM order ``[rot rad, trans m]``, in the body frame of the board
-    pose (a right perturbation ``T_cam_board @ Exp(xi)``); ``None`` = the config's default."""
+    pose (a right perturbation ``T_cam_board @ Exp(xi)``); ``None`` = the config's default.
+    ``model_error_covariance`` is the part of ``covariance`` that is the per-view model-error
+    floor (``pose.model_error_px``): the pose graph's camera model-error test whitens without
+    it, its outlier test and its solve with it."""
 
     camera: str
     view: str
     T_cam_board: np.ndarray
     covariance: np.ndarray | None = None
+    model_error_covariance: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

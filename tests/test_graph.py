@@ -428,3 +428,34 @@ def test_camera_model_error_is_kept_with_honest_sigma_and_outliers_still_rejecte
             assert mm < 3.0 * est.sigma_translation_mm, (mm, est.sigma_translation_mm)
         else:
             assert mm < ATOL_MM and deg < ATOL_DEG, (cam, mm, deg)
+
+
+def test_without_rejection_flagged_outliers_stay_in_the_bundle():
+    """``reject_outliers: false``: a gross edge is flagged (``outlier_edges``) but the solve
+    keeps it, so the bundle adjustment's measurements keep its view too (they used to drop
+    every flagged view, cutting cameras off even with rejection off)."""
+    from rgbd_calib.calibrate import marker_measurements
+    from rgbd_calib.camera import CameraIntrinsics
+    from rgbd_calib.pose import BoardObservation
+    from rgbd_calib.rig import Rig
+
+    rng = np.random.default_rng(11)
+    edges, _, _, _ = make_scene(rng, 4)
+    gross = next(i for i, e in enumerate(edges) if e.camera == "cam1")
+    edges[gross] = PoseEdge("cam1", edges[gross].view, make_transform(np.eye(3), [0.3, 0, 2]),
+                            EDGE_COV.copy())
+    rejecting = calibrate_pose_graph(edges, "cam0")
+    keeping = calibrate_pose_graph(edges, "cam0", PoseGraphConfig(reject_outliers=False))
+    assert gross in rejecting.rejected_edges and gross in rejecting.outlier_edges
+    assert gross in keeping.outlier_edges and gross not in keeping.rejected_edges
+
+    rig = Rig({c: CameraIntrinsics(640, 480, 500.0, 500.0, 320.0, 240.0)
+               for c in dict.fromkeys(e.camera for e in edges)}, "cam0")
+    square = np.array([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0], [0, 0.1, 0]], float)[None]
+    observations = [BoardObservation(e.camera, e.view, e.T_cam_board, EDGE_COV, 0.1, 1, 1,
+                                     np.array([0]), np.full((1, 4, 2), 100.0), square, 0.0, 0.1)
+                    for e in edges]
+    gross_view = (edges[gross].camera, edges[gross].view)
+    for pg, kept in ((rejecting, False), (keeping, True)):
+        views = {(m.camera, m.view) for m in marker_measurements(observations, pg, rig)}
+        assert (gross_view in views) is kept

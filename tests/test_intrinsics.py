@@ -258,6 +258,23 @@ def test_refined_rig_and_report_written(line_refined, tmp_path):
         assert 0 < block["cx"]["sigma"] < block["cx"]["prior_sigma"] == 10.0
     page = (tmp_path / "report.html").read_text()
     assert "Refined intrinsics" in page and "rig_refined.yaml" in page
+    # the exports carry the refined intrinsics (the ones the extrinsics were solved with), not
+    # rig.yaml's, which are ~0.7 % / 3-5 px off here
+    import yaml
+
+    from rgbd_calib.exports import _ordered
+
+    chain = yaml.safe_load((tmp_path / "exports" / "camchain.yaml").read_text())
+    names = _ordered(runs["refine"].extrinsics)
+    moved_px = []
+    for n, c in enumerate(names):
+        r, given = saved.cameras[c], chain[f"cam{n}"]["intrinsics"]
+        assert given == pytest.approx([r.fx, r.fy, r.cx, r.cy], abs=1e-6), c
+        moved_px.append(abs(given[0] - wrong.cameras[c].fx))
+    assert max(moved_px) > 2.0, moved_px  # rig.yaml's fx is ~4 px off on 3 cameras
+    cam = json.loads((tmp_path / "exports" / "open3d" / f"{wrong.reference}.json").read_text())
+    fx_open3d = cam["intrinsic"]["intrinsic_matrix"][0]
+    assert fx_open3d == pytest.approx(saved.cameras[wrong.reference].fx, abs=1e-6)
     # a later run without refined intrinsics into the same folder removes the stale file
     # (the same result with the intrinsics dropped: writing runs["fixed"], where only the
     # reference is calibrated, fails in report/figures.py fig_edges on a log axis without data)

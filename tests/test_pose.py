@@ -34,6 +34,7 @@ from rgbd_calib.pose import (
     PoseConfig,
     RejectedView,
     estimate_board_pose,
+    model_error_covariance,
     pose_jacobian,
     reprojection_residuals,
     se3_exp,
@@ -197,12 +198,15 @@ def test_edges_pose_beats_subpix_on_noisy_views(solved):
 
 def test_covariance_is_honest(solved):
     """Translation errors divided by the predicted sigma have an RMS near 1 per axis, and the
-    Mahalanobis distances of the full 6-vector look like chi2(6) (mean 6)."""
+    Mahalanobis distances of the full 6-vector look like chi2(6) (mean 6). The corner-noise
+    part: the per-view model-error floor (``model_error_px``) allows for a misfit renders do
+    not have (with it the RMS is ~0.004: conservative by design there)."""
     normalised, mahalanobis = [], []
     for ob, T in solved["edges"]:
         xi = log_error(ob.T_cam_board, T)
-        normalised.append(xi[3:] / np.sqrt(np.diag(ob.covariance)[3:]))
-        mahalanobis.append(float(xi @ np.linalg.solve(ob.covariance, xi)))
+        cov = ob.covariance - ob.model_error_covariance
+        normalised.append(xi[3:] / np.sqrt(np.diag(cov)[3:]))
+        mahalanobis.append(float(xi @ np.linalg.solve(cov, xi)))
     rms = float(np.sqrt(np.mean(np.square(normalised))))
     assert NORMALISED_RMS_RANGE[0] < rms < NORMALISED_RMS_RANGE[1], (rms, mahalanobis)
     assert 2.0 < np.mean(mahalanobis) < 15.0, mahalanobis
@@ -279,7 +283,49 @@ def test_unrefined_markers_are_left_out_unless_asked(board, views):
 def test_fixed_pixel_sigma_scales_the_covariance(board, views):
     img, _, K = views[3]
     det = detect_markers(img, board)
-    one = estimate_board_pose(det, board, K, PoseConfig(pixel_sigma_px=0.1))
-    two = estimate_board_pose(det, board, K, PoseConfig(pixel_sigma_px=0.2))
+    one = estimate_board_pose(det, board, K, PoseConfig(pixel_sigma_px=0.1, model_error_px=0))
+    two = estimate_board_pose(det, board, K, PoseConfig(pixel_sigma_px=0.2, model_error_px=0))
     np.testing.assert_allclose(two.covariance, 4.0 * one.covariance, rtol=1e-9)
     assert one.sigma_px == 0.1
+
+
+# --------------------------------------------------------------------------- model-error floor
+KERNEL_THRESHOLD = 4.1  # the pose graph's default outlier bound on a whitened edge norm
+
+
+def test_model_error_floor_whitens_an_affine_misfit_to_its_size(board, rng):
+    """A common 2-D affine misfit of the view's corners (here an offset of k sigmas) moves the
+    pose by exactly ``G A x``; under the floor's covariance alone its whitened norm is |x| / s."""
+    K = make_camera((0.05, -0.02, 0.001, -0.001, 0.0)).intrinsics
+    T = random_board_pose(board, rng, FRONT, K)
+    pts = board.object_points(board.face_ids(FRONT)).reshape(-1, 3)
+    J = pose_jacobian(T, pts, K)
+    uv = K.project(transform_points(T, pts))
+    s = 0.3
+    cov = model_error_covariance(J, uv, s)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)  # 6 affine terms: full rank on a planar board
+    shift = np.tile([3 * s, 0.0], len(uv))  # every corner 0.9 px to the right
+    xi = np.linalg.solve(J.T @ J, J.T @ shift)  # the least-squares pose's move
+    assert np.sqrt(xi @ np.linalg.solve(cov, xi)) == pytest.approx(3.0, rel=1e-6)
+    np.testing.assert_allclose(model_error_covariance(J, uv, 2 * s), 4 * cov, rtol=1e-12)
+
+
+def test_common_pixel_offset_is_an_outlier_without_the_floor_only(board, rng):
+    """A view whose corners are all 0.5 px off (plus 0.05 px noise): its pose error whitened by
+    the PnP covariance is far beyond the pose graph's outlier bound; with a 0.3 px floor it is
+    within it, and the floor hardly moves a view without misfit (noise only)."""
+    K = make_camera().intrinsics
+    T = random_board_pose(board, rng, FRONT, K)
+    det = exact_detections(board, T, K, FRONT)
+    noise = rng.normal(0.0, 0.05, det.corners_px.shape)
+    shifted = MarkerDetections(det.ids, det.corners_px + noise + [0.5, 0.0], det.refined)
+    clean = MarkerDetections(det.ids, det.corners_px + noise, det.refined)
+
+    def whitened(d, model_error_px):
+        ob = estimate_board_pose(d, board, K, PoseConfig(model_error_px=model_error_px))
+        xi = log_error(ob.T_cam_board, T)
+        return float(np.sqrt(xi @ np.linalg.solve(ob.covariance, xi)))
+
+    assert whitened(shifted, 0.0) > 5 * KERNEL_THRESHOLD
+    assert whitened(shifted, 0.3) < KERNEL_THRESHOLD
+    assert whitened(clean, 0.3) < whitened(clean, 0.0) < KERNEL_THRESHOLD
