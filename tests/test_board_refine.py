@@ -274,24 +274,23 @@ RACE_MAX_MM, RACE_MAX_DEG = 1.0, 0.1  # acceptance of the issue for the race lay
 
 
 def test_pipeline_glued_board(glued_race):
-    """Measured: fixed keeps all 8 cameras, the back-facing ones biased by the glue (1.1-3.9
-    mm off at 7-18 claimed sigmas): the per-view model-error floor (``pose.model_error_px``
-    0.5 px, 0.1 px alike) covers the glue's ~0.5 px, so the pose graph flags neither outlier
-    views nor a model error (without the floor it flagged every view of right0-3 and the
-    bundle dropped them: 4 of 8 kept). ``board: fixed`` trusts the board; the default
-    ``auto`` frees the back sheet here (test below). Refine keeps all 8, worst 0.106 mm /
-    0.0030 deg (race acceptance: 1.0 mm / 0.1 deg), back sheet (1.494, -1.000) mm,
-    0.2996 deg, T_front_back within 0.011 mm / 0.0004 deg of the truth."""
+    """Measured: fixed keeps 4 of 8 cameras (the pose graph flags every view of the four
+    back-facing ones, right0-3, as outliers: the nominal board's PnP poses are off by the
+    glue); refine keeps all 8, worst 0.106 mm / 0.0030 deg (race acceptance: 1.0 mm /
+    0.1 deg), back sheet (1.494, -1.000) mm, 0.2996 deg, T_front_back within 0.011 mm /
+    0.0004 deg of the truth. (With the per-view model-error floor, ``pose.model_error_px``
+    0.1-0.5 px, fixed keeps all 8, the back-facing ones 1.1-3.9 mm off at 7-18 claimed
+    sigmas: the floor is off by default.)"""
     from rgbd_calib.synth import load_ground_truth
 
     synth, runs = glued_race
     gt = load_ground_truth(synth.path)
     fixed, refined = runs["fixed"], runs["refine"]
     assert fixed.bundle.board is None
-    # a wrong board held fixed is a model error neither the floor nor the bundle can see
-    assert len(fixed.extrinsics.cameras) == 8
-    assert max(transform_error(e.T_ref_cam, gt.T_ref_cam[c])[1]
-               for c, e in fixed.extrinsics.cameras.items()) > 1.0  # measured 3.9 mm
+    # measured: right0-3 dropped. A known gap of "model error is not an outlier": on this
+    # seed the camera-level model-error rule does not catch the back-facing side (on seed 5
+    # it keeps all 8); board refinement is what keeps them here.
+    assert len(fixed.extrinsics.cameras) == 4
     assert not refined.extrinsics.unconnected
     assert len(refined.extrinsics.cameras) == 8
     for c, e in refined.extrinsics.cameras.items():

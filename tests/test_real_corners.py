@@ -107,6 +107,7 @@ def test_edge_and_contour_corner_bias_within_measured_bounds(measured):
 
 
 # ----------------------------------------------------------------------------- model-error floor
+REAL_CAMERA_FLOOR_PX = 0.5  # pose.model_error_px recommended for real cameras (default 0)
 FLOOR_SETS = {99, 100, 101, 102, 104, 105, 106, 107, 111, 112, 113, 114, 115, 116}  # sync indices
 
 
@@ -139,7 +140,7 @@ def test_model_error_floor_keeps_real_views_in(tmp_path):
     """Item 5 on real webcams (14 frame sets, Caliscope's intrinsics, ChArUco saddle quads):
     without the per-view floor the pose graph's outlier test flags half the edges (16 of 30;
     the PnP covariances hold only the corner noise, not the misfit a view's corners share);
-    with the default 0.5 px 3. With the camera model-error rule on (the default), 6 -> 2
+    with the 0.5 px recommended for real cameras 3. With the camera model-error rule on (the default), 6 -> 2
     (measured on all 43 converted sets, first version of the floor: 35 -> 4 of 122 edges)."""
     if not DATA.is_dir():
         pytest.skip(shared_data_missing("caliscope-charuco-4cam"))
@@ -157,7 +158,7 @@ def test_model_error_floor_keeps_real_views_in(tmp_path):
     intrinsics, _ = bench_caliscope.caliscope()
     detections = {k: detect_markers(img, board) for k, img in _caliscope_views(FLOOR_SETS).items()}
     flagged = {}
-    for floor_px in (0.0, PoseConfig().model_error_px):
+    for floor_px in (0.0, REAL_CAMERA_FLOOR_PX):
         config = PoseConfig(model_error_px=floor_px)
         views = [estimate_board_pose(d, board, intrinsics[cam], config, cam, frame)
                  for (cam, frame), d in sorted(detections.items())]
