@@ -594,9 +594,7 @@ def back_centre(board: Board) -> np.ndarray | None:
 def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:
     """``rig`` with the bundle adjustment's refined intrinsics (cameras it did not refine keep
     their rig.yaml model): what ``rig_refined.yaml`` holds."""
-    cameras = {c: bundle.intrinsics.get(c, intr) for c, intr in rig.cameras.items()}
-    return Rig(cameras, rig.reference, rig.source,
-               rig.unknown_intrinsics - set(bundle.intrinsics), dict(bundle.intrinsics_sigma))
+    return replace(rig.with_intrinsics(bundle.intrinsics), sigmas=dict(bundle.intrinsics_sigma))
 
 
 def bundle_sound_first(

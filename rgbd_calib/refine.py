@@ -23,6 +23,7 @@ from typing import Any, Literal
 import numpy as np
 
 from .board import Board
+from .camera import CameraIntrinsics
 from .config import BundleConfig, DepthConfig
 from .dataset import FolderDataset
 from .depth import (
@@ -521,15 +522,19 @@ def load_depth_scales(report_json: Path) -> dict[str, float]:
     """camera -> depth-scale factor from a calibrate ``report.json``
     (``cameras.<camera>.depth_scale_factor``; cameras without one are left out); empty when
     the file does not exist."""
+    return {c: float(v["depth_scale_factor"]) for c, v in report_cameras(report_json).items()
+            if isinstance(v, dict) and v.get("depth_scale_factor") is not None}
+
+
+def report_cameras(report_json: Path) -> dict[str, Any]:
+    """``cameras`` of a calibrate ``report.json``; empty when the file does not exist."""
     if not report_json.is_file():
         return {}
     try:
-        cams = json.loads(report_json.read_text()).get("cameras", {})
+        return json.loads(report_json.read_text()).get("cameras", {})
     except (OSError, ValueError) as exc:
         raise DatasetError(f"{report_json}: not a readable report.json ({exc}); remove it or "
                            "repair it") from exc
-    return {c: float(v["depth_scale_factor"]) for c, v in cams.items()
-            if isinstance(v, dict) and v.get("depth_scale_factor") is not None}
 
 
 def with_refined_intrinsics(rig: Rig, calib_dir: Path) -> tuple[Rig, list[str]]:
@@ -543,30 +548,23 @@ def with_refined_intrinsics(rig: Rig, calib_dir: Path) -> tuple[Rig, list[str]]:
     path = Path(calib_dir) / "rig_refined.yaml"
     if not path.is_file():
         return rig, []
-    refined = load_rig(path)
-    report_json = Path(calib_dir) / "report.json"
-    try:
-        cams = (json.loads(report_json.read_text()).get("cameras", {})
-                if report_json.is_file() else {})
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{report_json}: not a readable report.json ({exc}); remove it or "
-                           "repair it") from exc
-    cameras, sigmas, changed = dict(rig.cameras), dict(rig.sigmas), []
-    for c, intr in refined.cameras.items():
-        if c not in cameras or intr == cameras[c]:
+    cams = report_cameras(Path(calib_dir) / "report.json")
+    changed: dict[str, CameraIntrinsics] = {}
+    sigmas = dict(rig.sigmas)
+    for c, intr in load_rig(path).cameras.items():
+        if c not in rig.cameras or intr == rig.cameras[c]:
             continue
-        if (intr.width, intr.height) != (cameras[c].width, cameras[c].height):
+        now = rig.cameras[c]
+        if (intr.width, intr.height) != (now.width, now.height):
             raise DatasetError(
                 f"{path}: camera {c} is {intr.width}x{intr.height}, the dataset's "
-                f"{cameras[c].width}x{cameras[c].height}; give the calibration of this "
+                f"{now.width}x{now.height}; give the calibration of this "
                 "resolution, or remove rig_refined.yaml to use rig.yaml's intrinsics")
-        cameras[c] = intr
+        changed[c] = intr
         entry = cams.get(c, {}).get("intrinsics_refined") or {}
         sigmas[c] = {k: float(v["sigma"]) for k, v in entry.items()
                      if isinstance(v, dict) and v.get("sigma") is not None}
-        changed.append(c)
-    return replace(rig, cameras=cameras, sigmas=sigmas,
-                   unknown_intrinsics=rig.unknown_intrinsics - set(changed)), changed
+    return replace(rig.with_intrinsics(changed), sigmas=sigmas), list(changed)
 
 
 def load_board_views(report_json: Path) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
