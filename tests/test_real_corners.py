@@ -140,7 +140,8 @@ def test_model_error_floor_keeps_real_views_in(tmp_path):
     """Item 5 on real webcams (14 frame sets, Caliscope's intrinsics, ChArUco saddle quads):
     without the per-view floor the pose graph's outlier test flags half the edges (16 of 30;
     the PnP covariances hold only the corner noise, not the misfit a view's corners share);
-    with the 0.5 px recommended for real cameras 3. With the camera model-error rule on (the default), 6 -> 2
+    with the 0.5 px recommended for real cameras 3. With the camera model-error rule on (the
+    default), 6 -> 2
     (measured on all 43 converted sets, first version of the floor: 35 -> 4 of 122 edges)."""
     if not DATA.is_dir():
         pytest.skip(shared_data_missing("caliscope-charuco-4cam"))

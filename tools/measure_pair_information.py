@@ -37,7 +37,8 @@ def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, cal
     clouds = {c: D.static_cloud(ds, c, gt.T_ref_board, gt.T_ref_cam[c], thesis_board(), config,
                                 depth_scale_factor=gt.depth_scale_bias.get(c, 1.0))
               for c in ds.cameras}
-    clouds = {c: D.replace(cl, intrinsics_variance=variances.get(c, {})) for c, cl in clouds.items()}
+    clouds = {c: D.replace(cl, intrinsics_variance=variances.get(c, {}))
+              for c, cl in clouds.items()}
     pairs = D.find_overlapping_pairs(clouds, gt.T_ref_cam, None, config)
     rng = np.random.default_rng(1)
     zs = []
