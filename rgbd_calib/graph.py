@@ -383,6 +383,7 @@ class _Graph:
         for v, T in T_ref_board.items():
             self.values.insert(self.view_key[v], _pose3(T))
         self.kernel = _kernel(config)
+        self._measured: dict[int, gtsam.Pose3] = {}  # edge -> its Pose3, made once
 
     def priors(self) -> list[gtsam.NonlinearFactor]:
         noise = gtsam.noiseModel.Isotropic.Sigma(6, self.config.prior_sigma)
@@ -392,8 +393,10 @@ class _Graph:
 
     def factor(self, i: int, noise) -> gtsam.BetweenFactorPose3:
         e = self.edges[i]
+        if i not in self._measured:  # the robust solve builds each factor many times
+            self._measured[i] = _pose3(e.T_cam_board)
         return gtsam.BetweenFactorPose3(
-            self.cam_key[e.camera], self.view_key[e.view], _pose3(e.T_cam_board), noise
+            self.cam_key[e.camera], self.view_key[e.view], self._measured[i], noise
         )
 
     def build(self, ids: list[int], noise: _EdgeNoise, robust: bool) -> gtsam.NonlinearFactorGraph:

@@ -36,6 +36,7 @@ from rgbd_calib.pose import (
     estimate_board_pose,
     model_error_covariance,
     pose_jacobian,
+    pose_jacobian_numeric,
     reprojection_residuals,
     se3_exp,
 )
@@ -175,6 +176,18 @@ def test_jacobian_is_for_the_right_perturbation(board, rng):
     scale = np.linalg.norm(J @ xi)
     assert np.linalg.norm(right.reshape(-1) - J @ xi) < 1e-3 * scale
     assert np.linalg.norm(left.reshape(-1) - J @ xi) > 0.1 * scale
+
+
+@pytest.mark.parametrize("dist", [(0.0,) * 5, (0.12, -0.25, 0.002, -0.003, 0.08)])
+def test_closed_form_jacobian_equals_central_differences(board, rng, dist):
+    """cv2.projectPoints' own derivative, chained with dX/dxi = [-R [P]x, R], is the central
+    difference Jacobian (the distortion model included) to its truncation error."""
+    K = make_camera(dist).intrinsics
+    T = random_board_pose(board, rng, FRONT, K)
+    pts = board.object_points(board.face_ids(FRONT)).reshape(-1, 3)
+    J, J_num = pose_jacobian(T, pts, K), pose_jacobian_numeric(T, pts, K)
+    assert J.shape == J_num.shape == (2 * len(pts), 6)
+    assert np.abs(J - J_num).max() < 1e-6 * np.abs(J_num).max()
 
 
 # --------------------------------------------------------------------------- noisy renders
