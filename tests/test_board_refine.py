@@ -433,3 +433,18 @@ def test_pipeline_names_a_wrong_marker_length(tmp_path_factory, tmp_path):
     assert codes.count("board_scale") == 1 and "depth_scale" not in codes
     message = next(w["message"] for w in report["warnings"] if w["code"] == "board_scale")
     assert "32.0 mm" in message and "40.0 mm" in message, message
+
+
+def test_board_scale_names_a_charuco_boards_square_and_marker():
+    """A ChArUco print scales the squares and the markers together: the line names both
+    (before, it called the chessboard square the "marker length")."""
+    from rgbd_calib.report.findings import board_scale, board_scale_sentence
+
+    line = board_scale_sentence(0.8, 0.03, 0.04)
+    assert "square_length 32.0 mm and marker_length 24.0 mm" in line, line
+    assert "the file says 40.0 and 30.0 mm" in line, line
+    report = _scale_report({"a": (0.800, 0.002), "b": (0.801, 0.002)})
+    report["board"] = {"marker_length_m": 0.03, "square_length_m": 0.04}
+    found = board_scale(report, [])
+    assert "square_length 32.0 mm" in found[0]["message"]
+    assert "chessboard square" in found[0]["advice"]

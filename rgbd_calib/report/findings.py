@@ -692,13 +692,22 @@ def common_depth_scale(factors: dict[str, tuple[float, float]]) -> float | None:
     return mean
 
 
-def board_scale_sentence(ratio: float, marker_length_m: float | None) -> str:
-    """One line: the board's print is ``ratio`` times its file, and the marker length the data
-    supports."""
+def board_scale_sentence(ratio: float, marker_length_m: float | None,
+                         square_length_m: float | None = None) -> str:
+    """One line: the board's print is ``ratio`` times its file, and the lengths the data
+    supports: the marker length of an ArUco grid, or a ChArUco board's square and marker
+    lengths (``square_length_m`` given; a print scales both)."""
     size = "smaller" if ratio < 1 else "larger"
+    what = "square and marker lengths are" if square_length_m else "marker length is"
     text = (f"Every camera's depth says the board is {100 * abs(1 - ratio):.1f}% {size} than "
-            "its board file: the printed marker length is wrong in the board file")
-    if marker_length_m:
+            f"its board file: the printed {what} wrong in the board file")
+    if square_length_m:
+        text += (f" (the data supports square_length {1000 * square_length_m * ratio:.1f} mm"
+                 + (f" and marker_length {1000 * marker_length_m * ratio:.1f} mm"
+                    if marker_length_m else "")
+                 + f", the file says {1000 * square_length_m:.1f}"
+                 + (f" and {1000 * marker_length_m:.1f}" if marker_length_m else "") + " mm)")
+    elif marker_length_m:
         text += (f" (the data supports {1000 * marker_length_m * ratio:.1f} mm, the file says "
                  f"{1000 * marker_length_m:.1f} mm)")
     return text
@@ -715,9 +724,13 @@ def board_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]
         "error",
         "board_scale",
         [],
-        board_scale_sentence(ratio, report["board"].get("marker_length_m")) + ".",
-        "Measure a printed marker's black square and set marker_length (grid form) or the "
-        "corners (explicit form) of the board file, then calibrate again: every translation "
+        board_scale_sentence(ratio, report["board"].get("marker_length_m"),
+                             report["board"].get("square_length_m")) + ".",
+        ("Measure a printed chessboard square and set square_length and marker_length "
+         if report["board"].get("square_length_m") else
+         "Measure a printed marker's black square and set marker_length (grid form) or the "
+         "corners (explicit form) ")
+        + "of the board file, then calibrate again: every translation "
         f"of this calibration is {abs(1 / ratio - 1):.1%} off.",
     )]
 

@@ -189,6 +189,7 @@ REPORT_SCHEMA: dict[str, Any] = {
         "extent_m": Nullable(ListOf(N)),
         "thickness_m": Nullable(N),
         "marker_length_m?": N,
+        "square_length_m?": N,
         "refined?": {
             "held": Nullable(S),
             "offset_mm": Nullable(ListOf(N)),
