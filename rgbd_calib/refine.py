@@ -164,14 +164,18 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                         pass  # too few board pixels with depth: the factor stays 1 (reported)
                 tick(1)
 
+    no_pair = method != "none" and weak is not None and not weak
     with timed(timings, "clouds"):
         jobs = [(c, T_ref_cam[c], scales[c].factor if c in scales
                  else (depth_scales or {}).get(c, 1.0)) for c in cams]
-        clouds, skipped = static_clouds(dataset, jobs, T_ref_board or {}, board, config,
+        # no registration: the clouds are for fused.ply and the cloud checks only
+        cloud_config = (config.model_copy(update={"max_frames": min(
+            config.max_frames, config.skipped_max_frames)}) if no_pair else config)
+        clouds, skipped = static_clouds(dataset, jobs, T_ref_board or {}, board, cloud_config,
                                         workers, start(progress, "static clouds", len(cams)),
                                         scheduler)
 
-    if method != "none" and weak is not None and not weak:
+    if no_pair:
         # the clouds are still built: fused.ply and the report's cloud checks use them
         return DepthRefinement(
             method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
