@@ -274,6 +274,15 @@ def synth(
             rich_help_panel="Imperfections (docs/synthetic.md)",
         ),
     ] = 1.0,
+    board_volume: Annotated[
+        float,
+        typer.Option(
+            metavar="S",
+            help="move the board through S times the layout's volume (about its centre): "
+            "e.g. 2.5 on the ring brings it near the cameras and over more of each image "
+            "(docs/synthetic.md).",
+        ),
+    ] = 1.0,
     bump: Annotated[
         list[str] | None,
         typer.Option(
@@ -308,6 +317,7 @@ def synth(
         glue=glue,
         thickness_error_mm=thickness_error,
         print_scale=print_scale,
+        board_volume=board_volume,
         bump=tuple(_parse_bump(text) for text in bump or ()),
     )
     b = load_board(board_file) if board_file else thesis_board()

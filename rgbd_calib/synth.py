@@ -78,6 +78,8 @@ class SynthParams:
     print_scale: float = 1.0  # printed size / board file size, both faces
     # cameras knocked after the calibration: (name, mm, deg) each, moved in a seeded direction
     bump: tuple[tuple[str, float, float], ...] = ()
+    # the volume the board is moved through: the layout's box scaled by this about its centre
+    board_volume: float = 1.0
 
 
 def check_params(params: SynthParams) -> None:
@@ -97,6 +99,9 @@ def check_params(params: SynthParams) -> None:
         )
     if not (0.5 < params.print_scale < 2.0):
         raise ConfigError(f"--print-scale {params.print_scale}: expected a factor near 1")
+    if not (0.1 <= params.board_volume <= 5.0):
+        raise ConfigError(f"--board-volume {params.board_volume}: expected a factor in 0.1-5 "
+                          "of the layout's board volume")
     for name, mm, deg in params.bump:
         if not (mm >= 0 and 0 <= deg < 90):
             raise ConfigError(f"--bump {name} {mm} {deg}: give a shift >= 0 mm and a turn "
@@ -261,6 +266,9 @@ def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
     cameras = _bump(cameras, seed, params.bump)
     # race16: a central lower-tier camera (most views) rather than one at the race's end
     reference = [c.name for c in cameras].index("left_lo1") if layout == "race16" else 0
+    if params.board_volume != 1.0:  # about the box's centre (1.0: the same floats as before)
+        mid, half = (lo + hi) / 2, (hi - lo) / 2 * params.board_volume
+        lo, hi = mid - half, mid + half
     return SynthRig(layout, cameras, scene, lo, hi, reference_index=reference)
 
 

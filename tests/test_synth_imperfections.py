@@ -361,7 +361,8 @@ def test_imperfect_set_records_its_truth(ring_sets):
 def test_imperfection_settings_are_checked():
     for bad in (dict(distortion=(0.1, 0.2)), dict(rig_distortion="factory"),
                 dict(intrinsics_error=(-1.0, 0.0)), dict(print_scale=0.0),
-                dict(distortion=(-2.0, 0.0, 0.0, 0.0, 0.0))):  # fmt: skip
+                dict(distortion=(-2.0, 0.0, 0.0, 0.0, 0.0)),
+                dict(board_volume=0.0)):  # fmt: skip
         with pytest.raises(ConfigError):
             make_rig("ring", 0, SynthParams(resolution=(640, 360), cameras=2, **bad))
     with pytest.raises(ConfigError, match="thickness"):
@@ -376,3 +377,16 @@ def test_distortion_keeps_the_board_poses(ring_sets):
     assert [c.T_world_cam.tolist() for c in rig.cameras] == [
         c.T_world_cam.tolist() for c in imperfect.rig.cameras
     ]
+
+
+def test_board_volume_scales_the_box_about_its_centre():
+    """--board-volume S: the box the board centre is drawn from, S times the layout's about
+    its centre; the cameras stay where the seed puts them."""
+    small = SynthParams(resolution=(640, 360), cameras=4)
+    base, wide = make_rig("ring", 3, small), make_rig("ring", 3, replace(small, board_volume=2.5))
+    np.testing.assert_allclose((wide.workspace_lo + wide.workspace_hi) / 2,
+                               (base.workspace_lo + base.workspace_hi) / 2)
+    np.testing.assert_allclose(wide.workspace_hi - wide.workspace_lo,
+                               2.5 * (base.workspace_hi - base.workspace_lo))
+    assert [c.T_world_cam.tolist() for c in wide.cameras] == [
+        c.T_world_cam.tolist() for c in base.cameras]
