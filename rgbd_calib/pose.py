@@ -175,7 +175,8 @@ def pose_jacobian(
     _, d = cv2.projectPoints(pts.reshape(-1, 1, 3), rvec, tvec, intrinsics.K, intrinsics.dist)
     d_pix_d_x = d[:, 3:6].reshape(-1, 2, 3)  # columns: rvec (3), tvec (3), f, c, distortion
     R = np.asarray(T_cam_board, dtype=float)[:3, :3]
-    d_x_d_omega = -np.einsum("ij,njk->nik", R, _skews(pts))  # -R [P]x
+    P_x = np.cross(pts[:, None, :], np.eye(3)).transpose(0, 2, 1)  # [P]x: column k is P x e_k
+    d_x_d_omega = -np.einsum("ij,njk->nik", R, P_x)
     J = np.empty((len(pts), 2, 6))
     J[:, :, :3] = d_pix_d_x @ d_x_d_omega
     J[:, :, 3:] = d_pix_d_x @ R
@@ -199,16 +200,6 @@ def pose_jacobian_numeric(
         minus = project_points(T_cam_board @ se3_exp(-xi), pts, intrinsics)
         J[:, i] = ((plus - minus) / (2 * step)).reshape(-1)
     return J
-
-
-def _skews(v: np.ndarray) -> np.ndarray:
-    """``(N,3,3)`` cross-product matrices ``[v]x`` of ``(N,3)`` vectors."""
-    v = np.asarray(v, dtype=float)
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
-    return out
 
 
 # --------------------------------------------------------------------------- PnP
