@@ -546,8 +546,9 @@ def _fit_edge_lines(
     # the edge model fitted per marker
     fit = _fit_edge_models_compiled if compiled else _fit_edge_models
     local, width, weight, contrast, resid = fit(samples, band, blur_prior, config.edge_iterations)
-    # which edges are usable
-    ok = _edge_fit_ok(samples, local, width, weight, contrast, resid, band, n_expected, config)
+    # which edges are usable: every test passed
+    tests = _edge_tests(samples, local, width, weight, contrast, resid, band, n_expected, config)
+    ok = np.logical_and.reduce(list(tests.values()))
     # the fitted edges as straight lines
     nrm, rho = _edge_lines(local, frame, tau_scale, intrinsics if curved else None)
     return nrm, rho, ok, width
@@ -1024,22 +1025,6 @@ def _fit_edge_models_compiled(
         EDGE_STEP_TOL_PX,
     )
     return local, width, weight, contrast, resid
-
-
-def _edge_fit_ok(
-    s: _EdgeSamples,
-    local: np.ndarray,
-    width: np.ndarray,
-    weight: np.ndarray,
-    contrast: np.ndarray,
-    resid: np.ndarray,
-    band: np.ndarray,
-    n_expected: np.ndarray,
-    config: DetectionConfig,
-) -> np.ndarray:
-    """``(M,4)`` True where an edge's fit is usable: every test of :func:`_edge_tests`."""
-    tests = _edge_tests(s, local, width, weight, contrast, resid, band, n_expected, config)
-    return np.logical_and.reduce(list(tests.values()))
 
 
 def _edge_tests(
