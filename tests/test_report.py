@@ -378,3 +378,34 @@ def test_edge_figure_draws_a_rig_without_edge_residuals():
     for views in ([], [empty]):
         png = base64.b64decode(fig_edges({**report, "views": views}))
         assert png.startswith(b"\x89PNG")
+
+
+@pytest.mark.parametrize(
+    "sigma_factor, fx_change, severity",
+    [(2.5, 0.0, "warning"),  # kept with an inflated sigma
+     (1.0, 3.0, "info"),  # explained by refined intrinsics within 3 prior sigmas (sigma 2 px)
+     (1.0, 40.0, "warning")],  # explained, but rig.yaml's fx was off 20 prior sigmas
+)
+def test_camera_model_error_is_an_info_when_the_refined_model_explains_it(
+    sigma_factor, fx_change, severity
+):
+    """A model error the self-calibrated intrinsics absorb within their prior is what the
+    prior is for (factory intrinsics a fraction of a percent off): it must not turn the
+    verdict to CHECK. One they absorb far beyond it means rig.yaml is wrong: a warning that
+    names the parameter."""
+    from rgbd_calib.report.findings import camera_model_error
+
+    fx = {"prior": 600.0, "prior_sigma": 2.0, "refined": 600.0 + fx_change, "sigma": 0.3,
+          "change": fx_change, "change_pct": fx_change / 6.0}
+    report = {
+        "pose_graph": {"model_error": [{"camera": "cam3", "outliers_before": 9, "edges": 12,
+                                        "translation_mm": 4.0, "rotation_deg": 0.2,
+                                        "sigma_factor": sigma_factor}]},
+        "cameras": {"cam3": {"intrinsics_refined": {"fx": fx}}},
+    }
+    (found,) = camera_model_error(report, [])
+    assert (found["code"], found["cameras"], found["severity"]) == (
+        "camera_model_error", ["cam3"], severity)
+    if fx_change > 10:
+        assert "fx +6.67 % (20 sigma)" in found["message"]
+        assert "rig_refined.yaml" in found["advice"]

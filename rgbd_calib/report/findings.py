@@ -137,10 +137,29 @@ def inconsistent_camera(report: dict[str, Any], earlier: list[Finding]) -> list[
 
 def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     """Cameras whose views all disagree with the rig the same way: kept, with an inflated
-    sigma (``pose_graph.model_error``), instead of dropped as outliers."""
+    sigma (``pose_graph.model_error``), instead of dropped as outliers. A warning, unless the
+    self-calibrated board / intrinsics explain it (not inflated) with every refined intrinsic
+    within 3 sigma of its rig.yaml prior: the listed model was as good as it claimed, and the
+    finding is an info."""
     out = []
     for m in report["pose_graph"].get("model_error") or []:
         name = m["camera"]
+        explained = m.get("sigma_factor") is not None and m["sigma_factor"] <= 1.0
+        beyond = _beyond_prior(report["cameras"].get(name, {}))
+        if explained and not beyond:
+            out.append(finding(
+                "info",
+                "camera_model_error",
+                [name],
+                f"{name}: its board views disagreed with the rest of the rig under the "
+                f"rig.yaml model ({m['outliers_before']} of {m['edges']} beyond the outlier "
+                "threshold); the refined board / intrinsics explain it within their priors: "
+                "its corners fit like the rest of the rig, and its uncertainty is not "
+                "inflated.",
+                "Nothing to do; rig_refined.yaml (and board_refined.yaml when the board was "
+                "refined) hold the refined models.",
+            ))
+            continue
         out.append(
             finding(
                 "warning",
@@ -153,16 +172,33 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
                 + (
                     f"The camera is kept, its uncertainty scaled x{m['sigma_factor']:.1f} to "
                     "match."
-                    if m["sigma_factor"] > 1.0
+                    if not explained
                     else "The refined board / intrinsics explain it: its corners fit like the "
-                    "rest of the rig, and its uncertainty is not inflated."
+                    "rest of the rig, and its uncertainty is not inflated; but "
+                    + ", ".join(beyond) + " moved beyond 3 sigma of the rig.yaml prior."
                 ),
+                f"Use rig_refined.yaml's entry for {name} in rig.yaml: the listed "
+                f"intrinsics (from {_lens_source(report['cameras'].get(name, {}))}) are off "
+                "beyond their prior."
+                if explained else
                 f"Likely causes: {name}'s intrinsics (fx, fy, cx, cy) or lens distortion, "
                 f"from {_lens_source(report['cameras'].get(name, {}))}; the board (back sheet "
                 "glued off, thickness, print scale) when it sees one face; its frame "
                 "synchronisation. Fix the model and re-run calibrate.",
             )
         )
+    return out
+
+
+def _beyond_prior(cam: dict[str, Any], n_sigma: float = 3.0) -> list[str]:
+    """Refined intrinsics that moved more than ``n_sigma`` prior sigmas from rig.yaml, as
+    'fx +4.8 % (16 sigma)': the rig.yaml value was wrong beyond its stated tolerance."""
+    out = []
+    for p, e in (cam.get("intrinsics_refined") or {}).items():
+        if e.get("prior_sigma") and abs(e["change"]) > n_sigma * e["prior_sigma"]:
+            size = (f"{e['change_pct']:+.2f} %" if e.get("change_pct") is not None
+                    else f"{e['change']:+.3g}")
+            out.append(f"{p} {size} ({abs(e['change']) / e['prior_sigma']:.0f} sigma)")
     return out
 
 
