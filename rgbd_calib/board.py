@@ -72,6 +72,15 @@ class Board:
         return float(np.linalg.norm(np.diff(self.corners[:, [0, 1]], axis=1), axis=-1).mean())
 
     @property
+    def printed_lengths(self) -> tuple[float, float | None]:
+        """``(marker side, chessboard square side or None)`` in metres as the file gives them:
+        the lengths a wrong print scale multiplies (a ChArUco board's corner quads are its
+        squares, so :attr:`marker_length` is the square there)."""
+        if self.charuco is not None:
+            return self.charuco.marker_length, self.charuco.square_length
+        return self.marker_length, None
+
+    @property
     def bits(self) -> int:
         return int(self.aruco_dict.markerSize)
 

@@ -565,11 +565,8 @@ def _print_summary(result, out: Path, verdict: bool = True) -> None:
     scales = result.depth.depth_scale_dict() if result.depth is not None else {}
     ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
     if ratio is not None:
-        board = result.board
-        charuco = board.charuco if board is not None else None
-        marker = (charuco.marker_length if charuco is not None
-                  else board.marker_length if board is not None else None)
-        square = charuco.square_length if charuco is not None else None
+        marker, square = (result.board.printed_lengths if result.board is not None
+                          else (None, None))
         console.print(f"[red]board scale[/]: {board_scale_sentence(ratio, marker, square)}")
     if verdict:
         print_verdict(out)

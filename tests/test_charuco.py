@@ -278,3 +278,14 @@ def test_charuco_thesis_line_within_the_aruco_bound(tmp_path):
         deg, mm = transform_error(e.T_ref_cam, gt.T_ref_cam[name])
         assert deg < THESIS_LINE_DEG and mm < THESIS_LINE_MM, (name, deg, mm)
         assert mm <= MAX_SIGMAS * e.sigma_translation_mm, (name, mm, e.sigma_translation_mm)
+
+
+def test_printed_lengths_name_the_charuco_square_and_marker():
+    """What a wrong print scale multiplies: the file's marker (and, for ChArUco, square)."""
+    from rgbd_calib.board import CharucoSpec, board_from_charuco, thesis_board
+
+    board = thesis_board()
+    assert board.printed_lengths == (pytest.approx(board.marker_length), None)
+    spec = CharucoSpec(squares_x=5, squares_y=4, square_length=0.04, marker_length=0.03)
+    charuco = board_from_charuco("DICT_4X4_50", spec)
+    assert charuco.printed_lengths == (0.03, 0.04)
