@@ -68,8 +68,13 @@ case "$cmd" in
     # Default suite: everything not marked slow. RGBD_CALIB_SLOW=1 adds the slow tier.
     marker="not slow"
     [ "${RGBD_CALIB_SLOW:-0}" = 1 ] && marker=""
+    # One pytest worker per core, at most 4 (each test may render and calibrate with 2
+    # processes of its own); a file's tests stay on one worker, so its fixtures are built
+    # once. RGBD_CALIB_TEST_WORKERS=0 runs in this one process.
+    cores=$(nproc 2>/dev/null || echo 2)
+    workers="${RGBD_CALIB_TEST_WORKERS:-$(( cores < 4 ? cores : 4 ))}"
     set +e
-    "$VENV/bin/python" -m pytest -m "$marker" "$@"
+    "$VENV/bin/python" -m pytest -m "$marker" -n "$workers" --dist loadfile "$@"
     rc=$?
     set -e
     if [ $rc -eq 5 ]; then echo "error: pytest collected no tests" >&2; exit 1; fi
