@@ -37,6 +37,7 @@ from .graph import (
     RelativePose,
     bundle_adjust,
     calibrate_pose_graph,
+    robust_mean_pose,
 )
 from .intrinsics_init import InitialIntrinsics, initialise_intrinsics
 from .parallel import executor as make_executor
@@ -261,11 +262,14 @@ def calibrate(
                                             config.workers, tick, config.scheduler)
                 observations, rejected = board_poses(detections, board, lens_rig, config.pose)
             with timed(timings, "bundle"):
-                measurements = marker_measurements(observations, pg, rig, True, board, True)
+                # with the lens right, views its rig.yaml model failed pass PnP: add them
+                boards = {**pg.T_ref_board, **bundle.T_ref_board}
+                boards |= unsolved_views(observations, bundle.T_ref_cam, boards)
+                measurements = marker_measurements(observations, pg, rig, True, board, True,
+                                                   boards)
                 bundle = bundle_sound_first(measurements, _camera_matrices(rig), rig.reference,
-                                            {**pg.T_ref_cam, **bundle.T_ref_cam},
-                                            {**pg.T_ref_board, **bundle.T_ref_board}, solve,
-                                            pg, fixed_cameras, intrinsics=rig.cameras,
+                                            {**pg.T_ref_cam, **bundle.T_ref_cam}, boards,
+                                            solve, pg, fixed_cameras, intrinsics=rig.cameras,
                                             back_centre=back_centre(board))
             if ladder is not None:
                 ladder = replace(ladder, redetected=True)
@@ -435,7 +439,7 @@ def _unconnected(
 def marker_measurements(
     observations: list[BoardObservation], pg: PoseGraphResult, rig: Rig,
     refined_intrinsics: bool = False, board: Board | None = None,
-    keep_outlier_views: bool = False,
+    keep_outlier_views: bool = False, boards: dict[str, np.ndarray] | None = None,
 ) -> list[MarkerMeasurement]:
     """The bundle adjustment's measurements: every marker of every view the pose graph kept
     (its cameras and boards solved, the view not a stale edge nor an outlier the pose graph
@@ -452,13 +456,15 @@ def marker_measurements(
     ``keep_outlier_views`` keeps them too (board self-calibration: with a misglued back sheet
     the per-view PnP poses of the nominal board put every back-facing camera's views off by
     the glue error, and the pose graph flags them all). ``board`` gives each measurement its
-    face (front when None)."""
+    face (front when None). ``boards`` (frame -> ``T_ref_board``, :func:`unsolved_views`)
+    admits frames the pose graph has no board pose for."""
     keep = refined_intrinsics or keep_outlier_views
     edges = pg.stale_edges if keep else pg.rejected_edges
     dropped = {pg.residuals[i].view + "/" + pg.residuals[i].camera for i in edges}
     measurements = []
     for o in observations:
-        if o.camera not in pg.cameras or o.frame not in pg.T_ref_board:
+        if o.camera not in pg.cameras or (o.frame not in pg.T_ref_board
+                                          and o.frame not in (boards or {})):
             continue
         if f"{o.frame}/{o.camera}" in dropped:
             continue
@@ -468,6 +474,28 @@ def marker_measurements(
             face = 1 if board is None else int(board.faces[board.index_of[int(mid)]])
             measurements.append(MarkerMeasurement(o.camera, o.frame, int(mid), c, P, face))
     return measurements
+
+
+def unsolved_views(observations: list[BoardObservation], T_ref_cam: dict[str, np.ndarray],
+                   T_ref_board: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """First ``T_ref_board`` (4x4, metres) of the frames that have no board pose in
+    ``T_ref_board`` but a view by a camera of ``T_ref_cam``: the robust mean
+    (:func:`~rgbd_calib.graph.robust_mean_pose`) of ``T_ref_cam @ T_cam_board`` over those
+    views.
+
+    The pose graph solves only the frames that two cameras saw with the model it was given.
+    With the intrinsics refined, a frame one camera alone saw still measures that camera's
+    lens, and a view the rig.yaml lens failed (PnP's reprojection gate: an unlisted
+    distortion is largest at the image's edge) is usable once the lens is refined. Those are
+    the views that reach the image's edge. Measured (issue 13, ring seed 11 ``all``, board
+    volume 2.5): every corner of cam3 beyond a normalised radius of 0.8 (the image corners are
+    at 1.5) came from two such frames; without them its refined lens was 3.1 px off the truth
+    inside its corners' hull and 40 px at the image corners, with them 0.13 px and 0.83 px."""
+    views: dict[str, list[np.ndarray]] = {}
+    for o in observations:
+        if o.frame not in T_ref_board and o.camera in T_ref_cam:
+            views.setdefault(o.frame, []).append(T_ref_cam[o.camera] @ o.T_cam_board)
+    return {f: robust_mean_pose(np.stack(T)) for f, T in views.items()}
 
 
 def self_calibrated_bundle(
@@ -495,9 +523,12 @@ def self_calibrated_bundle(
               init_board: dict[str, np.ndarray], freed: bool):
         tick(1)
         cfg = config.model_copy(update={"bundle": level})
-        meas = marker_measurements(observations, pg, rig,
-                                   refined_intrinsics=level.intrinsics == "refine",
-                                   board=board, keep_outlier_views=freed)
+        refined = level.intrinsics == "refine"
+        if refined:  # a frame one camera alone saw measures its lens
+            init_board = {**init_board, **unsolved_views(observations, init_cam, init_board)}
+        meas = marker_measurements(observations, pg, rig, refined_intrinsics=refined,
+                                   board=board, keep_outlier_views=freed,
+                                   boards=init_board if refined else None)
         result = bundle_sound_first(meas, K, rig.reference, init_cam, init_board, cfg, pg,
                                     fixed_cameras, intrinsics=rig.cameras, back_centre=centre)
         return result, meas, cfg

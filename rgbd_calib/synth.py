@@ -50,6 +50,10 @@ LIGHT_DIR_WORLD = np.array([0.3, -0.4, 0.87]) / np.linalg.norm([0.3, -0.4, 0.87]
 PAPER_WHITE, INK_BLACK, WOOD = 0.88, 0.07, 0.55
 RIG_DISTORTIONS = ("zeros", "truth")  # what rig.yaml lists under --distortion
 IMPERFECTION_STREAM = 0x5EED1  # rng stream of the rig.yaml intrinsics errors (seed, stream)
+CLOSEUP_STREAM = 0xC105E  # rng stream of the close-up board poses (seed, stream)
+# where a close-up's markers must reach, in turn (fractions of the image width and height):
+# the four corners, then the middles of the four edges
+CLOSEUP_TARGETS = ((0, 0), (1, 0), (1, 1), (0, 1), (0.5, 0), (1, 0.5), (0.5, 1), (0, 0.5))
 BUMP_STREAM = 0xB0A7  # rng stream of the knocks of --bump (seed, stream, camera index)
 
 
@@ -80,6 +84,9 @@ class SynthParams:
     bump: tuple[tuple[str, float, float], ...] = ()
     # the volume the board is moved through: the layout's box scaled by this about its centre
     board_volume: float = 1.0
+    # extra frame sets per camera with the board close to it, out to its image's corners and
+    # edges (as a user fills each camera's image to calibrate its lens): closeup_poses
+    closeups: int = 0
 
 
 def check_params(params: SynthParams) -> None:
@@ -102,6 +109,8 @@ def check_params(params: SynthParams) -> None:
     if not (0.1 <= params.board_volume <= 5.0):
         raise ConfigError(f"--board-volume {params.board_volume}: expected a factor in 0.1-5 "
                           "of the layout's board volume")
+    if not (0 <= params.closeups <= 64):
+        raise ConfigError(f"--closeups {params.closeups}: expected 0-64 frame sets per camera")
     for name, mm, deg in params.bump:
         if not (mm >= 0 and 0 <= deg < 90):
             raise ConfigError(f"--bump {name} {mm} {deg}: give a shift >= 0 mm and a turn "
@@ -514,6 +523,92 @@ def sample_board_poses(
     return poses
 
 
+def _visible_corners(board: Board, cam: SynthCamera, T_cam_board: np.ndarray,
+                     min_px: float = 12.0, max_angle_deg: float = 70.0) -> np.ndarray:
+    """Pixels ``(N,4,2)`` of the markers ``cam`` sees whole (through its true lens), facing
+    it and at least ``min_px`` wide; points beyond the widest ray of the image are never
+    counted (a lens polynomial may fold them back into it)."""
+    K = cam.intrinsics
+    edge_u = np.array([0.0, K.width / 2, K.width - 1.0, 0.0, K.width - 1.0, 0.0, K.width / 2,
+                       K.width - 1.0])
+    edge_v = np.array([0.0, 0.0, 0.0, K.height / 2, K.height / 2, K.height - 1.0,
+                       K.height - 1.0, K.height - 1.0])
+    r_max = np.hypot(*K.rays(edge_u, edge_v)[:, :2].T).max()
+    normal = T_cam_board[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    out = []
+    for face in (FRONT, BACK):
+        sel = board.faces == face
+        if not np.any(sel):
+            continue
+        pts = board.corners[sel].reshape(-1, 3) @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+        if np.any(pts[:, 2] < 0.2):
+            continue
+        centre = pts.mean(axis=0)
+        if -face * (normal @ centre) / np.linalg.norm(centre) < np.cos(np.radians(max_angle_deg)):
+            continue
+        inside_fov = (np.hypot(pts[:, 0], pts[:, 1]) / pts[:, 2] <= r_max).reshape(-1, 4)
+        uv = K.project(pts).reshape(-1, 4, 2)
+        inside = np.all((uv[..., 0] > 2) & (uv[..., 0] < K.width - 3) & (uv[..., 1] > 2)
+                        & (uv[..., 1] < K.height - 3) & inside_fov, axis=1)
+        size = np.linalg.norm(uv[:, 0] - uv[:, 1], axis=1)
+        out.append(uv[inside & (size >= min_px)])
+    return np.concatenate(out) if out else np.zeros((0, 4, 2))
+
+
+def closeup_poses(rig: SynthRig, board: Board, per_camera: int, rng: np.random.Generator,
+                  min_markers: int = 6, attempts: int = 300) -> list[tuple[str, np.ndarray]]:
+    """``per_camera`` board poses ``T_world_board`` close to each camera, ``(camera, pose)``
+    in camera order: what a user records to calibrate a lens, the board waved near the
+    camera until it has filled the image out to its corners.
+
+    Close-up ``k`` of a camera aims at :data:`CLOSEUP_TARGETS` ``[k % 8]`` (a corner of the
+    image, then the middle of an edge): the board, 0.3-0.6 m from the camera, facing it
+    (either face, tilted up to 35 deg, rolled up to 45 deg), centred on the ray through a
+    pixel 55-85 % of the way from the image centre to the target. Of ``attempts`` draws the
+    first whose visible markers (:func:`_visible_corners`, at least ``min_markers``) come
+    within 3 % of the image width of the target is kept, else the one that came closest.
+    Judged through the true lens (a user sees the real image), so unlike the regular frames
+    these poses change with ``--distortion``. Other cameras may see the board too."""
+    centre_b = np.array([(board.panel[0] + board.panel[1]) / 2,
+                         (board.panel[2] + board.panel[3]) / 2, -board.thickness / 2])
+    out = []
+    for cam in rig.cameras:
+        K = cam.intrinsics
+        c0 = np.array([K.cx, K.cy])
+        for k in range(per_camera):
+            target = np.array(CLOSEUP_TARGETS[k % len(CLOSEUP_TARGETS)]) * [K.width - 1,
+                                                                              K.height - 1]
+            best, best_gap = None, np.inf
+            for _ in range(attempts):
+                pixel = c0 + rng.uniform(0.55, 0.85) * (target - c0)
+                ray = K.rays(pixel[:1], pixel[1:])[0]
+                to_cam = -ray / np.linalg.norm(ray)  # board normal towards the camera
+                if rng.random() < 0.5:
+                    to_cam = -to_cam  # the back face towards it
+                tilt_axis = np.cross(to_cam, rng.normal(size=3))
+                tilt_axis /= np.linalg.norm(tilt_axis)
+                z_axis = rotvec_to_matrix(tilt_axis * np.radians(rng.uniform(0, 35))) @ to_cam
+                x_axis = np.cross([0.0, -1.0, 0.0], z_axis)  # image up is -y
+                x_axis /= np.linalg.norm(x_axis)
+                R = np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis])
+                R = R @ rotvec_to_matrix([0, 0, np.radians(rng.uniform(-45, 45))])
+                centre = ray / np.linalg.norm(ray) * rng.uniform(0.3, 0.6)
+                T_cam_board = make_transform(R, centre - R @ centre_b)
+                seen = _visible_corners(board, cam, T_cam_board)
+                if len(seen) < min_markers:
+                    continue
+                gap = np.linalg.norm(seen.reshape(-1, 2) - target, axis=1).min()
+                if gap < best_gap:
+                    best, best_gap = cam.T_world_cam @ T_cam_board, gap
+                if gap < 0.03 * K.width:
+                    break
+            if best is None:
+                raise ConfigError(f"--closeups: no board pose near {cam.name} shows "
+                                  f"{min_markers} markers; the board is too large for its image")
+            out.append((cam.name, best))
+    return out
+
+
 # --------------------------------------------------------------------------- rendering
 @dataclass
 class _BoardModel:
@@ -866,6 +961,9 @@ def synthesize(
     printed = board_print(board, params)
     rng = np.random.default_rng(seed + 1)
     poses = sample_board_poses(rig, board, n_frames, rng)
+    closeups = closeup_poses(rig, board, params.closeups,
+                             np.random.default_rng([seed, CLOSEUP_STREAM]))
+    poses += [T for _, T in closeups]  # after the regular frames, which stay as without them
     with staged_folder(out) as tmp:
         writer = FolderWriter(
             tmp, Rig({c.name: c.rig_intrinsics for c in rig.cameras}, rig.reference)
@@ -920,6 +1018,8 @@ def synthesize(
                     k: _plain(v) for k, v in params.__dict__.items()
                 },
                 "bumped": {name: {"mm": mm, "deg": deg} for name, mm, deg in params.bump},
+                "closeups": {f"{n_frames + i:06d}": name
+                             for i, (name, _) in enumerate(closeups)},
             },
         )
     return SynthDataset(out, rig, poses)
@@ -989,7 +1089,8 @@ class GroundTruth:
     ``intrinsics`` are the true camera models the images were rendered with (empty for a set
     written before they were recorded: its ``rig.yaml`` is then exact). ``T_front_back``,
     ``print_scale`` and ``thickness_m`` (None: the board file's) describe the physical board
-    (:class:`BoardPrint`); absent, the board is exactly its board file."""
+    (:class:`BoardPrint`); absent, the board is exactly its board file. ``closeups`` names
+    the camera each close-up frame set was posed for (``--closeups``; empty without)."""
 
     reference: str
     T_ref_cam: dict[str, np.ndarray]
@@ -999,6 +1100,7 @@ class GroundTruth:
     T_front_back: np.ndarray = field(default_factory=lambda: np.eye(4))
     print_scale: float = 1.0
     thickness_m: float | None = None
+    closeups: dict[str, str] = field(default_factory=dict)  # frame -> camera (--closeups)
 
     def board_print(self, board: Board) -> BoardPrint:
         """The physical board of this set, for the board file ``board`` it was rendered with."""
@@ -1030,4 +1132,5 @@ def load_ground_truth(path: Path) -> GroundTruth:
         else np.eye(4),
         float(board.get("print_scale", 1.0)),
         None if thickness is None else float(thickness),
+        {str(k): str(v) for k, v in (data.get("closeups") or {}).items()},
     )

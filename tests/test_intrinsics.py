@@ -25,6 +25,7 @@ from test_bundle import perturb
 from rgbd_calib.board import thesis_board
 from rgbd_calib.camera import CameraIntrinsics
 from rgbd_calib.config import BundleConfig, CalibrationConfig, load_config
+from rgbd_calib.detection import MarkerDetections
 from rgbd_calib.errors import ConfigError
 from rgbd_calib.geometry import (
     invert_transform,
@@ -180,6 +181,78 @@ def test_refine_recovers_focal_and_centre():
             assert abs(getattr(r, name) - getattr(t, name)) < 1.5, (c, name)
         assert r.distortion == t.distortion  # not refined: held at rig.yaml
     assert refined.pixel_sigma_estimated == pytest.approx(0.2, rel=0.1)
+
+
+# ------------------------------------------------------------------ views the pose graph lacks
+ISSUE_LENS = (0.08, -0.15, 0.0005, -0.0005, 0.03)  # issue 13's unlisted lens
+LENS_AT_EDGE_PX = 1.0  # measured 0.43 px with the lone views, 41.7 px without them
+
+
+def _lone_view_scene(rng, sigma_px=0.1):
+    """Three 640x360 cameras (f 320-324 px, ``ISSUE_LENS``) and their detections: 12 board
+    views in the middle of every image, and four views that c1 alone saw, the board 0.5 m
+    from it in each corner of its image."""
+    board = thesis_board()
+    truth = {f"c{i}": CameraIntrinsics(640, 360, 320.0 + 2 * i, 320.0 + 2 * i, 320.0 + i,
+                                       180.0 - i, ISSUE_LENS) for i in range(3)}
+    T_world_cam = {c: look_at([0.5 * i, 0, 1.2] + rng.normal(0, .02, 3), [0.5, 1.8, 1.0])
+                   for i, c in enumerate(truth)}
+    detections = {}
+
+    def see(cam, view, T_world_board):
+        T_cam_board = invert_transform(T_world_cam[cam]) @ T_world_board
+        ids, corners = [], []
+        for i, P, face in zip(board.ids, board.corners, board.faces):
+            if face * (T_cam_board[:3, :3] @ [0, 0, 1]) @ T_cam_board[:3, 3] > 0:
+                continue
+            uv = truth[cam].project(P @ T_cam_board[:3, :3].T + T_cam_board[:3, 3])
+            if np.all((uv > 2) & (uv < [637, 357])):
+                ids.append(int(i))
+                corners.append(uv + rng.normal(0, sigma_px, uv.shape))
+        if len(ids) >= 4:
+            detections[(cam, view)] = MarkerDetections(
+                np.array(ids), np.array(corners), np.ones((len(ids), 4), bool),
+                image_size=(640, 360))
+
+    for v in range(12):
+        R = rotvec_to_matrix([np.pi / 2, 0, 0]) @ rotvec_to_matrix(rng.normal(0, 0.3, 3))
+        T = make_transform(R, [rng.uniform(0.1, 0.7), rng.uniform(1.6, 2.0),
+                               rng.uniform(0.8, 1.0)])
+        for cam in truth:
+            see(cam, f"{v:06d}", T)
+    for k, (u, v) in enumerate([(90, 60), (550, 60), (90, 300), (550, 300)]):
+        ray = truth["c1"].rays(np.array([u], float), np.array([v], float))[0]
+        R = rotvec_to_matrix([np.pi, 0, 0]) @ rotvec_to_matrix(rng.normal(0, 0.2, 3))
+        T_cam_board = make_transform(R, ray / np.linalg.norm(ray) * 0.5 - R @ [0.2, 0.11, 0])
+        see("c1", f"{100 + k:06d}", T_world_cam["c1"] @ T_cam_board)
+    return board, truth, detections
+
+
+def test_refined_lens_uses_the_views_the_pose_graph_did_not_solve():
+    """A frame one camera alone saw (or whose other views the rig.yaml lens failed) has no
+    board pose in the pose graph; with the intrinsics refined it still measures that camera's
+    lens, where it matters most: the board near the camera, in the image's corners. The
+    bundle used to drop such frames (issue 13: 40 px at the image corners, 3.1 px inside the
+    detected corners' hull on ring seed 11 with the board volume 2.5)."""
+    from rgbd_calib.calibrate import board_poses, pose_edges, self_calibrated_bundle
+    from rgbd_calib.graph import calibrate_pose_graph
+    from rgbd_calib.rig import Rig
+
+    board, truth, detections = _lone_view_scene(np.random.default_rng(0))
+    listed = Rig({c: replace(t, distortion=(0.0,) * 5) for c, t in truth.items()}, "c0")
+    config = CalibrationConfig(bundle=BundleConfig(intrinsics="refine", board="fixed"))
+    # the poses as after the detection with the refined lens: every view passes PnP
+    observations, _ = board_poses(detections, board, Rig(truth, "c0"), config.pose)
+    pg = calibrate_pose_graph(pose_edges(observations, config), "c0", config.graph)
+    lone = {f"{100 + k:06d}" for k in range(4)}
+    assert lone & {o.frame for o in observations} == lone and not lone & set(pg.T_ref_board)
+    bundle, _, _, _ = self_calibrated_bundle(observations, pg, listed, board, config)
+    assert lone <= {view for cam, view, _, _ in bundle.residuals_px if cam == "c1"}
+    pts = np.concatenate([d.corners_px.reshape(-1, 2) for (c, _), d in detections.items()
+                          if c == "c1"])
+    rays = truth["c1"].rays(pts[:, 0], pts[:, 1])
+    lens_px = np.linalg.norm(bundle.intrinsics["c1"].project(rays) - pts, axis=1)
+    assert lens_px.max() < LENS_AT_EDGE_PX, lens_px.max()
 
 
 # ----------------------------------------------------------------------------- pipeline

@@ -19,6 +19,7 @@ from rgbd_calib.geometry import invert_transform, make_transform, rotvec_to_matr
 from rgbd_calib.rig import load_rig
 from rgbd_calib.scene import cast
 from rgbd_calib.synth import (
+    CLOSEUP_TARGETS,
     LIGHT_DIR_WORLD,
     SynthCamera,
     SynthParams,
@@ -43,6 +44,10 @@ CORNER_MEDIAN_PX = 0.3
 PINHOLE_OFF_BORDER_PX = 10.0  # a pinhole projection misses border corners by more than this
 PLANE_EXACT_M = 1e-9  # raw rendered depth back-projected onto its plane (round-off)
 PLANE_QUANTISED_M = 1e-3  # after 1 mm depth counts, noise off
+# a close-up's markers come this close to its target, in image widths: measured 0.03-0.06 for
+# the 3x3-marker board at 640x360 below (six of its nine markers must be in view), 0.005-0.02
+# for the thesis board on the 1280x720 ring
+CLOSEUP_REACH = 0.08
 NOISE_FREE = SynthParams(blur_sigma_px=0.0, color_noise_dn=0.0, depth_dropout=0.0,
                          depth_subpixel_px=0.0)  # fmt: skip
 
@@ -296,6 +301,7 @@ def ring_sets(tmp_path_factory):
             "lying": dict(intrinsics_error=(2.0, 3.0)),
             "imperfect": IMPERFECT,
             "imperfect-truth": dict(IMPERFECT, rig_distortion="truth"),
+            "imperfect-closeups": dict(IMPERFECT, closeups=2),
         }.items()
     }  # fmt: skip
 
@@ -362,7 +368,7 @@ def test_imperfection_settings_are_checked():
     for bad in (dict(distortion=(0.1, 0.2)), dict(rig_distortion="factory"),
                 dict(intrinsics_error=(-1.0, 0.0)), dict(print_scale=0.0),
                 dict(distortion=(-2.0, 0.0, 0.0, 0.0, 0.0)),
-                dict(board_volume=0.0)):  # fmt: skip
+                dict(board_volume=0.0), dict(closeups=-1)):  # fmt: skip
         with pytest.raises(ConfigError):
             make_rig("ring", 0, SynthParams(resolution=(640, 360), cameras=2, **bad))
     with pytest.raises(ConfigError, match="thickness"):
@@ -390,3 +396,33 @@ def test_board_volume_scales_the_box_about_its_centre():
                                2.5 * (base.workspace_hi - base.workspace_lo))
     assert [c.T_world_cam.tolist() for c in wide.cameras] == [
         c.T_world_cam.tolist() for c in base.cameras]
+
+
+def test_closeups_fill_each_camera_image_out_to_its_corners(ring_sets):
+    """--closeups N: N frame sets per camera after the regular ones (which render as without
+    them), the board near that camera; close-up k aims at CLOSEUP_TARGETS[k], here the top
+    left and top right image corners. Its markers are detected where the truth says, out to
+    within CLOSEUP_REACH of them."""
+    plain, path = ring_sets["imperfect"].path, ring_sets["imperfect-closeups"].path
+    gt = load_ground_truth(path)
+    assert gt.closeups == {"000002": "cam0", "000003": "cam0", "000004": "cam1",
+                           "000005": "cam1"}
+    assert sorted(gt.T_ref_board) == [f"{i:06d}" for i in range(6)]
+    regular = {k: v for k, v in _pngs(path).items() if k.stem in ("000000", "000001")}
+    assert regular == _pngs(plain)
+    board = board_from_grid(**GRID_BOARD)
+    detector, corners_true = _detector(board), gt.board_print(board).corners(board)
+    for k, (frame, name) in enumerate(sorted(gt.closeups.items())):
+        K = gt.intrinsics[name]
+        img = cv2.imread(str(path / name / "color" / f"{frame}.png"), cv2.IMREAD_GRAYSCALE)
+        corners, ids, _ = detector.detectMarkers(img)
+        assert ids is not None and len(ids) >= 4, (frame, name)
+        T_cam_board = invert_transform(gt.T_ref_cam[name]) @ gt.T_ref_board[frame]
+        seen = []
+        for c, i in zip(corners, ids.ravel()):
+            truth = K.project(transform_points(T_cam_board, corners_true[board.index_of[i]]))
+            assert np.median(np.linalg.norm(c.reshape(4, 2) - truth, axis=1)) < 0.5
+            seen.append(truth)
+        target = np.array(CLOSEUP_TARGETS[k % 2]) * [K.width - 1, K.height - 1]
+        gap = np.linalg.norm(np.concatenate(seen) - target, axis=1).min()
+        assert gap < CLOSEUP_REACH * K.width, (frame, name, gap)

@@ -66,23 +66,27 @@ METHODS = ("fixed", "auto", "thesis")
 RECORD_VERSION = 4
 
 
-def set_name(layout: str, frames: int, seed: int, name: str, volume: float = 1.0) -> str:
-    """A set's folder name (``-vS`` for a board volume other than the layout's)."""
-    return f"{layout}-f{frames}-s{seed}-{name}" + (f"-v{volume:g}" if volume != 1.0 else "")
+def set_name(layout: str, frames: int, seed: int, name: str, volume: float = 1.0,
+             closeups: int = 0) -> str:
+    """A set's folder name (``-vS`` for a board volume other than the layout's, ``-cN`` for
+    N close-ups per camera)."""
+    return (f"{layout}-f{frames}-s{seed}-{name}" + (f"-v{volume:g}" if volume != 1.0 else "")
+            + (f"-c{closeups}" if closeups else ""))
 
 
 def ensure_set(
     data: Path, layout: str, frames: int, seed: int, name: str, board: Board, workers: int,
-    volume: float = 1.0,
+    volume: float = 1.0, closeups: int = 0,
 ) -> Path:
     """The rendered set, rendering (or linking, for an intrinsics error) what is missing;
-    ``volume``: synth's ``--board-volume``."""
-    path = data / set_name(layout, frames, seed, name, volume)
+    ``volume``, ``closeups``: synth's ``--board-volume`` and ``--closeups``."""
+    path = data / set_name(layout, frames, seed, name, volume, closeups)
     if (path / "ground_truth.yaml").is_file():
         return path
-    params = replace(SynthParams(), board_volume=volume, **IMAGE_SETS[name])
+    params = replace(SynthParams(), board_volume=volume, closeups=closeups, **IMAGE_SETS[name])
     if name in IMAGES:
-        base = ensure_set(data, layout, frames, seed, IMAGES[name], board, workers, volume)
+        base = ensure_set(data, layout, frames, seed, IMAGES[name], board, workers, volume,
+                          closeups)
         _link_listed(path, base, layout, seed, params)
     else:
         print(f"rendering {path} ...", file=sys.stderr, flush=True)
@@ -268,6 +272,8 @@ def markdown(payload: dict[str, Any]) -> str:
         f"Seeds {meta['seeds']}, {meta['frames']} frame sets"
         + (f", board volume {meta['board_volume']:g} (synth --board-volume)"
            if meta.get("board_volume", 1.0) != 1.0 else "")
+        + (f", {meta['closeups']} close-up frame sets per camera (synth --closeups)"
+           if meta.get("closeups") else "")
         + ", synth noise defaults (blur "
         f"{meta['noise']['blur_sigma_px']} px, colour noise {meta['noise']['color_noise_dn']}"
         f" DN); load average {meta['load_start']} at start, {meta['load_end']} at the end "
@@ -346,6 +352,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--board-volume", type=float, default=1.0,
                    help="synth --board-volume of every set (docs/synthetic.md)")
+    p.add_argument("--closeups", type=int, default=0,
+                   help="synth --closeups of every set: frame sets per camera with the board "
+                   "near it, out to its image's corners (docs/synthetic.md)")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--rerun", action="store_true", help="ignore cached results")
     p.add_argument("--json", type=Path, default=Path("docs/imperfections.json"))
@@ -360,6 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     meta = dict(command=f"python tools/bench_imperfections.py {cmd}", layouts=args.layouts)
     meta.update(sets=args.sets, methods=args.methods, seeds=args.seeds, frames=args.frames)
     meta["board_volume"] = args.board_volume
+    meta["closeups"] = args.closeups
     meta.update(sets_params=SETS, machine=f"{os.cpu_count()} cores, shared")
     meta["noise"] = dict(blur_sigma_px=synth.blur_sigma_px, color_noise_dn=synth.color_noise_dn)
     meta.update(load_start=[round(x, 1) for x in load()], date=time.strftime("%F"))
@@ -370,7 +380,7 @@ def main(argv: list[str] | None = None) -> int:
     ]:
         try:
             path = ensure_set(args.data, layout, args.frames, seed, name, board, args.workers,
-                              args.board_volume)
+                              args.board_volume, args.closeups)
         except Exception as exc:
             traceback.print_exc()
             fail = dict(layout=layout, seed=seed, set=name, status="failed")
@@ -379,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
             ]
             continue
         image_cache = args.data / "cache" / set_name(
-            layout, args.frames, seed, IMAGES.get(name, name), args.board_volume)
+            layout, args.frames, seed, IMAGES.get(name, name), args.board_volume, args.closeups)
         for m in args.methods:
             t0 = time.perf_counter()
             rec, cached = cached_run(m, path, image_cache, board, args.workers, args.rerun)

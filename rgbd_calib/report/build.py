@@ -24,6 +24,7 @@ from .schema import (
     REGIONS,
     REPORT_SCHEMA_VERSION,
     finite_or_null,
+    view_in_estimate,
 )
 
 if TYPE_CHECKING:
@@ -179,11 +180,14 @@ def _final_marker_residuals(
 ) -> tuple[list[dict[str, Any]], dict[str, np.ndarray]]:
     """Per observation: the RMS reprojection error (px) of each marker through the final
     ``T_cam_board = inv(T_ref_cam) @ T_ref_board`` (the calibration's own prediction, lens
-    distortion included), and whether the final estimate used it."""
+    distortion included), and whether the final estimate used it: the bundle adjustment's
+    markers when there is one (with refined intrinsics it also solves views the pose graph
+    left out, see ``calibrate.unsolved_views``), else the pose graph's used views."""
     boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
     cams = result.extrinsics.cameras
     edge_of = {(r.camera, r.view): r for r in result.posegraph.residuals}
-    bundle_out = {(c, v, m) for c, v, m, _ in result.bundle.outliers} if result.bundle else set()
+    in_bundle = ({(c, v, m) for c, v, m, _ in result.bundle.residuals_px}
+                 if result.bundle else None)
     model = result.bundle.board if result.bundle else None
     T_front_back = model.T_front_back if model is not None and not model.held else None
     rows: list[dict[str, Any]] = []
@@ -208,7 +212,8 @@ def _final_marker_residuals(
             uv = _final_model(result, rig, o.camera).project(pts).reshape(-1, 4, 2)
             row["rms"] = np.sqrt(np.mean(np.sum((uv - o.corners_px) ** 2, axis=-1), axis=-1))
             row["used_markers"] = np.array(
-                [status == "used" and (o.camera, o.frame, int(m)) not in bundle_out for m in o.ids],
+                [status == "used" if in_bundle is None else (o.camera, o.frame, int(m)) in in_bundle
+                 for m in o.ids],
                 dtype=bool,
             )
         rows.append(row)
@@ -463,10 +468,9 @@ def _board_view_entries(
     seen_by: dict[str, list[str]] = {}
     view_px: dict[str, list[np.ndarray]] = {}
     for r in rows:
-        if r["status"] == "used":
+        if r["used_markers"].any():
             seen_by.setdefault(r["obs"].frame, []).append(r["obs"].camera)
-            if r["rms"] is not None and r["used_markers"].any():
-                view_px.setdefault(r["obs"].frame, []).append(r["rms"][r["used_markers"]])
+            view_px.setdefault(r["obs"].frame, []).append(r["rms"][r["used_markers"]])
     return [
         {
             "frame": f,
@@ -568,8 +572,9 @@ def finalize_report(report: dict[str, Any]) -> dict[str, Any]:
     used_views = [v for v in report["views"] if v["edge_status"] == "used"]
     covis = _covisibility(names, used_views)
     report["covisibility"] = {"cameras": names, "views": covis.tolist()}
+    estimated = [v for v in report["views"] if view_in_estimate(v)]
     for name, cam in cams.items():
-        cam["coverage"] = _camera_coverage(name, cams, used_views, covis)
+        cam["coverage"] = _camera_coverage(name, cams, estimated, covis)
     report["summary"] = _summary(report)
     found = findings(report)
     report["warnings"] = found
@@ -603,7 +608,8 @@ def _camera_coverage(
     covis: np.ndarray,
 ) -> dict[str, Any]:
     """``cameras.<name>.coverage``: where, how far and how tilted the board was in the
-    camera's used views, and the calibrated camera it shares most views with."""
+    camera's views the final estimate used (:func:`view_in_estimate`), and the calibrated
+    camera it shares most pose-graph views with (``covis``)."""
     names = list(cams)
     index = {c: i for i, c in enumerate(names)}
     cam = cams[name]

@@ -16,7 +16,7 @@ from ..progress import Tick
 from .cloud import Cloud
 from .layout import board_outline, frustum, rig_size
 from .numbers import fmt, median_or_none
-from .schema import COVERAGE_GRID
+from .schema import COVERAGE_GRID, view_in_estimate
 
 REF_COLOR = (0.84, 0.15, 0.16)  # the reference camera is red, as in the thesis's Fig. 4.11
 
@@ -313,7 +313,7 @@ def fig_coverage(report: dict[str, Any]) -> str:
         for v in report["views"]:
             if v["camera"] != name:
                 continue
-            if v["edge_status"] != "used":
+            if not view_in_estimate(v):
                 left_out += 1
                 continue
             u0, v0, u1, v1 = v["image_bbox_px"]

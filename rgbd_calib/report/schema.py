@@ -20,6 +20,15 @@ class ReportError(RgbdCalibError):
     """A calibration folder cannot be reported on (missing or inconsistent saved results)."""
 
 
+def view_in_estimate(view: dict[str, Any]) -> bool:
+    """Whether the final estimate used some marker of a ``views[]`` entry (without marker
+    counts: whether the pose graph used its edge). With refined intrinsics the bundle
+    adjustment also solves views the pose graph left out, so the two can differ."""
+    if view["excluded_markers"] is None:
+        return view["edge_status"] == "used"
+    return view["excluded_markers"] < view["markers"]
+
+
 # ----------------------------------------------------------------------------- thresholds
 WEAK_SIGMA_FACTOR = 3.0  # a camera's sigma this many times the rig median is weak ...
 WEAK_SIGMA_MIN_MM = 0.25  # ... and above these absolute floors (tiny sigmas are all fine)
