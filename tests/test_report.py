@@ -409,3 +409,12 @@ def test_camera_model_error_is_an_info_when_the_refined_model_explains_it(
     if fx_change > 10:
         assert "fx +6.67 % (20 sigma)" in found["message"]
         assert "rig_refined.yaml" in found["advice"]
+    # the self-calibration loosened the priors 10x for this camera: the reported prior sigma
+    # is 10x the configured one, and a change within 3 of those is still beyond the rig.yaml's
+    if sigma_factor <= 1.0:
+        fx["prior_sigma"] *= 10
+        report["bundle"] = {"self_calibration": {"chosen": "fx", "levels": [
+            {"level": "fx", "reason": "fits better; fx of cam3 came 4.6 prior sigmas from "
+             "rig.yaml: priors loosened 10x"}]}}
+        (found,) = camera_model_error(report, [])
+        assert found["severity"] == severity

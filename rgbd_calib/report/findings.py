@@ -145,7 +145,7 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
     for m in report["pose_graph"].get("model_error") or []:
         name = m["camera"]
         explained = m.get("sigma_factor") is not None and m["sigma_factor"] <= 1.0
-        beyond = _beyond_prior(report["cameras"].get(name, {}))
+        beyond = _beyond_prior(report["cameras"].get(name, {}), _prior_widening(report))
         if explained and not beyond:
             out.append(finding(
                 "info",
@@ -190,15 +190,29 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
     return out
 
 
-def _beyond_prior(cam: dict[str, Any], n_sigma: float = 3.0) -> list[str]:
-    """Refined intrinsics that moved more than ``n_sigma`` prior sigmas from rig.yaml, as
-    'fx +4.8 % (16 sigma)': the rig.yaml value was wrong beyond its stated tolerance."""
+def _prior_widening(report: dict[str, Any]) -> float:
+    """How much wider than configured the reported intrinsics priors are: the self-calibration
+    loosens them (:data:`~rgbd_calib.selfcal.LOOSEN`) when the data put a parameter several
+    prior sigmas from rig.yaml, and says so in the chosen level's reason."""
+    from ..selfcal import LOOSEN
+
+    sc = (report.get("bundle") or {}).get("self_calibration") or {}
+    chosen = [lv for lv in sc.get("levels") or [] if lv.get("level") == sc.get("chosen")]
+    return LOOSEN if any("priors loosened" in (lv.get("reason") or "") for lv in chosen) else 1.0
+
+
+def _beyond_prior(cam: dict[str, Any], widening: float = 1.0,
+                  n_sigma: float = 3.0) -> list[str]:
+    """Refined intrinsics that moved more than ``n_sigma`` configured prior sigmas (the
+    reported one over ``widening``) from rig.yaml, as 'fx +4.8 % (16 sigma)': the rig.yaml
+    value was wrong beyond its stated tolerance."""
     out = []
     for p, e in (cam.get("intrinsics_refined") or {}).items():
-        if e.get("prior_sigma") and abs(e["change"]) > n_sigma * e["prior_sigma"]:
+        sigma = (e.get("prior_sigma") or 0.0) / widening
+        if sigma and abs(e["change"]) > n_sigma * sigma:
             size = (f"{e['change_pct']:+.2f} %" if e.get("change_pct") is not None
                     else f"{e['change']:+.3g}")
-            out.append(f"{p} {size} ({abs(e['change']) / e['prior_sigma']:.0f} sigma)")
+            out.append(f"{p} {size} ({abs(e['change']) / sigma:.0f} sigma)")
     return out
 
 
