@@ -283,6 +283,15 @@ def synth(
             "(docs/synthetic.md).",
         ),
     ] = 1.0,
+    closeups: Annotated[
+        int,
+        typer.Option(
+            metavar="N",
+            help="N extra frame sets per camera with the board near it, reaching its image's "
+            "corners and edges in turn, as a user records to calibrate a lens "
+            "(docs/synthetic.md).",
+        ),
+    ] = 0,
     bump: Annotated[
         list[str] | None,
         typer.Option(
@@ -318,12 +327,14 @@ def synth(
         thickness_error_mm=thickness_error,
         print_scale=print_scale,
         board_volume=board_volume,
+        closeups=closeups,
         bump=tuple(_parse_bump(text) for text in bump or ()),
     )
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
         ds = synthesize(out, layout, frames, seed, b, params, workers, progress=progress)
-    console.print(f"wrote {len(ds.rig.cameras)} cameras x {frames} frames to {ds.path}")
+    extra = f" + {closeups} close-ups per camera" if closeups else ""
+    console.print(f"wrote {len(ds.rig.cameras)} cameras x {frames} frames{extra} to {ds.path}")
 
 
 def _parse_bump(text: str) -> tuple[str, float, float]:

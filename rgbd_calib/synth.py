@@ -54,6 +54,7 @@ CLOSEUP_STREAM = 0xC105E  # rng stream of the close-up board poses (seed, stream
 # where a close-up's markers must reach, in turn (fractions of the image width and height):
 # the four corners, then the middles of the four edges
 CLOSEUP_TARGETS = ((0, 0), (1, 0), (1, 1), (0, 1), (0.5, 0), (1, 0.5), (0.5, 1), (0, 0.5))
+CLOSEUP_REACH = 0.01  # ... and how close to it (image widths) ends the search
 BUMP_STREAM = 0xB0A7  # rng stream of the knocks of --bump (seed, stream, camera index)
 
 
@@ -556,51 +557,60 @@ def _visible_corners(board: Board, cam: SynthCamera, T_cam_board: np.ndarray,
 
 
 def closeup_poses(rig: SynthRig, board: Board, per_camera: int, rng: np.random.Generator,
-                  min_markers: int = 6, attempts: int = 300) -> list[tuple[str, np.ndarray]]:
+                  min_markers: int = 6, attempts: int = 200) -> list[tuple[str, np.ndarray]]:
     """``per_camera`` board poses ``T_world_board`` close to each camera, ``(camera, pose)``
     in camera order: what a user records to calibrate a lens, the board waved near the
     camera until it has filled the image out to its corners.
 
     Close-up ``k`` of a camera aims at :data:`CLOSEUP_TARGETS` ``[k % 8]`` (a corner of the
-    image, then the middle of an edge): the board, 0.3-0.6 m from the camera, facing it
-    (either face, tilted up to 35 deg, rolled up to 45 deg), centred on the ray through a
-    pixel 55-85 % of the way from the image centre to the target. Of ``attempts`` draws the
-    first whose visible markers (:func:`_visible_corners`, at least ``min_markers``) come
-    within 3 % of the image width of the target is kept, else the one that came closest.
-    Judged through the true lens (a user sees the real image), so unlike the regular frames
-    these poses change with ``--distortion``. Other cameras may see the board too."""
-    centre_b = np.array([(board.panel[0] + board.panel[1]) / 2,
-                         (board.panel[2] + board.panel[3]) / 2, -board.thickness / 2])
+    image, then the middle of an edge), through the true lens (a user sees the real image;
+    unlike the regular frames these poses change with ``--distortion``). A draw: the board's
+    marker corner furthest out towards the target (in the camera frame) 0.3-0.8 m from the
+    camera on the ray of a pixel 3-10 px inside the target (3-30 px from a corner on each
+    axis: through a barrel lens the image's corner is an acute wedge of rays that a square
+    marker does not reach into), the board facing the camera (either face, tilted up to 35
+    deg, rolled up to 45 deg; 10 deg for a corner, which a board corner fits only about square
+    to it). Of ``attempts`` draws the first whose visible markers
+    (:func:`_visible_corners`, at least ``min_markers``) come within :data:`CLOSEUP_REACH` of
+    the target is kept, else the one that came closest. Other cameras may see it too."""
     out = []
     for cam in rig.cameras:
         K = cam.intrinsics
         c0 = np.array([K.cx, K.cy])
         for k in range(per_camera):
-            target = np.array(CLOSEUP_TARGETS[k % len(CLOSEUP_TARGETS)]) * [K.width - 1,
-                                                                              K.height - 1]
+            unit = np.array(CLOSEUP_TARGETS[k % len(CLOSEUP_TARGETS)], dtype=float)
+            target = unit * [K.width - 1, K.height - 1]
+            inward = np.sign(0.5 - unit)  # towards the image centre, per axis (0 along an edge)
+            corner = bool(np.all(inward))
+            # a board corner fits an image corner only about square to it, and not right into
+            # it: through a barrel lens the image's corner is an acute wedge of rays
+            roll_deg, inset_px = (10.0, 30.0) if corner else (45.0, 10.0)
             best, best_gap = None, np.inf
             for _ in range(attempts):
-                pixel = c0 + rng.uniform(0.55, 0.85) * (target - c0)
+                pixel = target + inward * rng.uniform(3, inset_px, 2)
                 ray = K.rays(pixel[:1], pixel[1:])[0]
-                to_cam = -ray / np.linalg.norm(ray)  # board normal towards the camera
-                if rng.random() < 0.5:
-                    to_cam = -to_cam  # the back face towards it
-                tilt_axis = np.cross(to_cam, rng.normal(size=3))
+                view = K.rays(*(c0 + 0.7 * (target - c0))[:, None])[0]  # the board's middle
+                to_cam = -view / np.linalg.norm(view)  # board normal towards the camera
+                face = FRONT if rng.random() < 0.5 else BACK
+                z_axis = to_cam * face  # the back face towards it: the normal away
+                tilt_axis = np.cross(z_axis, rng.normal(size=3))
                 tilt_axis /= np.linalg.norm(tilt_axis)
-                z_axis = rotvec_to_matrix(tilt_axis * np.radians(rng.uniform(0, 35))) @ to_cam
+                z_axis = rotvec_to_matrix(tilt_axis * np.radians(rng.uniform(0, 35))) @ z_axis
                 x_axis = np.cross([0.0, -1.0, 0.0], z_axis)  # image up is -y
                 x_axis /= np.linalg.norm(x_axis)
                 R = np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis])
-                R = R @ rotvec_to_matrix([0, 0, np.radians(rng.uniform(-45, 45))])
-                centre = ray / np.linalg.norm(ray) * rng.uniform(0.3, 0.6)
-                T_cam_board = make_transform(R, centre - R @ centre_b)
+                R = R @ rotvec_to_matrix([0, 0, np.radians(rng.uniform(-roll_deg, roll_deg))])
+                corners = board.corners[board.faces == face].reshape(-1, 3)
+                anchor = corners[np.argmax(corners @ R.T @ np.append(-inward, 0.0))]
+                T_cam_board = make_transform(
+                    R, ray / np.linalg.norm(ray) * rng.uniform(0.3, 0.8) - R @ anchor)
                 seen = _visible_corners(board, cam, T_cam_board)
                 if len(seen) < min_markers:
                     continue
                 gap = np.linalg.norm(seen.reshape(-1, 2) - target, axis=1).min()
                 if gap < best_gap:
                     best, best_gap = cam.T_world_cam @ T_cam_board, gap
-                if gap < 0.03 * K.width:
+                if gap < CLOSEUP_REACH * K.width:
                     break
             if best is None:
                 raise ConfigError(f"--closeups: no board pose near {cam.name} shows "

@@ -255,6 +255,28 @@ def test_refined_lens_uses_the_views_the_pose_graph_did_not_solve():
     assert lens_px.max() < LENS_AT_EDGE_PX, lens_px.max()
 
 
+def test_lens_moved_names_the_cameras_to_detect_again():
+    """Another detection pass is due for a camera whose refined lens images the rays of its
+    detected corners more than LENS_SETTLED_PX from the lens they were detected with: here
+    only where its corners reach the image's edge."""
+    from rgbd_calib.calibrate import LENS_SETTLED_PX, board_poses, lens_moved
+    from rgbd_calib.rig import Rig
+
+    board, truth, detections = _lone_view_scene(np.random.default_rng(0))
+    rig = Rig(truth, "c0")
+    observations, _ = board_poses(detections, board, rig, CalibrationConfig().pose)
+    assert lens_moved(rig, truth, observations) == []
+    # k3 off by 0.002: under 0.001 px in the middle of the images, 1-2.3 px at c1's close-ups
+    bent = {c: replace(t, distortion=(*t.distortion[:4], t.distortion[4] + 0.002))
+            for c, t in truth.items()}
+    assert lens_moved(rig, bent, observations) == ["c1"]
+    middle = [o for o in observations if o.frame < "000100"]
+    shift = max(np.linalg.norm(bent[c].project(truth[c].rays(*o.corners_px.reshape(-1, 2).T))
+                               - o.corners_px.reshape(-1, 2), axis=1).max()
+                for c in truth for o in middle if o.camera == c)
+    assert shift < LENS_SETTLED_PX
+
+
 # ----------------------------------------------------------------------------- pipeline
 # Measured on small_line (4 cameras 1280x720, 6 frames, pinhole renders) with rig.yaml off
 # by 0.7 % in fx/fy and 3-5 px in cx/cy on 3 of the 4 cameras (one of them the reference):

@@ -10,6 +10,8 @@ its ground_truth.yaml exists): ``clean``; ``glue`` (``--glue 1.5 -1.0 0.3``); ``
 --rig-distortion zeros``); ``all`` (the three at once). An intrinsics error only changes
 rig.yaml (the images are byte-identical), so ``intrinsics`` and ``all`` link the images of
 ``clean`` and ``glue+distortion`` and write their own rig.yaml and ground_truth.yaml.
+``--board-volume S`` and ``--closeups N`` render every set with synth's options of that name
+(folder suffixes ``-vS``, ``-cN``).
 
 Methods: ``fixed`` (bundle, intrinsics and board file taken as exact), ``auto`` (bundle with
 ``bundle.intrinsics``/``bundle.board`` auto: the self-calibrating model selection), ``thesis``
