@@ -41,7 +41,8 @@ from .yamlio import check_keys, read_yaml_mapping, write_yaml
 FRONT, BACK = 1, -1
 CHARUCO_ID_BASE = 10000  # a multi-face target's ChArUco face k (0-based): quad q has id
 #                          CHARUCO_ID_BASE * (k + 1) + q (ArUco dictionaries hold < 1100 ids)
-FACE_CROSS_TOL_M = 1e-4  # faces crossing each other by more than this are rejected
+FACE_CROSS_TOL_M = 0.005  # faces passing this far through each other are rejected (a pose
+#                           typo; a hand-built or refined target's faces may overlap ~mm at edges)
 PLANE_TOL_M = 1e-4  # corners further than this from their face plane are "non-planar"
 SQUARE_TOL = 1e-3  # relative tolerance on equal sides and diagonals
 
@@ -610,8 +611,8 @@ def _board_from_mapping(raw: dict, path: Path, where: str, fix_winding: bool = F
     if raw.get("type", "aruco") == "multiface":
         return _load_multiface(raw, path, where)
     if raw.get("type", "aruco") != "aruco":
-        raise BoardError(f"{where}: type must be 'aruco' (default), 'charuco' or 'multiface', "
-                         f"got {str(raw['type'])[:40]!r}")
+        raise BoardError(f"{where}: type must be 'aruco' (default) or 'charuco' for one board, "
+                         f"or 'multiface' for several faces; got {str(raw['type'])[:40]!r}")
     data = _check_board_mapping(raw, where)
     # the keys both forms share
     dictionary = str(data["dictionary"])
