@@ -1,8 +1,21 @@
-"""The double-sided ArUco board: geometry in the board frame, loading and validation.
+"""Calibration targets: geometry in the board frame, loading and validation.
+
+A target is rigid and carries markers on one or more planar faces. Each face has a label and
+a pose ``T_board_face`` (4x4, metres; face frame: markers in its z = 0 plane, z the outward
+normal) that every "which face / which normal / which plane" question goes through
+(:meth:`Board.T_board_face`, :meth:`Board.face_normal`):
+
+- the double-sided board (ArUco grid, explicit markers, or one-faced ChArUco): labels +1 (front,
+  z = 0, the identity) and -1 (back, ``z = -thickness``, the front flipped about y), derived from
+  ``thickness`` as they always were;
+- a multi-face target (``type: multiface``: a cube, an L of two boards, ...): labels 1..F, one
+  per listed face, each face a single-face ArUco grid or ChArUco sheet (``Board.sheets``) at its
+  own pose. Face 1 is the reference face of the board self-calibration.
 
 Board frame (docs/formats.md): origin at the outer bottom-left corner of the front-face marker
 grid, x right and y up as seen from the front, z out of the front face. Back-face markers lie
-at ``z = -thickness``.
+at ``z = -thickness``. A multi-face target's board frame is the one its file's face poses are
+given in.
 
 Every marker's corners are stored in **ArUco detection order**: top-left, top-right,
 bottom-right, bottom-left *as seen from outside that marker's face*. For a back-face marker
@@ -13,7 +26,7 @@ front-face order; :func:`load_board` detects and rejects or fixes that).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -22,9 +35,14 @@ import cv2
 import numpy as np
 
 from .errors import BoardError, ConfigError
+from .geometry import make_transform, matrix_to_rotvec, rotvec_to_matrix, transform_points
 from .yamlio import check_keys, read_yaml_mapping, write_yaml
 
 FRONT, BACK = 1, -1
+CHARUCO_ID_BASE = 10000  # a multi-face target's ChArUco face k (0-based): quad q has id
+#                          CHARUCO_ID_BASE * (k + 1) + q (ArUco dictionaries hold < 1100 ids)
+FACE_CROSS_TOL_M = 0.005  # faces passing this far through each other are rejected (a pose
+#                           typo; a hand-built or refined target's faces may overlap ~mm at edges)
 PLANE_TOL_M = 1e-4  # corners further than this from their face plane are "non-planar"
 SQUARE_TOL = 1e-3  # relative tolerance on equal sides and diagonals
 
@@ -38,13 +56,36 @@ def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
     return cv2.aruco.getPredefinedDictionary(code)
 
 
+@dataclass(frozen=True)
+class FaceSheet:
+    """One face of a multi-face target: a single-face ``board`` (an ArUco grid or ChArUco, its
+    markers in its own frame at z = 0) whose frame sits at ``T_board_face`` (4x4, metres) in the
+    target's board frame; ``label`` (1..F) is its face label, ``id_offset`` what is added to the
+    sheet's measurement ids (ChArUco quads, :data:`CHARUCO_ID_BASE`; 0 for ArUco markers)."""
+
+    label: int
+    board: Board
+    T_board_face: np.ndarray
+    id_offset: int = 0
+
+
+def _back_face_pose(thickness: float) -> np.ndarray:
+    """``T_board_face`` of the legacy back face: the front flipped about y, at z = -thickness
+    (x = -x_board, seen from the back "right" is -x, as :func:`grid_corners` prints it)."""
+    T = np.diag([-1.0, 1.0, -1.0, 1.0])
+    T[2, 3] = -thickness
+    return T
+
+
 @dataclass(frozen=True, eq=False)
 class Board:
-    """A rigid board carrying ArUco markers on one or two parallel faces.
+    """A rigid target carrying markers on one or more planar faces.
 
     ``corners`` is ``(M,4,3)`` in metres in the board frame, detection order per marker;
-    ``faces`` is ``(M,)`` with +1 (front, z = 0) or -1 (back, z = -thickness).
-    ``panel`` is the physical outline ``(xmin, xmax, ymin, ymax)`` in metres.
+    ``faces`` is ``(M,)`` the face label of each marker: +1 (front, z = 0) or -1 (back,
+    z = -thickness) on a double-sided board, 1..F on a multi-face target (``sheets``).
+    ``panel`` is the physical outline ``(xmin, xmax, ymin, ymax)`` in metres (a multi-face
+    target: the xy box of its faces' panels).
     """
 
     dictionary: str
@@ -57,10 +98,69 @@ class Board:
     grid: dict[str, Any] | None = None
     source: Path | None = field(default=None, compare=False)
     charuco: CharucoSpec | None = None  # a ChArUco board: ids/corners are saddle-corner quads
+    sheets: tuple[FaceSheet, ...] = ()  # a multi-face target: its faces (empty otherwise)
+    body: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
     @cached_property
     def index_of(self) -> dict[int, int]:
         return {int(i): k for k, i in enumerate(self.ids)}
+
+    @property
+    def is_multiface(self) -> bool:
+        return bool(self.sheets)
+
+    @cached_property
+    def face_labels(self) -> tuple[int, ...]:
+        """The labels of the faces that carry markers, the reference face first."""
+        if self.sheets:
+            return tuple(s.label for s in self.sheets)
+        return tuple(f for f in (FRONT, BACK) if np.any(self.faces == f))
+
+    @property
+    def reference_face(self) -> int:
+        """The face whose pose defines the board frame (held in the self-calibration)."""
+        return self.sheets[0].label if self.sheets else FRONT
+
+    def T_board_face(self, face: int) -> np.ndarray:
+        """Pose (4x4, metres) of face ``face``'s frame (markers at its z = 0, z the outward
+        normal) in the board frame."""
+        if self.sheets:
+            return self.sheet(face).T_board_face.copy()
+        if face == FRONT:
+            return np.eye(4)
+        if face == BACK:
+            return _back_face_pose(self.thickness)
+        raise KeyError(f"board {self.name} has no face {face}")
+
+    def sheet(self, face: int) -> FaceSheet:
+        """A multi-face target's face ``face``."""
+        for s in self.sheets:
+            if s.label == face:
+                return s
+        raise KeyError(f"board {self.name} has no face {face}")
+
+    @cached_property
+    def aruco_faces(self) -> Board | None:
+        """A multi-face target's ArUco faces as one plain board (what one ArUco detector pass
+        looks for; labels kept); None without ArUco faces."""
+        sel = [s for s in self.sheets if s.board.charuco is None]
+        if not sel:
+            return None
+        ids = np.concatenate([s.board.ids for s in sel])
+        corners = np.concatenate([transform_points(s.T_board_face, s.board.corners.reshape(
+            -1, 3)).reshape(-1, 4, 3) for s in sel])
+        faces = np.concatenate([np.full(len(s.board.ids), s.label) for s in sel])
+        return Board(self.dictionary, ids, corners, faces, self.thickness, self.panel,
+                     f"{self.name}_aruco")
+
+    @cached_property
+    def printed_ids(self) -> np.ndarray:
+        """Every ArUco marker id printed on the board."""
+        return printed_markers(self)[0]
+
+    def faces_of(self, ids) -> np.ndarray:
+        """Face labels ``(N,)`` of the given marker ids."""
+        return np.array([self.faces[self.index_of[int(i)]] for i in ids], dtype=int)
 
     @cached_property
     def aruco_dict(self) -> cv2.aruco.Dictionary:
@@ -99,9 +199,19 @@ class Board:
 
     def face_normal(self, face: int) -> np.ndarray:
         """Outward unit normal of a face in the board frame."""
-        return np.array([0.0, 0.0, float(face)])
+        if not self.sheets:
+            return np.array([0.0, 0.0, float(face)])  # the two faces of a flat board
+        return self.T_board_face(face)[:3, 2].copy()
 
     def to_dict(self) -> dict[str, Any]:
+        if self.sheets:
+            out: dict[str, Any] = {"name": self.name, "type": "multiface",
+                                   "dictionary": self.dictionary, "thickness": self.thickness}
+            if self.body is not None:
+                out["body"] = {"box": [list(self.body[0]), list(self.body[1])]}
+            out["faces"] = [{"board": _sheet_dict(s.board), "pose": pose_dict(s.T_board_face)}
+                            for s in self.sheets]
+            return out
         if self.charuco is not None:
             return {"name": self.name, "type": "charuco", "dictionary": self.dictionary,
                     **self.charuco.to_dict(), "thickness": self.thickness,
@@ -201,6 +311,13 @@ def printed_markers(board: Board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ArUco markers printed on ``board``: ids ``(K,)``, corners ``(K,4,3)`` (board frame,
     m, TL TR BR BL) and faces ``(K,)``; a ChArUco board's are its markers (one face), not the
     saddle-corner quads it measures with."""
+    if board.sheets:
+        parts = [(s, *printed_markers(s.board)) for s in board.sheets]
+        ids = np.concatenate([p[1] for p in parts])
+        corners = np.concatenate([transform_points(s.T_board_face, c.reshape(-1, 3))
+                                  .reshape(-1, 4, 3) for s, _, c, _ in parts])
+        faces = np.concatenate([np.full(len(i), s.label) for s, i, _, _ in parts])
+        return ids, corners, faces
     if board.charuco is None:
         return board.ids, board.corners, board.faces
     ids, corners = charuco_markers(board.charuco, board.dictionary)
@@ -493,11 +610,18 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
     path = Path(path)
     where = str(path)
     raw = _read_raw_mapping(path)
+    return _board_from_mapping(raw, path, where, fix_winding)
+
+
+def _board_from_mapping(raw: dict, path: Path, where: str, fix_winding: bool = False) -> Board:
+    """The board of a board file's top-level mapping (any ``type``)."""
     if raw.get("type", "aruco") == "charuco":
         return _load_charuco(raw, path, where)
+    if raw.get("type", "aruco") == "multiface":
+        return _load_multiface(raw, path, where)
     if raw.get("type", "aruco") != "aruco":
-        raise BoardError(f"{where}: type must be 'aruco' (default) or 'charuco', "
-                         f"got {str(raw['type'])[:40]!r}")
+        raise BoardError(f"{where}: type must be 'aruco' (default) or 'charuco' for one board, "
+                         f"or 'multiface' for several faces; got {str(raw['type'])[:40]!r}")
     data = _check_board_mapping(raw, where)
     # the keys both forms share
     dictionary = str(data["dictionary"])
@@ -753,3 +877,219 @@ def thesis_board() -> Board:
     """The seed thesis's board (configs/board_thesis.yaml), built in code for defaults."""
     return board_from_grid("DICT_4X4_100", 4, 7, 0.04, 0.02, 0.0066, 0, 28,
                            panel=(-0.01, 0.41, -0.0385, 0.2585), name="thesis")
+
+
+# ------------------------------------------------------------------------ multi-face targets
+_MULTIFACE_KEYS = {"name", "type", "dictionary", "thickness", "faces", "body"}
+_FACE_KEYS = {"board", "pose"}
+_POSE_KEYS = {"rotation_deg", "translation_m"}
+
+
+def pose_dict(T_board_face: np.ndarray) -> dict[str, list[float]]:
+    """A face pose as the board file writes it: ``rotation_deg`` (rotation vector, axis times
+    angle in degrees) and ``translation_m``."""
+    T = np.asarray(T_board_face, dtype=float)
+    return {"rotation_deg": [float(v) for v in np.degrees(matrix_to_rotvec(T[:3, :3]))],
+            "translation_m": [float(v) for v in T[:3, 3]]}
+
+
+def _sheet_dict(sheet: Board) -> dict[str, Any]:
+    """A face's single-face board as its ``board:`` mapping (no name, thickness or type
+    repeated where the target gives them)."""
+    out = sheet.to_dict()
+    out.pop("name", None)
+    if sheet.charuco is None:
+        out.pop("thickness", None)
+        if out.get("grid") is not None:
+            out["grid"] = {k: v for k, v in out["grid"].items() if v is not None}
+    else:
+        out.pop("thickness", None)
+    return out
+
+
+def _vector3(value: Any, where: str) -> np.ndarray:
+    if not (isinstance(value, list) and len(value) == 3):
+        raise BoardError(f"{where}: expected 3 numbers [x, y, z]")
+    return np.array([_number(v, where, positive=False) for v in value])
+
+
+def _face_pose(value: Any, where: str) -> np.ndarray:
+    """A face's ``pose`` mapping: ``rotation_deg`` (rotation vector, degrees; default none)
+    and ``translation_m`` (default zeros): ``T_board_face``."""
+    if value is None:
+        return np.eye(4)
+    if not isinstance(value, dict):
+        raise BoardError(f"{where}: expected a mapping with rotation_deg: [rx, ry, rz] (rotation "
+                         "vector, degrees) and translation_m: [x, y, z]")
+    try:
+        check_keys(value, _POSE_KEYS, where)
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    rot = _vector3(value.get("rotation_deg", [0, 0, 0]), f"{where}.rotation_deg")
+    t = _vector3(value.get("translation_m", [0, 0, 0]), f"{where}.translation_m")
+    return make_transform(rotvec_to_matrix(np.radians(rot)), t)
+
+
+def _load_multiface(data: dict, path: Path, where: str) -> Board:
+    """A ``type: multiface`` board file (docs/formats.md): each face a single-face ArUco grid
+    (or explicit markers) or ChArUco board at a pose; the target's ``dictionary`` and
+    ``thickness`` are the faces' defaults. Every mistake one line naming the file, the face
+    and the fix: a face with markers on its back, another dictionary, marker ids used twice
+    over the target, faces crossing each other."""
+    try:
+        check_keys(data, _MULTIFACE_KEYS, where, required=("faces",))
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    faces = data["faces"]
+    if not isinstance(faces, list) or not faces:
+        raise BoardError(f"{where}: faces must be a list of {{board: ..., pose: ...}}, one per "
+                         "face; see configs/board_cube.yaml")
+    dictionary = data.get("dictionary")
+    thickness = _number(data.get("thickness", 0.003), f"{where}: thickness")
+    sheets = []
+    for k, face in enumerate(faces):
+        fwhere = f"{where}: faces[{k}]"
+        if not isinstance(face, dict):
+            raise BoardError(f"{fwhere}: expected a mapping {{board: ..., pose: ...}}")
+        try:
+            check_keys(face, _FACE_KEYS, fwhere, required=("board",))
+        except ConfigError as exc:
+            raise BoardError(str(exc)) from None
+        sheet = _face_board(face["board"], path, fwhere, dictionary, thickness)
+        if dictionary is None:
+            dictionary = sheet.dictionary
+        if sheet.dictionary != dictionary:
+            raise BoardError(f"{fwhere}: dictionary {sheet.dictionary} differs from the "
+                             f"target's {dictionary}; one dictionary for every face")
+        T = _face_pose(face.get("pose"), f"{fwhere}.pose")
+        offset = CHARUCO_ID_BASE * (k + 1) if sheet.charuco is not None else 0
+        sheets.append(FaceSheet(k + 1, sheet, T, offset))
+    return multiface_board(str(dictionary), sheets, thickness, str(data.get("name", path.stem)),
+                           _body(data.get("body"), where), path, where)
+
+
+def _face_board(value: Any, path: Path, where: str, dictionary: str | None,
+                thickness: float) -> Board:
+    """A face's ``board``: a mapping in a single-face board file's form, or the path of such a
+    file (relative to the target's file); the target's dictionary and thickness fill in."""
+    if isinstance(value, str):
+        sub = (path.parent / value) if not Path(value).is_absolute() else Path(value)
+        return _face_board(_read_raw_mapping(sub), sub, f"{where} ({sub})", dictionary,
+                           thickness)
+    if not isinstance(value, dict):
+        raise BoardError(f"{where}.board: expected a board mapping (grid or ChArUco form) or "
+                         "the path of a single-face board file")
+    raw = dict(value)
+    if raw.get("type") == "multiface":
+        raise BoardError(f"{where}.board: a face cannot itself be a multiface target")
+    if dictionary is not None:
+        raw.setdefault("dictionary", dictionary)
+    if raw.get("type", "aruco") == "aruco":
+        raw.setdefault("thickness", thickness)
+        if isinstance(raw.get("grid"), dict) and raw["grid"].get("back_first_id") is not None:
+            raise BoardError(f"{where}.board: grid.back_first_id: a face is one sheet; give "
+                             "the back sheet as a face of its own with its pose")
+    sheet = _board_from_mapping(raw, path, f"{where}.board")
+    if np.any(sheet.faces != FRONT):
+        raise BoardError(f"{where}.board: markers off the sheet's z = 0 plane; a face is one "
+                         "sheet: list its markers at z = 0 and give the face a pose")
+    return sheet
+
+
+def _body(value: Any, where: str):
+    """The optional ``body: {box: [[x0, y0, z0], [x1, y1, z1]]}`` (m, board frame): the solid
+    the faces are mounted on (rendered and masked like the faces)."""
+    if value is None:
+        return None
+    if not (isinstance(value, dict) and set(value) == {"box"} and isinstance(value["box"], list)
+            and len(value["box"]) == 2):
+        raise BoardError(f"{where}: body must be {{box: [[x0, y0, z0], [x1, y1, z1]]}} "
+                         "(metres, board frame)")
+    lo = _vector3(value["box"][0], f"{where}: body.box[0]")
+    hi = _vector3(value["box"][1], f"{where}: body.box[1]")
+    if np.any(lo >= hi):
+        raise BoardError(f"{where}: body.box must be [[x0, y0, z0], [x1, y1, z1]] with "
+                         "x0 < x1, y0 < y1, z0 < z1")
+    return tuple(map(float, lo)), tuple(map(float, hi))
+
+
+def sheet_panel_corners(sheet: FaceSheet) -> np.ndarray:
+    """The four panel corners ``(4,3)`` of a face in the board frame (m)."""
+    x0, x1, y0, y1 = sheet.board.panel
+    local = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    return transform_points(sheet.T_board_face, local)
+
+
+def _crossing(a: FaceSheet, b: FaceSheet, tol: float = FACE_CROSS_TOL_M) -> bool:
+    """True when face ``b``'s panel passes through face ``a``'s panel: ``b`` has corners more
+    than ``tol`` on both sides of ``a``'s plane and the line where it crosses that plane runs
+    more than ``tol`` inside ``a``'s panel (faces meeting at an edge, as on a cube, do not)."""
+    local = transform_points(np.linalg.inv(a.T_board_face), sheet_panel_corners(b))
+    z = local[:, 2]
+    if not (z.max() > tol and z.min() < -tol):
+        return False
+    pts = []
+    for i in range(4):
+        p, q = local[i], local[(i + 1) % 4]
+        if (p[2] > 0) != (q[2] > 0):
+            pts.append(p + (q - p) * (p[2] / (p[2] - q[2])))
+    if len(pts) < 2:
+        return False
+    p, q = pts[0][:2], pts[1][:2]
+    x0, x1, y0, y1 = a.board.panel
+    lo, hi = np.array([x0 + tol, y0 + tol]), np.array([x1 - tol, y1 - tol])
+    # clip the segment p + s (q - p), s in [0, 1], to the shrunk panel (Liang-Barsky)
+    d, s0, s1 = q - p, 0.0, 1.0
+    for k in range(2):
+        if abs(d[k]) < 1e-15:
+            if p[k] < lo[k] or p[k] > hi[k]:
+                return False
+            continue
+        ta, tb = (lo[k] - p[k]) / d[k], (hi[k] - p[k]) / d[k]
+        s0, s1 = max(s0, min(ta, tb)), min(s1, max(ta, tb))
+    return s1 - s0 > 0 and (s1 - s0) * float(np.linalg.norm(d)) > tol
+
+
+def multiface_board(dictionary: str, sheets: list[FaceSheet], thickness: float = 0.003,
+                    name: str = "multiface", body=None, source: Path | None = None,
+                    where: str = "board") -> Board:
+    """A multi-face target from its faces (:class:`FaceSheet`, labels 1..F): the measurement
+    ids (ArUco markers as they are, ChArUco quads shifted by the face's ``id_offset``) and
+    corners in the board frame. Raises BoardError for printed marker ids used on two faces
+    and for faces crossing each other."""
+    sheets = list(sheets)
+    printed = [(s, printed_markers(s.board)[0]) for s in sheets]
+    seen: dict[int, int] = {}
+    for s, ids in printed:
+        for i in ids.tolist():
+            if i in seen:
+                raise BoardError(
+                    f"{where}: marker id {i} is printed on faces[{seen[i] - 1}] and "
+                    f"faces[{s.label - 1}]; ids must be unique over the target: give the faces "
+                    "first ids (front_first_id / first_id) that do not overlap")
+            seen[i] = s.label
+    for i, a in enumerate(sheets):
+        for b in sheets[i + 1:]:
+            if _crossing(a, b) or _crossing(b, a):
+                raise BoardError(
+                    f"{where}: faces[{a.label - 1}] and faces[{b.label - 1}] pass through each "
+                    "other; check their pose (rotation_deg, translation_m) and panels: faces may "
+                    "meet at an edge but not cross")
+    ids = np.concatenate([s.board.ids + s.id_offset for s in sheets]).astype(int)
+    corners = np.concatenate([transform_points(s.T_board_face, s.board.corners.reshape(-1, 3))
+                              .reshape(-1, 4, 3) for s in sheets])
+    faces = np.concatenate([np.full(len(s.board.ids), s.label) for s in sheets]).astype(int)
+    xy = np.concatenate([sheet_panel_corners(s) for s in sheets])
+    panel = (float(xy[:, 0].min()), float(xy[:, 0].max()),
+             float(xy[:, 1].min()), float(xy[:, 1].max()))
+    return Board(dictionary, ids, corners, faces, float(thickness), panel, name, None, source,
+                 None, tuple(sheets), body)
+
+
+def refined_multiface(board: Board, T_board_face: dict[int, np.ndarray]) -> Board:
+    """``board`` (multi-face) with its faces at the given poses (the bundle adjustment's
+    self-calibration; faces not given keep theirs): what ``board_refined.yaml`` holds."""
+    sheets = [replace(s, T_board_face=np.asarray(T_board_face.get(s.label, s.T_board_face),
+                                                 dtype=float)) for s in board.sheets]
+    return multiface_board(board.dictionary, sheets, board.thickness, board.name, board.body,
+                           None, board.name)

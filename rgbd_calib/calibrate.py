@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from . import CallableModule, selfcal
-from .board import Board, refined_board
+from .board import Board, refined_board, refined_multiface
 from .camera import CameraIntrinsics
 from .config import BundleConfig, CalibrationConfig, DetectionConfig, PoseConfig
 from .dataset import FolderDataset
@@ -279,7 +279,8 @@ def calibrate(
                                                 {**pg.T_ref_cam, **bundle.T_ref_cam}, boards,
                                                 solve, pg, fixed_cameras,
                                                 intrinsics=rig.cameras,
-                                                back_centre=back_centre(board))
+                                                back_centre=back_centre(board),
+                                                face_frames=face_frames(board))
                 moved = lens_moved(lens_rig, bundle.intrinsics, observations)
                 if not moved:
                     break
@@ -300,6 +301,9 @@ def calibrate(
             model = bundle.board
             depth_board = (refined_board(board, model.T_front_back)
                            if model is not None and not model.held else board)
+            if any(not f.held for f in bundle.faces):  # a multi-face target's refined faces
+                depth_board = refined_multiface(board, {f.label: f.T_board_face
+                                                        for f in bundle.faces if not f.held})
             with timed(timings, "depth"):
                 views = board_views_per_camera(observations, T_ref_cam, bundle.T_ref_board)
                 depth = measure_depth(dataset, depth_board, T_ref_cam, views,
@@ -316,7 +320,8 @@ def calibrate(
                                                    bundle.T_ref_board, solve, pg,
                                                    fixed_cameras, depth.relative_poses,
                                                    intrinsics=rig.cameras,
-                                                   back_centre=back_centre(board))
+                                                   back_centre=back_centre(board),
+                                                   face_frames=face_frames(board))
                 except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
                     depth = depth.with_fallback(f"the joint solve with the depth pairs failed "
                                                 f"({type(exc).__name__}: {exc})".replace(
@@ -543,7 +548,8 @@ def self_calibrated_bundle(
                                    board=board, keep_outlier_views=freed,
                                    boards=init_board if refined else None)
         result = bundle_sound_first(meas, K, rig.reference, init_cam, init_board, cfg, pg,
-                                    fixed_cameras, intrinsics=rig.cameras, back_centre=centre)
+                                    fixed_cameras, intrinsics=rig.cameras, back_centre=centre,
+                                    face_frames=face_frames(board))
         return result, meas, cfg
 
     if not selfcal.is_auto(b):
@@ -570,7 +576,8 @@ def self_calibrated_bundle(
             return (selfcal.LevelFit(trial_level, 0, 0, float("nan"), accepted=False,
                                      reason=f"the solve failed: {exc}"), None, [], cfg, {})
         n_cams = len({m.camera for m in t_meas} - set(fixed_cameras or {}))
-        added = (selfcal.BOARD_PARAMETERS if trial_level.board and not level.board else 0) + (
+        added = (selfcal.board_parameters(board) if trial_level.board and not level.board
+                 else 0) + (
             len(trial_level.intrinsics_params) - len(level.intrinsics_params)) * n_cams
         t_terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, cap)
         ok, gain, reason = selfcal.compare(terms, len(current.T_ref_cam), t_terms,
@@ -578,6 +585,9 @@ def self_calibrated_bundle(
         if ok and trial_level.board and not level.board and trial.board is not None \
                 and trial.board.held:
             ok, reason = False, trial.board.held
+        if ok and trial_level.board and not level.board and trial.faces \
+                and all(f.held for f in trial.faces):
+            ok, reason = False, "; ".join(f.held for f in trial.faces)
         tension = selfcal.prior_tension(trial, rig)
         if ok and tension is not None and tension[0] > selfcal.PRIOR_TENSION:
             # the data put a parameter several prior sigmas from rig.yaml: the prior is wrong
@@ -597,7 +607,7 @@ def self_calibrated_bundle(
                                selfcal.rms_px(t_terms), added, gain, ok, reason)
         return fit, trial, t_meas, t_cfg, t_terms
 
-    double_sided = bool(np.any(np.asarray(board.faces) < 0))
+    double_sided = bool(np.any(np.asarray(board.faces) < 0)) or len(board.face_labels) > 1
     queue = selfcal.candidate_groups(b, double_sided, bool(pg.model_error))
     # a group that a wrong model elsewhere hid (the back sheet judged through an undistorted
     # lens) is tried once more after a later group was accepted
@@ -652,6 +662,15 @@ def lens_moved(detected_with: Rig, refined: dict[str, CameraIntrinsics],
     return moved
 
 
+def face_frames(board: Board) -> dict[int, np.ndarray] | None:
+    """A multi-face target's nominal face poses ``T_board_face`` (label -> 4x4, m) of the faces
+    the board self-calibration may move (all but the reference face); None for a flat board
+    (its back sheet is the :func:`back_centre` model)."""
+    if not board.sheets:
+        return None
+    return {s.label: s.T_board_face for s in board.sheets if s.label != board.reference_face}
+
+
 def back_centre(board: Board) -> np.ndarray | None:
     """Board-file centre (m) of the back-marker grid (its xy bounding box, on the back face):
     where the back sheet's offset is reported; None for a one-sided board."""
@@ -679,6 +698,7 @@ def bundle_sound_first(
     relative_poses: list[RelativePose] = (),
     intrinsics: dict[str, CameraIntrinsics] | None = None,
     back_centre: np.ndarray | None = None,
+    face_frames: dict[int, np.ndarray] | None = None,
 ) -> BundleResult:
     """:func:`~rgbd_calib.graph.bundle_adjust`, so that a camera with a model error does not
     pull the others.
@@ -709,16 +729,18 @@ def bundle_sound_first(
     if joint:
         return bundle_adjust(measurements, K, reference, init_T_ref_cam, init_T_ref_board,
                              config.bundle, fixed_cameras, relative_poses,
-                             intrinsics=intrinsics, back_centre=back_centre)
+                             intrinsics=intrinsics, back_centre=back_centre,
+                             face_frames=face_frames)
     first = bundle_adjust([m for m in measurements if m.camera in sound], K, reference,
                           init_T_ref_cam, init_T_ref_board, config.bundle, fixed_cameras,
                           [r for r in relative_poses if {r.cam_a, r.cam_b} <= sound],
-                          intrinsics=intrinsics, back_centre=back_centre)
+                          intrinsics=intrinsics, back_centre=back_centre,
+                             face_frames=face_frames)
     held = {**first.T_ref_cam, **fixed}
     boards = {**init_T_ref_board, **first.T_ref_board}
     second = bundle_adjust(measurements, K, reference, {**init_T_ref_cam, **held}, boards,
                            config.bundle, held, relative_poses, intrinsics=intrinsics,
-                           back_centre=back_centre)
+                           back_centre=back_centre, face_frames=face_frames)
     keep = set(first.T_ref_cam)
     return replace(
         second,

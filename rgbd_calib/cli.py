@@ -274,6 +274,16 @@ def synth(
             rich_help_panel="Imperfections (docs/synthetic.md)",
         ),
     ] = 1.0,
+    face_error: Annotated[
+        tuple[float, float],
+        typer.Option(
+            metavar="MM DEG",
+            help="multi-face target (a cube, an L): every face but the first moved off its "
+            "board-file pose by MM and turned by DEG, each in a seeded direction of its own "
+            "(a hand-built target); the board file stays nominal.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = (0.0, 0.0),
     board_volume: Annotated[
         float,
         typer.Option(
@@ -326,6 +336,7 @@ def synth(
         glue=glue,
         thickness_error_mm=thickness_error,
         print_scale=print_scale,
+        face_error=face_error,
         board_volume=board_volume,
         closeups=closeups,
         bump=tuple(_parse_bump(text) for text in bump or ()),

@@ -422,7 +422,10 @@ class BundleConfig(BaseModel):
         "cameras, refine keeps all 8 within 0.11 mm / 0.003 deg; clean: fixed 0.140 mm, "
         "refine 0.131 mm worst. auto: refined when the board is double-sided and the refined "
         "sheet calibrates more cameras or fits the corners better than its 4 parameters cost "
-        "(BIC; rgbd_calib/selfcal.py), else the board file's geometry",
+        "(BIC; rgbd_calib/selfcal.py), else the board file's geometry. A multi-face target "
+        "(type: multiface): each face but the first gets a 6-dof pose correction instead, "
+        "under the board_prior_face_* sigmas, observable when a view sees it with another "
+        "face",
     )
     board_prior_offset_mm: float = Field(
         3.0, gt=0, description="prior sigma of the back sheet's in-plane offset (mm, per axis)"
@@ -432,6 +435,15 @@ class BundleConfig(BaseModel):
     )
     board_prior_thickness_mm: float = Field(
         1.0, gt=0, description="prior sigma of the board's thickness (mm)"
+    )
+    board_prior_face_offset_mm: float = Field(
+        3.0, gt=0, description="multi-face target (a cube, an L): prior sigma of each "
+        "non-reference face's shift from its board-file pose (mm, per axis of the face frame; "
+        "a hand-assembled target is a few mm off)"
+    )
+    board_prior_face_rotation_deg: float = Field(
+        1.0, gt=0, description="multi-face target: prior sigma of each non-reference face's "
+        "turn from its board-file pose (deg, per axis of the face frame)"
     )
 
     @model_validator(mode="after")

@@ -323,6 +323,43 @@ def _in_view(intr: CameraIntrinsics, points_cam: np.ndarray, margin_px: float,
 
 
 # --------------------------------------------------------------------------- static clouds
+def target_box(board: Board) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box ``(lo, hi)`` (board frame, m) holding a multi-face target: each face's
+    panel and the plate ``thickness`` behind it, and its ``body``."""
+    pts = []
+    for s in board.sheets:
+        x0, x1, y0, y1 = s.board.panel
+        local = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1)
+                          for z in (0.0, -board.thickness)])
+        pts.append(transform_points(s.T_board_face, local))
+    if board.body is not None:
+        pts.append(np.array(board.body))
+    allp = np.concatenate(pts)
+    return allp.min(axis=0), allp.max(axis=0)
+
+
+def _facing_face(board: Board, T_cam_board: np.ndarray):
+    """The face the camera looks at most squarely, as ``(T_cam_face, panel, z_face)``: the
+    face's pose in the camera, its panel (face frame) and the z of its printed plane; None when
+    the camera sees no face from its front (a flat board: front at z = 0 or back at
+    z = -thickness, in the board frame)."""
+    if not board.sheets:
+        centre_b = invert_transform(T_cam_board)[:3, 3]  # camera centre in the board frame
+        if centre_b[2] > 0:
+            return T_cam_board, board.panel, 0.0
+        if centre_b[2] < -board.thickness:
+            return T_cam_board, board.panel, -board.thickness
+        return None
+    best, best_cos = None, 0.0
+    for s in board.sheets:
+        T_cf = T_cam_board @ s.T_board_face
+        x0, x1, y0, y1 = s.board.panel
+        centre_c = T_cf[:3, :3] @ np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0]) + T_cf[:3, 3]
+        cos = -float(T_cf[:3, 2] @ centre_c) / float(np.linalg.norm(centre_c))
+        if cos > best_cos:
+            best, best_cos = (T_cf, s.board.panel, 0.0), cos
+    return best
+
 def board_mask(intr: CameraIntrinsics, T_cam_board: np.ndarray, board: Board,
                margin_m: float = 0.03, dilate_px: float = 3.0) -> np.ndarray:
     """Pixels ``(H,W)`` bool covered by the board's panel box (both faces and the edges, grown
@@ -334,6 +371,10 @@ def board_mask(intr: CameraIntrinsics, T_cam_board: np.ndarray, board: Board,
     m = margin_m
     box_b = np.array([[x, y, z] for x in (x0 - m, x1 + m) for y in (y0 - m, y1 + m)
                       for z in (m, -board.thickness - m)])
+    if board.sheets:  # a multi-face target: the box around every face's plate and its body
+        lo, hi = target_box(board)
+        box_b = np.array([[x, y, z] for x in (lo[0] - m, hi[0] + m)
+                          for y in (lo[1] - m, hi[1] + m) for z in (lo[2] - m, hi[2] + m)])
     box_c = transform_points(T_cam_board, box_b)
     mask = np.zeros((intr.height, intr.width), dtype=bool)
     if np.all(box_c[:, 2] <= 0.02):
@@ -548,7 +589,6 @@ def estimate_depth_scale(
     config = config or DepthConfig()
     intr = dataset.rig.cameras[camera]
     noise = depth_noise(intr, config)
-    x0, x1, y0, y1 = board.panel
     mg = config.scale_face_margin_m
     cos_max = math.cos(math.radians(config.scale_max_view_angle_deg))
     frames, factors, errors, n_points = [], [], [], 0
@@ -557,13 +597,10 @@ def estimate_depth_scale(
         raw = dataset.read_depth(camera, frame)
         if raw is None:
             continue
-        centre_b = invert_transform(T)[:3, 3]  # camera centre in the board frame
-        if centre_b[2] > 0:
-            z_face = 0.0
-        elif centre_b[2] < -board.thickness:
-            z_face = -board.thickness
-        else:
+        facing = _facing_face(board, T)
+        if facing is None:
             continue
+        T, (x0, x1, y0, y1), z_face = facing  # a multi-face target: in the face's frame
         face = np.array([[x, y, z_face] for x, y in
                          ((x0 + mg, y0 + mg), (x1 - mg, y0 + mg), (x1 - mg, y1 - mg),
                           (x0 + mg, y1 - mg))])

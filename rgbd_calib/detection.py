@@ -185,7 +185,8 @@ def _refine_with_board(
     faces = board.faces[[board.index_of[int(i)] for i in ids if int(i) in board.index_of]]
     if faces.size == 0:
         return corners, ids
-    face = 1 if np.sum(faces == 1) >= np.sum(faces == -1) else -1
+    labels = board.face_labels  # the front (reference) face first: it wins a tie
+    face = labels[int(np.argmax([np.sum(faces == f) for f in labels]))]
     sel = board.faces == face
     cv_board = cv2.aruco.Board(
         board.corners[sel].astype(np.float32), dictionary, board.ids[sel].astype(np.int32)
@@ -213,6 +214,8 @@ def detect_markers(
     maps the corners back to distorted pixels.
     """
     config = config or DetectionConfig()
+    if board.sheets:
+        return detect_multiface(image, board, config, intrinsics)
     if board.charuco is not None:
         return detect_charuco(image, board, config)
     gray = to_gray(image)
@@ -293,6 +296,42 @@ def _subpix_fallback(
         cv2.cornerSubPix(gray, pts, (int(w), int(w)), (-1, -1), criteria)
         out[sel] = pts.reshape(-1, 2)
     return out
+
+
+def detect_multiface(
+    image: np.ndarray,
+    board: Board,
+    config: DetectionConfig | None = None,
+    intrinsics: CameraIntrinsics | None = None,
+) -> MarkerDetections:
+    """The measurements of a multi-face target (``board.sheets``): its ArUco faces' markers in
+    one pass of :func:`detect_markers` over them all (one dictionary, ids unique over the
+    target), each ChArUco face's saddle-corner quads by :func:`detect_charuco` with its ids
+    shifted by the face's ``id_offset``. ``foreign_ids`` are the markers printed nowhere on
+    the target."""
+    config = config or DetectionConfig()
+    parts = []
+    aruco = board.aruco_faces
+    if aruco is not None:
+        parts.append(detect_markers(image, aruco, config, intrinsics))
+    for s in board.sheets:
+        if s.board.charuco is not None:
+            det = detect_charuco(image, s.board, config)
+            parts.append(MarkerDetections(det.ids + s.id_offset, det.corners_px, det.refined,
+                                          det.foreign_ids, det.duplicate_ids, det.image_size,
+                                          det.refinement))
+    printed = set(board.printed_ids.tolist())
+    foreign = np.unique(np.concatenate([p.foreign_ids for p in parts] + [np.zeros(0, int)]))
+    foreign = np.array([i for i in foreign.tolist() if i not in printed], dtype=int)
+    ids = np.concatenate([p.ids for p in parts]).astype(int)
+    order = np.argsort(ids, kind="stable")
+    refinement = parts[0].refinement  # the ArUco faces' when there are any (pose.py drops
+    #                                   unrefined edge-fit corners by it; quads are all refined)
+    return MarkerDetections(
+        ids[order], np.concatenate([p.corners_px for p in parts])[order],
+        np.concatenate([p.refined for p in parts])[order], foreign,
+        np.unique(np.concatenate([p.duplicate_ids for p in parts])).astype(int),
+        parts[0].image_size, refinement)
 
 
 # --------------------------------------------------------------------------- ChArUco

@@ -49,9 +49,11 @@ from .geometry import (
     adjoint,
     invert_transform,
     make_transform,
+    matrix_to_rotvec,
     orthonormalize,
     rotation_angle_deg,
     skew,
+    transform_points,
 )
 from .results import CameraExtrinsics, Extrinsics, PoseEdge
 
@@ -937,7 +939,8 @@ class MarkerMeasurement:
     marker_id: int
     corners_px: np.ndarray  # (4,2) pinhole pixels (fixed intrinsics) or raw pixels (refine)
     object_points: np.ndarray  # (4,3) board frame, metres
-    face: int = 1  # +1 front, -1 back: a back marker moves with the back sheet (board refine)
+    face: int = 1  # +1 front, -1 back: a back marker moves with the back sheet (board refine);
+    #               a multi-face target's face label (its face's pose moves it)
 
 
 @dataclass(frozen=True)
@@ -973,6 +976,8 @@ class BundleResult:
     # board self-calibration (config.board == "refine"): the estimated back-sheet pose, its
     # 6x6 marginal [rot, trans] (right perturbation) and why it was held, if it was
     board: BoardModel | None = None
+    # ... of a multi-face target: each non-reference face's estimated pose (empty otherwise)
+    faces: tuple[FaceModel, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -1024,6 +1029,58 @@ class BoardModel:
         s = np.sqrt(np.maximum(np.diag(J @ self.covariance @ J.T), 0.0))
         return {"offset_x_mm": float(s[0] * 1000), "offset_y_mm": float(s[1] * 1000),
                 "thickness_mm": float(s[2] * 1000), "rotation_deg": float(np.degrees(s[3]))}
+
+
+@dataclass(frozen=True)
+class FaceModel:
+    """A multi-face target's face as the bundle adjustment estimated it (board
+    self-calibration): the face's true pose is ``T_board_face = T_nominal @ Delta``, ``Delta``
+    (4x4, metres, in the nominal face frame: x, y in the sheet, z its outward normal) the
+    correction, ``covariance`` its 6x6 marginal ``[rot rad, trans m]`` for the right
+    perturbation ``Delta @ Exp(xi)`` (face frame), ``centre`` the face-frame centre of its
+    markers, about which the shift is reported. ``held`` names why it was not estimated."""
+
+    label: int
+    T_nominal: np.ndarray
+    Delta: np.ndarray
+    covariance: np.ndarray
+    centre: np.ndarray
+    held: str = ""
+
+    @property
+    def T_board_face(self) -> np.ndarray:
+        return self.T_nominal @ self.Delta
+
+    @property
+    def offset_mm(self) -> np.ndarray:
+        """Shift (x, y along the sheet, z along the normal; mm) of the markers' centre."""
+        c = self.centre
+        return (self.Delta[:3, :3] @ c + self.Delta[:3, 3] - c) * 1000.0
+
+    @property
+    def rotation_deg(self) -> np.ndarray:
+        """Turn as a rotation vector (degrees; x, y tilts, z about the normal)."""
+        return np.degrees(matrix_to_rotvec(self.Delta[:3, :3]))
+
+    @property
+    def sigmas(self) -> dict[str, list[float]]:
+        """Marginal 1-sigmas of the centre's shift (mm, face x, y, z) and of the turn (deg,
+        about face x, y, z): d(Delta c) = R [-[c]x, I] xi."""
+        R, c = self.Delta[:3, :3], self.centre
+        J = np.zeros((6, 6))
+        J[:3, :3] = -R @ skew(c)
+        J[:3, 3:] = R
+        J[3:, :3] = np.eye(3)
+        s = np.sqrt(np.maximum(np.diag(J @ self.covariance @ J.T), 0.0))
+        return {"offset_mm": (s[:3] * 1000).tolist(), "rotation_deg": np.degrees(s[3:]).tolist()}
+
+    def to_dict(self) -> dict[str, Any]:
+        held = bool(self.held)
+        return {"face": int(self.label), "held": self.held or None,
+                "offset_mm": None if held else self.offset_mm.tolist(),
+                "rotation_deg": None if held else self.rotation_deg.tolist(),
+                "sigmas": None if held else self.sigmas,
+                "T_board_face": self.T_board_face.tolist()}
 
 
 def _project(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
@@ -1093,9 +1150,23 @@ def _robust_rows(r: np.ndarray, blocks, H: list[np.ndarray] | None, robust: str,
 
 def _back_sheet(P_b: np.ndarray, back: np.ndarray, T_front_back: np.ndarray) -> np.ndarray:
     """Board points ``P_b`` (N,3) with the rows ``back`` moved by ``T_front_back``."""
+    return _move_faces(P_b, [(back, T_front_back)])
+
+
+def _move_faces(P_b: np.ndarray, moves) -> np.ndarray:
+    """Board points ``P_b`` (N,3) with each ``(rows, C)`` of ``moves`` moving its rows by the
+    board-frame transform ``C`` (4x4): the faces where the self-calibration puts them."""
     P = P_b.copy()
-    P[back] = P_b[back] @ T_front_back[:3, :3].T + T_front_back[:3, 3]
+    for rows, C in moves:
+        P[rows] = P_b[rows] @ C[:3, :3].T + C[:3, 3]
     return P
+
+
+def _face_transform(X: np.ndarray, A: np.ndarray | None) -> np.ndarray:
+    """The board-frame move ``C = A X A^-1`` of a face whose correction ``X`` is expressed in
+    the frame ``A`` (a multi-face target's nominal face pose); ``X`` itself when ``A`` is None
+    (the back sheet's ``T_front_back``, a board-frame transform)."""
+    return X if A is None else A @ X @ invert_transform(A)
 
 
 def _back_sheet_jacobian(J_board: np.ndarray, back: np.ndarray,
@@ -1109,9 +1180,18 @@ def _back_sheet_jacobian(J_board: np.ndarray, back: np.ndarray,
     return J
 
 
+def _face_jacobian(J_board: np.ndarray, rows: np.ndarray, X: np.ndarray,
+                   A: np.ndarray | None) -> np.ndarray:
+    """d(u,v)/dxi (N,2,6) of a face's correction ``X`` (``X <- X Exp(xi)``, expressed in frame
+    ``A``): ``T_ref_board A X Exp(xi) A^-1 = T_ref_board Exp(Ad(A X) xi) C``, so J = J_board
+    Ad(A X) on the face's rows (:func:`_back_sheet_jacobian` when ``A`` is None)."""
+    return _back_sheet_jacobian(J_board, rows, X if A is None else A @ X)
+
+
 def _view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.ndarray,
                  corners_px: np.ndarray, sigma: float, robust: str, robust_k: float,
-                 key_back: int | None = None, back: np.ndarray | None = None):
+                 key_back: int | None = None, back: np.ndarray | None = None,
+                 moving: list | None = None):
     """All markers of one camera view in one factor, each marker with its own robust kernel.
 
     It reproduces, marker by marker, what a per-marker ``Robust(kernel, Isotropic(8, sigma))``
@@ -1129,11 +1209,13 @@ def _view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.
     ``unwhitenedError`` is therefore the loss-scaled whitened residual, not pixels.
 
     With ``key_back`` (board self-calibration) the markers flagged in ``back`` (n,) are on the
-    back sheet, whose pose ``T_front_back`` (a Pose3 variable) moves their board points
-    (:func:`_view_factor_back`)."""
+    back sheet, whose pose ``T_front_back`` (a Pose3 variable) moves their board points;
+    ``moving`` generalises that to several faces (:func:`_view_factor_faces`)."""
     if key_back is not None:
-        return _view_factor_back(key_cam, key_board, key_back, back, K, None, (),
-                                 object_points, corners_px, sigma, robust, robust_k)
+        moving = [(key_back, back, None)]
+    if moving:
+        return _view_factor_faces(key_cam, key_board, moving, K, None, (),
+                                  object_points, corners_px, sigma, robust, robust_k)
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
@@ -1228,15 +1310,17 @@ def _view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
                             base: CameraIntrinsics, names: tuple[str, ...],
                             object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
                             robust: str, robust_k: float, key_back: int | None = None,
-                            back: np.ndarray | None = None):
+                            back: np.ndarray | None = None, moving: list | None = None):
     """:func:`_view_factor` with the camera's intrinsics as a third variable: a vector of the
     parameters ``names`` (the rest of ``base`` held), the board points projected through the
     full model (distortion included) onto the RAW detected pixels ``corners_px`` (n,4,2).
     Same per-marker robust kernel; Jacobians w.r.t. camera pose, board pose, intrinsics
-    (and the back sheet's pose with ``key_back``, :func:`_view_factor_back`)."""
+    (and the face poses with ``key_back`` / ``moving``, :func:`_view_factor_faces`)."""
     if key_back is not None:
-        return _view_factor_back(key_cam, key_board, key_back, back, None, (key_intr, base),
-                                 names, object_points, corners_px, sigma, robust, robust_k)
+        moving = [(key_back, back, None)]
+    if moving:
+        return _view_factor_faces(key_cam, key_board, moving, None, (key_intr, base),
+                                  names, object_points, corners_px, sigma, robust, robust_k)
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
@@ -1260,19 +1344,21 @@ def _view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
                               [key_cam, key_board, key_intr], error)
 
 
-def _view_factor_back(key_cam: int, key_board: int, key_back: int, back: np.ndarray,
-                      K: np.ndarray | None, intr: tuple, names: tuple[str, ...],
-                      object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
-                      robust: str, robust_k: float):
-    """The view factor with the back sheet's pose ``T_front_back`` (Pose3 ``key_back``) as a
-    variable: the corners of the markers flagged in ``back`` (n,) are
-    ``T_front_back @ object_point`` (:func:`_back_sheet`). Pinhole ``K`` (fixed intrinsics),
-    or ``intr = (key_intr, base)`` for refined ones (as :func:`_view_factor_intrinsics`).
-    Keys: camera, board, [intrinsics,] back sheet; same per-marker robust kernel."""
+def _view_factor_faces(key_cam: int, key_board: int, moving: list,
+                       K: np.ndarray | None, intr: tuple, names: tuple[str, ...],
+                       object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
+                       robust: str, robust_k: float):
+    """The view factor with face poses as variables (board self-calibration): ``moving`` lists
+    ``(key, flags, A)`` per face seen, ``flags`` (n,) marking its markers, ``A`` the frame its
+    correction ``X`` (Pose3 ``key``) is expressed in (None: the board frame, the back sheet's
+    ``T_front_back``); a flagged marker's corners are ``A X A^-1 @ object_point``
+    (:func:`_move_faces`). Pinhole ``K`` (fixed intrinsics), or ``intr = (key_intr, base)``
+    for refined ones (as :func:`_view_factor_intrinsics`). Keys: camera, board,
+    [intrinsics,] the faces; same per-marker robust kernel."""
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_file = np.asarray(object_points, dtype=float).reshape(-1, 3)
-    rows = np.repeat(np.asarray(back, dtype=bool), 4)
+    faces = [(key, np.repeat(np.asarray(flags, dtype=bool), 4), A) for key, flags, A in moving]
     inv_sigma = 1.0 / sigma
     keys = [key_cam, key_board]
     if intr:
@@ -1281,11 +1367,12 @@ def _view_factor_back(key_cam: int, key_board: int, key_back: int, back: np.ndar
                                   _padded_distortion(base, names), base.depth_scale)
         columns = np.array([padded.parameter_names.index(nm) for nm in names])
         keys.append(key_intr)
-    keys.append(key_back)
+    keys += [key for key, _, _ in faces]
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
-        T_fb = values.atPose3(key_back).matrix()
-        P_b = _back_sheet(P_file, rows, T_fb)
+        X = [values.atPose3(key).matrix() for key, _, _ in faces]
+        P_b = _move_faces(P_file, [(rows, _face_transform(x, A))
+                                   for (_, rows, A), x in zip(faces, X)])
         T_cam, T_board = values.atPose3(key_cam).matrix(), values.atPose3(key_board).matrix()
         if intr:
             model = _with_parameters(padded, names, values.atVector(key_intr))
@@ -1299,7 +1386,8 @@ def _view_factor_back(key_cam: int, key_board: int, key_back: int, back: np.ndar
             out = [J_cam.reshape(-1, 6) * inv_sigma, J_board.reshape(-1, 6) * inv_sigma]
             if intr:
                 out.append(J_intr.reshape(-1, len(names)) * inv_sigma)
-            out.append(_back_sheet_jacobian(J_board, rows, T_fb).reshape(-1, 6) * inv_sigma)
+            out += [_face_jacobian(J_board, rows, x, A).reshape(-1, 6) * inv_sigma
+                    for (_, rows, A), x in zip(faces, X)]
             return out
 
         return _robust_rows(r, blocks, H, robust, robust_k)
@@ -1316,7 +1404,7 @@ class _ViewGroup:
     index: np.ndarray  # (n,) positions in the active measurement list
     object_points: np.ndarray  # (n,4,3)
     corners_px: np.ndarray  # (n,4,2)
-    back: np.ndarray  # (n,) bool: marker on the back face
+    face: np.ndarray  # (n,) face label of each marker (-1: the back face)
 
 
 def _group_views(active: list[MarkerMeasurement]) -> list[_ViewGroup]:
@@ -1327,7 +1415,7 @@ def _group_views(active: list[MarkerMeasurement]) -> list[_ViewGroup]:
     return [_ViewGroup(c, v, np.array(idx),
                        np.stack([active[i].object_points for i in idx]).astype(float),
                        np.stack([active[i].corners_px for i in idx]).astype(float),
-                       np.array([active[i].face < 0 for i in idx], dtype=bool))
+                       np.array([active[i].face for i in idx], dtype=int))
             for (c, v), idx in members.items()]
 
 
@@ -1337,7 +1425,8 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
                   fixed_cameras: dict[str, np.ndarray] | None = None,
                   relative_poses: list[RelativePose] = (),
                   intrinsics: dict[str, CameraIntrinsics] | None = None,
-                  back_centre: np.ndarray | None = None) -> BundleResult:
+                  back_centre: np.ndarray | None = None,
+                  face_frames: dict[int, np.ndarray] | None = None) -> BundleResult:
     """Joint bundle adjustment of camera poses ``T_ref_cam`` and board poses ``T_ref_board``
     on the marker corners (one GTSAM CustomFactor per camera view holding all its markers,
     robust per marker: :func:`_view_factor`), optionally joined by camera-to-camera
@@ -1362,7 +1451,14 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     by a tight prior. ``back_centre`` (board-file centre of the back-marker grid, m; default:
     of the back markers measured) is where the offset is reported (:class:`BoardModel`). It is
     held at the board file, and ``result.board.held`` says why, when no view has markers of
-    both faces: then a back-sheet shift is the same as a shift of those views' board poses."""
+    both faces: then a back-sheet shift is the same as a shift of those views' board poses.
+
+    A multi-face target (``face_frames``: label -> nominal ``T_board_face`` of each
+    non-reference face) gets, with ``config.board == "refine"``, one Pose3 correction
+    ``Delta`` per such face instead (its true pose ``T_board_face @ Delta``, :class:`FaceModel`)
+    under a prior at the identity with the ``board_prior_face_*`` sigmas on all 6 axes of the
+    face frame; a face that no view sees together with a face already tied to the reference
+    face is held (``result.faces[k].held``)."""
     refine = config.intrinsics == "refine"
     if refine and intrinsics is None:
         raise CalibrationError("refining intrinsics needs the rig's camera models")
@@ -1378,8 +1474,13 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
                 if refine else {})
     kept = [m for m in measurements if m.camera in init_T_ref_cam and m.view in init_T_ref_board]
     key_back = gtsam.symbol("f", 0)
-    board_model = _board_model_setup(kept, config, back_centre)
+    board_model = None if face_frames is not None else _board_model_setup(kept, config,
+                                                                           back_centre)
     solve_board = board_model is not None and not board_model.held
+    face_models = _face_models_setup(kept, config, face_frames)
+    moving = [(key_back, -1, None)] if solve_board else []  # (key, face label, frame A)
+    moving += [(gtsam.symbol("f", m.label), m.label, m.T_nominal) for m in face_models
+               if not m.held]
     if refine:
         kept = [m for m in kept if m.camera in intr_key]
         x0 = {c: intrinsics_vector(intrinsics[c], names) for c in intr_key}
@@ -1388,25 +1489,23 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
 
     problem = _BundleProblem(config, K, cam_key, view_key, intr_key, intrinsics, names,
                              x0 if refine else {}, prior_intr if refine else {}, fixed,
-                             relative_poses, solve_board, key_back, refine)
+                             relative_poses, tuple(moving), refine)
 
     values = _initial_values(problem, cams, views, init_T_ref_cam, init_T_ref_board)
-    back_of = {}
-    if solve_board:
-        back_of = {"T_front_back": lambda vals: vals.atPose3(key_back).matrix()}
 
     def component(active, values):
-        """:func:`_reference_component`, keeping the back sheet's pose."""
+        """:func:`_reference_component`, keeping the face poses (the back sheet's)."""
         out, sub = _reference_component(active, values, cam_key, view_key, set(fixed),
                                         relative_poses, reference, intr_key)
-        if solve_board:
-            sub.insert(key_back, values.atPose3(key_back))
+        for key, _, _ in moving:
+            sub.insert(key, values.atPose3(key))
         return out, sub
 
     def marker_rms(groups, n, values):
         return _marker_rms(groups, n, values, cam_key, view_key, K,
                            _current_models(problem, values),
-                           **{k: f(values) for k, f in back_of.items()})
+                           moves=[(label, _face_transform(values.atPose3(key).matrix(), A))
+                                  for key, label, A in moving])
 
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
@@ -1453,9 +1552,13 @@ def bundle_adjust(measurements: list[MarkerMeasurement], K: dict[str, np.ndarray
     if solve_board:
         board_model = replace(board_model, T_front_back=values.atPose3(key_back).matrix(),
                               covariance=np.asarray(marginals.marginalCovariance(key_back)))
+    face_models = tuple(m if m.held else replace(
+        m, Delta=values.atPose3(gtsam.symbol("f", m.label)).matrix(),
+        covariance=np.asarray(marginals.marginalCovariance(gtsam.symbol("f", m.label))))
+        for m in face_models)
     return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, outliers, sigma_hat,
                         optimizer.iterations(), graph.error(values), refined, sigma_intr,
-                        sigma_prior, board_model)
+                        sigma_prior, board_model, face_models)
 
 
 @dataclass(frozen=True)
@@ -1473,9 +1576,12 @@ class _BundleProblem:
     prior_intr: dict[str, Any]
     fixed: dict[str, np.ndarray]
     relative_poses: list[RelativePose]
-    solve_board: bool
-    key_back: int
+    moving: tuple  # (key, face label, frame A or None) of every face pose solved
     refine: bool  # intrinsics refined: the view factors project raw pixels through the model
+
+    @property
+    def solve_board(self) -> bool:
+        return bool(self.moving)
 
 
 def _build_graph(p: _BundleProblem, groups: list[_ViewGroup], sigma: float,
@@ -1487,8 +1593,9 @@ def _build_graph(p: _BundleProblem, groups: list[_ViewGroup], sigma: float,
     graph = gtsam.NonlinearFactorGraph()
     kind = config.robust if robust else "none"
     for g in groups:
-        extra = ({"key_back": p.key_back, "back": g.back}
-                 if p.solve_board and g.back.any() else {})
+        seen = [(key, g.face == label, A) for key, label, A in p.moving
+                if np.any(g.face == label)]
+        extra = {"moving": seen} if seen else {}
         if p.refine:
             graph.add(_view_factor_intrinsics(
                 p.cam_key[g.camera], p.view_key[g.view], p.intr_key[g.camera],
@@ -1498,10 +1605,9 @@ def _build_graph(p: _BundleProblem, groups: list[_ViewGroup], sigma: float,
             graph.add(_view_factor(p.cam_key[g.camera], p.view_key[g.view], p.K[g.camera],
                                    g.object_points, g.corners_px, sigma, kind,
                                    config.robust_k, **extra))
-    if p.solve_board:
-        graph.add(gtsam.PriorFactorPose3(p.key_back, gtsam.Pose3(),
-                                         gtsam.noiseModel.Diagonal.Sigmas(
-                                             _board_prior_sigmas(config))))
+    for key, _, A in p.moving:
+        graph.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(
+            _board_prior_sigmas(config) if A is None else _face_prior_sigmas(config))))
     for c, k in p.intr_key.items():
         if c in connected:
             graph.add(gtsam.PriorFactorVector(k, p.x0[c], p.prior_intr[c]))
@@ -1535,8 +1641,8 @@ def _initial_values(p: _BundleProblem, cams: list[str], views: list[str],
     for c, k in p.intr_key.items():
         if values.exists(p.cam_key[c]):
             values.insert(k, p.x0[c])
-    if p.solve_board:
-        values.insert(p.key_back, gtsam.Pose3())
+    for key, _, _ in p.moving:
+        values.insert(key, gtsam.Pose3())
     return values
 
 
@@ -1560,11 +1666,13 @@ def _refined_intrinsics(p: _BundleProblem, values: gtsam.Values, marginals: gtsa
 
 def _residual_dof(p: _BundleProblem, n_markers: int, values: gtsam.Values) -> int:
     """Redundancy of the corner fit: 8 residuals per marker less the free parameters (6 per
-    unheld pose, the intrinsics vectors, 4 for the back sheet: its tilts are held)."""
+    unheld pose, the intrinsics vectors, 4 for the back sheet: its tilts are held; 6 for
+    each face of a multi-face target)."""
     n_intr = sum(values.exists(k) for k in p.intr_key.values())
-    n_back = 1 if p.solve_board else 0
+    n_back = len(p.moving)
+    face_params = sum(4 if A is None else 6 for _, _, A in p.moving)
     return max(8 * n_markers - 6 * (values.size() - n_intr - n_back - len(p.fixed))
-               - len(p.names) * n_intr - 4 * n_back, 1)
+               - len(p.names) * n_intr - face_params, 1)
 
 
 def _camera_marginals(cams: list[str], values: gtsam.Values, cam_key: dict[str, int],
@@ -1592,6 +1700,58 @@ def _board_prior_sigmas(config: BundleConfig) -> np.ndarray:
                      np.radians(config.board_prior_rotation_deg),
                      config.board_prior_offset_mm / 1000.0, config.board_prior_offset_mm / 1000.0,
                      config.board_prior_thickness_mm / 1000.0])
+
+
+def _face_prior_sigmas(config: BundleConfig) -> np.ndarray:
+    """Prior sigmas of a multi-face target's face correction ``Delta`` (face frame, GTSAM's
+    order ``[rx, ry, rz, tx, ty, tz]``)."""
+    r = np.radians(config.board_prior_face_rotation_deg)
+    t = config.board_prior_face_offset_mm / 1000.0
+    return np.array([r, r, r, t, t, t])
+
+
+def _face_models_setup(measurements: list[MarkerMeasurement], config: BundleConfig,
+                       face_frames: dict[int, np.ndarray] | None) -> tuple[FaceModel, ...]:
+    """The faces of a multi-face target to estimate (``held`` empty) or why each is held;
+    empty for a double-sided board or with ``config.board`` fixed. A face's pose is
+    observable when it is tied to the reference face (the one not in ``face_frames``)
+    through views that see two faces at once."""
+    if config.board != "refine" or not face_frames:
+        return ()
+    parent: dict[int, int] = {}
+
+    def find(x: int) -> int:
+        parent.setdefault(x, x)
+        while parent[x] != x:
+            x = parent[x]
+        return x
+
+    faces_of: dict[str, set[int]] = defaultdict(set)
+    points: dict[int, list[np.ndarray]] = defaultdict(list)
+    for m in measurements:
+        faces_of[m.view].add(m.face)
+        points[m.face].append(m.object_points)
+    for seen in faces_of.values():
+        first, *rest = sorted(seen)
+        for f in rest:
+            parent[find(f)] = find(first)
+    reference = [f for f in {m.face for m in measurements} if f not in face_frames]
+    ref_root = find(reference[0]) if reference else None
+    out = []
+    for label, T in sorted(face_frames.items()):
+        centre = np.zeros(3)
+        if points[label]:
+            P = transform_points(invert_transform(T), np.concatenate(points[label]).reshape(-1, 3))
+            centre = np.r_[(P[:, :2].min(axis=0) + P[:, :2].max(axis=0)) / 2, 0.0]
+        held = ""
+        if not points[label]:
+            held = f"face {label} was never seen: its pose is held at the board file"
+        elif ref_root is None or find(label) != ref_root:
+            held = (f"no view sees face {label} together with a face tied to the reference "
+                    "face: its pose is unobservable, held at the board file")
+        out.append(FaceModel(label, np.asarray(T, float), np.eye(4), np.zeros((6, 6)), centre,
+                             held))
+    return tuple(out)
 
 
 def _board_model_setup(measurements: list[MarkerMeasurement], config: BundleConfig,
@@ -1663,18 +1823,21 @@ def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
 def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,
                 view_key: dict, K: dict,
                 models: dict[str, CameraIntrinsics] | None = None,
-                T_front_back: np.ndarray | None = None) -> np.ndarray:
+                T_front_back: np.ndarray | None = None, moves=()) -> np.ndarray:
     """RMS corner residual (px) of each of the ``n`` active markers at ``values``:
     sqrt(mean over the 4 corners of |uv - uv_meas|^2), vectorised per camera view; through
     the full camera ``models`` when given (refined intrinsics), else the pinhole ``K``; the
-    back-face markers moved by ``T_front_back`` when given (board self-calibration)."""
+    back-face markers moved by ``T_front_back`` when given (board self-calibration), each
+    face's by its board-frame move ``C`` of ``moves`` ``(label, C)``."""
+    if T_front_back is not None:
+        moves = [(-1, T_front_back)]
     out = np.empty(n)
     for g in groups:
         T_cam = values.atPose3(cam_key[g.camera]).matrix()
         T_board = values.atPose3(view_key[g.view]).matrix()
         P_b = g.object_points.reshape(-1, 3)
-        if T_front_back is not None:
-            P_b = _back_sheet(P_b, np.repeat(g.back, 4), T_front_back)
+        if moves:
+            P_b = _move_faces(P_b, [(np.repeat(g.face == label, 4), C) for label, C in moves])
         if models is not None:
             uv = _project_full(T_cam, T_board, models[g.camera], None, P_b, jacobians=False)[0]
         else:

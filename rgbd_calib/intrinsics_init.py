@@ -61,13 +61,19 @@ class InitialIntrinsics:
 def view_points(det: MarkerDetections, board: Board) -> tuple[np.ndarray, np.ndarray]:
     """Board-frame points ``(N,3)`` (m) and their pixels ``(N,2)`` of one view: the corners of
     its markers on the face with most of them, each point once (a ChArUco board's quads share
-    saddle corners)."""
+    saddle corners); a multi-face target's in that face's frame (z = 0)."""
     if len(det) == 0:
         return np.zeros((0, 3)), np.zeros((0, 2))
     faces = np.array([board.faces[board.index_of[int(i)]] for i in det.ids])
     face = 1 if np.sum(faces == 1) >= np.sum(faces == -1) else -1
+    if board.sheets:  # a multi-face target: its face seen most, in that face's own frame
+        labels = board.face_labels
+        face = labels[int(np.argmax([np.sum(faces == f) for f in labels]))]
     keep = faces == face
     obj = board.object_points(det.ids[keep]).reshape(-1, 3)
+    if board.sheets:
+        T_face_board = np.linalg.inv(board.T_board_face(face))
+        obj = obj @ T_face_board[:3, :3].T + T_face_board[:3, 3]
     px = np.asarray(det.corners_px[keep], dtype=float).reshape(-1, 2)
     _, first = np.unique(np.round(obj, 6), axis=0, return_index=True)
     first = np.sort(first)

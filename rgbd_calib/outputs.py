@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .board import refined_board, save_board
+from .board import refined_board, refined_multiface, save_board
 from .calibrate import CalibrationResult, pose_edges, refined_rig
 from .check import CheckRun
 from .config import write_config
@@ -106,8 +106,8 @@ def write_outputs(
     into out_dir (and fused.ply, copied from ``fused_ply`` when the depth stage made one;
     rig_refined.yaml, rig.yaml's format, when the bundle adjustment refined the intrinsics or
     some were calibrated from scratch;
-    board_refined.yaml, the board file with the back sheet where the bundle adjustment found
-    it, when it refined the board).
+    board_refined.yaml, the board file with the back sheet (a multi-face target: its faces)
+    where the bundle adjustment found it, when it refined the board).
 
     Without ``fused_ply`` an older ``out_dir/fused.ply`` is removed (it would belong to another
     run) and the report previews the cloud from the dataset's depth frames. Above
@@ -132,6 +132,10 @@ def write_outputs(
         model = result.bundle.board if result.bundle is not None else None
         if model is not None and not model.held and result.board is not None:
             save_board(refined_board(result.board, model.T_front_back), stage / BOARD_REFINED)
+        faces = result.bundle.faces if result.bundle is not None else ()
+        if result.board is not None and any(not f.held for f in faces):
+            save_board(refined_multiface(result.board, {f.label: f.T_board_face for f in faces
+                                                         if not f.held}), stage / BOARD_REFINED)
         if result.depth is not None:
             pairs = pairs if pairs is not None else result.depth.pairs
             depth_scale = depth_scale if depth_scale is not None else (

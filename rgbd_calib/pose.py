@@ -35,7 +35,8 @@ class BoardObservation:
 
     ``T_cam_board`` maps board-frame points (metres) into the camera's optical frame.
     ``covariance`` is 6x6 ``[rot rad, trans m]`` in the board (body) frame (GTSAM's Pose3
-    tangent). ``face`` is +1 (front), -1 (back) or 0 (both, only with ``allow_both_faces``).
+    tangent). ``face`` is +1 (front), -1 (back) or 0 (both, only with ``allow_both_faces``); on
+    a multi-face target the label of the one face seen, or 0 for several.
     ``ids``/``corners_px`` ``(N,4,2)``/``object_points`` ``(N,4,3)`` are the markers used;
     ``dropped`` lists markers left out and why (``outlier``, ``minority_face``, ``unrefined``).
     ``model_error_covariance`` is the per-view model-error floor included in ``covariance``
@@ -311,14 +312,56 @@ def model_error_covariance(
     return 0.5 * (cov + cov.T)
 
 
-def _faces_camera(T_cam_board: np.ndarray, object_points: np.ndarray, face: int) -> bool:
+def _faces_camera(T_cam_board: np.ndarray, object_points: np.ndarray, face: int,
+                  normal: np.ndarray | None = None) -> bool:
     """True when the camera is on the outer side of the seen face (else the pose is a
-    mirror solution: the markers could not be seen from there)."""
+    mirror solution: the markers could not be seen from there); ``normal`` the face's outward
+    normal in the board frame (default: ``(0, 0, face)``, a flat board's two faces)."""
     if face == 0:
         return True
-    normal_cam = T_cam_board[:3, :3] @ np.array([0.0, 0.0, float(face)])
+    if normal is None:
+        normal = np.array([0.0, 0.0, float(face)])
+    normal_cam = T_cam_board[:3, :3] @ normal
     centre_cam = T_cam_board[:3, :3] @ object_points.reshape(-1, 3).mean(0) + T_cam_board[:3, 3]
     return bool(normal_cam @ centre_cam < 0.0)
+
+
+def _solve_faces(
+    object_points: np.ndarray, corners_px: np.ndarray, faces: np.ndarray,
+    intrinsics: CameraIntrinsics,
+) -> tuple[np.ndarray, float, float] | None:
+    """PnP of a view that sees several non-coplanar faces of a multi-face target: both IPPE
+    solutions of the face with the most markers, each refined by Levenberg-Marquardt on every
+    corner (``object_points`` ``(N,4,3)``, ``corners_px`` ``(N,4,2)``, ``faces`` ``(N,)``);
+    the one with the lower error wins. ``(T_cam_board, ratio, angle_deg)`` as :func:`_solve`,
+    the ratio and angle between the two refined solutions (the other faces usually settle
+    the planar ambiguity: a small ratio)."""
+    labels, counts = np.unique(faces, return_counts=True)
+    best_face = labels[int(np.argmax(counts))]
+    sel = faces == best_face
+    obj = object_points.reshape(-1, 3).astype(np.float64).reshape(-1, 1, 3)
+    img = corners_px.reshape(-1, 2).astype(np.float64).reshape(-1, 1, 2)
+    rows = np.repeat(sel, 4)
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj[rows], img[rows], intrinsics.K,
+                                                 intrinsics.dist, flags=cv2.SOLVEPNP_IPPE)
+    except cv2.error:
+        return None
+    if not n:
+        return None
+    found = []
+    for rvec, tvec in zip(rvecs, tvecs):
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, intrinsics.K, intrinsics.dist,
+                                          rvec.copy(), tvec.copy())
+        T = _from_rvec_tvec(rvec, tvec)
+        r = reprojection_residuals(T, object_points, corners_px, intrinsics)
+        found.append((float(np.sqrt((r**2).sum(-1).mean())), T))
+    found.sort(key=lambda x: x[0])
+    ratio, angle = 0.0, 0.0
+    if len(found) > 1:
+        ratio = found[0][0] / found[1][0] if found[1][0] > 0 else 1.0
+        angle = rotation_angle_deg(found[0][1][:3, :3].T @ found[1][1][:3, :3])
+    return found[0][1], ratio, angle
 
 
 def estimate_board_pose(
@@ -348,7 +391,10 @@ def estimate_board_pose(
 
     faces = board.faces[[board.index_of[int(i)] for i in ids]] if len(ids) else np.zeros(0)
     n_front, n_back = int(np.sum(faces == 1)), int(np.sum(faces == -1))
-    if n_front and n_back and not config.allow_both_faces:
+    if board.sheets:  # a multi-face target: a view sees several faces at once
+        seen = np.unique(faces)
+        face = int(seen[0]) if len(seen) == 1 else 0
+    elif n_front and n_back and not config.allow_both_faces:
         if n_front == n_back:
             return reject("both_faces", f"{n_front} markers of each face; a camera sees one face")
         face = 1 if n_front > n_back else -1
@@ -361,8 +407,12 @@ def estimate_board_pose(
         return reject("too_few_markers", f"{len(ids)} < min_markers {config.min_markers}")
 
     obj = board.object_points(ids)
+    faces = board.faces_of(ids)
     while True:
-        solved = _solve(obj.reshape(-1, 3), corners.reshape(-1, 2), intrinsics, face != 0)
+        if board.sheets and face == 0:
+            solved = _solve_faces(obj, corners, faces, intrinsics)
+        else:
+            solved = _solve(obj.reshape(-1, 3), corners.reshape(-1, 2), intrinsics, face != 0)
         if solved is None:
             return reject("pnp_failed")
         T_cam_board, ratio, flip_deg = solved
@@ -380,7 +430,10 @@ def estimate_board_pose(
             )
         dropped.setdefault("outlier", []).append(int(ids[worst]))
         keep = np.arange(len(ids)) != worst
-        ids, corners, obj = ids[keep], corners[keep], obj[keep]
+        ids, corners, obj, faces = ids[keep], corners[keep], obj[keep], faces[keep]
+        if board.sheets:
+            seen = np.unique(faces)
+            face = int(seen[0]) if len(seen) == 1 else 0
 
     n_pts = resid.shape[0] * 4
     rss = float((resid**2).sum())
@@ -393,7 +446,12 @@ def estimate_board_pose(
         )
     if rms > config.max_reprojection_rms_px:
         return reject("reprojection_rms", f"{rms:.2f} px > {config.max_reprojection_rms_px} px")
-    if not _faces_camera(T_cam_board, obj, face):
+    if board.sheets:
+        away = [int(f) for f in np.unique(faces)
+                if not _faces_camera(T_cam_board, obj[faces == f], 1, board.face_normal(int(f)))]
+        if away:
+            return reject("face_away", f"the solved pose shows face(s) {away} turned away")
+    elif not _faces_camera(T_cam_board, obj, face):
         return reject("face_away", "the solved pose shows the seen face turned away")
 
     # covariance of the least-squares pose, J for the right perturbation [omega, v] (Pose3)

@@ -19,7 +19,7 @@ both sheets, so the sheets line up when held together against the light.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +62,8 @@ class PrintedSheet:
     png: Path
 
     def to_dict(self) -> dict[str, Any]:
-        return {"face": FACE_NAMES[self.face], "pdf": str(self.pdf), "png": str(self.png),
+        return {"face": FACE_NAMES.get(self.face, f"face{self.face}"), "pdf": str(self.pdf),
+                "png": str(self.png),
                 "corners_page_mm": {int(i): c.tolist()
                                     for i, c in zip(self.ids, self.corners_page_mm, strict=True)}}
 
@@ -549,6 +550,8 @@ def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,
     ConfigError for a bad ``page`` or ``dpi``."""
     if isinstance(dpi, bool) or not isinstance(dpi, int) or dpi < 1:
         raise ConfigError(f"dpi must be a positive whole number, got {dpi!r}")
+    if board.sheets:
+        return _write_multiface(board, Path(out_dir), dpi, page)
     page_name, W, H = choose_page(board, page)
     page_size = (W, H)
     if (W * dpi / MM_PER_INCH) * (H * dpi / MM_PER_INCH) > MAX_RASTER_PX:
@@ -594,3 +597,20 @@ def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,
     files.append(out_dir / "board.pdf")
     return PrintResult(tuple(files), page_name, page_size, dpi, png_size, tuple(sheets),
                        tuple(notes))
+
+
+def _write_multiface(board: Board, out_dir: Path, dpi: int, page: str | None) -> PrintResult:
+    """A multi-face target: one sheet per face, each printed as its own single-face board
+    into ``out_dir/face<k>/`` (``board_front.pdf``/``.png`` there; the sheet's corners on the
+    page in its own frame, the face label in ``sheets``)."""
+    sheets, files, notes = [], [], []
+    first = None
+    for s in board.sheets:
+        named = replace(s.board, name=f"{board.name} face {s.label}", source=board.source)
+        res = write_printable_board(named, out_dir / f"face{s.label}", dpi, page)
+        first = first or res
+        files += list(res.files)
+        notes += [f"face {s.label}: {n}" for n in res.notes]
+        sheets += [replace(sh, face=s.label) for sh in res.sheets]
+    return PrintResult(tuple(files), first.page_name, first.page_size_mm, dpi,
+                       first.png_size_px, tuple(sheets), tuple(notes))

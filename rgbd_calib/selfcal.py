@@ -42,6 +42,12 @@ LOOSEN = 10.0  # ... and its priors are then widened this many times
 BOARD_PARAMETERS = 4  # in-plane offset (2), rotation about the normal, thickness
 
 
+def board_parameters(board) -> int:
+    """The parameters the board self-calibration adds: :data:`BOARD_PARAMETERS` for the back
+    sheet, 6 per non-reference face of a multi-face target."""
+    return 6 * (len(board.sheets) - 1) if board.sheets else BOARD_PARAMETERS
+
+
 @dataclass(frozen=True)
 class ModelLevel:
     """One model of the ladder: whether the back sheet is refined and which intrinsics

@@ -81,6 +81,9 @@ class SynthParams:
     glue: tuple[float, float, float] = (0.0, 0.0, 0.0)  # back sheet: dx mm, dy mm, rot deg
     thickness_error_mm: float = 0.0  # true panel thickness minus the board file's
     print_scale: float = 1.0  # printed size / board file size, both faces
+    # multi-face target: every face but the reference one off its board-file pose by this
+    # shift (mm) and turn (deg), each in a seeded direction of its own (a hand-built cube)
+    face_error: tuple[float, float] = (0.0, 0.0)
     # cameras knocked after the calibration: (name, mm, deg) each, moved in a seeded direction
     bump: tuple[tuple[str, float, float], ...] = ()
     # the volume the board is moved through: the layout's box scaled by this about its centre
@@ -112,6 +115,10 @@ def check_params(params: SynthParams) -> None:
                           "of the layout's board volume")
     if not (0 <= params.closeups <= 64):
         raise ConfigError(f"--closeups {params.closeups}: expected 0-64 frame sets per camera")
+    mm, deg = params.face_error
+    if not (0 <= mm < 100 and 0 <= deg < 30):
+        raise ConfigError(f"--face-error {mm} {deg}: give a shift 0 <= mm < 100 and a turn "
+                          "0 <= deg < 30")
     for name, mm, deg in params.bump:
         if not (mm >= 0 and 0 <= deg < 90):
             raise ConfigError(f"--bump {name} {mm} {deg}: give a shift >= 0 mm and a turn "
@@ -381,6 +388,9 @@ class BoardPrint:
     thickness_m: float
     print_scale: float = 1.0
     T_front_back: np.ndarray = field(default_factory=lambda: np.eye(4))
+    # a multi-face target: the true pose T_board_face of each face (label -> 4x4, metres);
+    # empty: every face where the board file puts it
+    face_poses: dict[int, np.ndarray] = field(default_factory=dict)
 
     @property
     def is_nominal(self) -> bool:
@@ -388,6 +398,13 @@ class BoardPrint:
 
     def corners(self, board: Board) -> np.ndarray:
         """True board-frame corners ``(M,4,3)`` (metres) of the board file's markers."""
+        if board.sheets:
+            out = board.corners.copy()
+            for f, T_true in self.face_poses.items():
+                sel = board.faces == f
+                T = T_true @ invert_transform(board.T_board_face(f))
+                out[sel] = transform_points(T, out[sel].reshape(-1, 3)).reshape(-1, 4, 3)
+            return out
         scaled = board.corners * np.array([self.print_scale, self.print_scale, 1.0])
         back = board.faces == BACK
         scaled[back] = transform_points(self.T_front_back, scaled[back].reshape(-1, 3)).reshape(
@@ -404,8 +421,34 @@ class BoardPrint:
         return xy / self.print_scale
 
 
+def face_perturbation(label: int, mm: float, deg: float) -> np.ndarray:
+    """The error ``Delta`` (4x4, face frame) of face ``label`` of a hand-built target: a shift
+    of ``mm`` and a turn of ``deg`` about axes drawn from a stream seeded by the label (the true
+    face pose is ``T_board_face @ Delta``)."""
+    rng = np.random.default_rng([16, int(label) % 2**31])
+    axis_t, axis_r = rng.normal(size=3), rng.normal(size=3)
+    t = axis_t / np.linalg.norm(axis_t) * mm / 1000.0
+    w = axis_r / np.linalg.norm(axis_r) * np.radians(deg)
+    return make_transform(rotvec_to_matrix(w), t)
+
+
 def board_print(board: Board, params: SynthParams) -> BoardPrint:
-    """The :class:`BoardPrint` of ``params.glue``, ``thickness_error_mm`` and ``print_scale``."""
+    """The :class:`BoardPrint` of ``params.glue``, ``thickness_error_mm`` and ``print_scale``
+    (a double-sided board), or of ``params.face_error`` (a multi-face target)."""
+    if board.sheets:
+        if (tuple(params.glue) != (0, 0, 0) or params.thickness_error_mm != 0
+                or params.print_scale != 1.0):
+            raise ConfigError("--glue, --thickness-error and --print-scale describe a "
+                              "double-sided board; for a multi-face target use --face-error")
+        mm, deg = params.face_error
+        if (mm, deg) == (0, 0):
+            return BoardPrint(board.thickness)
+        return BoardPrint(board.thickness, face_poses={
+            s.label: s.T_board_face @ face_perturbation(s.label, mm, deg)
+            for s in board.sheets if s.label != board.reference_face})
+    if tuple(params.face_error) != (0, 0):
+        raise ConfigError("--face-error moves the faces of a multi-face target; for a "
+                          "double-sided board use --glue / --thickness-error")
     scale = float(params.print_scale)
     dx_mm, dy_mm, rot_deg = params.glue
     thickness_m = board.thickness + params.thickness_error_mm / 1000.0
@@ -441,7 +484,7 @@ def marker_visibility(
     K = cam.intrinsics
     normal_cam = T_cam_board[:3, :3] @ np.array([0.0, 0.0, 1.0])
     count = 0
-    for face in (FRONT, BACK):
+    for face in board.face_labels if board.sheets else (FRONT, BACK):
         sel = board.faces == face
         if not np.any(sel):  # a one-faced board (ChArUco)
             continue
@@ -449,7 +492,11 @@ def marker_visibility(
         if np.any(pts[:, 2] < 0.2):
             continue
         centre = pts.mean(axis=0)
-        cos_view = -face * (normal_cam @ centre) / np.linalg.norm(centre)
+        if board.sheets:  # each face seen from its own side only (the others hide it)
+            cos_view = -((T_cam_board[:3, :3] @ board.face_normal(face)) @ centre) / (
+                np.linalg.norm(centre))
+        else:
+            cos_view = -face * (normal_cam @ centre) / np.linalg.norm(centre)
         if cos_view < np.cos(np.radians(max_angle_deg)):
             continue
         uv = K.project(pts).reshape(-1, 4, 2)
@@ -493,6 +540,8 @@ def sample_board_poses(
             -board.thickness / 2,
         ]
     )
+    if board.sheets:  # a multi-face target: its markers' centre
+        centre_b = board.corners.reshape(-1, 3).mean(axis=0)
     poses: list[np.ndarray] = []
     attempts = 0
     while len(poses) < n_frames:
@@ -517,6 +566,9 @@ def sample_board_poses(
         y_axis = np.cross(z_axis, x_axis)
         R = np.column_stack([x_axis, y_axis, z_axis])
         R = R @ rotvec_to_matrix([0, 0, np.radians(rng.uniform(-25, 25))])
+        if board.sheets:  # turn a random face (not always the first) towards to_cam
+            face = board.face_labels[rng.integers(len(board.face_labels))]
+            R = R @ board.T_board_face(face)[:3, :3].T
         T_world_board = make_transform(R, c - R @ centre_b)
         seen = [marker_visibility(board, k, T_world_board) for k in pinholes]
         if sum(s >= min_markers for s in seen) >= min_cameras:
@@ -620,6 +672,16 @@ def closeup_poses(rig: SynthRig, board: Board, per_camera: int, rng: np.random.G
 
 
 # --------------------------------------------------------------------------- rendering
+BODY_INSET_M = 1e-4  # a multi-face target's plates and body sit this far inside its sheets
+
+
+def _moved(r: Rect, T: np.ndarray) -> Rect:
+    """Rectangle ``r`` (given in a face frame) in the frame ``T`` maps that frame into."""
+    R = T[:3, :3]
+    return Rect(R @ r.origin + T[:3, 3], R @ r.u_axis, R @ r.v_axis, r.size_u, r.size_v,
+                r.albedo, r.texture_seed, r.texture_cell_m)
+
+
 @dataclass
 class _BoardModel:
     """The board as six rectangles in the board frame plus marker look-up per face.
@@ -637,6 +699,7 @@ class _BoardModel:
     corners: np.ndarray = field(init=False)
     faces: np.ndarray = field(init=False)
     black_squares: np.ndarray | None = field(init=False)  # ChArUco only: (rows, cols)
+    sheets: list[_BoardModel] = field(init=False, default_factory=list)  # multi-face: per face
 
     @property
     def thickness(self) -> float:
@@ -644,6 +707,9 @@ class _BoardModel:
 
     def __post_init__(self) -> None:
         b = self.board
+        if b.sheets:
+            self._multiface()
+            return
         x0, x1, y0, y1 = b.panel
         t = self.thickness
         w, h = x1 - x0, y1 - y0
@@ -667,9 +733,38 @@ class _BoardModel:
         }
         self.cells = {int(i): b.marker_cells(int(i)) for i in self.ids}
 
+    def _multiface(self) -> None:
+        """A multi-face target: rectangle k < F is face k's sheet (its panel at the true face
+        pose, its own single-face model giving the print), then each face's plate
+        (``thickness`` behind its sheet) and the ``body`` box, both inset by
+        :data:`BODY_INSET_M` so that no wood surface coincides with a printed one."""
+        b = self.board
+        poses = dict((self.printed.face_poses if self.printed is not None else None) or {})
+        self.sheets = [_BoardModel(s.board) for s in b.sheets]
+        sheets, plates = [], []
+        e, t = BODY_INSET_M, b.thickness
+        for s in b.sheets:
+            T = poses.get(s.label, s.T_board_face)
+            x0, x1, y0, y1 = s.board.panel
+            sheets.append(_moved(rect((x0, y0, 0), (x1 - x0, 0, 0), (0, y1 - y0, 0),
+                                      (1, 1, 1), 0), T))
+            plates += [_moved(r, T) for r in box((x0 + e, y0 + e, -t), (x1 - e, y1 - e, -e),
+                                                 (1, 1, 1), 0)]
+        body = [] if b.body is None else box(np.add(b.body[0], e), np.subtract(b.body[1], e),
+                                             (1, 1, 1), 0)
+        self.rects = sheets + plates + body
+        self.ids, self.corners, self.faces = printed_markers(b)
+        self.black_squares, self.trees, self.cells = None, {}, {}
+
     def reflectance(self, hit_index: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Reflectance of board hits: ink, paper or the panel's edge."""
         out = np.full(hit_index.shape, WOOD)
+        if self.sheets:  # a multi-face target: face k's print on rectangle k, wood elsewhere
+            for k, sheet in enumerate(self.sheets):
+                sel = np.nonzero(hit_index == k)[0]
+                if sel.size:
+                    out[sel] = sheet.reflectance(np.zeros(sel.size, int), a[sel], b[sel])
+            return out
         x0, _, y0, _ = self.board.panel
         for rect_index, face in ((0, FRONT), (1, BACK)):
             sel = np.nonzero(hit_index == rect_index)[0]
@@ -776,6 +871,9 @@ def _board_bbox(model: _BoardModel, K: CameraIntrinsics, T_cam_board: np.ndarray
     x0, x1, y0, y1 = model.board.panel
     t = model.thickness
     pts = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (0.0, -t)])
+    if model.sheets:  # a multi-face target: the corners of every rectangle
+        pts = np.array([r.origin + i * r.size_u * r.u_axis + j * r.size_v * r.v_axis
+                        for r in model.rects for i in (0, 1) for j in (0, 1)])
     pc = pts @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
     if np.all(pc[:, 2] <= 0.01):
         return None
@@ -1022,6 +1120,9 @@ def synthesize(
                     "T_front_back": printed.T_front_back,
                     "print_scale": printed.print_scale,
                     "thickness_m": printed.thickness_m,
+                    **({"T_board_face": {s.label: printed.face_poses.get(s.label,
+                                                                         s.T_board_face)
+                                         for s in board.sheets}} if board.sheets else {}),
                 },
                 "intrinsics": {c.name: c.intrinsics.to_dict() for c in rig.cameras},
                 "params": {
@@ -1111,11 +1212,13 @@ class GroundTruth:
     print_scale: float = 1.0
     thickness_m: float | None = None
     closeups: dict[str, str] = field(default_factory=dict)  # frame -> camera (--closeups)
+    T_board_face: dict[int, np.ndarray] = field(default_factory=dict)  # multi-face: true poses
 
     def board_print(self, board: Board) -> BoardPrint:
         """The physical board of this set, for the board file ``board`` it was rendered with."""
         thickness = board.thickness if self.thickness_m is None else self.thickness_m
-        return BoardPrint(thickness, self.print_scale, self.T_front_back)
+        return BoardPrint(thickness, self.print_scale, self.T_front_back,
+                          dict(self.T_board_face))
 
 
 def load_ground_truth(path: Path) -> GroundTruth:
@@ -1143,4 +1246,6 @@ def load_ground_truth(path: Path) -> GroundTruth:
         float(board.get("print_scale", 1.0)),
         None if thickness is None else float(thickness),
         {str(k): str(v) for k, v in (data.get("closeups") or {}).items()},
+        {int(k): matrix4(v, f"{path}: board.T_board_face.{k}")
+         for k, v in (board.get("T_board_face") or {}).items()},
     )

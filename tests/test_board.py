@@ -8,7 +8,7 @@ import pytest
 import yaml
 from conftest import CONFIGS
 
-from rgbd_calib.board import BACK, FRONT, load_board, thesis_board, winding_sign
+from rgbd_calib.board import BACK, FRONT, load_board, save_board, thesis_board, winding_sign
 from rgbd_calib.errors import BoardError
 
 TABLE = CONFIGS / "board_thesis_table42.yaml"
@@ -118,3 +118,104 @@ def test_explicit_form_round_trip(tmp_path):
     save_board(board, tmp_path / "b.yaml")
     again = load_board(tmp_path / "b.yaml")
     np.testing.assert_allclose(again.corners, board.corners)
+
+
+# ------------------------------------------------------------------------ multi-face targets
+CUBE, CUBE_CHARUCO, L_BOARD = (CONFIGS / "board_cube.yaml", CONFIGS / "board_cube_charuco.yaml",
+                               CONFIGS / "board_L.yaml")
+PLANE_TOL_M = 1e-12
+
+
+def test_flat_board_face_poses_come_from_the_thickness():
+    """The double-sided board's two faces as face poses: front the identity, back flipped about
+    y at z = -thickness; each face's markers on its z = 0 plane, normal (0, 0, +-1)."""
+    board = thesis_board()
+    assert board.face_labels == (FRONT, BACK) and not board.is_multiface
+    for face in (FRONT, BACK):
+        T = board.T_board_face(face)
+        np.testing.assert_array_equal(T[:3, 2], board.face_normal(face))
+        np.testing.assert_array_equal(board.face_normal(face), [0, 0, face])
+        local = (board.corners[board.faces == face].reshape(-1, 3) - T[:3, 3]) @ T[:3, :3]
+        np.testing.assert_allclose(local[:, 2], 0.0, atol=PLANE_TOL_M)
+        # detection order seen from outside: the winding is positive about the face normal
+        c = board.corners[board.faces == face][0]
+        assert np.cross(c[1] - c[0], c[3] - c[0]) @ board.face_normal(face) < 0
+
+
+@pytest.mark.parametrize("path", [CUBE, CUBE_CHARUCO, L_BOARD])
+def test_multiface_faces_on_their_planes_and_round_trip(path, tmp_path):
+    board = load_board(path)
+    assert board.is_multiface and board.face_labels == tuple(range(1, len(board.sheets) + 1))
+    assert len(np.unique(board.ids)) == len(board.ids)
+    for s in board.sheets:
+        T = board.T_board_face(s.label)
+        np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+        local = (board.corners[board.faces == s.label].reshape(-1, 3) - T[:3, 3]) @ T[:3, :3]
+        np.testing.assert_allclose(local[:, 2], 0.0, atol=PLANE_TOL_M)
+        # every marker seen from outside its face winds the detection way round
+        for c in board.corners[board.faces == s.label]:
+            assert np.cross(c[1] - c[0], c[3] - c[0]) @ board.face_normal(s.label) < 0
+    out = tmp_path / "again.yaml"
+    save_board(board, out)
+    again = load_board(out)
+    np.testing.assert_array_equal(again.ids, board.ids)
+    np.testing.assert_allclose(again.corners, board.corners, atol=1e-12)
+    np.testing.assert_array_equal(again.faces, board.faces)
+
+
+def test_cube_faces_point_out_of_the_cube():
+    """configs/board_cube.yaml: 6 faces of a 250 mm cube centred at the origin, each face's
+    markers centred on its side, normals along +-x, +-y, +-z, ids 0..53 unique."""
+    board = load_board(CUBE)
+    normals = np.array([board.face_normal(f) for f in board.face_labels])
+    np.testing.assert_allclose(np.abs(normals).sum(axis=0), [2, 2, 2], atol=1e-12)
+    for f, n in zip(board.face_labels, normals):
+        centre = board.corners[board.faces == f].reshape(-1, 3).mean(axis=0)
+        np.testing.assert_allclose(centre, 0.125 * n, atol=1e-12)
+    assert sorted(board.ids.tolist()) == list(range(54))
+
+
+def _write(tmp_path: Path, data: dict) -> Path:
+    path = tmp_path / "target.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["faces"][1]["board"]["grid"].update(front_first_id=5),
+     "marker id 5 is printed on faces[0] and faces[1]"),
+    (lambda d: d["faces"][1]["pose"].update(translation_m=[0.2, 0.0, 0.1]),
+     "faces[0] and faces[1] pass through each other"),
+    (lambda d: d["faces"][1]["board"]["grid"].update(back_first_id=60),
+     "a face is one sheet"),
+    (lambda d: d["faces"][1]["board"].update(dictionary="DICT_5X5_100"),
+     "differs from the target's DICT_4X4_100"),
+    (lambda d: d["faces"][1]["pose"].update(rotation_deg=[0, 90]),
+     "faces[1].pose.rotation_deg: expected 3 numbers"),
+    (lambda d: d["faces"][1].update(where=1), "unknown key(s) where"),
+    (lambda d: d.update(faces=[]), "faces must be a list"),
+])
+def test_multiface_errors_name_file_face_and_fix(tmp_path, edit, message):
+    data = yaml.safe_load(L_BOARD.read_text())
+    edit(data)
+    path = _write(tmp_path, data)
+    with pytest.raises(BoardError) as err:
+        load_board(path)
+    assert str(path) in str(err.value) and message in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_concave_l_is_valid_and_faces_may_meet_at_an_edge(tmp_path):
+    """Two sheets facing each other across a 90 deg corner (a concave L) meet at an edge
+    without crossing; a face given as the path of a single-face board file."""
+    data = yaml.safe_load(L_BOARD.read_text())
+    data["faces"][1]["pose"] = {"rotation_deg": [0, -90, 0], "translation_m": [0.41, 0, 0.42]}
+    (tmp_path / "charuco.yaml").write_text((CONFIGS / "board_charuco_a3.yaml").read_text()
+                                           + "first_id: 56\n")
+    data["faces"].append({"board": "charuco.yaml", "pose": {"rotation_deg": [90, 0, 0],
+                                                           "translation_m": [0, -0.05, 0]}})
+    data["faces"][2]["pose"]["translation_m"] = [0, -0.3, 0]
+    board = load_board(_write(tmp_path, data))
+    np.testing.assert_allclose(board.face_normal(2), [-1, 0, 0], atol=1e-12)
+    assert board.sheets[2].board.charuco is not None and board.sheets[2].id_offset == 30000
+    assert board.ids.max() < 30000 + 100 and len(board.face_labels) == 3

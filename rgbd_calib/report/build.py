@@ -36,6 +36,14 @@ if TYPE_CHECKING:
 FACE_NAMES = {1: "front", -1: "back", 0: "both"}
 
 
+def face_name(face: int, multiface: bool) -> str:
+    """A view's or marker's face in report.json: front / back / both on a flat board;
+    ``face<k>`` (face k of the board file, 1-based) / ``several`` on a multi-face target."""
+    if multiface:
+        return "several" if face == 0 else f"face{int(face)}"
+    return FACE_NAMES[int(face)]
+
+
 # ----------------------------------------------------------------------------- primary numbers
 def report_dict(
     result: CalibrationResult,
@@ -70,9 +78,9 @@ def report_dict(
         },
         "unconnected": result.extrinsics.unconnected,
         "pose_graph": _pose_graph_entry(result.posegraph, result.model_error_factor),
-        "views": [_view_entry(r) for r in rows],
+        "views": [_view_entry(r, result.board) for r in rows],
         "board_views": _board_view_entries(rows, boards, rig.names),
-        "markers": _marker_entries(rows),
+        "markers": _marker_entries(rows, result.board),
         "reprojection_histogram_edges_px": edges_px.tolist(),
         "dropped_views": [
             {
@@ -190,6 +198,11 @@ def _final_marker_residuals(
                  if result.bundle else None)
     model = result.bundle.board if result.bundle else None
     T_front_back = model.T_front_back if model is not None and not model.held else None
+    board = result.board
+    face_moves = {}  # a multi-face target's faces where the bundle found them (board frame)
+    for f in (result.bundle.faces if result.bundle else ()):
+        if not f.held:
+            face_moves[f.label] = f.T_board_face @ invert_transform(f.T_nominal)
     rows: list[dict[str, Any]] = []
     for o in result.observations:
         edge = edge_of.get((o.camera, o.frame))
@@ -208,6 +221,11 @@ def _final_marker_residuals(
                 back = P_b[:, 2] < -model.thickness_m / 2
                 P_b = P_b.copy()
                 P_b[back] = P_b[back] @ T_front_back[:3, :3].T + T_front_back[:3, 3]
+            if face_moves and board is not None:
+                rows4 = np.repeat(board.faces_of(o.ids), 4)
+                P_b = P_b.copy()
+                for label, C in face_moves.items():
+                    P_b[rows4 == label] = P_b[rows4 == label] @ C[:3, :3].T + C[:3, 3]
             pts = P_b @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
             uv = _final_model(result, rig, o.camera).project(pts).reshape(-1, 4, 2)
             row["rms"] = np.sqrt(np.mean(np.sum((uv - o.corners_px) ** 2, axis=-1), axis=-1))
@@ -345,12 +363,15 @@ def _count(items: list[str]) -> dict[str, int]:
     return out
 
 
-def _view_entry(row: dict[str, Any]) -> dict[str, Any]:
+def _view_entry(row: dict[str, Any], board=None) -> dict[str, Any]:
     o, edge, rms = row["obs"], row["edge"], row["rms"]
+    multiface = board is not None and board.is_multiface
     centre_cam = (
         o.T_cam_board[:3, :3] @ o.object_points.reshape(-1, 3).mean(0) + o.T_cam_board[:3, 3]
     )
-    normal_cam = o.T_cam_board[:3, :3] @ np.array([0.0, 0.0, float(o.face or 1)])
+    normal_b = (board.face_normal(int(o.face or board.reference_face)) if multiface
+                else np.array([0.0, 0.0, float(o.face or 1)]))
+    normal_cam = o.T_cam_board[:3, :3] @ normal_b
     ray = centre_cam / np.linalg.norm(centre_cam)
     tilt = float(np.degrees(np.arccos(np.clip(abs(float(normal_cam @ ray)), 0.0, 1.0))))
     px = o.corners_px.reshape(-1, 2)
@@ -359,7 +380,7 @@ def _view_entry(row: dict[str, Any]) -> dict[str, Any]:
         "frame": o.frame,
         "markers": int(o.n_markers),
         "reprojection_rms_px": float(o.reprojection_rms_px),
-        "face": FACE_NAMES[int(o.face)],
+        "face": face_name(int(o.face), multiface),
         "distance_m": float(np.linalg.norm(centre_cam)),
         "tilt_deg": tilt,
         "image_bbox_px": [
@@ -410,6 +431,9 @@ def board_refined_entry(result: CalibrationResult) -> dict[str, Any]:
     rotation (deg, counter-clockwise seen from the front) at the centre of the back-marker
     grid, the thickness and its change (mm), their marginal sigmas, and why it was held."""
     model = result.bundle.board if result.bundle is not None else None
+    faces = result.bundle.faces if result.bundle is not None else ()
+    if faces:
+        return {"refined_faces": [f.to_dict() for f in faces]}
     if model is None:
         return {}
     held = bool(model.held)
@@ -484,7 +508,7 @@ def _board_view_entries(
     ]
 
 
-def _marker_entries(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def _marker_entries(rows: list[dict[str, Any]], board=None) -> list[dict[str, Any]]:
     """``markers[]``: per marker id, the RMS and max of its used final reprojection errors."""
     marker_rows: dict[int, list[float]] = {}
     marker_face: dict[int, str] = {}
@@ -497,7 +521,10 @@ def _marker_entries(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         ):
             if ok:
                 marker_rows.setdefault(int(mid), []).append(float(value))
-                marker_face[int(mid)] = "back" if z < -1e-6 else "front"
+                marker_face[int(mid)] = (
+                    face_name(int(board.faces[board.index_of[int(mid)]]), True)
+                    if board is not None and board.is_multiface
+                    else "back" if z < -1e-6 else "front")
     return [
         {
             "id": m,
@@ -623,6 +650,10 @@ def _camera_coverage(
     best = max(shared, key=lambda k: (shared[k], -index[k])) if shared else None
     best = best if best and shared[best] > 0 else None
     faces = {f: sum(1 for v in mine if v["face"] == f) for f in ("front", "back", "both")}
+    if any(v["face"].startswith("face") or v["face"] == "several" for v in mine):
+        # a multi-face target: views of one face count as front, of several as both
+        faces = {"front": sum(1 for v in mine if v["face"].startswith("face")), "back": 0,
+                 "both": sum(1 for v in mine if v["face"] == "several")}
     return {
         "image_fraction": fraction,
         "missing_regions": missing,

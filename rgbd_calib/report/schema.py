@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from typing import Any
 
 from ..errors import RgbdCalibError
@@ -210,6 +211,14 @@ REPORT_SCHEMA: dict[str, Any] = {
             ),
             "T_front_back": MAT4,
         },
+        "refined_faces?": ListOf({
+            "face": INT,
+            "held": Nullable(S),
+            "offset_mm": Nullable(ListOf(N)),
+            "rotation_deg": Nullable(ListOf(N)),
+            "sigmas": Nullable({"offset_mm": ListOf(N), "rotation_deg": ListOf(N)}),
+            "T_board_face": MAT4,
+        }),
     },
     "cameras": MapOf("<camera>", CAMERA_SCHEMA),
     "unconnected": MapOf("<camera>", S),
@@ -322,7 +331,7 @@ ENUMS = {
     "method": {"bundle", "posegraph", "depth"},
     "outcome": {"refined", "unchanged", "check"},
     "depth_scale_source": {"board", "given", "unknown", "none"},
-    "face": {"front", "back", "both"},
+    "face": {"front", "back", "both", "several"},  # and face<k> (a multi-face target)
     "edge_status": {"used", "outlier", "stale", "unused"},
     "verdict": {"good", "check", "poor"},
     "severity": {"error", "warning", "info"},
@@ -415,7 +424,8 @@ def _check(value: Any, node: Any, path: str, errors: list[str]) -> None:
             if name in value:
                 _check(value[name], child, sub, errors)
                 leaf = name if name in ENUMS else None
-                if leaf and isinstance(value[name], str) and value[name] not in ENUMS[leaf]:
+                if leaf and isinstance(value[name], str) and value[name] not in ENUMS[leaf] \
+                        and not (leaf == "face" and re.fullmatch(r"face\d+", value[name])):
                     errors.append(f"{sub}: {value[name]!r} not one of {sorted(ENUMS[leaf])}")
             elif not key.endswith("?"):
                 errors.append(f"{sub}: missing")
