@@ -91,9 +91,10 @@ def test_prior_tension_and_loosening():
 
 
 def test_lens_refined_from_thin_coverage_is_named():
-    """Warning ``lens_coverage``: distortion refined from views covering < 35 % of the image
-    (the polynomial is extrapolated towards the corners); focal/centre only, or good
-    coverage, raise nothing."""
+    """Warning ``lens_coverage``: distortion refined from views covering < 35 % of the image,
+    or never reaching one of its corners (the polynomial is extrapolated towards them);
+    focal/centre only, or good coverage (an edge region missed is not a corner), raise
+    nothing."""
     from rgbd_calib.report.findings import lens_coverage
 
     entry = {"prior": 0.0, "prior_sigma": 0.1, "refined": 0.08, "sigma": 0.001,
@@ -101,7 +102,10 @@ def test_lens_refined_from_thin_coverage_is_named():
     report = {"cameras": {
         "thin": {"intrinsics_refined": {"fx": entry, "k1": entry},
                  "coverage": {"image_fraction": 0.13}},
-        "wide": {"intrinsics_refined": {"k1": entry}, "coverage": {"image_fraction": 0.6}},
+        "wide": {"intrinsics_refined": {"k1": entry},
+                 "coverage": {"image_fraction": 0.6, "missing_regions": ["right"]}},
+        "cornerless": {"intrinsics_refined": {"k1": entry},
+                       "coverage": {"image_fraction": 0.4, "missing_regions": ["bottom-right"]}},
         "focal": {"intrinsics_refined": {"fx": entry}, "coverage": {"image_fraction": 0.1}},
         "fixed": {"coverage": {"image_fraction": 0.1}},
     }}
@@ -109,5 +113,6 @@ def test_lens_refined_from_thin_coverage_is_named():
     assert len(found) == 1
     f = found[0]
     as_dict = f if isinstance(f, dict) else f.to_dict()
-    assert as_dict["code"] == "lens_coverage" and as_dict["cameras"] == ["thin"]
+    assert as_dict["code"] == "lens_coverage" and as_dict["cameras"] == ["thin", "cornerless"]
     assert "thin 13%" in as_dict["message"]
+    assert "cornerless 40%, never the bottom-right corner" in as_dict["message"]

@@ -67,6 +67,7 @@ REGIONS = (
     ("left", "centre", "right"),
     ("bottom-left", "bottom", "bottom-right"),
 )
+CORNER_REGIONS = ("top-left", "top-right", "bottom-left", "bottom-right")
 
 DROP_ADVICE = {
     "too_few_markers": "board too far, too oblique or half out of the image: bring it closer "
