@@ -652,6 +652,7 @@ def refine(
     tolerance_mm: Annotated[float, TOLERANCE_MM_OPTION] = 2.0,
     tolerance_deg: Annotated[float, TOLERANCE_DEG_OPTION] = 0.2,
     scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
+    config: Annotated[Path | None, DEPTH_CONFIG_OPTION] = None,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view)."""
     import math
@@ -661,15 +662,16 @@ def refine(
     from .refine import load_board_views, refine_extrinsics, refine_verdict
 
     _check_method(method)
+    depth_config = _depth_config(config)
     ds, init_ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, init)
     T_ref_board, board_cameras = load_board_views(init.parent / "report.json")
     if fix_others:
         _fix_others(ds, init, init_ext, scales, method, out, tolerance_mm, tolerance_deg,
-                    scheduler)
+                    scheduler, depth_config)
         return
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
-        ext, depth = refine_extrinsics(ds, init_ext, method, progress=progress,
+        ext, depth = refine_extrinsics(ds, init_ext, method, depth_config, progress=progress,
                                        depth_scales=scales, board=b, T_ref_board=T_ref_board,
                                        board_cameras=board_cameras, scheduler=scheduler)
     sources = depth.scale_source
@@ -698,6 +700,19 @@ def refine(
 
 def _warn_line(message: str) -> None:
     console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
+
+
+DEPTH_CONFIG_OPTION = typer.Option(
+    "--config", help="YAML overriding depth settings: its `depth:` section (the same file "
+    "calibrate --config takes; config_resolved.yaml beside a result lists them all).")
+
+
+def _depth_config(config: Path | None):
+    """The ``depth`` settings of a ``--config`` file (None: the defaults); a bad file or key
+    stops with one line naming it, before anything is read."""
+    from .config import load_config
+
+    return load_config(config).depth if config is not None else None
 
 
 TOLERANCE_MM_OPTION = typer.Option(
@@ -731,30 +746,32 @@ def _check_table(result, title: str) -> None:
                           soft_wrap=True)
 
 
-def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler=None):
+def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler=None,
+               depth_config=None):
     from .check import Tolerance, check_dataset
 
     with stage_progress() as progress:
-        return check_dataset(ds, calib, scales, method,
+        return check_dataset(ds, calib, scales, method, depth_config,
                              tolerance=Tolerance(tolerance_mm, tolerance_deg), progress=progress,
                              scheduler=scheduler)
 
 
 def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolerance_deg,
-                scheduler=None):
+                scheduler=None, depth_config=None):
     """refine --fix-others: check, then re-register only the moved cameras."""
     from .check import fix_moved
     from .outputs import DepthOnlyRun, write_fix_outputs
     from .progress import start
     from .refine import fix_verdict
 
-    run = _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler)
+    run = _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler,
+                     depth_config)
     _check_table(run.result, f"{ds.path} against {init}")
     unknown = {c for c, k in run.scale_source.items() if k == "unknown"}
     with stage_progress() as progress:
         tick = start(progress, "re-registering the moved cameras", 1)
         fixed, pairs = fix_moved(run.clouds, calib, run.result, run.overlaps, method,
-                                 unknown_scale=unknown, scheduler=scheduler)
+                                 depth_config, unknown_scale=unknown, scheduler=scheduler)
         tick(1)
     moved = run.result.moved
     verdict = fix_verdict(calib, fixed, moved, pairs)
@@ -797,6 +814,7 @@ def check(
     names: Annotated[str | None, NAMES_OPTION] = None,
     sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
     scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
+    config: Annotated[Path | None, DEPTH_CONFIG_OPTION] = None,
 ) -> None:
     """Has a camera moved since the calibration? Exit 0: all in place; 1: moved (named)."""
     from .errors import ConfigError
@@ -809,8 +827,10 @@ def check(
     if not path.is_file():
         raise ConfigError(f"{calib}: no extrinsics.yaml; give a calibrate output folder or an "
                           "extrinsics.yaml with --calib")
+    depth_config = _depth_config(config)
     ds, ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, path)
-    run = _run_check(ds, ext, scales, method, tolerance_mm, tolerance_deg, scheduler)
+    run = _run_check(ds, ext, scales, method, tolerance_mm, tolerance_deg, scheduler,
+                     depth_config)
     _check_table(run.result, f"{ds.path} against {path}")
     if unknown := [c for c, k in run.scale_source.items() if k == "unknown"]:
         console.print(f"depth scale unknown (no report.json with depth_scale_factor next to "

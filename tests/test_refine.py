@@ -186,3 +186,29 @@ def test_a_failing_figure_costs_the_page_not_the_refined_extrinsics(tiny_calibra
     assert "report.html not written (RuntimeError: no display)" in res.output
     assert not (out / "report.html").exists()
     assert (out / "extrinsics.yaml").is_file() and (out / "report.json").is_file()
+
+
+def test_refine_and_check_take_the_depth_settings_of_a_config_file(tiny_calibration, tmp_path):
+    """`--config` gives refine and check calibrate's depth settings (its `depth:` section):
+    a minimum fitness no pair reaches leaves refine nothing to use; a bad key stops both with
+    one line naming the file, before anything is read or written."""
+    data, calib, _ = tiny_calibration
+    strict = tmp_path / "strict.yaml"
+    strict.write_text("depth:\n  min_fitness: 0.999\n")
+    out = tmp_path / "refined"
+    res = CliRunner().invoke(app, ["refine", str(data), "--init", str(calib / "extrinsics.yaml"),
+                                   "--out", str(out), "--config", str(strict)])
+    assert res.exit_code == 0, res.output
+    legacy = json.loads((out / "refine_report.json").read_text())
+    assert legacy["verdict"] == "unchanged"
+    assert legacy["pairs"] and all(not p["accepted"] and "fitness" in p["reason"]
+                                   for p in legacy["pairs"])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("depth:\n  min_fitnes: 0.5\n")
+    for cmd in (["refine", str(data), "--init", str(calib / "extrinsics.yaml")],
+                ["check", str(data), "--calib", str(calib)]):
+        out = tmp_path / f"bad_{cmd[0]}"
+        res = CliRunner().invoke(app, [*cmd, "--out", str(out), "--config", str(bad)])
+        assert res.exit_code == 2, res.output
+        assert str(bad) in res.output and "min_fitnes" in res.output
+        assert "Traceback" not in res.output and not out.exists()
