@@ -1148,11 +1148,6 @@ def _robust_rows(r: np.ndarray, blocks, H: list[np.ndarray] | None, robust: str,
     return r.reshape(-1) * sw[:, 0]
 
 
-def _back_sheet(P_b: np.ndarray, back: np.ndarray, T_front_back: np.ndarray) -> np.ndarray:
-    """Board points ``P_b`` (N,3) with the rows ``back`` moved by ``T_front_back``."""
-    return _move_faces(P_b, [(back, T_front_back)])
-
-
 def _move_faces(P_b: np.ndarray, moves) -> np.ndarray:
     """Board points ``P_b`` (N,3) with each ``(rows, C)`` of ``moves`` moving its rows by the
     board-frame transform ``C`` (4x4): the faces where the self-calibration puts them."""
@@ -1190,7 +1185,6 @@ def _face_jacobian(J_board: np.ndarray, rows: np.ndarray, X: np.ndarray,
 
 def _view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.ndarray,
                  corners_px: np.ndarray, sigma: float, robust: str, robust_k: float,
-                 key_back: int | None = None, back: np.ndarray | None = None,
                  moving: list | None = None):
     """All markers of one camera view in one factor, each marker with its own robust kernel.
 
@@ -1208,11 +1202,8 @@ def _view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.
     ``object_points`` (n,4,3), ``corners_px`` (n,4,2) undistorted pinhole pixels. The factor's
     ``unwhitenedError`` is therefore the loss-scaled whitened residual, not pixels.
 
-    With ``key_back`` (board self-calibration) the markers flagged in ``back`` (n,) are on the
-    back sheet, whose pose ``T_front_back`` (a Pose3 variable) moves their board points;
-    ``moving`` generalises that to several faces (:func:`_view_factor_faces`)."""
-    if key_back is not None:
-        moving = [(key_back, back, None)]
+    With ``moving`` (board self-calibration) the markers of each listed face are moved by that
+    face's pose, a Pose3 variable (:func:`_view_factor_faces`)."""
     if moving:
         return _view_factor_faces(key_cam, key_board, moving, K, None, (),
                                   object_points, corners_px, sigma, robust, robust_k)
@@ -1309,15 +1300,12 @@ def _project_full(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, intr: CameraIn
 def _view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
                             base: CameraIntrinsics, names: tuple[str, ...],
                             object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
-                            robust: str, robust_k: float, key_back: int | None = None,
-                            back: np.ndarray | None = None, moving: list | None = None):
+                            robust: str, robust_k: float, moving: list | None = None):
     """:func:`_view_factor` with the camera's intrinsics as a third variable: a vector of the
     parameters ``names`` (the rest of ``base`` held), the board points projected through the
     full model (distortion included) onto the RAW detected pixels ``corners_px`` (n,4,2).
     Same per-marker robust kernel; Jacobians w.r.t. camera pose, board pose, intrinsics
-    (and the face poses with ``key_back`` / ``moving``, :func:`_view_factor_faces`)."""
-    if key_back is not None:
-        moving = [(key_back, back, None)]
+    (and the face poses with ``moving``, :func:`_view_factor_faces`)."""
     if moving:
         return _view_factor_faces(key_cam, key_board, moving, None, (key_intr, base),
                                   names, object_points, corners_px, sigma, robust, robust_k)
@@ -1710,6 +1698,24 @@ def _face_prior_sigmas(config: BundleConfig) -> np.ndarray:
     return np.array([r, r, r, t, t, t])
 
 
+def _union_find():
+    """``(find, union)`` of a disjoint-set forest over hashable items (path halving): the
+    connected parts of a graph given edge by edge."""
+    parent: dict = {}
+
+    def find(x):
+        parent.setdefault(x, x)
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    def union(a, b) -> None:
+        parent[find(a)] = find(b)
+
+    return find, union
+
+
 def _face_models_setup(measurements: list[MarkerMeasurement], config: BundleConfig,
                        face_frames: dict[int, np.ndarray] | None) -> tuple[FaceModel, ...]:
     """The faces of a multi-face target to estimate (``held`` empty) or why each is held;
@@ -1718,14 +1724,7 @@ def _face_models_setup(measurements: list[MarkerMeasurement], config: BundleConf
     through views that see two faces at once."""
     if config.board != "refine" or not face_frames:
         return ()
-    parent: dict[int, int] = {}
-
-    def find(x: int) -> int:
-        parent.setdefault(x, x)
-        while parent[x] != x:
-            x = parent[x]
-        return x
-
+    find, union = _union_find()
     faces_of: dict[str, set[int]] = defaultdict(set)
     points: dict[int, list[np.ndarray]] = defaultdict(list)
     for m in measurements:
@@ -1734,7 +1733,7 @@ def _face_models_setup(measurements: list[MarkerMeasurement], config: BundleConf
     for seen in faces_of.values():
         first, *rest = sorted(seen)
         for f in rest:
-            parent[find(f)] = find(first)
+            union(f, first)
     reference = [f for f in {m.face for m in measurements} if f not in face_frames]
     ref_root = find(reference[0]) if reference else None
     out = []
@@ -1786,18 +1785,7 @@ def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
     """Keep the measurements and values connected to the reference camera (a camera or view
     cut off from it has no determined pose: its marginals would be singular); ``intr_key``
     (camera -> intrinsics vector key) keeps the intrinsics of the kept cameras."""
-    parent: dict[str, str] = {}
-
-    def find(x: str) -> str:
-        parent.setdefault(x, x)
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    def union(a: str, b: str) -> None:
-        parent[find(a)] = find(b)
-
+    find, union = _union_find()
     for camera, view in dict.fromkeys((m.camera, m.view) for m in active):
         union("c:" + camera, "v:" + view)
     for r in relative_poses:
@@ -1822,15 +1810,12 @@ def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
 
 def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,
                 view_key: dict, K: dict,
-                models: dict[str, CameraIntrinsics] | None = None,
-                T_front_back: np.ndarray | None = None, moves=()) -> np.ndarray:
+                models: dict[str, CameraIntrinsics] | None = None, moves=()) -> np.ndarray:
     """RMS corner residual (px) of each of the ``n`` active markers at ``values``:
     sqrt(mean over the 4 corners of |uv - uv_meas|^2), vectorised per camera view; through
-    the full camera ``models`` when given (refined intrinsics), else the pinhole ``K``; the
-    back-face markers moved by ``T_front_back`` when given (board self-calibration), each
-    face's by its board-frame move ``C`` of ``moves`` ``(label, C)``."""
-    if T_front_back is not None:
-        moves = [(-1, T_front_back)]
+    the full camera ``models`` when given (refined intrinsics), else the pinhole ``K``; each
+    face's markers moved by its board-frame move ``C`` of ``moves`` ``(label, C)`` (board
+    self-calibration)."""
     out = np.empty(n)
     for g in groups:
         T_cam = values.atPose3(cam_key[g.camera]).matrix()

@@ -85,7 +85,7 @@ def test_back_sheet_jacobians_match_numerical():
     """The whole factor's error against numerical differences, for every key (right
     perturbations, rotation first), with pinhole K."""
     values, P, back, measured = _factor_values(np.random.default_rng(2))
-    f = _view_factor(0, 1, K, P, measured, 1.0, "none", 3.0, key_back=3, back=back)
+    f = _view_factor(0, 1, K, P, measured, 1.0, "none", 3.0, moving=[(3, back, None)])
     A, b = f.linearize(values).jacobian()
     e0, numerical = _numerical_jacobian(f, values, [(0, "pose", 6), (1, "pose", 6),
                                                     (3, "pose", 6)])
@@ -102,7 +102,7 @@ def test_back_sheet_with_refined_intrinsics_jacobians_match_numerical():
                             (-0.05, 0.02, 0.001, -0.0005, 0.01))
     values.insert(2, intrinsics_vector(intr, names) * 1.002)
     f = _view_factor_intrinsics(0, 1, 2, intr, names, P, measured, 1.0, "none", 3.0,
-                                key_back=3, back=back)
+                                moving=[(3, back, None)])
     A, b = f.linearize(values).jacobian()
     e0, numerical = _numerical_jacobian(
         f, values, [(0, "pose", 6), (1, "pose", 6), (2, "vector", len(names)), (3, "pose", 6)])
