@@ -481,35 +481,7 @@ def marker_visibility(
 ) -> int:
     """How many markers a camera sees whole, facing it, and at least ``min_px`` wide."""
     T_cam_board = invert_transform(cam.T_world_cam) @ T_world_board
-    K = cam.intrinsics
-    normal_cam = T_cam_board[:3, :3] @ np.array([0.0, 0.0, 1.0])
-    count = 0
-    for face in board.face_labels if board.sheets else (FRONT, BACK):
-        sel = board.faces == face
-        if not np.any(sel):  # a one-faced board (ChArUco)
-            continue
-        pts = board.corners[sel].reshape(-1, 3) @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
-        if np.any(pts[:, 2] < 0.2):
-            continue
-        centre = pts.mean(axis=0)
-        if board.sheets:  # each face seen from its own side only (the others hide it)
-            cos_view = -((T_cam_board[:3, :3] @ board.face_normal(face)) @ centre) / (
-                np.linalg.norm(centre))
-        else:
-            cos_view = -face * (normal_cam @ centre) / np.linalg.norm(centre)
-        if cos_view < np.cos(np.radians(max_angle_deg)):
-            continue
-        uv = K.project(pts).reshape(-1, 4, 2)
-        inside = np.all(
-            (uv[..., 0] > 2)
-            & (uv[..., 0] < K.width - 3)
-            & (uv[..., 1] > 2)
-            & (uv[..., 1] < K.height - 3),
-            axis=1,
-        )
-        size = np.linalg.norm(uv[:, 0] - uv[:, 1], axis=1)
-        count += int(np.sum(inside & (size >= min_px)))
-    return count
+    return len(_visible_corners(board, cam, T_cam_board, min_px, max_angle_deg))
 
 
 def sample_board_poses(
@@ -579,25 +551,26 @@ def sample_board_poses(
 def _visible_corners(board: Board, cam: SynthCamera, T_cam_board: np.ndarray,
                      min_px: float = 12.0, max_angle_deg: float = 70.0) -> np.ndarray:
     """Pixels ``(N,4,2)`` of the markers ``cam`` sees whole (through its true lens), facing
-    it and at least ``min_px`` wide; points beyond the widest ray of the image are never
-    counted (a lens polynomial may fold them back into it)."""
+    it (each face from its own side only: the others hide it) and at least ``min_px`` wide;
+    through a distorting lens, points beyond the widest ray of the image are never counted
+    (the lens polynomial may fold them back into it)."""
     K = cam.intrinsics
-    edge_u = np.array([0.0, K.width / 2, K.width - 1.0, 0.0, K.width - 1.0, 0.0, K.width / 2,
-                       K.width - 1.0])
-    edge_v = np.array([0.0, 0.0, 0.0, K.height / 2, K.height / 2, K.height - 1.0,
-                       K.height - 1.0, K.height - 1.0])
-    r_max = np.hypot(*K.rays(edge_u, edge_v)[:, :2].T).max()
-    normal = T_cam_board[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    r_max = np.inf
+    if K.has_distortion:
+        edge_u = np.array([0.0, K.width / 2, K.width - 1.0, 0.0, K.width - 1.0, 0.0,
+                           K.width / 2, K.width - 1.0])
+        edge_v = np.array([0.0, 0.0, 0.0, K.height / 2, K.height / 2, K.height - 1.0,
+                           K.height - 1.0, K.height - 1.0])
+        r_max = np.hypot(*K.rays(edge_u, edge_v)[:, :2].T).max()
+    R, t = T_cam_board[:3, :3], T_cam_board[:3, 3]
     out = []
-    for face in (FRONT, BACK):
-        sel = board.faces == face
-        if not np.any(sel):
-            continue
-        pts = board.corners[sel].reshape(-1, 3) @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+    for face in board.face_labels:
+        pts = board.corners[board.faces == face].reshape(-1, 3) @ R.T + t
         if np.any(pts[:, 2] < 0.2):
             continue
         centre = pts.mean(axis=0)
-        if -face * (normal @ centre) / np.linalg.norm(centre) < np.cos(np.radians(max_angle_deg)):
+        if -((R @ board.face_normal(face)) @ centre) / np.linalg.norm(centre) < np.cos(
+                np.radians(max_angle_deg)):
             continue
         inside_fov = (np.hypot(pts[:, 0], pts[:, 1]) / pts[:, 2] <= r_max).reshape(-1, 4)
         uv = K.project(pts).reshape(-1, 4, 2)
