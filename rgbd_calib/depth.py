@@ -324,14 +324,16 @@ def _in_view(intr: CameraIntrinsics, points_cam: np.ndarray, margin_px: float,
 
 # --------------------------------------------------------------------------- static clouds
 def target_box(board: Board) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned box ``(lo, hi)`` (board frame, m) holding a multi-face target: each face's
+    """Axis-aligned box ``(lo, hi)`` (board frame, m) holding the target: a flat board's panel
+    from its front (z = 0) to its back (z = -thickness); for a multi-face target each face's
     panel and the plate ``thickness`` behind it, and its ``body``."""
+    sheets = board.sheets or (None,)
     pts = []
-    for s in board.sheets:
-        x0, x1, y0, y1 = s.board.panel
+    for s in sheets:
+        x0, x1, y0, y1 = board.panel if s is None else s.board.panel
         local = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1)
                           for z in (0.0, -board.thickness)])
-        pts.append(transform_points(s.T_board_face, local))
+        pts.append(local if s is None else transform_points(s.T_board_face, local))
     if board.body is not None:
         pts.append(np.array(board.body))
     allp = np.concatenate(pts)
@@ -360,21 +362,19 @@ def _facing_face(board: Board, T_cam_board: np.ndarray):
             best, best_cos = (T_cf, s.board.panel, 0.0), cos
     return best
 
+
 def board_mask(intr: CameraIntrinsics, T_cam_board: np.ndarray, board: Board,
                margin_m: float = 0.03, dilate_px: float = 3.0) -> np.ndarray:
-    """Pixels ``(H,W)`` bool covered by the board's panel box (both faces and the edges, grown
-    by ``margin_m``) at pose ``T_cam_board`` (4x4, metres), dilated by ``dilate_px``.
+    """Pixels ``(H,W)`` bool covered by the target's box (:func:`target_box`: a flat board's
+    panel, both faces and the edges; every face and the body of a multi-face target) grown by
+    ``margin_m``, at pose ``T_cam_board`` (4x4, metres), dilated by ``dilate_px``.
 
     The box is convex, so its image is the convex hull of its eight projected corners. A board
     crossing the camera plane masks the whole image."""
-    x0, x1, y0, y1 = board.panel
+    lo, hi = target_box(board)
     m = margin_m
-    box_b = np.array([[x, y, z] for x in (x0 - m, x1 + m) for y in (y0 - m, y1 + m)
-                      for z in (m, -board.thickness - m)])
-    if board.sheets:  # a multi-face target: the box around every face's plate and its body
-        lo, hi = target_box(board)
-        box_b = np.array([[x, y, z] for x in (lo[0] - m, hi[0] + m)
-                          for y in (lo[1] - m, hi[1] + m) for z in (lo[2] - m, hi[2] + m)])
+    box_b = np.array([[x, y, z] for x in (lo[0] - m, hi[0] + m) for y in (lo[1] - m, hi[1] + m)
+                      for z in (hi[2] + m, lo[2] - m)])
     box_c = transform_points(T_cam_board, box_b)
     mask = np.zeros((intr.height, intr.width), dtype=bool)
     if np.all(box_c[:, 2] <= 0.02):
