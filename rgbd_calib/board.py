@@ -68,6 +68,10 @@ class FaceSheet:
     T_board_face: np.ndarray
     id_offset: int = 0
 
+    def to_board(self, quads: np.ndarray) -> np.ndarray:
+        """Quads ``(K,4,3)`` of this face's frame (m) in the target's board frame."""
+        return transform_points(self.T_board_face, quads.reshape(-1, 3)).reshape(-1, 4, 3)
+
 
 def _back_face_pose(thickness: float) -> np.ndarray:
     """``T_board_face`` of the legacy back face: the front flipped about y, at z = -thickness
@@ -147,8 +151,7 @@ class Board:
         if not sel:
             return None
         ids = np.concatenate([s.board.ids for s in sel])
-        corners = np.concatenate([transform_points(s.T_board_face, s.board.corners.reshape(
-            -1, 3)).reshape(-1, 4, 3) for s in sel])
+        corners = np.concatenate([s.to_board(s.board.corners) for s in sel])
         faces = np.concatenate([np.full(len(s.board.ids), s.label) for s in sel])
         return Board(self.dictionary, ids, corners, faces, self.thickness, self.panel,
                      f"{self.name}_aruco")
@@ -314,8 +317,7 @@ def printed_markers(board: Board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if board.sheets:
         parts = [(s, *printed_markers(s.board)) for s in board.sheets]
         ids = np.concatenate([p[1] for p in parts])
-        corners = np.concatenate([transform_points(s.T_board_face, c.reshape(-1, 3))
-                                  .reshape(-1, 4, 3) for s, _, c, _ in parts])
+        corners = np.concatenate([s.to_board(c) for s, _, c, _ in parts])
         faces = np.concatenate([np.full(len(i), s.label) for s, i, _, _ in parts])
         return ids, corners, faces
     if board.charuco is None:
@@ -898,12 +900,9 @@ def _sheet_dict(sheet: Board) -> dict[str, Any]:
     repeated where the target gives them)."""
     out = sheet.to_dict()
     out.pop("name", None)
-    if sheet.charuco is None:
-        out.pop("thickness", None)
-        if out.get("grid") is not None:
-            out["grid"] = {k: v for k, v in out["grid"].items() if v is not None}
-    else:
-        out.pop("thickness", None)
+    out.pop("thickness", None)
+    if sheet.charuco is None and out.get("grid") is not None:
+        out["grid"] = {k: v for k, v in out["grid"].items() if v is not None}
     return out
 
 
@@ -1076,8 +1075,7 @@ def multiface_board(dictionary: str, sheets: list[FaceSheet], thickness: float =
                     "other; check their pose (rotation_deg, translation_m) and panels: faces may "
                     "meet at an edge but not cross")
     ids = np.concatenate([s.board.ids + s.id_offset for s in sheets]).astype(int)
-    corners = np.concatenate([transform_points(s.T_board_face, s.board.corners.reshape(-1, 3))
-                              .reshape(-1, 4, 3) for s in sheets])
+    corners = np.concatenate([s.to_board(s.board.corners) for s in sheets])
     faces = np.concatenate([np.full(len(s.board.ids), s.label) for s in sheets]).astype(int)
     xy = np.concatenate([sheet_panel_corners(s) for s in sheets])
     panel = (float(xy[:, 0].min()), float(xy[:, 0].max()),
