@@ -120,6 +120,12 @@ class Board:
             return tuple(s.label for s in self.sheets)
         return tuple(f for f in (FRONT, BACK) if np.any(self.faces == f))
 
+    def most_seen_face(self, faces: np.ndarray) -> int:
+        """The face label most frequent in ``faces`` (one label per seen marker); the
+        reference face wins a tie."""
+        labels = self.face_labels
+        return labels[int(np.argmax([np.sum(faces == f) for f in labels]))]
+
     @property
     def reference_face(self) -> int:
         """The face whose pose defines the board frame (held in the self-calibration)."""

@@ -185,9 +185,7 @@ def _refine_with_board(
     faces = board.faces[[board.index_of[int(i)] for i in ids if int(i) in board.index_of]]
     if faces.size == 0:
         return corners, ids
-    labels = board.face_labels  # the front (reference) face first: it wins a tie
-    face = labels[int(np.argmax([np.sum(faces == f) for f in labels]))]
-    sel = board.faces == face
+    sel = board.faces == board.most_seen_face(faces)
     cv_board = cv2.aruco.Board(
         board.corners[sel].astype(np.float32), dictionary, board.ids[sel].astype(np.int32)
     )  # float32: api-notes

@@ -32,6 +32,7 @@ from .board import Board
 from .camera import CameraIntrinsics
 from .detection import MarkerDetections
 from .errors import CalibrationError
+from .geometry import invert_transform, transform_points
 from .rig import Rig
 
 MIN_VIEWS = 4  # views with MIN_CORNERS corners a camera needs to be calibrated from scratch
@@ -65,15 +66,11 @@ def view_points(det: MarkerDetections, board: Board) -> tuple[np.ndarray, np.nda
     if len(det) == 0:
         return np.zeros((0, 3)), np.zeros((0, 2))
     faces = np.array([board.faces[board.index_of[int(i)]] for i in det.ids])
-    face = 1 if np.sum(faces == 1) >= np.sum(faces == -1) else -1
-    if board.sheets:  # a multi-face target: its face seen most, in that face's own frame
-        labels = board.face_labels
-        face = labels[int(np.argmax([np.sum(faces == f) for f in labels]))]
+    face = board.most_seen_face(faces)
     keep = faces == face
     obj = board.object_points(det.ids[keep]).reshape(-1, 3)
-    if board.sheets:
-        T_face_board = np.linalg.inv(board.T_board_face(face))
-        obj = obj @ T_face_board[:3, :3].T + T_face_board[:3, 3]
+    if board.sheets:  # a multi-face target: in that face's own frame
+        obj = transform_points(invert_transform(board.T_board_face(face)), obj)
     px = np.asarray(det.corners_px[keep], dtype=float).reshape(-1, 2)
     _, first = np.unique(np.round(obj, 6), axis=0, return_index=True)
     first = np.sort(first)

@@ -364,6 +364,12 @@ def _solve_faces(
     return found[0][1], ratio, angle
 
 
+def _single_face(faces: np.ndarray) -> int:
+    """The face label when every marker of a view is on one face, else 0 (several faces)."""
+    seen = np.unique(faces)
+    return int(seen[0]) if len(seen) == 1 else 0
+
+
 def estimate_board_pose(
     det: MarkerDetections,
     board: Board,
@@ -392,8 +398,7 @@ def estimate_board_pose(
     faces = board.faces[[board.index_of[int(i)] for i in ids]] if len(ids) else np.zeros(0)
     n_front, n_back = int(np.sum(faces == 1)), int(np.sum(faces == -1))
     if board.sheets:  # a multi-face target: a view sees several faces at once
-        seen = np.unique(faces)
-        face = int(seen[0]) if len(seen) == 1 else 0
+        face = _single_face(faces)
     elif n_front and n_back and not config.allow_both_faces:
         if n_front == n_back:
             return reject("both_faces", f"{n_front} markers of each face; a camera sees one face")
@@ -432,8 +437,7 @@ def estimate_board_pose(
         keep = np.arange(len(ids)) != worst
         ids, corners, obj, faces = ids[keep], corners[keep], obj[keep], faces[keep]
         if board.sheets:
-            seen = np.unique(faces)
-            face = int(seen[0]) if len(seen) == 1 else 0
+            face = _single_face(faces)
 
     n_pts = resid.shape[0] * 4
     rss = float((resid**2).sum())
