@@ -735,7 +735,7 @@ def bundle_sound_first(
                           init_T_ref_cam, init_T_ref_board, config.bundle, fixed_cameras,
                           [r for r in relative_poses if {r.cam_a, r.cam_b} <= sound],
                           intrinsics=intrinsics, back_centre=back_centre,
-                             face_frames=face_frames)
+                          face_frames=face_frames)
     held = {**first.T_ref_cam, **fixed}
     boards = {**init_T_ref_board, **first.T_ref_board}
     second = bundle_adjust(measurements, K, reference, {**init_T_ref_cam, **held}, boards,
