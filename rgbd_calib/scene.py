@@ -123,12 +123,18 @@ def cast(
     rays: np.ndarray,
     two_sided: bool = True,
     grid: tuple[int, int] | None = None,
+    compiled: bool = True,
 ) -> Hits:
     """Nearest intersection of camera-frame rays ``(N,3)`` (z = 1) with the rectangles.
 
     ``grid=(rows, cols)`` says the rays are a row-major pixel grid (x varies along columns
     only, y along rows only): each rectangle then only visits the rays of its image bounding
-    box, found by bisection instead of a test over every ray."""
+    box, found by bisection instead of a test over every ray. The per-ray arithmetic runs in
+    :mod:`rgbd_calib.scene_jit` (numba), bit-identical to the numpy reference
+    (``compiled=False``)."""
+    if compiled:
+        from .scene_jit import cast_grid_rect, cast_rect
+    rays = np.ascontiguousarray(rays, dtype=float)
     n_rays = rays.shape[0]
     best = np.full(n_rays, np.inf)
     index = np.full(n_rays, -1, dtype=np.int32)
@@ -161,6 +167,10 @@ def cast(
                 r0, r1 = np.searchsorted(ys, lo[1]), np.searchsorted(ys, hi[1], "right")
                 if c0 >= c1 or r0 >= r1:
                     continue
+                if compiled:
+                    cast_grid_rect(rays, best, index, best_a, best_b, k, o, u, v, n, on,
+                                   float(r.size_u), float(r.size_v), r0, r1, c0, c1, cols)
+                    continue
                 cand = (np.arange(r0, r1)[:, None] * cols + np.arange(c0, c1)[None]).ravel()
             else:
                 cand = np.nonzero(
@@ -171,6 +181,10 @@ def cast(
                 )[0]
             if cand.size == 0:
                 continue
+        if compiled:
+            cast_rect(rays, cand, best, index, best_a, best_b, k, o, u, v, n, on,
+                      float(r.size_u), float(r.size_v))
+            continue
         rc = rays[cand]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = on / _dot3(rc, n)
