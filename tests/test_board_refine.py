@@ -411,9 +411,9 @@ def test_board_and_intrinsics_refined_together():
 
 def test_pipeline_names_a_wrong_marker_length(tmp_path_factory, tmp_path):
     """synth --print-scale 0.8: the 40 mm markers of the thesis board file printed at 32 mm.
-    Measured (race 848x480, 20 frames, seed 3; left3 has no usable view at that size): the
-    seven cameras' depth factors 0.79993-0.80002 (sigmas 3e-5 - 7e-5); one board_scale error
-    naming 32.0 mm, no per-camera depth_scale finding."""
+    Measured (race 848x480, 8 frames, seed 3; left2 and left3 have no usable view at that
+    size): the six cameras' depth factors 0.79996-0.80006; one board_scale error naming
+    32.0 mm, no per-camera depth_scale finding (20 frames: seven cameras, 0.79993-0.80002)."""
     import json
 
     from rgbd_calib.calibrate import calibrate
@@ -424,7 +424,7 @@ def test_pipeline_names_a_wrong_marker_length(tmp_path_factory, tmp_path):
     from rgbd_calib.synth import SynthParams, synthesize
 
     out = tmp_path_factory.mktemp("synth") / "print80"
-    synth = synthesize(out, "race", 20, 3, thesis_board(), SynthParams(print_scale=0.8),
+    synth = synthesize(out, "race", 8, 3, thesis_board(), SynthParams(print_scale=0.8),
                        workers=2)
     result = calibrate(FolderDataset(synth.path), thesis_board(), load_config(None, workers=2))
     write_outputs(result, load_rig(synth.path / "rig.yaml"), tmp_path)
