@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 from pathlib import Path
 
@@ -38,25 +39,50 @@ def assert_transforms_close(T_a, T_b, atol_mm: float, atol_deg: float) -> None:
         f"(allowed {atol_mm} mm / {atol_deg} deg)")
 
 
+def shared_render(tmp_path_factory, name: str, layout: str, n_frames: int, seed: int,
+                  board=None, params=None):
+    """A render made once per test run and shared by every xdist worker (a session fixture
+    is built once per worker): ``synthesize_cached`` into one folder of the run, under a
+    file lock. Read-only for the tests: copy it before changing it. Returns the
+    ``SynthDataset`` (its ``board_poses`` from the ground truth)."""
+    from rgbd_calib.board import thesis_board
+    from rgbd_calib.synth import (
+        SynthDataset,
+        SynthParams,
+        load_ground_truth,
+        make_rig,
+        synthesize_cached,
+    )
+
+    board = thesis_board() if board is None else board
+    params = SynthParams() if params is None else params
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared_renders"
+    root.mkdir(exist_ok=True)
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one worker renders, the others wait and reuse it
+        path, _ = synthesize_cached(root / name, layout, n_frames, seed, board, params,
+                                    workers=2)
+    rig = make_rig(layout, seed, params)
+    gt = load_ground_truth(path)
+    T_world_ref = rig.cameras[rig.reference_index].T_world_cam
+    poses = [T_world_ref @ gt.T_ref_board[f] for f in sorted(gt.T_ref_board)]
+    return SynthDataset(path, rig, poses)
+
+
 @pytest.fixture(scope="session")
 def small_race(tmp_path_factory):
     """A small synthetic race rig (8 cameras, 848x480, 3 frames, some frames dropped)."""
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.synth import SynthParams, synthesize
+    from rgbd_calib.synth import SynthParams
 
-    out = tmp_path_factory.mktemp("synth") / "race"
-    params = SynthParams(depth_bias=0.005, drop_rate=0.1)
-    return synthesize(out, "race", 3, 7, thesis_board(), params, workers=2)
+    return shared_render(tmp_path_factory, "small_race", "race", 3, 7,
+                         params=SynthParams(depth_bias=0.005, drop_rate=0.1))
 
 
 @pytest.fixture(scope="session")
 def small_line(tmp_path_factory):
     """A small thesis-line rig (4 cameras, 1280x720, 6 frames) for end-to-end tests."""
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.synth import SynthParams, synthesize
-
-    out = tmp_path_factory.mktemp("synth") / "line"
-    return synthesize(out, "thesis-line", 6, 3, thesis_board(), SynthParams(), workers=2)
+    return shared_render(tmp_path_factory, "small_line", "thesis-line", 6, 3)
 
 
 @pytest.fixture(scope="session")
@@ -64,23 +90,19 @@ def charuco_line(tmp_path_factory):
     """The ChArUco A3 board in small_line's setting (thesis-line, 1280x720, 6 frames, seed
     3, default noise: blur 0.6 px, colour noise 2 DN). About 20 s."""
     from rgbd_calib.board import load_board
-    from rgbd_calib.synth import SynthParams, synthesize
 
-    out = tmp_path_factory.mktemp("charuco") / "line"
     board = load_board(CONFIGS / "board_charuco_a3.yaml")
-    return synthesize(out, "thesis-line", 6, 3, board, SynthParams(), workers=2).path
+    return shared_render(tmp_path_factory, "charuco_line", "thesis-line", 6, 3, board).path
 
 
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory):
     """A tiny thesis-line rig with depth (4 cameras, 640x360, 4 frames): the README's example
     rig. About 6 s."""
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.synth import SynthParams, synthesize
+    from rgbd_calib.synth import SynthParams
 
-    out = tmp_path_factory.mktemp("tiny") / "ds"
-    return synthesize(out, "thesis-line", 4, 0, thesis_board(),
-                      SynthParams(resolution=(640, 360)), workers=2).path
+    return shared_render(tmp_path_factory, "tiny", "thesis-line", 4, 0,
+                         params=SynthParams(resolution=(640, 360))).path
 
 
 @pytest.fixture(scope="session")
