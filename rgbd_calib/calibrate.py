@@ -252,7 +252,7 @@ def calibrate(
             bundle, measurements, solve, ladder = self_calibrated_bundle(
                 observations, pg, rig, board, config, fixed_cameras, progress)
         lens_refined = (ladder.chosen.distortion if ladder is not None
-                        else bool(initial) and _refines_distortion(config.bundle))
+                        else _refines_distortion(config.bundle))
         if lens_refined and (ladder is not None or board.charuco is None):
             # the corners were fitted along straight edges; with the refined lens the edges
             # are curved: detect again with it and solve the chosen model once more, again
