@@ -453,8 +453,10 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
     overlapping pairs from ``init`` and solve a pose graph of the accepted pairs, the
     reference held and every other camera held to its initial pose by a prior with its
     initial sigmas (when ``init`` has them): a good calibration is not pulled further than
-    its own uncertainty allows by pairs 10-50x less certain. Cameras in no accepted pair keep
-    their initial pose (and sigma).
+    its own uncertainty allows by pairs 10-50x less certain. The priors and the pairs are two
+    variance components, each weighed by its own variance factor (>= 1) estimated from its
+    residuals (:func:`solve_variance_components`; ``depth.pair_variance_factor``). Cameras in
+    no accepted pair keep their initial pose (and sigma).
 
     ``depth_scales`` (camera -> factor; :func:`load_depth_scales`) are the depth-scale factors
     of the calibration ``init`` came from; a camera without one has an unknown depth scale and
