@@ -700,6 +700,17 @@ class DepthConfig(BaseModel, extra="forbid"):
         "exceed this chi-square with 6 dof (12.59: 5 % false-alarm rate). 0 accepts pairs "
         "that confirm the current extrinsics too.",
     )
+    variance_component_iterations: int = Field(
+        20,
+        ge=1,
+        description="refine: solves of the joint graph (the priors holding each camera to its "
+        "--init pose, the accepted pairs) with each group's covariance scaled by its variance "
+        "factor estimated from its residuals over its redundancy (Helmert / Foerstner "
+        "variance-component estimation; never below 1), until the factors settle. Colored "
+        "ICP's pairs carry a systematic error their noise model does not admit (docs/depth.md, "
+        "refine (issue 14): factor 3.6-4.4 on the synthetic race); this weighs them by what "
+        "their disagreement shows. 1: one plain solve, the pairs at their model information.",
+    )
     max_board_chi2: float = Field(
         22.46,
         gt=0,

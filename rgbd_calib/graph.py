@@ -1830,3 +1830,44 @@ def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key:
         d2 = np.sum((uv.reshape(-1, 4, 2) - g.corners_px) ** 2, axis=2)
         out[g.index] = np.sqrt(np.mean(d2, axis=1))
     return out
+
+
+
+def relative_pose_redundancy(reference: str, T_ref_cam: dict[str, np.ndarray],
+                             relative_poses: list[RelativePose],
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Per relative pose of a pose graph with ``reference`` held, linearised at ``T_ref_cam``
+    (camera -> 4x4, m): its whitened chi-square ``e^T W e`` and its redundancy number
+    ``r = 6 - tr(A_f (A^T A)^+ A_f^T)`` (``A`` the whitened Jacobian of the graph without the
+    reference's columns, ``A_f`` the rows of that factor; Foerstner 1979), the share of the
+    graph's redundancy its residual carries. A pose with a camera not in ``T_ref_cam`` (cut
+    off from the reference: not in the solve) gets 0 for both. Arrays follow
+    ``relative_poses``."""
+    used = [i for i, r in enumerate(relative_poses)
+            if r.cam_a in T_ref_cam and r.cam_b in T_ref_cam]
+    chi2_f, redundancy = np.zeros(len(relative_poses)), np.zeros(len(relative_poses))
+    if not used:
+        return chi2_f, redundancy
+    cams = sorted({reference} | {c for i in used for c in (relative_poses[i].cam_a,
+                                                          relative_poses[i].cam_b)})
+    key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
+    graph = gtsam.NonlinearFactorGraph()
+    for i in used:
+        r = relative_poses[i]
+        graph.add(gtsam.BetweenFactorPose3(
+            key[r.cam_b], key[r.cam_a], gtsam.Pose3(r.T_b_a),
+            gtsam.noiseModel.Gaussian.Information(r.information)))
+    values = gtsam.Values()
+    ordering = gtsam.Ordering()
+    for c in cams:
+        values.insert(key[c], gtsam.Pose3(T_ref_cam[c]))
+        ordering.push_back(key[c])
+    A, b = graph.linearize(values).jacobian(ordering)
+    k = cams.index(reference)  # held: its columns go
+    A = np.delete(A, np.s_[6 * k:6 * k + 6], axis=1)
+    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    U = U[:, s > s.max() * 1e-12] if s.size else U  # rank-revealing: a free direction adds 0
+    h = np.sum(U**2, axis=1)  # the hat matrix's diagonal
+    chi2_f[used] = np.sum(np.reshape(b, (len(used), 6)) ** 2, axis=1)
+    redundancy[used] = 6.0 - np.sum(np.reshape(h, (len(used), 6)), axis=1)
+    return chi2_f, redundancy

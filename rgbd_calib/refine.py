@@ -43,7 +43,7 @@ from .depth import (
 )
 from .errors import CalibrationError, DatasetError
 from .geometry import adjoint, invert_transform, transform_error
-from .graph import RelativePose, bundle_adjust
+from .graph import RelativePose, bundle_adjust, relative_pose_redundancy
 from .parallel import executor
 from .progress import Progress, Tick, start, timed
 from .results import CameraExtrinsics, Extrinsics, cameras_from_solve
@@ -68,6 +68,8 @@ class DepthRefinement:
     note: str | None = None  # why registration was not needed (strong board data), if so
     weak_cameras: dict[str, str] | None = None  # cameras depth was run for (None: all)
     scale_source: dict[str, str] = field(default_factory=dict)  # board / given / unknown
+    # refine: the pairs' variance factor of the joint solve (solve_variance_components)
+    pair_variance_factor: float | None = None
 
     def status_dict(self) -> dict[str, Any]:
         """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason`` and
@@ -451,8 +453,10 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
     overlapping pairs from ``init`` and solve a pose graph of the accepted pairs, the
     reference held and every other camera held to its initial pose by a prior with its
     initial sigmas (when ``init`` has them): a good calibration is not pulled further than
-    its own uncertainty allows by pairs 10-50x less certain. Cameras in no accepted pair keep
-    their initial pose (and sigma).
+    its own uncertainty allows by pairs 10-50x less certain. The priors and the pairs are two
+    variance components, each weighed by its own variance factor (>= 1) estimated from its
+    residuals (:func:`solve_variance_components`; ``depth.pair_variance_factor``). Cameras in
+    no accepted pair keep their initial pose (and sigma).
 
     ``depth_scales`` (camera -> factor; :func:`load_depth_scales`) are the depth-scale factors
     of the calibration ``init`` came from; a camera without one has an unknown depth scale and
@@ -483,10 +487,12 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
     if not depth.used:
         return init, finish_pairs(depth, T_init, config)
     priors = initial_pose_priors(init, T_init)
+    config = config or DepthConfig()
     try:
-        res = bundle_adjust([], {c: dataset.rig.cameras[c].K for c in T_init}, init.reference,
-                            T_init, {}, BundleConfig(),
-                            relative_poses=depth.relative_poses + priors)
+        res, factors = solve_variance_components(
+            {c: dataset.rig.cameras[c].K for c in T_init}, init.reference, T_init,
+            {"initial": priors, "pairs": depth.relative_poses},
+            max_iterations=config.variance_component_iterations)
     except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
         depth = depth.with_fallback(f"the pose graph of the depth pairs failed "
                                     f"({type(exc).__name__}: {exc})".replace("\n", " "))
@@ -501,7 +507,52 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
         depth = depth.with_fallback("; ".join(beyond.values()).replace("board", "initial"))
         return init, finish_pairs(depth, T_init, config)
     out = Extrinsics(init.reference, cams, dict(init.unconnected))
+    depth = replace(depth, pair_variance_factor=factors["pairs"])
     return out, finish_pairs(depth, {c: e.T_ref_cam for c, e in cams.items()}, config)
+
+
+def solve_variance_components(K: dict[str, np.ndarray], reference: str,
+                              T_init: dict[str, np.ndarray],
+                              groups: dict[str, list[RelativePose]], max_iterations: int = 20,
+                              tolerance: float = 1e-3):
+    """The pose graph of ``groups`` of relative poses (e.g. ``initial``: the priors holding
+    each camera to its start, ``pairs``: the depth pairs) with ``reference`` held, each group's
+    covariance scaled by a variance factor estimated from its own residuals: ``(result,
+    factors)`` with ``result`` the :class:`BundleResult` at the final factors (its marginals
+    include them) and ``factors`` group -> factor.
+
+    Variance-component estimation (Helmert; Foerstner 1979): at the solution, a group's factor
+    is multiplied by ``sum_g e^T W e / r_g``, its chi-square over its redundancy ``r_g = n_g -
+    tr(A_g (A^T A)^-1 A_g^T)`` (:func:`rgbd_calib.graph.relative_pose_redundancy`), and the
+    graph is solved again, until every factor changes by less than ``tolerance`` (relative)
+    or after ``max_iterations`` solves (1: the plain solve). A factor is never below 1 (a
+    group is never trusted beyond its model) and is left as it is for a group carrying less
+    than :data:`MIN_GROUP_REDUNDANCY` of the redundancy (nothing to estimate it from).
+    A systematic error of the pairs (colored ICP's, docs/depth.md "refine (issue 14)") shows
+    as their disagreement with the priors and the other pairs, and weighs them down by it."""
+    factors = {g: 1.0 for g in groups}
+    n_solves = max(1, max_iterations)
+    for solve in range(n_solves):
+        scaled = {g: [replace(r, information=r.information / factors[g]) for r in rs]
+                  for g, rs in groups.items()}
+        flat = [r for rs in scaled.values() for r in rs]
+        res = bundle_adjust([], K, reference, T_init, {}, BundleConfig(), relative_poses=flat)
+        chi2_f, redundancy = relative_pose_redundancy(reference, res.T_ref_cam, flat)
+        new, start = {}, 0
+        for g, rs in scaled.items():
+            part = slice(start, start + len(rs))
+            start += len(rs)
+            r_g = float(np.sum(redundancy[part]))
+            new[g] = (max(1.0, factors[g] * float(np.sum(chi2_f[part])) / r_g)
+                      if r_g >= MIN_GROUP_REDUNDANCY else factors[g])
+        if solve == n_solves - 1 or all(abs(new[g] / factors[g] - 1.0) < tolerance
+                                         for g in groups):
+            break  # the result was solved with ``factors``
+        factors = new
+    return res, factors
+
+
+MIN_GROUP_REDUNDANCY = 1.0  # of a variance component: below it, its factor is not estimated
 
 
 def initial_pose_priors(init: Extrinsics, T_init: dict[str, np.ndarray]) -> list[RelativePose]:
@@ -633,6 +684,7 @@ def refine_summary(init_path: Path, method: str, verdict: dict[str, Any],
         "outcome": verdict["verdict"],
         "message": verdict["message"],
         "moved_since_init": list(moved or []),
+        "pair_variance_factor": verdict.get("pair_variance_factor"),
         "cameras": {c: {**m, "depth_scale_source": scale_source.get(c, "none")}
                     for c, m in verdict["cameras"].items()},
     }
@@ -650,6 +702,9 @@ def refine_verdict(init: Extrinsics, result: Extrinsics, depth: DepthRefinement,
                  if np.isfinite(m["initial_sigma_mm"]) and m["initial_sigma_mm"] > 0
                  and m["moved_mm"] > 3.0 * m["initial_sigma_mm"])
     n_used = sum(bool(p.get("accepted")) for p in depth.pairs)
+    f = depth.pair_variance_factor
+    weighed = (f" (their covariance x{f:.2f}: variance factor from their residuals)"
+               if f is not None and f > 1.0 else "")
     notes = []
     if unknown:
         notes.append(f"depth scale unknown for {', '.join(unknown)} (no report.json with "
@@ -661,13 +716,14 @@ def refine_verdict(init: Extrinsics, result: Extrinsics, depth: DepthRefinement,
                         "ones")
     elif far:
         verdict = "check"
-        notes.insert(0, f"{n_used} pairs used; {', '.join(far)} moved by more than 3 initial "
-                        "sigmas: the depth and the initial calibration disagree")
+        notes.insert(0, f"{n_used} pairs used{weighed}; {', '.join(far)} moved by more than "
+                        "3 initial sigmas: the depth and the initial calibration disagree")
     else:
         verdict = "check" if unknown else "refined"
-        notes.insert(0, f"{n_used} of {len(depth.pairs)} pairs used")
+        notes.insert(0, f"{n_used} of {len(depth.pairs)} pairs used{weighed}")
     return {"verdict": verdict, "message": "; ".join(notes), "cameras": moves,
-            "depth_scale_source": dict(depth.scale_source)}
+            "depth_scale_source": dict(depth.scale_source),
+            "pair_variance_factor": depth.pair_variance_factor}
 
 
 def board_views_per_camera(observations, T_ref_cam: dict[str, np.ndarray],

@@ -212,3 +212,80 @@ def test_refine_and_check_take_the_depth_settings_of_a_config_file(tiny_calibrat
         assert res.exit_code == 2, res.output
         assert str(bad) in res.output and "min_fitnes" in res.output
         assert "Traceback" not in res.output and not out.exists()
+
+
+def _noisy(T: np.ndarray, sigma_rad: float, sigma_m: float, rng) -> np.ndarray:
+    """``T @ Exp(xi)`` (to first order) with xi ~ N(0, diag(sigma_rad^2 x3, sigma_m^2 x3))."""
+    return T @ make_transform(rotvec_to_matrix(rng.normal(scale=sigma_rad, size=3)),
+                              rng.normal(scale=sigma_m, size=3))
+
+
+def _pose_graph_case(rng, pair_noise_factor: float):
+    """A reference and 7 cameras on a 2 m circle; each camera held to its (noisy) start by a
+    prior of 0.1 mm / 0.005 deg at that noise, and a pair between every two cameras claiming
+    0.2 mm / 0.01 deg but drawn ``pair_noise_factor`` times wider."""
+    from rgbd_calib.graph import RelativePose
+
+    names = ["ref"] + [f"c{i}" for i in range(7)]
+    angle = {c: 2 * np.pi * i / len(names) for i, c in enumerate(names)}
+    T_true = {c: make_transform(rotvec_to_matrix([0, a, 0]), [2 * np.sin(a), 0, 2 - 2 * np.cos(a)])
+              for c, a in angle.items()}
+    prior_rad, prior_m = np.radians(0.005), 1e-4
+    pair_rad, pair_m = np.radians(0.01), 2e-4
+    T_init = {c: T if c == "ref" else _noisy(T, prior_rad, prior_m, rng)
+              for c, T in T_true.items()}
+    priors = [RelativePose(c, "ref", T_init[c],
+                           np.diag([prior_rad**-2] * 3 + [prior_m**-2] * 3)) for c in names[1:]]
+    k = pair_noise_factor
+    pairs = [RelativePose(a, b, _noisy(np.linalg.inv(T_true[b]) @ T_true[a], k * pair_rad,
+                                       k * pair_m, rng),
+                          np.diag([pair_rad**-2] * 3 + [pair_m**-2] * 3))
+             for i, a in enumerate(names) for b in names[i + 1:]]
+    return T_true, T_init, priors, pairs
+
+
+def test_relative_pose_redundancy_sums_to_the_graph_redundancy():
+    """Redundancy numbers (Foerstner): over all factors they sum to observations minus
+    unknowns, and two priors on one camera split its 6 by their weights (r_1 = tr(W_2 (W_1 +
+    W_2)^-1), 6 x 1/5 for a prior 4x tighter in information)."""
+    from rgbd_calib.graph import RelativePose, relative_pose_redundancy
+
+    rng = np.random.default_rng(2)
+    T_true, T_init, priors, pairs = _pose_graph_case(rng, 1.0)
+    chi2_f, r = relative_pose_redundancy("ref", T_true, priors + pairs)
+    assert r.sum() == pytest.approx(6 * (len(priors) + len(pairs)) - 6 * 7, abs=1e-6)
+    assert np.all(r > 0) and np.all(chi2_f > 0)
+    T = T_true["c0"]
+    W = np.eye(6) * 1e8
+    _, r2 = relative_pose_redundancy("ref", {"ref": np.eye(4), "c0": T},
+                                     [RelativePose("c0", "ref", T, W),
+                                      RelativePose("c0", "ref", T, 4 * W)])
+    np.testing.assert_allclose(r2, [6 * 4 / 5, 6 * 1 / 5], atol=1e-6)
+
+
+@pytest.mark.parametrize("k", [1.0, 2.0])
+def test_variance_components_recover_the_pairs_noise(k):
+    """Pairs drawn k times wider than their information claims: the estimated pair factor is
+    ~k^2 (the priors', drawn at their model, stays ~1), and the result is closer to the truth
+    than the plain solve when the pairs overclaim (k = 2)."""
+    from rgbd_calib.refine import solve_variance_components
+
+    rng = np.random.default_rng(11)
+    T_true, T_init, priors, pairs = _pose_graph_case(rng, k)
+    K = {c: np.eye(3) for c in T_init}
+    groups = {"initial": priors, "pairs": pairs}
+    res, factors = solve_variance_components(K, "ref", T_init, groups)
+    plain, ones = solve_variance_components(K, "ref", T_init, groups, max_iterations=1)
+    assert ones == {"initial": 1.0, "pairs": 1.0}
+    # 126 pair rows of redundancy ~100: the factor's relative sigma is ~sqrt(2 / 100) = 0.14
+    assert 0.6 * k**2 <= factors["pairs"] <= 1.5 * k**2, factors
+    assert 1.0 <= factors["initial"] <= 1.6, factors
+
+    def mean_mm(T):
+        return np.mean([transform_error(T[c], T_true[c])[1] for c in T_true if c != "ref"])
+
+    if k > 1:
+        assert mean_mm(res.T_ref_cam) < mean_mm(plain.T_ref_cam)
+        # the marginals carry the factor: the pairs no longer claim their model sigmas
+        assert all(res.sigma_translation_mm[c] > plain.sigma_translation_mm[c]
+                   for c in T_true if c != "ref")

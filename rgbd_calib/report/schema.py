@@ -14,7 +14,7 @@ from typing import Any
 
 from ..errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.5"
+REPORT_SCHEMA_VERSION = "1.6"
 
 
 class ReportError(RgbdCalibError):
@@ -283,6 +283,7 @@ REPORT_SCHEMA: dict[str, Any] = {
         "outcome": S,
         "message": S,
         "moved_since_init": ListOf(S),
+        "pair_variance_factor?": Nullable(N),
         "cameras": MapOf("<camera>", {"moved_mm": N, "moved_deg": N,
                                       "initial_sigma_mm": Nullable(N),
                                       "depth_scale_source": S}),
