@@ -1832,7 +1832,6 @@ def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key:
     return out
 
 
-
 def relative_pose_redundancy(reference: str, T_ref_cam: dict[str, np.ndarray],
                              relative_poses: list[RelativePose],
                              ) -> tuple[np.ndarray, np.ndarray]:

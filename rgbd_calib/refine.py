@@ -511,6 +511,9 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
     return out, finish_pairs(depth, {c: e.T_ref_cam for c, e in cams.items()}, config)
 
 
+MIN_GROUP_REDUNDANCY = 1.0  # of a variance component: below it, its factor is not estimated
+
+
 def solve_variance_components(K: dict[str, np.ndarray], reference: str,
                               T_init: dict[str, np.ndarray],
                               groups: dict[str, list[RelativePose]], max_iterations: int = 20,
@@ -550,9 +553,6 @@ def solve_variance_components(K: dict[str, np.ndarray], reference: str,
             break  # the result was solved with ``factors``
         factors = new
     return res, factors
-
-
-MIN_GROUP_REDUNDANCY = 1.0  # of a variance component: below it, its factor is not estimated
 
 
 def initial_pose_priors(init: Extrinsics, T_init: dict[str, np.ndarray]) -> list[RelativePose]:
