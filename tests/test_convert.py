@@ -371,7 +371,7 @@ def _real_frameset():
     profile = pipe.start(cfg)
     profile.get_device().as_playback().set_real_time(False)
     try:
-        ok, frames = pipe.try_wait_for_frames(5000)
+        ok, frames = pipe.try_wait_for_frames(30000)  # playback is slow on a loaded machine
         assert ok
         color_p = profile.get_stream(rs.stream.color).as_video_stream_profile()
         depth_p = profile.get_stream(rs.stream.depth).as_video_stream_profile()

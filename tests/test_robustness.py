@@ -1093,7 +1093,8 @@ def table() -> str:
 
 def test_zz_every_case_is_in_docs_robustness(tmp_path_factory):
     """Runs last in this module: the rows of the cases that ran are in docs/robustness.md
-    verbatim (``RGBD_CALIB_WRITE_DOCS=1`` rewrites the table from this run)."""
+    verbatim (``RGBD_CALIB_WRITE_DOCS=1`` rewrites the table from this run: run it with the
+    slow tier too, ``RGBD_CALIB_SLOW=1``, or the slow cases' rows are lost)."""
     if not ROWS:
         pytest.skip("no case ran")
     text = table()
