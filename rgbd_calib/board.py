@@ -248,10 +248,10 @@ class CharucoSpec:
 
     Its measurements are the chessboard *saddle* corners (OpenCV's ChArUco corners, id
     ``r * (squares_x - 1) + c`` row-major from the top-left). The pipeline's unit of
-    measurement is a quad of 4 points (a "marker"), so the saddle grid is tiled into 2x2 quads
-    of neighbouring corners (one chessboard square each) with stride 2; an odd number of corner
-    columns (rows) adds a last quad column (row) overlapping the one before, so every corner is
-    in at least one quad and a few (those in the overlap) are used twice."""
+    measurement is a quad of 4 points (a "marker"): the board's quads are all its unit squares
+    of neighbouring corners (:meth:`quads`, one chessboard square each, overlapping), and each
+    view measures with the set of them that :func:`cover_quads` picks from the corners it
+    found (on a whole board the stride-2 tiling; a few corners are in two quads)."""
 
     squares_x: int
     squares_y: int
@@ -286,15 +286,12 @@ class CharucoSpec:
         return p
 
     def quads(self) -> np.ndarray:
-        """Saddle-corner ids ``(Q,4)`` of each quad, TL, TR, BR, BL as seen from the front."""
+        """Saddle-corner ids ``(Q,4)`` of every unit square of the corner grid (row-major
+        from the top-left; quad ``r * (nx - 1) + c`` has corner ``(r, c)`` at its TL), TL,
+        TR, BR, BL as seen from the front."""
         nx, ny = self.squares_x - 1, self.squares_y - 1
-
-        def starts(n: int) -> list[int]:
-            s = list(range(0, n - 1, 2))
-            return s + [n - 2] if n % 2 else s
-
         return np.array([[r * nx + c, r * nx + c + 1, (r + 1) * nx + c + 1, (r + 1) * nx + c]
-                         for r in starts(ny) for c in starts(nx)], dtype=int)
+                         for r in range(ny - 1) for c in range(nx - 1)], dtype=int)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -306,6 +303,36 @@ class CharucoSpec:
             "first_id": self.first_id,
             "inverted": self.inverted,
         }
+
+
+def cover_quads(quads: np.ndarray, found: np.ndarray) -> np.ndarray:
+    """Which of ``quads`` ``(Q,4)`` (:meth:`CharucoSpec.quads`) one view measures with, given
+    the saddle-corner ids it ``found``: indices, ascending, of whole quads (all 4 corners
+    found) that use every found corner lying in any whole quad. First disjoint quads in raster
+    order (on a whole board: the stride-2 tiling), then, while a found corner in a whole quad is
+    unused, the whole quad with the most unused corners (the first of them), which overlaps
+    quads already taken: their shared corners are used twice or more (slightly optimistic
+    covariances; each quad taken adds a corner, so there are never more quads than corners).
+    A corner in no whole quad (e.g. a lone row of corners at the image edge) is not used: the
+    measurement unit is 4 points."""
+    have = np.zeros(int(quads.max()) + 1 if len(quads) else 0, dtype=bool)
+    f = np.asarray(found, dtype=int).reshape(-1)
+    have[f[(f >= 0) & (f < have.size)]] = True
+    whole = np.nonzero(have[quads].all(axis=1))[0] if len(quads) else np.zeros(0, int)
+    used = np.zeros_like(have)
+    chosen = []
+    for i in whole:
+        if not used[quads[i]].any():
+            chosen.append(int(i))
+            used[quads[i]] = True
+    while whole.size:
+        new = (~used[quads[whole]]).sum(axis=1)
+        best = int(np.argmax(new))  # the first of the most
+        if new[best] == 0:
+            break
+        chosen.append(int(whole[best]))
+        used[quads[whole[best]]] = True
+    return np.array(sorted(chosen), dtype=int)
 
 
 def charuco_markers(spec: CharucoSpec, dictionary: str) -> tuple[np.ndarray, np.ndarray]:

@@ -14,12 +14,12 @@ ChArUco boards (``board.charuco``, :func:`detect_charuco`): the chessboard saddl
 the measurements, the markers only identify them. They are returned in the same
 :class:`MarkerDetections` as ArUco markers, so the cache, the per-view PnP, the pose graph,
 the bundle adjustment and the report take them unchanged: each "marker" is a quad of 4 saddle
-corners (ids and board points from :meth:`rgbd_calib.board.CharucoSpec.quads`, 2x2 blocks of
-neighbouring corners with stride 2), reported when all 4 were found. The price: a corner whose
-quad lost another corner is not used, and on a board with an odd number of corner columns or
-rows the overlapping last quad column/row uses those corners twice (slightly optimistic
-covariances). A measurement of any number of points would need the bundle's and PnP's
-per-marker (4-point) structures generalised.
+corners (ids and board points from :meth:`rgbd_calib.board.CharucoSpec.quads`, the unit
+squares of the corner grid), the quads :func:`rgbd_calib.board.cover_quads` picks in each view
+so that every found corner lying in a whole quad is used, about once. The price: a corner in no
+whole quad (its three neighbours of a square not all found) is not used, and a few corners are
+used twice (slightly optimistic covariances). A measurement of any number of points would need
+the bundle's and PnP's per-marker (4-point) structures generalised.
 
 ``detect_markers`` is a pure function of ``(image, board, config)`` so callers can run it in a
 process pool; it never touches ``board.aruco_dict`` (a cached ``cv2`` object that cannot be
@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
-from .board import Board, aruco_dictionary
+from .board import Board, aruco_dictionary, cover_quads
 from .camera import CameraIntrinsics
 from .config import DetectionConfig
 from .dataset import read_color_image
@@ -341,8 +341,9 @@ def detect_charuco(
     corners: str | None = None,
 ) -> MarkerDetections:
     """The saddle corners of a ChArUco board (``board.charuco``) in a BGR or grey image, as
-    the board's saddle-corner quads (see :class:`rgbd_calib.board.CharucoSpec`): a quad is
-    reported when all its 4 corners were found, ``corners_px`` ``(N,4,2)`` in its order.
+    the board's saddle-corner quads (see :class:`rgbd_calib.board.CharucoSpec`): whole quads
+    (all 4 corners found) chosen by :func:`rgbd_calib.board.cover_quads`, ``corners_px``
+    ``(N,4,2)`` in their order.
 
     Steps: an inverted print is inverted back (so OpenCV sees black markers); OpenCV's
     ``CharucoDetector.detectBoard`` finds the markers (identification only) and interpolates
@@ -363,12 +364,11 @@ def detect_charuco(
                              "charuco")
     if len(ids) == 0:
         return empty
-    found = dict(zip(ids.tolist(), px))
     quads = spec.quads()
-    full = np.array([all(int(k) in found for k in q) for q in quads], dtype=bool)
-    if not full.any():
+    q_ids = cover_quads(quads, ids)
+    if len(q_ids) == 0:
         return empty
-    q_ids = np.nonzero(full)[0]
+    found = dict(zip(ids.tolist(), px))
     q_px = np.array([[found[int(k)] for k in quads[i]] for i in q_ids])
     return MarkerDetections(q_ids, q_px, np.ones((len(q_ids), 4), bool), foreign,
                             np.zeros(0, dtype=int), size, "charuco")

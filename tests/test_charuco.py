@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 from rgbd_calib.board import (
     Board,
     charuco_black_squares,
+    cover_quads,
     load_board,
     save_board,
 )
@@ -39,8 +40,8 @@ def test_board_file_loads_and_round_trips(tmp_path):
     board = load_board(CALISCOPE)
     spec = board.charuco
     assert spec is not None and spec.inverted and (spec.squares_x, spec.squares_y) == (4, 5)
-    # 3 x 4 saddle corners in quads of a square each (stride 2, last column overlapping)
-    assert board.corners.shape == (4, 4, 3)
+    # 3 x 4 saddle corners: 2 x 3 unit squares, each a quad
+    assert board.corners.shape == (6, 4, 3)
     sides = np.linalg.norm(np.roll(board.corners, -1, axis=1) - board.corners, axis=-1)
     np.testing.assert_allclose(sides, 0.054, atol=1e-12)
     assert len(np.unique(board.corners.reshape(-1, 3), axis=0)) == 12  # every corner used
@@ -57,16 +58,39 @@ def test_board_file_loads_and_round_trips(tmp_path):
 
 @pytest.mark.parametrize("squares, quads", [((4, 5), 4), ((8, 6), 12), ((5, 5), 4), ((3, 3), 1)])
 def test_quads_cover_every_saddle_corner(squares, quads):
+    """A whole board is measured with the stride-2 tiling of its unit squares (plus the
+    overlapping last column/row when the corner count is odd): every corner in a quad."""
     from rgbd_calib.board import CharucoSpec
 
     spec = CharucoSpec(squares[0], squares[1], 0.05, 0.035)
     q = spec.quads()
-    nx = spec.squares_x - 1
-    assert len(q) == quads
-    assert set(q.ravel().tolist()) == set(range(nx * (spec.squares_y - 1)))
+    nx, ny = spec.squares_x - 1, spec.squares_y - 1
+    assert len(q) == (nx - 1) * (ny - 1)  # every unit square of the corner grid
     # each quad is one square: TL, TR, BR, BL neighbours on the corner grid
     assert np.all(q[:, 1] - q[:, 0] == 1) and np.all(q[:, 3] - q[:, 0] == nx)
     assert np.all(q[:, 2] - q[:, 3] == 1)
+    chosen = cover_quads(q, np.arange(nx * ny))
+    assert len(chosen) == quads
+    assert set(q[chosen].ravel().tolist()) == set(range(nx * ny))
+
+
+def test_cover_quads_keeps_the_corners_of_a_partly_seen_board():
+    """Corners that the fixed stride-2 tiling lost (their aligned quad lacks a corner) are
+    measured by another whole unit square; a corner in no whole square is left out."""
+    from rgbd_calib.board import CharucoSpec
+
+    spec = CharucoSpec(5, 5, 0.05, 0.035)  # 4 x 4 corners, ids r * 4 + c
+    q = spec.quads()
+    found = np.array([1, 2, 5, 6, 9, 10, 13, 14, 15])  # columns 1-2 and one more corner
+    chosen = cover_quads(q, found)
+    used = set(q[chosen].ravel().tolist())
+    assert used == {1, 2, 5, 6, 9, 10, 13, 14}  # 15 is in no whole square
+    assert all(set(q[i].tolist()) <= set(found.tolist()) for i in chosen)
+    # none of the stride-2 quads (TL at (0,0), (0,2), (2,0), (2,2)) is whole here
+    assert not set(chosen.tolist()) & {0, 2, 6, 8}
+    assert len(chosen) == 2  # (0,1) and (2,1), disjoint; (1,1) would add nothing
+    assert cover_quads(q, np.array([0, 1, 4])).size == 0
+    assert cover_quads(q, np.zeros(0, int)).size == 0
 
 
 @pytest.mark.parametrize(
@@ -135,7 +159,9 @@ def test_printed_board_detects_at_true_scale(tmp_path, config):
     result = write_printable_board(board, tmp_path, dpi=dpi)
     gray = cv2.imread(str(tmp_path / "board_front.png"), cv2.IMREAD_GRAYSCALE)
     det = detect_charuco(cv2.GaussianBlur(gray, (0, 0), 1.0), board)
-    assert det.ids.tolist() == board.ids.tolist()
+    spec = board.charuco
+    every_corner = np.arange((spec.squares_x - 1) * (spec.squares_y - 1))
+    assert det.ids.tolist() == cover_quads(spec.quads(), every_corner).tolist()
     page = board_to_page_mm(board, 1, board.corners[det.ids][:, :, :2], result.page_size_mm)
     expected_px = page * dpi / 25.4 - 0.5  # pixel centres at integer coordinates
     assert np.abs(det.corners_px - expected_px).max() < PRINT_CORNER_PX
@@ -249,7 +275,9 @@ def test_real_video_saddle_corners_found():
                 moved.append(np.abs(det.corners_px - raw.corners_px).max())
         k += 1
     cap.release()
-    assert found == {k: [0, 1, 2, 3] for k in (70, 80, 90, 100, 110)}, found
+    whole = cover_quads(board.charuco.quads(), np.arange(12)).tolist()  # every corner
+    assert whole == [0, 1, 4, 5]  # the stride-2 tiling, its last column overlapping
+    assert found == {k: whole for k in (70, 80, 90, 100, 110)}, found
     assert max(moved) < 1.0, moved
 
 
