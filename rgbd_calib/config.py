@@ -195,6 +195,15 @@ class PoseConfig(BaseModel, extra="forbid"):
         "outlier faces 3); 1-3 markers also cover little of the board, leaving the planar flip "
         "and the tilt weak (measured: 5-30 mm errors with SUBPIX corners at 1.5 m).",
     )
+    min_charuco_corners: int = Field(
+        8,
+        ge=4,
+        description="ChArUco targets: fewest distinct saddle corners a view needs, "
+        "whatever its marker count (a whole caliscope-size board is 4 quads; a view of 2 "
+        "whole squares has 8 corners). OpenCV's corner interpolation has already checked "
+        "each corner against its neighbouring markers, so no majority vote is needed; a "
+        "weak view's covariance says how weak it is.",
+    )
     max_reprojection_rms_px: float = Field(
         1.0,
         gt=0,

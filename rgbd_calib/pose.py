@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .board import Board
+from .board import CHARUCO_ID_BASE, Board
 from .camera import CameraIntrinsics
 from .config import PoseConfig
 from .detection import MarkerDetections
@@ -370,6 +370,24 @@ def _single_face(faces: np.ndarray) -> int:
     return int(seen[0]) if len(seen) == 1 else 0
 
 
+def _too_few(board: Board, ids: np.ndarray, obj: np.ndarray, config: PoseConfig) -> str:
+    """Why a view's measurements ``ids`` (board points ``obj`` ``(N,4,3)``) are too few for a
+    pose, or "" when they are enough: ``min_markers`` ArUco markers, or, on a ChArUco target,
+    ``min_charuco_corners`` distinct points (its saddle-corner quads' corners, each ArUco
+    marker of a mixed target counting its 4)."""
+    quad = (ids >= CHARUCO_ID_BASE if board.sheets
+            else np.full(len(ids), board.charuco is not None))
+    n_markers = int((~quad).sum())
+    if n_markers >= config.min_markers:
+        return ""
+    if not quad.any():
+        return f"{len(ids)} < min_markers {config.min_markers}"
+    n_points = 4 * n_markers + len(np.unique(np.round(obj[quad].reshape(-1, 3), 9), axis=0))
+    if n_points >= config.min_charuco_corners:
+        return ""
+    return f"{n_points} corners < min_charuco_corners {config.min_charuco_corners}"
+
+
 def estimate_board_pose(
     det: MarkerDetections,
     board: Board,
@@ -408,10 +426,11 @@ def estimate_board_pose(
     else:
         face = 0 if (n_front and n_back) else (1 if n_front else -1)
 
-    if len(ids) < config.min_markers:
-        return reject("too_few_markers", f"{len(ids)} < min_markers {config.min_markers}")
+    obj = board.object_points(ids) if len(ids) else np.zeros((0, 4, 3))
+    short = _too_few(board, ids, obj, config)
+    if short:
+        return reject("too_few_markers", short)
 
-    obj = board.object_points(ids)
     faces = board.faces_of(ids)
     while True:
         if board.sheets and face == 0:
@@ -427,14 +446,14 @@ def estimate_board_pose(
         limit = max(config.outlier_factor * float(np.median(per_marker)), config.outlier_min_px)
         if per_marker[worst] <= limit or len(ids) <= 1:
             break
-        if len(ids) - 1 < config.min_markers:
+        keep = np.arange(len(ids)) != worst
+        if _too_few(board, ids[keep], obj[keep], config):
             return reject(
                 "outlier_markers",
                 f"marker {ids[worst]} is {per_marker[worst]:.1f} px "
                 "off and too few markers remain without it",
             )
         dropped.setdefault("outlier", []).append(int(ids[worst]))
-        keep = np.arange(len(ids)) != worst
         ids, corners, obj, faces = ids[keep], corners[keep], obj[keep], faces[keep]
         if board.sheets:
             face = _single_face(faces)

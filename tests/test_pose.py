@@ -251,6 +251,35 @@ def test_too_few_markers_is_rejected(board, views):
     )
 
 
+def test_charuco_views_need_corners_not_four_quads():
+    """A ChArUco view is judged by its distinct saddle corners (``min_charuco_corners``), not
+    by ``min_markers`` quads: two whole squares (8 corners) give a pose, one (4) does not, and
+    two overlapping squares (6 corners) do not either."""
+    from rgbd_calib.board import cover_quads, load_board
+
+    cboard = load_board(CONFIGS / "board_charuco_caliscope.yaml")  # 3 x 4 corners, 6 quads
+    K = make_camera().intrinsics
+    R = rotvec_to_matrix(np.array([0.15, -0.1, 0.05])) @ rotvec_to_matrix(np.array([np.pi, 0, 0]))
+    T = make_transform(R, [-0.1, 0.13, 0.6])  # the printed face towards the camera
+    quads = cboard.charuco.quads()
+
+    def view(corner_ids):
+        q = cover_quads(quads, np.array(corner_ids))
+        uv = K.project(transform_points(T, cboard.object_points(q).reshape(-1, 3)))
+        return MarkerDetections(q, uv.reshape(-1, 4, 2), np.ones((len(q), 4), bool),
+                                refinement="charuco")
+
+    two = estimate_board_pose(view([0, 1, 3, 4, 6, 7, 9, 10]), cboard, K, PoseConfig())
+    assert not isinstance(two, RejectedView) and two.n_markers == 2
+    assert np.abs(two.T_cam_board[:3, 3] - T[:3, 3]).max() < 1e-6
+    for ids, n in (([0, 1, 3, 4], 4), ([0, 1, 2, 3, 4, 5], 6)):
+        out = estimate_board_pose(view(ids), cboard, K, PoseConfig())
+        assert isinstance(out, RejectedView) and out.reason == "too_few_markers"
+        assert out.detail == f"{n} corners < min_charuco_corners 8"
+    assert not isinstance(estimate_board_pose(view([0, 1, 2, 3, 4, 5]), cboard, K,
+                                              PoseConfig(min_charuco_corners=6)), RejectedView)
+
+
 def test_stray_marker_is_dropped(board, views):
     img, T, K = views[2]
     det = detect_markers(img, board)
