@@ -37,6 +37,16 @@ def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> Array:
     return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
 
 
+def move_rows(points: ArrayLike, moves) -> Array:
+    """A copy of ``points`` ``(N,3)`` with each ``(rows, T)`` of ``moves`` mapping its rows
+    (a boolean mask or indices) by the transform ``T`` (4x4); e.g. a target's faces moved to
+    where a self-calibration puts them."""
+    P = np.array(points, dtype=float)
+    for rows, T in moves:
+        P[rows] = transform_points(T, P[rows])
+    return P
+
+
 def skew(v: ArrayLike) -> Array:
     x, y, z = np.asarray(v, dtype=float).reshape(3).tolist()
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])

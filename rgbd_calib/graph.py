@@ -50,6 +50,7 @@ from .geometry import (
     invert_transform,
     make_transform,
     matrix_to_rotvec,
+    move_rows,
     orthonormalize,
     rotation_angle_deg,
     skew,
@@ -954,6 +955,13 @@ class RelativePose:
     T_b_a: np.ndarray
     information: np.ndarray
 
+    def factor(self, key: dict[str, int]) -> gtsam.BetweenFactorPose3:
+        """Its factor between the cameras' pose variables (camera -> ``key``):
+        ``BetweenFactorPose3(b, a)`` predicts ``T_ref_b^-1 T_ref_a = T_b_a``; its error is
+        ``Logmap(T_b_a_measured^-1 T_b_a)``, the right perturbation the information is for."""
+        return gtsam.BetweenFactorPose3(key[self.cam_b], key[self.cam_a], gtsam.Pose3(self.T_b_a),
+                                        gtsam.noiseModel.Gaussian.Information(self.information))
+
 
 @dataclass(frozen=True)
 class BundleResult:
@@ -1148,15 +1156,6 @@ def _robust_rows(r: np.ndarray, blocks, H: list[np.ndarray] | None, robust: str,
     return r.reshape(-1) * sw[:, 0]
 
 
-def _move_faces(P_b: np.ndarray, moves) -> np.ndarray:
-    """Board points ``P_b`` (N,3) with each ``(rows, C)`` of ``moves`` moving its rows by the
-    board-frame transform ``C`` (4x4): the faces where the self-calibration puts them."""
-    P = P_b.copy()
-    for rows, C in moves:
-        P[rows] = P_b[rows] @ C[:3, :3].T + C[:3, 3]
-    return P
-
-
 def _face_transform(X: np.ndarray, A: np.ndarray | None) -> np.ndarray:
     """The board-frame move ``C = A X A^-1`` of a face whose correction ``X`` is expressed in
     the frame ``A`` (a multi-face target's nominal face pose); ``X`` itself when ``A`` is None
@@ -1340,9 +1339,9 @@ def _view_factor_faces(key_cam: int, key_board: int, moving: list,
     ``(key, flags, A)`` per face seen, ``flags`` (n,) marking its markers, ``A`` the frame its
     correction ``X`` (Pose3 ``key``) is expressed in (None: the board frame, the back sheet's
     ``T_front_back``); a flagged marker's corners are ``A X A^-1 @ object_point``
-    (:func:`_move_faces`). Pinhole ``K`` (fixed intrinsics), or ``intr = (key_intr, base)``
-    for refined ones (as :func:`_view_factor_intrinsics`). Keys: camera, board,
-    [intrinsics,] the faces; same per-marker robust kernel."""
+    (:func:`rgbd_calib.geometry.move_rows`). Pinhole ``K`` (fixed intrinsics), or
+    ``intr = (key_intr, base)`` for refined ones (as :func:`_view_factor_intrinsics`). Keys:
+    camera, board, [intrinsics,] the faces; same per-marker robust kernel."""
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_file = np.asarray(object_points, dtype=float).reshape(-1, 3)
@@ -1359,7 +1358,7 @@ def _view_factor_faces(key_cam: int, key_board: int, moving: list,
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
         X = [values.atPose3(key).matrix() for key, _, _ in faces]
-        P_b = _move_faces(P_file, [(rows, _face_transform(x, A))
+        P_b = move_rows(P_file, [(rows, _face_transform(x, A))
                                    for (_, rows, A), x in zip(faces, X)])
         T_cam, T_board = values.atPose3(key_cam).matrix(), values.atPose3(key_board).matrix()
         if intr:
@@ -1605,11 +1604,7 @@ def _build_graph(p: _BundleProblem, groups: list[_ViewGroup], sigma: float,
     for rel in p.relative_poses:
         if rel.cam_a not in connected or rel.cam_b not in connected:
             continue  # a pair cut off from the reference constrains nothing we solve
-        # BetweenFactorPose3(b, a) predicts T_ref_b^-1 T_ref_a = T_b_a; its error is
-        # Logmap(T_b_a_measured^-1 T_b_a), the right perturbation the information is for
-        graph.add(gtsam.BetweenFactorPose3(
-            p.cam_key[rel.cam_b], p.cam_key[rel.cam_a], gtsam.Pose3(rel.T_b_a),
-            gtsam.noiseModel.Gaussian.Information(rel.information)))
+        graph.add(rel.factor(p.cam_key))
     return graph
 
 
@@ -1822,7 +1817,7 @@ def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key:
         T_board = values.atPose3(view_key[g.view]).matrix()
         P_b = g.object_points.reshape(-1, 3)
         if moves:
-            P_b = _move_faces(P_b, [(np.repeat(g.face == label, 4), C) for label, C in moves])
+            P_b = move_rows(P_b, [(np.repeat(g.face == label, 4), C) for label, C in moves])
         if models is not None:
             uv = _project_full(T_cam, T_board, models[g.camera], None, P_b, jacobians=False)[0]
         else:
@@ -1852,10 +1847,7 @@ def relative_pose_redundancy(reference: str, T_ref_cam: dict[str, np.ndarray],
     key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
     graph = gtsam.NonlinearFactorGraph()
     for i in used:
-        r = relative_poses[i]
-        graph.add(gtsam.BetweenFactorPose3(
-            key[r.cam_b], key[r.cam_a], gtsam.Pose3(r.T_b_a),
-            gtsam.noiseModel.Gaussian.Information(r.information)))
+        graph.add(relative_poses[i].factor(key))
     values = gtsam.Values()
     ordering = gtsam.Ordering()
     for c in cams:

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .. import __version__
-from ..geometry import invert_transform, transform_points
+from ..geometry import invert_transform, move_rows, transform_points
 from ..yamlio import to_builtin
 from .findings import findings
 from .numbers import histogram_edges_px, median_or_none, stats
@@ -216,15 +216,14 @@ def _final_marker_residuals(
         }
         if o.camera in cams and o.frame in boards:
             T_cam_board = invert_transform(cams[o.camera].T_ref_cam) @ boards[o.frame]
-            P_b = o.object_points.reshape(-1, 3).copy()
+            P_b = o.object_points.reshape(-1, 3)
             moves = []  # (rows, board-frame move): the faces where the bundle found them
             if T_front_back is not None:
                 moves.append((P_b[:, 2] < -model.thickness_m / 2, T_front_back))
             if face_moves and board is not None:
                 rows4 = np.repeat(board.faces_of(o.ids), 4)
                 moves += [(rows4 == label, C) for label, C in face_moves.items()]
-            for rows_of_face, C in moves:
-                P_b[rows_of_face] = transform_points(C, P_b[rows_of_face])
+            P_b = move_rows(P_b, moves)
             pts = transform_points(T_cam_board, P_b)
             uv = _final_model(result, rig, o.camera).project(pts).reshape(-1, 4, 2)
             row["rms"] = np.sqrt(np.mean(np.sum((uv - o.corners_px) ** 2, axis=-1), axis=-1))
