@@ -468,6 +468,7 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
     ``depth.fallback`` saying why."""
     if method == "none":
         raise CalibrationError("refine needs --method colored-icp or geometric")
+    config = config or DepthConfig()
     T_init = {c: e.T_ref_cam for c, e in init.cameras.items() if c in dataset.rig.cameras}
     if init.reference not in T_init:
         raise CalibrationError(f"the reference camera {init.reference!r} of the initial "
@@ -487,7 +488,6 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
     if not depth.used:
         return init, finish_pairs(depth, T_init, config)
     priors = initial_pose_priors(init, T_init)
-    config = config or DepthConfig()
     try:
         res, factors = solve_variance_components(
             {c: dataset.rig.cameras[c].K for c in T_init}, init.reference, T_init,
