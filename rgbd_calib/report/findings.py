@@ -118,9 +118,13 @@ def inconsistent_camera(report: dict[str, Any], earlier: list[Finding]) -> list[
     )
     out = []
     explained = _explained_model_errors(report)
+    readmitted = _readmitted_views(report)
     for name, cam in cams.items():
         views = [v for v in report["views"] if v["camera"] == name]
-        parts = _inconsistencies(cam, views, rig_p50, name in explained) if views else []
+        rejected = [v for v in views if v["edge_status"] == "outlier"
+                    and (v["camera"], v["frame"]) not in readmitted]
+        parts = (_inconsistencies(cam, views, rejected, rig_p50, name in explained)
+                 if views else [])
         if parts:
             out.append(
                 finding(
@@ -153,10 +157,10 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
                 "camera_model_error",
                 [name],
                 f"{name}: its board views disagreed with the rest of the rig under the "
-                f"rig.yaml model ({m['outliers_before']} of {m['edges']} beyond the outlier "
-                "threshold); the refined board / intrinsics explain it within their priors: "
-                "its corners fit like the rest of the rig, and its uncertainty is not "
-                "inflated.",
+                f"board file's and rig.yaml's model ({m['outliers_before']} of {m['edges']} "
+                "beyond the outlier threshold); the refined board / intrinsics explain it "
+                "within their priors: its corners fit like the rest of the rig, and its "
+                "uncertainty is not inflated.",
                 "Nothing to do; rig_refined.yaml (and board_refined.yaml when the board was "
                 "refined) hold the refined models.",
             ))
@@ -225,14 +229,36 @@ def _explained_model_errors(report: dict[str, Any]) -> set[str]:
             if m.get("sigma_factor") is not None and m["sigma_factor"] <= 1.0}
 
 
+def _readmitted_views(report: dict[str, Any]) -> set[tuple[str, str]]:
+    """``(camera, frame)`` of the pose-graph outlier views the final estimate took back:
+    with a self-calibrated board or lens the bundle adjustment keeps the views the pose
+    graph rejected under the board file's / rig.yaml's model (``calibrate.marker_measurements``)
+    and its own marker test judges them; a view counts as taken back when the bundle used at
+    least half its markers and they reproject within ``REPROJECTION_FACTOR`` x the typical
+    used view's RMS. A view wrong in itself (blur, out of sync) keeps its board pose shared
+    with the other cameras of its frame, so it fails that fit and stays an outlier."""
+    typical = median_or_none([v["final_reprojection_rms_px"] for v in report["views"]
+                              if v["edge_status"] == "used"])
+    if typical is None:
+        return set()
+    return {
+        (v["camera"], v["frame"]) for v in report["views"]
+        if v["edge_status"] == "outlier" and v["excluded_markers"] is not None
+        and 2 * v["excluded_markers"] <= v["markers"]
+        and v["final_reprojection_rms_px"] is not None
+        and v["final_reprojection_rms_px"] <= REPROJECTION_FACTOR * typical
+    }
+
+
 def _inconsistencies(
-    cam: dict[str, Any], views: list[dict[str, Any]], rig_p50: float | None,
-    explained: bool = False,
+    cam: dict[str, Any], views: list[dict[str, Any]], rejected: list[dict[str, Any]],
+    rig_p50: float | None, explained: bool = False,
 ) -> list[str]:
-    """Why a camera disagrees with the rig (empty: it does not): many outlier views (not
-    when a self-calibrated model ``explained`` them), a median reprojection error far above
-    the rig's, many views whose corners fit no pose."""
-    n_out = 0 if explained else cam["edge_outliers"]
+    """Why a camera disagrees with the rig (empty: it does not): many ``rejected`` views
+    (pose-graph outliers the final estimate did not take back; none when a self-calibrated
+    model ``explained`` the camera), a median reprojection error far above the rig's, many
+    views whose corners fit no pose."""
+    n_out = 0 if explained else len(rejected)
     p50 = (cam["reprojection_all_px"] or {}).get("p50")
     bad_views = n_out >= 2 and n_out >= INCONSISTENT_FRACTION * max(len(views), 1)
     bad_px = (
@@ -247,9 +273,7 @@ def _inconsistencies(
     )
     parts = []
     if bad_views:
-        med = median_or_none(
-            [v["edge_translation_mm"] for v in views if v["edge_status"] == "outlier"]
-        )
+        med = median_or_none([v["edge_translation_mm"] for v in rejected])
         parts.append(
             f"{n_out} of its {len(views)} board views disagree with the rest "
             f"of the rig (median {fmt(med, 1)} mm)"
@@ -573,7 +597,9 @@ def board_tilt(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
 # ----------------------------------------------------------------------------- views, markers
 def outlier_views(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     skip = _cameras_of(earlier, "inconsistent_camera") | _explained_model_errors(report)
-    outliers = [o for o in report["pose_graph"]["outliers"] if o["camera"] not in skip]
+    readmitted = _readmitted_views(report)
+    outliers = [o for o in report["pose_graph"]["outliers"]
+                if o["camera"] not in skip and (o["camera"], o["view"]) not in readmitted]
     if not outliers:
         return []
     listed = ", ".join(f"{o['camera']}/{o['view']}" for o in outliers[:8])
@@ -583,8 +609,36 @@ def outlier_views(report: dict[str, Any], earlier: list[Finding]) -> list[Findin
             "outlier_views",
             sorted({o["camera"] for o in outliers}),
             f"{len(outliers)} board view(s) were rejected as pose-graph outliers: {listed}"
-            f"{' ...' if len(outliers) > 8 else ''}.",
+            f"{' ...' if len(outliers) > 8 else ''}"
+            + (" (the bundle adjustment kept them, but they fit worse than 3x the typical "
+               "view)" if readmitted else "") + ".",
             "Look at those frames: motion blur, a camera out of sync, or a wrong detection.",
+        )
+    ]
+
+
+def readmitted_views(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The pose-graph outlier views the final estimate took back (see
+    :func:`_readmitted_views`), of cameras no other finding covers: why their pose-graph
+    edges say ``outlier`` and no warning does."""
+    skip = _cameras_of(earlier, "inconsistent_camera") | _explained_model_errors(report)
+    per_camera: dict[str, int] = {}
+    for cam, _ in sorted(_readmitted_views(report)):
+        if cam not in skip:
+            per_camera[cam] = per_camera.get(cam, 0) + 1
+    if not per_camera:
+        return []
+    n = sum(per_camera.values())
+    return [
+        finding(
+            "info",
+            "readmitted_views",
+            sorted(per_camera),
+            f"{n} board view(s) the pose graph rejected under the board file's and rig.yaml's "
+            "model were used by the bundle adjustment with the self-calibrated model and fit "
+            "like the rest of the rig ("
+            + ", ".join(f"{c} {k}" for c, k in per_camera.items()) + ").",
+            "Nothing to do; board_refined.yaml / rig_refined.yaml hold the model they fit.",
         )
     ]
 
@@ -887,6 +941,7 @@ RULES: tuple[Rule, ...] = (
     scratch_coverage,
     lens_coverage,
     outlier_views,
+    readmitted_views,
     marker,
     reprojection,
     dropped_views,

@@ -14,7 +14,7 @@ from typing import Any
 
 from ..errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.7"
+REPORT_SCHEMA_VERSION = "1.8"
 
 
 class ReportError(RgbdCalibError):
