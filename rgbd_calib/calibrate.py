@@ -50,6 +50,7 @@ from .refine import (
     measure_depth,
     moved_beyond_board,
 )
+from .report.schema import DROP_ADVICE
 from .results import CameraExtrinsics, Extrinsics, PoseEdge, cameras_from_solve
 from .rig import Rig
 from .selfcal import SelfCalibration
@@ -238,7 +239,7 @@ def calibrate(
     # 2. one board pose per view (PnP, covariance, gates)
     with timed(timings, "pose"):
         observations, rejected = board_poses(detections, board, rig, config.pose)
-    _check_views(dataset, detections, observations, n_images)
+    _check_views(dataset, detections, observations, rejected, n_images)
     # 3. robust pose graph over the views: initial extrinsics and board poses
     with timed(timings, "pose_graph"):
         pg = pose_graph(dataset, observations, config, fixed_cameras)
@@ -387,6 +388,7 @@ def _check_views(
     dataset: FolderDataset,
     detections: dict[tuple[str, str], MarkerDetections],
     observations: list[BoardObservation],
+    rejected: list[RejectedView],
     n_images: int,
 ) -> None:
     """Stop with the reason when the views cannot link any camera to the reference (before the
@@ -395,18 +397,45 @@ def _check_views(
         total = sum(len(d.ids) for d in detections.values())
         raise CalibrationError(
             f"{dataset.path}: no usable board view in {n_images} images ({total} board markers "
-            "detected); check that --board matches the printed board (dictionary, ids) and that "
-            "the board is in view"
+            + ("detected); check that --board matches the printed board (dictionary, ids) and "
+               "that the board is in view" if not rejected or not total else
+               f"detected); {_why_dropped(detections, rejected)}")
         )
     reference = dataset.rig.reference
     if reference not in {o.camera for o in observations}:
+        mine = [r for r in rejected if r.camera == reference]
         raise CalibrationError(
-            f"{dataset.path}: the reference camera {reference!r} has no usable board view; "
-            "record the board in its view or choose another reference in rig.yaml"
+            f"{dataset.path}: the reference camera {reference!r} has no usable board view"
+            + (f" ({_why_dropped(detections, mine)})" if mine else "")
+            + "; record the board in its view or choose another reference in rig.yaml"
         )
     reference_frames = {o.frame for o in observations if o.camera == reference}
     if not any(o.camera != reference and o.frame in reference_frames for o in observations):
         raise _no_shared_view(dataset)
+
+
+def _why_dropped(detections: dict[tuple[str, str], MarkerDetections],
+                 rejected: list[RejectedView]) -> str:
+    """Why views with markers gave no pose, for an error message: the reasons by count, the
+    advice for the most common, and the size of the markers in the images of those views
+    (ArUco finds markers down to ~10 px; a pose needs a few of them)."""
+    counts: dict[str, int] = {}
+    for r in rejected:
+        counts[r.reason] = counts.get(r.reason, 0) + 1
+    reasons = sorted(counts.items(), key=lambda kv: -kv[1])
+    sides = [float(np.linalg.norm(np.diff(d.corners_px, axis=1, append=d.corners_px[:, :1]),
+                                  axis=-1).mean())
+             for r in rejected if len(d := detections.get((r.camera, r.frame), _NONE))]
+    dropped = (f"all {len(rejected)} views with markers were dropped ("
+               + ", ".join(f"{k} {n}" for k, n in reasons) + ")")
+    if sides and np.median(sides) < SMALL_MARKER_PX:
+        return (f"{dropped}; the markers found were {np.median(sides):.0f} px wide (median), "
+                "too small for a pose: bring the board closer or print larger markers")
+    return f"{dropped}: {DROP_ADVICE.get(reasons[0][0], 'see the reasons')}"
+
+
+SMALL_MARKER_PX = 20.0  # markers narrower than this in the images: at ArUco's limit
+_NONE = MarkerDetections(np.zeros(0, int), np.zeros((0, 4, 2)), np.zeros((0, 4), bool))
 
 
 def _no_shared_view(dataset: FolderDataset) -> CalibrationError:

@@ -1108,3 +1108,29 @@ def test_zz_every_case_is_in_docs_robustness(tmp_path_factory):
     missing = [row for row in text.splitlines()[2:] if row not in doc]
     assert not missing, "rows not in docs/robustness.md (RGBD_CALIB_WRITE_DOCS=1 updates):\n" + (
         "\n".join(missing))
+
+
+@pytest.mark.parametrize("side_px, expected", [
+    (12.0, "12 px wide (median), too small for a pose: bring the board closer"),
+    (60.0, "): corners do not fit a pose: motion blur"),
+])
+def test_no_usable_view_says_why_the_views_with_markers_were_dropped(side_px, expected):
+    """Measured: an A3 ChArUco board (configs/board_charuco_a3.yaml) on the race rig (848x480,
+    seed 104) gives 577 markers in 53 views and not one pose; the error said to check that
+    --board matches the printed board, which it did. It now gives the drop reasons and, when
+    the markers are at ArUco's size limit, says so."""
+    from rgbd_calib.calibrate import _why_dropped
+    from rgbd_calib.detection import MarkerDetections
+    from rgbd_calib.pose import RejectedView
+
+    square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) * side_px + 100
+    det = MarkerDetections(np.array([3, 4]), np.stack([square, square + 2 * side_px]),
+                           np.ones((2, 4), bool))
+    rejected = [RejectedView("cam0", "000001", "reprojection_rms", 2),
+                RejectedView("cam1", "000001", "reprojection_rms", 2),
+                RejectedView("cam1", "000002", "ambiguous", 2)]
+    detections = {("cam0", "000001"): det, ("cam1", "000001"): det, ("cam1", "000002"): det}
+    why = _why_dropped(detections, rejected)
+    assert why.startswith("all 3 views with markers were dropped (reprojection_rms 2, "
+                          "ambiguous 1)"), why
+    assert expected in why, why
