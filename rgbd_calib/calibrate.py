@@ -404,9 +404,11 @@ def _check_views(
     reference = dataset.rig.reference
     if reference not in {o.camera for o in observations}:
         mine = [r for r in rejected if r.camera == reference]
+        found = sum(len(d.ids) for (c, _), d in detections.items() if c == reference)
         raise CalibrationError(
             f"{dataset.path}: the reference camera {reference!r} has no usable board view"
-            + (f" ({_why_dropped(detections, mine)})" if mine else "")
+            + (f" ({_why_dropped(detections, mine)})" if mine else
+               f" ({found} board markers detected in its images)")
             + "; record the board in its view or choose another reference in rig.yaml"
         )
     reference_frames = {o.frame for o in observations if o.camera == reference}
@@ -428,10 +430,13 @@ def _why_dropped(detections: dict[tuple[str, str], MarkerDetections],
              for r in rejected if len(d := detections.get((r.camera, r.frame), _NONE))]
     dropped = (f"all {len(rejected)} views with markers were dropped ("
                + ", ".join(f"{k} {n}" for k, n in reasons) + ")")
+    mismatch = ("check that --board matches the printed board (layout, marker length, ids: "
+                "markers of another board of the same dictionary are found too)")
     if sides and np.median(sides) < SMALL_MARKER_PX:
         return (f"{dropped}; the markers found were {np.median(sides):.0f} px wide (median), "
-                "too small for a pose: bring the board closer or print larger markers")
-    return f"{dropped}: {DROP_ADVICE.get(reasons[0][0], 'see the reasons')}"
+                f"at ArUco's limit: bring the board closer or print larger markers, and "
+                f"{mismatch}")
+    return f"{dropped}: {DROP_ADVICE.get(reasons[0][0], 'see the reasons')}; {mismatch}"
 
 
 SMALL_MARKER_PX = 20.0  # markers narrower than this in the images: at ArUco's limit
