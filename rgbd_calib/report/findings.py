@@ -258,7 +258,7 @@ def _inconsistencies(
     rig_p50: float | None, explained: bool = False,
 ) -> list[str]:
     """Why a camera disagrees with the rig (empty: it does not): many ``rejected`` views
-    (pose-graph outliers the final estimate did not take back; none when a self-calibrated
+    (pose-graph outliers the final calibration does not fit; none when a self-calibrated
     model ``explained`` the camera), a median reprojection error far above the rig's, many
     views whose corners fit no pose."""
     n_out = 0 if explained else len(rejected)
@@ -627,7 +627,8 @@ def fitting_outlier_views(report: dict[str, Any], earlier: list[Finding]) -> lis
     left: dict[str, int] = {}
     for (cam, _), in_bundle in sorted(_fitting_outliers(report).items()):
         if cam not in skip:
-            (used if in_bundle else left)[cam] = (used if in_bundle else left).get(cam, 0) + 1
+            bucket = used if in_bundle else left
+            bucket[cam] = bucket.get(cam, 0) + 1
     if not used and not left:
         return []
     parts = []
