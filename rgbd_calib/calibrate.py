@@ -50,7 +50,6 @@ from .refine import (
     measure_depth,
     moved_beyond_board,
 )
-from .report.schema import DROP_ADVICE
 from .results import CameraExtrinsics, Extrinsics, PoseEdge, cameras_from_solve
 from .rig import Rig
 from .selfcal import SelfCalibration
@@ -416,18 +415,26 @@ def _check_views(
         raise _no_shared_view(dataset)
 
 
+SMALL_MARKER_PX = 20.0  # markers narrower than this in the images: at ArUco's limit
+
+
 def _why_dropped(detections: dict[tuple[str, str], MarkerDetections],
                  rejected: list[RejectedView]) -> str:
     """Why views with markers gave no pose, for an error message: the reasons by count, the
     advice for the most common, and the size of the markers in the images of those views
     (ArUco finds markers down to ~10 px; a pose needs a few of them)."""
+    # the advice lives with the report's wording; imported here, on the error path only, so
+    # that the pipeline (and every pool worker preloading it) does not load the report package
+    from .report.schema import DROP_ADVICE
+
     counts: dict[str, int] = {}
     for r in rejected:
         counts[r.reason] = counts.get(r.reason, 0) + 1
     reasons = sorted(counts.items(), key=lambda kv: -kv[1])
     sides = [float(np.linalg.norm(np.diff(d.corners_px, axis=1, append=d.corners_px[:, :1]),
                                   axis=-1).mean())
-             for r in rejected if len(d := detections.get((r.camera, r.frame), _NONE))]
+             for r in rejected
+             if (d := detections.get((r.camera, r.frame))) is not None and len(d)]
     dropped = (f"all {len(rejected)} views with markers were dropped ("
                + ", ".join(f"{k} {n}" for k, n in reasons) + ")")
     mismatch = ("check that --board matches the printed board (layout, marker length, ids: "
@@ -437,10 +444,6 @@ def _why_dropped(detections: dict[tuple[str, str], MarkerDetections],
                 f"at ArUco's limit: bring the board closer or print larger markers, and "
                 f"{mismatch}")
     return f"{dropped}: {DROP_ADVICE.get(reasons[0][0], 'see the reasons')}; {mismatch}"
-
-
-SMALL_MARKER_PX = 20.0  # markers narrower than this in the images: at ArUco's limit
-_NONE = MarkerDetections(np.zeros(0, int), np.zeros((0, 4, 2)), np.zeros((0, 4), bool))
 
 
 def _no_shared_view(dataset: FolderDataset) -> CalibrationError:
