@@ -1091,25 +1091,6 @@ def table() -> str:
     return "\n".join(lines)
 
 
-def test_zz_every_case_is_in_docs_robustness(tmp_path_factory):
-    """Runs last in this module: the rows of the cases that ran are in docs/robustness.md
-    verbatim (``RGBD_CALIB_WRITE_DOCS=1`` rewrites the table from this run: run it with the
-    slow tier too, ``RGBD_CALIB_SLOW=1``, or the slow cases' rows are lost)."""
-    if not ROWS:
-        pytest.skip("no case ran")
-    text = table()
-    (tmp_path_factory.getbasetemp() / "robustness_table.md").write_text(text + "\n")
-    doc = DOC.read_text()
-    if os.environ.get("RGBD_CALIB_WRITE_DOCS") == "1":
-        head, rest = doc.split(TABLE_START)
-        _, tail = rest.split(TABLE_END)
-        DOC.write_text(f"{head}{TABLE_START}\n{text}\n{TABLE_END}{tail}")
-        return
-    missing = [row for row in text.splitlines()[2:] if row not in doc]
-    assert not missing, "rows not in docs/robustness.md (RGBD_CALIB_WRITE_DOCS=1 updates):\n" + (
-        "\n".join(missing))
-
-
 @pytest.mark.parametrize("side_px, expected", [
     (12.0, "12 px wide (median), at ArUco's limit: bring the board closer"),
     (60.0, "): corners do not fit a pose: motion blur"),
@@ -1136,3 +1117,24 @@ def test_no_usable_view_says_why_the_views_with_markers_were_dropped(side_px, ex
     assert expected in why, why
     # the same failure comes from a board file of another layout whose ids are printed here
     assert "check that --board matches the printed board" in why, why
+
+
+
+def test_zz_every_case_is_in_docs_robustness(tmp_path_factory):
+    """Runs last in this module: the rows of the cases that ran are in docs/robustness.md
+    verbatim (``RGBD_CALIB_WRITE_DOCS=1`` rewrites the table from this run: run it with the
+    slow tier too, ``RGBD_CALIB_SLOW=1``, or the slow cases' rows are lost)."""
+    if not ROWS:
+        pytest.skip("no case ran")
+    text = table()
+    (tmp_path_factory.getbasetemp() / "robustness_table.md").write_text(text + "\n")
+    doc = DOC.read_text()
+    if os.environ.get("RGBD_CALIB_WRITE_DOCS") == "1":
+        head, rest = doc.split(TABLE_START)
+        _, tail = rest.split(TABLE_END)
+        DOC.write_text(f"{head}{TABLE_START}\n{text}\n{TABLE_END}{tail}")
+        return
+    missing = [row for row in text.splitlines()[2:] if row not in doc]
+    assert not missing, "rows not in docs/robustness.md (RGBD_CALIB_WRITE_DOCS=1 updates):\n" + (
+        "\n".join(missing))
+
