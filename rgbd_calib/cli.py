@@ -532,7 +532,7 @@ def _print_summary(result, out: Path, verdict: bool = True) -> None:
     from rich.table import Table
 
     from .report.build import board_refined_entry
-    from .report.findings import board_scale_sentence, common_depth_scale, glue_sentence
+    from .report.findings import board_scale_sentence, common_depth_scale, disagrees, glue_sentence
 
     table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
     for col, unit in (
@@ -579,7 +579,14 @@ def _print_summary(result, out: Path, verdict: bool = True) -> None:
             f"{s['offset_mm'][1]:.2f} mm, {s['rotation_deg']:.3f} deg, "
             f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
         )
-    if result.depth is not None and result.depth.fallback is not None:
+    pairs = result.depth.pairs if result.depth is not None else []
+    agree = sum(bool(p.get("agrees")) for p in pairs)
+    if (result.depth is not None and result.depth.fallback is not None and agree
+            and not any(disagrees(p) for p in pairs)):
+        console.print(f"depth registration: {agree} of {len(pairs)} camera pairs "
+                      "agree with the board result within their own uncertainty; nothing to "
+                      "correct, the extrinsics are the board result")
+    elif result.depth is not None and result.depth.fallback is not None:
         console.print(f"[yellow]depth refinement not used[/]: {result.depth.fallback}; "
                       "the extrinsics are the board result")
     elif result.depth is not None and result.depth.note is not None:

@@ -197,6 +197,9 @@ class PairRegistration:
     improvement_chi2: float = 0.0  # move^T information move: the Wald statistic of the move
     n_patches: int = 0  # surface patches of the sandwich covariance
     start: str = "given"  # ICP started from the given extrinsics, or "global" (FPFH + RANSAC)
+    # registered cleanly, and rejected only because ICP's move is within the pair's own
+    # uncertainty: the depth agrees with the extrinsics it started from (a confirmation)
+    agrees: bool = False
 
     @property
     def covariance(self) -> np.ndarray:
@@ -238,6 +241,7 @@ class PairRegistration:
             "improvement_chi2": self.improvement_chi2,
             "n_patches": self.n_patches,
             "start": self.start,
+            "agrees": self.agrees,
         }
 
 
@@ -1373,7 +1377,8 @@ def register_pair(
             f"moved {corr_mm:.0f} mm / {corr_deg:.1f} deg from the initial guess (limit "
             f"{1000.0 * config.max_correction_m:.0f} mm / {config.max_correction_deg} deg)"
         )
-    if not reasons and not improvement >= config.min_improvement_chi2:
+    agrees = not reasons and not improvement >= config.min_improvement_chi2
+    if agrees:
         reasons.append(
             f"no significant improvement on the current extrinsics: ICP moved "
             f"{corr_mm:.2f} mm / {corr_deg:.3f} deg, chi2 {improvement:.1f} < "
@@ -1382,6 +1387,7 @@ def register_pair(
                if any(free_scale) else ""))
     if not np.all(np.isfinite(information)):
         reasons.append("information matrix not finite")
+        agrees = False
     return PairRegistration(
         cam_a=cloud_a.camera,
         cam_b=cloud_b.camera,
@@ -1404,6 +1410,7 @@ def register_pair(
         normalised_rms=noise_rms,
         improvement_chi2=improvement,
         n_patches=rows.n_patches,
+        agrees=bool(agrees),
     )
 
 

@@ -416,7 +416,10 @@ def no_pair_reason(depth: DepthRefinement) -> str:
         return f"fewer than 2 cameras have a static cloud{f' ({why})' if why else ''}"
     if not depth.pairs:
         return "no camera pair overlaps under the current extrinsics"
-    return f"all {len(depth.pairs)} camera pairs were rejected"
+    agree = sum(bool(p.get("agrees")) for p in depth.pairs)
+    return (f"all {len(depth.pairs)} camera pairs were rejected"
+            + (f" ({agree} of them agree with the current extrinsics within their own "
+               "uncertainty: nothing to correct)" if agree else ""))
 
 
 def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],

@@ -67,6 +67,7 @@ def test_a_pair_that_does_not_move_is_rejected(realisations):
     T_ref_a = CAM_B @ reg.T_b_a
     again = D.register_pair(a, b, T_ref_a, CAM_B, "colored-icp")
     assert not again.accepted and "no significant improvement" in again.reason
+    assert again.agrees and not reg.agrees  # a confirmation, not a failure (report: info)
     assert again.improvement_chi2 < 12.59
     assert reg.improvement_chi2 > 100  # the 10 mm / 0.5 deg start was a real improvement
 

@@ -367,6 +367,53 @@ def test_rebuild_reads_a_report_from_before_rmse_final(runs, tmp_path):
     assert validate_report(rebuilt) == []
 
 
+def test_depth_that_confirms_the_board_result_is_an_info_not_a_warning(runs, tmp_path):
+    """No pair used because ICP moved each by less than its own uncertainty: the depth agrees
+    with the board result (info ``depth_agrees``, the verdict unchanged by it); pairs that
+    failed to register, or one that contradicts the board, keep the warning ``depth_unused``.
+    A report written before schema 1.9 gets ``agrees`` from its pairs' reasons."""
+    report = _load(runs[0])
+    assert report["summary"]["verdict"] == "good"
+    a, b, c = list(report["cameras"])[:3]
+    agree = ("no significant improvement on the current extrinsics: ICP moved 0.30 mm / 0.010 "
+             "deg, chi2 1.2 < 12.59 (6 dof) under its own uncertainty")
+    beyond = ("ICP moved 4.00 mm / 0.100 deg from the board's extrinsics, beyond their "
+              "uncertainty and the pair's (chi2 90 > 16.81, 6 dof): a wrong local minimum")
+
+    def pair(x, y, reason, fitness=0.7):
+        return pair_entry({"cam_a": x, "cam_b": y, "fitness": fitness, "accepted": False,
+                           "reason": reason, "correction_mm": 0.3, "correction_deg": 0.01})
+
+    def findings_of(pairs):
+        report["pairs"] = pairs
+        report["timings_s"]["depth"] = 1.0
+        report["depth"] = {"status": "fallback", "weak_cameras": {},
+                           "reason": f"all {len(pairs)} camera pairs were rejected"}
+        out = finalize_report(report)
+        assert validate_report(out) == []
+        return {w["code"]: w for w in out["warnings"]}, out["summary"]["verdict"]
+
+    confirmed = [pair(a, b, agree), pair(a, c, "fitness 0.20 < 0.3", 0.2)]
+    assert [p["agrees"] for p in confirmed] == [True, False]  # from the reason (pre-1.9)
+    codes, verdict = findings_of(confirmed)
+    assert "depth_unused" not in codes and verdict == "good"
+    assert codes["depth_agrees"]["severity"] == "info"
+    assert codes["depth_agrees"]["cameras"] == sorted([a, b])
+    assert "1 of 2 camera pairs" in codes["depth_agrees"]["message"]
+    for pairs in ([pair(a, c, "fitness 0.20 < 0.3", 0.2)], confirmed + [pair(b, c, beyond)]):
+        codes, verdict = findings_of(pairs)
+        assert "depth_unused" in codes and "depth_agrees" not in codes and verdict == "check"
+
+    copy = tmp_path / "old"  # the rebuild fills a 1.8 report's agrees
+    shutil.copytree(runs[0], copy)
+    old = _load(copy)
+    old["pairs"], old["schema_version"] = [pair(a, b, agree)], "1.8"
+    del old["pairs"][0]["agrees"]
+    (copy / "report.json").write_text(json.dumps(old))
+    rebuild_report(copy)
+    assert _load(copy)["pairs"][0]["agrees"] is True
+
+
 def test_edge_figure_draws_a_rig_without_edge_residuals():
     """Only the reference calibrated (no edge residual anywhere): the log-scaled residual
     panels say "no data" instead of raising (it stopped report.html being written)."""

@@ -558,7 +558,17 @@ def pair_entry(pair: dict[str, Any]) -> dict[str, Any]:
             value = value.item()
         out[key] = value
     out["cam_a"], out["cam_b"] = str(pair["cam_a"]), str(pair["cam_b"])
+    if "agrees" not in pair:
+        out["agrees"] = agrees_from_reason(pair)
     return out
+
+
+def agrees_from_reason(pair: dict[str, Any]) -> bool:
+    """``pairs[].agrees`` of a pair written before schema 1.9, from its ``reason``: the
+    significance test (:func:`rgbd_calib.depth.register_pair`) is its only reason."""
+    reason = pair.get("reason") or ""
+    return (pair.get("accepted") is False and ";" not in reason
+            and reason.startswith("no significant improvement"))
 
 
 def error_map(

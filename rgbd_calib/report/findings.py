@@ -765,10 +765,23 @@ def each_pair(*checks: Callable[[dict[str, Any]], Finding | None]) -> Rule:
     return rule
 
 
+def disagrees(pair: dict[str, Any]) -> bool:
+    """A pair rejected for contradicting the extrinsics: ICP moved it beyond the board's (or
+    ``--init``'s) uncertainty and its own (:func:`rgbd_calib.refine.consistent_with_board`),
+    or it was accepted and then not used (the joint solve failed or moved a camera too far)."""
+    reason = str(pair.get("reason") or "")
+    return reason.startswith("not used:") or "beyond their uncertainty" in reason
+
+
 def depth_unused(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     """The depth stage ran but no pair went into the solve: the result is the board's alone
     (not when the stage skipped registration because the board constrains every camera), or
-    in a depth-only refinement the initial extrinsics."""
+    in a depth-only refinement the initial extrinsics. A warning when no pair registered
+    cleanly; an info (``depth_agrees``) when some did and ICP moved each of them by less than
+    its own uncertainty (``pairs[].agrees``) and none contradicted the extrinsics: the depth
+    confirms them, it has nothing to correct. Measured on race seed 301 (glued board, lens
+    listed; the board result 0.35 mm from the truth): 19 of 24 pairs agreed, the other 5 had a
+    fitness < 0.3, and the warning had made the verdict CHECK."""
     status = (report.get("depth") or {}).get("status")
     if status is not None and status != "fallback":
         return []
@@ -777,6 +790,20 @@ def depth_unused(report: dict[str, Any], earlier: list[Finding]) -> list[Finding
         return []
     start = "the initial extrinsics (--init)" if _depth_only(report) else "the board result"
     pairs = report["pairs"]
+    agree = [p for p in pairs if p.get("agrees")]
+    if agree and not any(disagrees(p) for p in pairs):
+        mm = sorted(p["correction_mm"] or 0.0 for p in agree)
+        deg = sorted(p["correction_deg"] or 0.0 for p in agree)
+        return [finding(
+            "info",
+            "depth_agrees",
+            sorted({c for p in agree for c in (p["cam_a"], p["cam_b"])}),
+            f"Depth agrees with {start}: {len(agree)} of {len(pairs)} camera pairs registered "
+            f"cleanly and ICP moved each by less than its own uncertainty ({mm[0]:.2f}-"
+            f"{mm[-1]:.2f} mm, {deg[0]:.3f}-{deg[-1]:.3f} deg); no correction was needed, the "
+            f"extrinsics are {start}.",
+            "",
+        )]
     reasons = sorted({str(p["reason"]).split(";")[0] for p in pairs if p["reason"]})
     why = (f"all {len(pairs)} camera pairs were rejected ({'; '.join(reasons[:3])}"
            f"{'; ...' if len(reasons) > 3 else ''})" if pairs

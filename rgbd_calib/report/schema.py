@@ -14,7 +14,7 @@ from typing import Any
 
 from ..errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.8"
+REPORT_SCHEMA_VERSION = "1.9"
 
 
 class ReportError(RgbdCalibError):
@@ -177,6 +177,7 @@ PAIR_SCHEMA: dict[str, Any] = {
     "correction_mm": Nullable(N),
     "accepted": Nullable(B),
     "reason": Nullable(S),
+    "agrees": Nullable(B),
     "error_map": Nullable(
         {"width": INT, "height": INT, "cols": INT, "rows": INT, "values_mm": ListOf(Nullable(N))}
     ),
