@@ -477,6 +477,27 @@ def test_outlier_views_that_fit_the_final_calibration_are_not_an_inconsistent_ca
         assert kind in later[0]["message"], later[0]["message"]
 
 
+def test_cameras_the_refined_model_explains_share_one_info():
+    """Every lens off (the usual factory-intrinsics case): the whole rig's views disagreed
+    under rig.yaml, the refined model explains each camera. One info naming them, not one
+    identical line per camera; a camera beyond its prior keeps its own warning."""
+    from rgbd_calib.report.findings import camera_model_error
+
+    def entry(name, n):
+        return {"camera": name, "outliers_before": n, "edges": 12, "translation_mm": 4.0,
+                "rotation_deg": 0.2, "sigma_factor": 1.0}
+
+    far = {"fx": {"prior": 600.0, "prior_sigma": 2.0, "refined": 640.0, "sigma": 0.3,
+                  "change": 40.0, "change_pct": 6.67}}
+    report = {"pose_graph": {"model_error": [entry("cam1", 9), entry("cam2", 11),
+                                             entry("cam3", 10)]},
+              "cameras": {"cam1": {}, "cam2": {}, "cam3": {"intrinsics_refined": far}}}
+    found = camera_model_error(report, [])
+    assert [(f["severity"], f["cameras"]) for f in found] == [
+        ("info", ["cam1", "cam2"]), ("warning", ["cam3"])]
+    assert "cam1 9 of 12, cam2 11 of 12 beyond" in found[0]["message"]
+
+
 @pytest.mark.parametrize(
     "sigma_factor, fx_change, severity",
     [(2.5, 0.0, "warning"),  # kept with an inflated sigma

@@ -145,25 +145,14 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
     sigma (``pose_graph.model_error``), instead of dropped as outliers. A warning, unless the
     self-calibrated board / intrinsics explain it (not inflated) with every refined intrinsic
     within 3 sigma of its rig.yaml prior: the listed model was as good as it claimed, and the
-    finding is an info."""
-    out = []
+    finding is an info, one for all such cameras (with every lens off, the whole rig)."""
+    out, fine = [], []
     for m in report["pose_graph"].get("model_error") or []:
         name = m["camera"]
         explained = m.get("sigma_factor") is not None and m["sigma_factor"] <= 1.0
         beyond = _beyond_prior(report["cameras"].get(name, {}), _prior_widening(report))
         if explained and not beyond:
-            out.append(finding(
-                "info",
-                "camera_model_error",
-                [name],
-                f"{name}: its board views disagreed with the rest of the rig under the "
-                f"board file's and rig.yaml's model ({m['outliers_before']} of {m['edges']} "
-                "beyond the outlier threshold); the refined board / intrinsics explain it "
-                "within their priors: its corners fit like the rest of the rig, and its "
-                "uncertainty is not inflated.",
-                "Nothing to do; rig_refined.yaml (and board_refined.yaml when the board was "
-                "refined) hold the refined models.",
-            ))
+            fine.append(m)
             continue
         out.append(
             finding(
@@ -192,6 +181,23 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
                 "synchronisation. Fix the model and re-run calibrate.",
             )
         )
+    if fine:  # one info for every camera the refined model explains (often the whole rig)
+        fine.sort(key=lambda m: m["camera"])
+        names = [m["camera"] for m in fine]
+        counts = ", ".join(f"{m['camera']} {m['outliers_before']} of {m['edges']}"
+                           for m in fine)
+        whose = f"{names[0]}: its" if len(fine) == 1 else f"{', '.join(names)}: their"
+        out.insert(0, finding(
+            "info",
+            "camera_model_error",
+            names,
+            f"{whose} board views disagreed with the rest of the rig under the board file's "
+            f"and rig.yaml's model ({counts} beyond the outlier threshold); the refined "
+            "board / intrinsics explain it within their priors: the corners fit like the rest "
+            "of the rig, and the uncertainty is not inflated.",
+            "Nothing to do; rig_refined.yaml (and board_refined.yaml when the board was "
+            "refined) hold the refined models.",
+        ))
     return out
 
 
