@@ -532,7 +532,12 @@ def _print_summary(result, out: Path, verdict: bool = True) -> None:
     from rich.table import Table
 
     from .report.build import board_refined_entry
-    from .report.findings import board_scale_sentence, common_depth_scale, disagrees, glue_sentence
+    from .report.findings import (
+        board_scale_sentence,
+        common_depth_scale,
+        confirming_pairs,
+        glue_sentence,
+    )
 
     table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
     for col, unit in (
@@ -580,9 +585,8 @@ def _print_summary(result, out: Path, verdict: bool = True) -> None:
             f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
         )
     pairs = result.depth.pairs if result.depth is not None else []
-    agree = sum(bool(p.get("agrees")) for p in pairs)
-    if (result.depth is not None and result.depth.fallback is not None and agree
-            and not any(disagrees(p) for p in pairs)):
+    agree = len(confirming_pairs(pairs))
+    if result.depth is not None and result.depth.fallback is not None and agree:
         console.print(f"depth registration: {agree} of {len(pairs)} camera pairs "
                       "agree with the board result within their own uncertainty; nothing to "
                       "correct, the extrinsics are the board result")

@@ -771,12 +771,20 @@ def each_pair(*checks: Callable[[dict[str, Any]], Finding | None]) -> Rule:
     return rule
 
 
-def disagrees(pair: dict[str, Any]) -> bool:
+def _disagrees(pair: dict[str, Any]) -> bool:
     """A pair rejected for contradicting the extrinsics: ICP moved it beyond the board's (or
     ``--init``'s) uncertainty and its own (:func:`rgbd_calib.refine.consistent_with_board`),
     or it was accepted and then not used (the joint solve failed or moved a camera too far)."""
     reason = str(pair.get("reason") or "")
     return reason.startswith("not used:") or "beyond their uncertainty" in reason
+
+
+def confirming_pairs(pairs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The pairs that confirm the extrinsics they started from (``agrees``: ICP moved them by
+    less than their own uncertainty), or none when any pair contradicts those extrinsics."""
+    if any(_disagrees(p) for p in pairs):
+        return []
+    return [p for p in pairs if p.get("agrees")]
 
 
 def depth_unused(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
@@ -796,8 +804,8 @@ def depth_unused(report: dict[str, Any], earlier: list[Finding]) -> list[Finding
         return []
     start = "the initial extrinsics (--init)" if _depth_only(report) else "the board result"
     pairs = report["pairs"]
-    agree = [p for p in pairs if p.get("agrees")]
-    if agree and not any(disagrees(p) for p in pairs):
+    agree = confirming_pairs(pairs)
+    if agree:
         mm = sorted(p["correction_mm"] or 0.0 for p in agree)
         deg = sorted(p["correction_deg"] or 0.0 for p in agree)
         return [finding(
