@@ -184,8 +184,8 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
     if fine:  # one info for every camera the refined model explains (often the whole rig)
         fine.sort(key=lambda m: m["camera"])
         names = [m["camera"] for m in fine]
-        counts = ", ".join(f"{m['camera']} {m['outliers_before']} of {m['edges']}"
-                           for m in fine)
+        counts = ", ".join((f"{m['camera']} " if len(fine) > 1 else "")
+                           + f"{m['outliers_before']} of {m['edges']}" for m in fine)
         whose = f"{names[0]}: its" if len(fine) == 1 else f"{', '.join(names)}: their"
         out.insert(0, finding(
             "info",
