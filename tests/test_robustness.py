@@ -374,8 +374,66 @@ def test_libpng_quiet_keeps_other_output(capfd):
 
     with _libpng_quiet():
         os.write(2, b"libpng error: bad adaptive filter value\n")
+        os.write(2, b"PNG warning: iCCP: known incorrect sRGB profile\n")  # imagecodecs'
         os.write(2, b"other output\n")
     assert capfd.readouterr().err == "other output\n"
+
+
+def _png_bytes(layout: str) -> bytes:
+    """A small PNG of each layout a user's files may have (PIL writes the ones OpenCV cannot)."""
+    import io
+
+    from PIL import Image
+
+    rng = np.random.default_rng(7)
+    rgb = rng.integers(0, 256, (21, 34, 3), dtype=np.uint8)
+    if layout.startswith("opencv"):
+        image = {
+            "opencv bgr": rgb,
+            "opencv grey": rgb[..., 0],
+            "opencv depth": rng.integers(0, 65536, (21, 34), dtype=np.uint16),
+            "opencv 16-bit colour": rng.integers(0, 65536, (21, 34, 3), dtype=np.uint16),
+        }[layout]
+        return cv2.imencode(".png", image)[1].tobytes()
+    image = {
+        "pil rgba": Image.fromarray(np.dstack([rgb, rgb[..., :1]])),
+        "pil palette": Image.fromarray(rgb).quantize(16),
+        "pil grey+alpha": Image.fromarray(rgb[..., 0]).convert("LA"),
+        "pil 1-bit": Image.fromarray(rgb[..., 0] > 128),
+        "pil interlaced": Image.fromarray(rgb),
+    }[layout]
+    buf = io.BytesIO()
+    image.save(buf, format="PNG", interlace=layout == "pil interlaced")
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize(
+    "layout",
+    ["opencv bgr", "opencv grey", "opencv depth", "opencv 16-bit colour", "pil rgba",
+     "pil palette", "pil grey+alpha", "pil 1-bit", "pil interlaced"],
+)
+@pytest.mark.parametrize("flags", ["IMREAD_COLOR", "IMREAD_GRAYSCALE", "IMREAD_UNCHANGED"])
+def test_png_decoding_matches_opencv(tmp_path, layout, flags):
+    """The faster PNG path (imagecodecs) gives what cv2.imdecode gives, for every layout and
+    read mode; only grey from colour may differ by 1 DN (OpenCV's cvtColor weights, as for an
+    image in memory, instead of libpng's own conversion)."""
+    from rgbd_calib.dataset import _decode
+
+    data = _png_bytes(layout)
+    (path := tmp_path / "x.png").write_bytes(data)
+    ours = _decode(path, getattr(cv2, flags), "image")
+    want = cv2.imdecode(np.frombuffer(data, np.uint8), getattr(cv2, flags))
+    assert ours.dtype == want.dtype and ours.shape == want.shape
+    grey_from_colour = flags == "IMREAD_GRAYSCALE" and want.ndim == 2 and "grey" not in layout
+    grey_from_colour &= layout not in ("opencv depth", "pil 1-bit")
+    diff = np.abs(ours.astype(int) - want.astype(int)).max()
+    assert diff <= (1 if grey_from_colour else 0)
+    if grey_from_colour and layout in ("opencv bgr", "pil rgba", "pil interlaced"):
+        # 8-bit colour takes the fast path: grey as for an image in memory (to_gray of BGR)
+        from rgbd_calib.detection import to_gray
+
+        colour = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        assert np.array_equal(ours, to_gray(colour))
 
 
 # ----------------------------------------------------------------------------- rig.yaml
