@@ -59,7 +59,9 @@ from .yamlio import atomic_write_text
 # rgbd_calib.calibrate stays this module for every import of it (see rgbd_calib.CallableModule)
 sys.modules[__name__].__class__ = CallableModule
 
-CACHE_VERSION = 1
+# 2: colour PNGs read as grey by OpenCV's weights (libpng's own grey was 1 DN off on half the
+# pixels), so detections of the same file differ slightly from a version-1 cache's
+CACHE_VERSION = 2
 # detections with the refined lens: at most this many passes, another one while some
 # camera's lens moved by more than LENS_SETTLED_PX at its detected corners (see lens_moved)
 REDETECTIONS = 3

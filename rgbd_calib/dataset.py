@@ -272,8 +272,8 @@ def image_header(path: Path) -> ImageHeader:
 
 
 def _decode(path: Path, flags: int, what: str) -> np.ndarray:
-    """Decode a PNG/JPEG after checking its structure in Python, so a damaged file gives one
-    DatasetError line (and no libpng/libjpeg/OpenCV chatter on stderr).
+    """Decode a PNG/JPEG so that a damaged file gives one DatasetError line naming it (and no
+    libpng/libjpeg/OpenCV chatter on stderr).
 
     A PNG is decoded straight away (the common layouts by :func:`_png_pixels`, the rest by
     OpenCV), its decoder's complaints kept off stderr (:func:`_libpng_quiet`): libpng checks
@@ -323,6 +323,8 @@ def _png_pixels(data: bytes, flags: int) -> np.ndarray | None:
     decoder at 848x480-1280x720 (docs/benchmarks.md), and every image of a calibration is
     decoded at least once. None for a layout it does not handle as is; raises
     ``imagecodecs.PngError`` for a damaged stream."""
+    if flags not in (cv2.IMREAD_UNCHANGED, cv2.IMREAD_GRAYSCALE, cv2.IMREAD_COLOR):
+        return None
     if data[12:16] != b"IHDR" or (data[24:25] + data[25:26]) not in _PNG_FAST_LAYOUTS:
         return None
     img = imagecodecs.png_decode(data)
@@ -333,11 +335,7 @@ def _png_pixels(data: bytes, flags: int) -> np.ndarray | None:
         img = (img >> 8).astype(np.uint8)
     if flags == cv2.IMREAD_GRAYSCALE:
         return img if channels == 1 else cv2.cvtColor(img, _TO_GRAY[channels])
-    if flags == cv2.IMREAD_COLOR:
-        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if channels == 1 else cv2.cvtColor(
-            img, _TO_BGR[channels]
-        )
-    return None
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR if channels == 1 else _TO_BGR[channels])
 
 
 def _png_problem(data: bytes) -> str | None:
