@@ -17,6 +17,7 @@ import hashlib
 import json
 import os
 import sys
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -62,6 +63,7 @@ sys.modules[__name__].__class__ = CallableModule
 # 2: colour PNGs read as grey by OpenCV's weights (libpng's own grey was 1 DN off on half the
 # pixels), so detections of the same file differ slightly from a version-1 cache's
 CACHE_VERSION = 2
+CACHE_SAVE_EVERY_S = 30.0  # an interrupted detection loses at most about this much work
 # detections with the refined lens: at most this many passes, another one while some
 # camera's lens moved by more than LENS_SETTLED_PX at its detected corners (see lens_moved)
 REDETECTIONS = 3
@@ -135,8 +137,11 @@ def detect_dataset(
     ``scheduler``, :func:`rgbd_calib.parallel.executor`), reusing a cache.
 
     The cache (JSON) is keyed by the board and detection settings and, per image, by file
-    size and modification time; it is saved every few hundred images so an interrupted run
-    resumes where it stopped."""
+    size and modification time; it is saved every :data:`CACHE_SAVE_EVERY_S` seconds (and
+    at least 500 images apart) so an interrupted run resumes where it stopped. Each image's
+    entry is serialised once, to a JSON string: saving the whole cache every 500 images
+    cost a 16 x 1000 set ~20 s of the main process's CPU (a 26 MB JSON, 32 times), and
+    keeping the entries as Python objects would cost memory."""
     fingerprint = _fingerprint(board, config)
     lens = {c: _lens_key(i) for c, i in dataset.rig.cameras.items()}
     cached: dict[str, dict] = {}
@@ -148,6 +153,7 @@ def detect_dataset(
         except (ValueError, KeyError):
             cached = {}  # a corrupt cache is only a cache: detect again
     results: dict[tuple[str, str], MarkerDetections] = {}
+    entries: dict[str, str] = {}  # the cache's images: key -> its entry as JSON text
     jobs = []
     for fs in dataset.frame_sets():
         for cam, path in fs.color.items():
@@ -157,24 +163,30 @@ def detect_dataset(
             if (entry is not None and entry.get("file") == _file_key(path)
                     and entry.get("lens", "") == lens[cam]):
                 results[(cam, fs.frame)] = MarkerDetections.from_dict(entry["det"])
+                if cache_path is not None:
+                    entries[key] = json.dumps(entry)
             else:
                 job = (cam, fs.frame, str(path), intr.width, intr.height)
                 jobs.append(job + (intr,) if intr.has_distortion else job)
     if progress:
         progress(len(results))
 
+    def keep(cam: str, frame: str, det: dict) -> None:
+        results[(cam, frame)] = MarkerDetections.from_dict(det)
+        if cache_path is not None:
+            entry = {"file": _file_key(dataset.color_path(cam, frame)), "det": det}
+            if lens[cam]:
+                entry["lens"] = lens[cam]
+            entries[f"{cam}/{frame}"] = json.dumps(entry)
+
     def save() -> None:
-        if cache_path is None:
-            return
-        images = {
-            f"{c}/{f}": {"file": _file_key(dataset.color_path(c, f)), "det": d.to_dict()}
-            | ({"lens": lens[c]} if lens[c] else {})
-            for (c, f), d in results.items()
-        }
-        atomic_write_text(cache_path, json.dumps({"fingerprint": fingerprint, "images": images}))
+        if cache_path is not None:
+            images = ", ".join(f"{json.dumps(k)}: {v}" for k, v in entries.items())
+            text = f'{{"fingerprint": {json.dumps(fingerprint)}, "images": {{{images}}}}}'
+            atomic_write_text(cache_path, text)
 
     workers = workers or os.cpu_count() or 1
-    done_since_save = 0
+    done_since_save, saved_at = 0, time.monotonic()
     executor = None
     if scheduler and jobs:
         # connected before the try: a scheduler that does not answer writes no cache
@@ -189,13 +201,13 @@ def detect_dataset(
         else:
             iterator = executor.map(detect_job, jobs, chunksize=4)
         for cam, frame, det in iterator:
-            results[(cam, frame)] = MarkerDetections.from_dict(det)
+            keep(cam, frame, det)
             done_since_save += 1
             if progress:
                 progress(1)
-            if done_since_save >= 500:
+            if done_since_save >= 500 and time.monotonic() - saved_at >= CACHE_SAVE_EVERY_S:
                 save()
-                done_since_save = 0
+                done_since_save, saved_at = 0, time.monotonic()
     finally:
         if jobs:
             save()
