@@ -221,31 +221,54 @@ class ImageHeader:
     channels: int
 
 
+def _unreadable(path: Path, exc: OSError) -> DatasetError:
+    return DatasetError(
+        f"{path}: cannot be read ({exc.strerror or exc}); check the file and its permissions"
+    )
+
+
 def _read(path: Path, size: int = -1) -> bytes:
     try:
         with open(path, "rb") as f:
             return f.read(size)
     except OSError as exc:
-        raise DatasetError(
-            f"{path}: cannot be read ({exc.strerror or exc}); check the file and its permissions"
-        ) from None
+        raise _unreadable(path, exc) from None
+
+
+def _ends(path: Path, n_head: int, n_tail: int) -> tuple[bytes, bytes]:
+    """The first ``n_head`` and last ``n_tail`` bytes of a file, with one open and no
+    read-ahead (a header check touches two pages of each file, not the kernel's window)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError as exc:
+        raise _unreadable(path, exc) from None
+    try:
+        if hasattr(os, "posix_fadvise"):
+            os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_RANDOM)
+        head = os.pread(fd, n_head, 0)
+        size = os.fstat(fd).st_size
+        tail = os.pread(fd, n_tail, size - n_tail) if size >= n_tail else b""
+    except OSError as exc:
+        raise _unreadable(path, exc) from None
+    finally:
+        os.close(fd)
+    return head, tail
 
 
 def image_header(path: Path) -> ImageHeader:
     """Size, bit depth and channels of a PNG or JPEG from its first bytes (no decoding).
 
-    PNG files are also checked for their IEND trailer, so a truncated PNG fails here."""
-    head = _read(path, 1 << 16)
+    PNG files are also checked for their IEND trailer, so a truncated PNG fails here. Only
+    the first 64 bytes (a PNG's IHDR) and the last 12 are read; a JPEG's frame header, which
+    may follow large metadata, is looked for in its first 64 KiB. Reading 64 KiB of every
+    PNG made this check ~15 s of a 32 000-image set not yet in the page cache."""
+    head, tail = _ends(path, 64, len(PNG_END))
+    if head.startswith(b"\xff\xd8"):
+        head = _read(path, 1 << 16)
     if head.startswith(PNG_SIGNATURE):
         if len(head) < 33 or head[12:16] != b"IHDR":
             raise DatasetError(f"{path}: corrupt PNG (no IHDR header); re-export or delete it")
         width, height, depth, ctype = struct.unpack(">IIBB", head[16:26])
-        try:
-            with open(path, "rb") as f:
-                f.seek(-12, 2)
-                tail = f.read(12)
-        except OSError:
-            tail = b""
         if tail != PNG_END:
             raise DatasetError(
                 f"{path}: truncated PNG (the file ends before its IEND chunk); "

@@ -1196,3 +1196,23 @@ def test_zz_every_case_is_in_docs_robustness(tmp_path_factory):
     assert not missing, "rows not in docs/robustness.md (RGBD_CALIB_WRITE_DOCS=1 updates):\n" + (
         "\n".join(missing))
 
+
+
+def test_image_header_reads_the_ends_of_a_png_and_finds_a_jpeg_frame_behind_metadata(tmp_path):
+    """The pre-flight header check reads a PNG's first 64 and last 12 bytes only, and still
+    finds a JPEG's frame header behind a large metadata segment (here 20 kB of APP1)."""
+    from rgbd_calib.dataset import image_header
+    from rgbd_calib.errors import DatasetError
+
+    image = np.zeros((48, 64, 3), np.uint8)
+    png = tmp_path / "a.png"
+    png.write_bytes(cv2.imencode(".png", image)[1].tobytes())
+    assert (image_header(png).width, image_header(png).height) == (64, 48)
+    jpeg = cv2.imencode(".jpg", image)[1].tobytes()
+    app1 = b"\xff\xe1" + struct.pack(">H", 20002) + bytes(20000)
+    (jpg := tmp_path / "a.jpg").write_bytes(jpeg[:2] + app1 + jpeg[2:])
+    header = image_header(jpg)
+    assert (header.kind, header.width, header.height) == ("jpeg", 64, 48)
+    png.write_bytes(png.read_bytes()[:-5])  # truncated: no IEND trailer
+    with pytest.raises(DatasetError, match="truncated PNG"):
+        image_header(png)
