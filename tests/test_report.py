@@ -477,6 +477,26 @@ def test_outlier_views_that_fit_the_final_calibration_are_not_an_inconsistent_ca
         assert kind in later[0]["message"], later[0]["message"]
 
 
+@pytest.mark.parametrize("views, median, warned", [
+    (2, 4, True),  # below the absolute minimum
+    (10, 40, True),  # a quarter of the rig's median
+    (29, 370, True),
+    (123, 370, False),  # race16 x 1000 sets: a third of the median, but plenty of views
+    (40, 40, False),
+])
+def test_few_views_is_relative_to_the_rig_but_capped(views, median, warned):
+    """`few_views` flags a camera far below the rig's median number of used views, but not
+    one with 30 or more: on a long recording that is plenty (its precision is weak_camera's
+    test)."""
+    from rgbd_calib.report.findings import few_views
+
+    cams = {"ref": {"views_used": median, "calibrated": True},
+            "other": {"views_used": median, "calibrated": True},
+            "cam": {"views_used": views, "calibrated": True}}
+    found = few_views({"cameras": cams}, "cam", cams["cam"])
+    assert (found is not None) == warned
+
+
 def test_cameras_the_refined_model_explains_share_one_info():
     """Every lens off (the usual factory-intrinsics case): the whole rig's views disagreed
     under rig.yaml, the refined model explains each camera. One info naming them, not one

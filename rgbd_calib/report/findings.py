@@ -25,6 +25,7 @@ from .schema import (
     DROP_ADVICE,
     FEW_SHARED_VIEWS,
     FEW_VIEWS,
+    FEW_VIEWS_ENOUGH,
     FEW_VIEWS_FACTOR,
     GLUE_MIN_DEG,
     GLUE_MIN_MM,
@@ -340,7 +341,7 @@ def weak_camera(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]
 def few_views(report: dict[str, Any], name: str, cam: dict[str, Any]) -> Finding | None:
     cams = report["cameras"]
     views_median = median_or_none([c["views_used"] for c in cams.values() if c["calibrated"]]) or 0
-    if cam["views_used"] >= max(FEW_VIEWS, FEW_VIEWS_FACTOR * views_median):
+    if cam["views_used"] >= max(FEW_VIEWS, min(FEW_VIEWS_FACTOR * views_median, FEW_VIEWS_ENOUGH)):
         return None
     return finding(
         "warning",

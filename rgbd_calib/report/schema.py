@@ -36,6 +36,9 @@ WEAK_SIGMA_MIN_MM = 0.25  # ... and above these absolute floors (tiny sigmas are
 WEAK_SIGMA_MIN_DEG = 0.01
 FEW_VIEWS = 3  # fewer used views than this (or than FEW_VIEWS_FACTOR x the median): weak
 FEW_VIEWS_FACTOR = 0.35
+# ... but this many used views are never "few": on a long recording (race16 x 1000 sets, rig
+# median 370) a camera with 123 views was flagged; how precise it is, is weak_camera's test
+FEW_VIEWS_ENOUGH = 30
 FEW_SHARED_VIEWS = 3  # a camera sharing fewer views with every other camera is weakly tied
 INCONSISTENT_FRACTION = 0.3  # share of a camera's views that are pose-graph outliers
 REPROJECTION_FACTOR = 3.0  # a camera's median reprojection error this many times the rig's ...
