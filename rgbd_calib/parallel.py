@@ -78,20 +78,33 @@ class WorkerPool(ProcessPoolExecutor):
     def __init__(self, max_workers: int | None = None, **kwargs) -> None:
         super().__init__(max_workers, mp_context=process_context(), **kwargs)
 
+    # a worker can die before the last task is even submitted (the script re-imported without
+    # its guard exits at once): the pool is then broken at submit time, not only at result
+    # time, so both are explained (seen in CI: map of 4 items, BrokenProcessPool from submit)
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        try:
+            return super().submit(fn, *args, **kwargs)
+        except BrokenProcessPool:
+            raise self._explained() from None
+
     def map(self, fn, *iterables, timeout=None, chunksize=1) -> Iterator:
-        results = super().map(fn, *iterables, timeout=timeout, chunksize=chunksize)
+        results = super().map(fn, *iterables, timeout=timeout, chunksize=chunksize)  # submit
 
         def explained() -> Iterator:
             try:
                 yield from results
             except BrokenProcessPool:
-                raise RgbdCalibError(
-                    "a worker process stopped: when this runs from a script, put its calls "
-                    f"in a function called under `{GUARD}` (README, Library use); otherwise "
-                    "the machine may be out of memory: use fewer workers"
-                ) from None
+                raise self._explained() from None
 
         return explained()
+
+    @staticmethod
+    def _explained() -> RgbdCalibError:
+        return RgbdCalibError(
+            "a worker process stopped: when this runs from a script, put its calls in a "
+            f"function called under `{GUARD}` (README, Library use); otherwise the machine "
+            "may be out of memory: use fewer workers"
+        )
 
 
 # ----------------------------------------------------------------------------- one interface

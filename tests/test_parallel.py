@@ -208,3 +208,22 @@ def test_scheduler_config_key_is_validated():
     assert load_config(None).scheduler is None
     with pytest.raises(ConfigError, match=r"^options: scheduler: "):
         load_config(None, scheduler="tcp://host name:8786")
+
+
+def test_a_pool_broken_before_the_last_submit_is_one_clear_error():
+    """A worker that dies early breaks the pool while tasks are still being submitted: that
+    submit, a later map and the results of what was in flight all give the one clear error,
+    never a BrokenProcessPool traceback (a CI flake of the guard-word test)."""
+    import os
+    from concurrent.futures.process import BrokenProcessPool
+
+    from rgbd_calib.errors import RgbdCalibError
+
+    with parallel.WorkerPool(1) as pool:
+        dead = pool.submit(os._exit, 1)
+        with pytest.raises(BrokenProcessPool):
+            dead.result(timeout=60)
+        with pytest.raises(RgbdCalibError, match="a worker process stopped"):
+            pool.submit(abs, -1)
+        with pytest.raises(RgbdCalibError, match="a worker process stopped"):
+            list(pool.map(abs, [1, -2, 3]))
