@@ -472,7 +472,8 @@ def pose_edges(observations: list[BoardObservation], config: CalibrationConfig) 
     residual's ``index`` names its edge), weighted by the PnP covariance unless
     ``config.edge_covariance`` is off."""
     return [
-        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance, o.model_error_covariance)
+        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance, o.model_error_covariance,
+                 o.model_error_unit)
         if config.edge_covariance else PoseEdge(o.camera, o.frame, o.T_cam_board)
         for o in observations
     ]

@@ -12,7 +12,7 @@ receives one) must not load cv2, gtsam, open3d or kiss_icp (tests/test_config.py
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -243,20 +243,20 @@ class PoseConfig(BaseModel, extra="forbid"):
         "noise towards the (larger) all-residual estimate; matters for views with few "
         "markers (see _pose_covariance).",
     )
-    model_error_px: float = Field(
-        0.0,
-        ge=0,
+    model_error_px: Annotated[float, Field(ge=0)] | Literal["auto"] = Field(
+        "auto",
         description="Per-view model-error floor (px): sigma of a systematic pixel error "
         "shared by all corners of a view (a common 2-D affine map of its corners: offset, "
         "scale, stretch, shear; intrinsics or distortion slightly off, a marker bias, a "
         "rolling shutter), propagated through the PnP and added to the pose covariance "
         "(rgbd_calib/pose.py::model_error_covariance). The corner-noise estimate cannot see "
         "it (the pose absorbs it), so without it the pose graph judges real-camera views by "
-        "covariances far too small. 0 (the default) turns it off; 0.5 is measured on real "
-        "webcams (docs/accuracy.md: pose-graph outlier edges 13-15 -> 1-2 of 58, held-out "
-        "reprojection equal or better). Not the default: on renders, which have no such "
-        "misfit, it makes per-view sigmas 20-100x too large and the posegraph method's result "
-        "3x worse (race clean 0.07 -> 0.24 mm).",
+        "covariances far too small. 'auto' (the default) estimates it from the data: 0 "
+        "unless the typical view disagrees with the rig by more than its corner noise "
+        "allows, then the floor that makes the typical view consistent "
+        "(rgbd_calib/graph.py::_estimate_view_floor; docs/accuracy.md 'Per-view model-error "
+        "floor'). A number fixes it (0 turns it off; 0.5 is what the real webcams of "
+        "docs/accuracy.md need).",
     )
     outlier_factor: float = Field(
         5.0,

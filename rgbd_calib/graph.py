@@ -62,6 +62,11 @@ from .results import CameraExtrinsics, Extrinsics, PoseEdge
 _CHI3_MEDIAN = float(np.sqrt(chi2.ppf(0.5, 3)))
 # Median of chi^2 with 6 dof: the median squared whitened norm of a consistent 6-dof edge.
 _CHI2_6_MEDIAN = float(chi2.ppf(0.5, 6))
+# pose.model_error_px auto: a floor is estimated only when the typical view's squared whitened
+# residual exceeds what its corner noise allows by this factor (its sigma by ~1.2x), and it
+# is at most VIEW_FLOOR_MAX_PX (beyond that the views are no calibration's)
+VIEW_FLOOR_RATIO = 1.5
+VIEW_FLOOR_MAX_PX = 5.0
 REASON_NO_SHARED_VIEW = "shares no board view with any connected camera"
 
 
@@ -319,6 +324,10 @@ class _EdgeNoise:
         self.camera_factor: dict[str, float] = {}
         self.floor = True
         self._cache: dict[tuple[int, float], Any] = {}
+
+    def forget(self) -> None:
+        """Drop the models made so far: the edges' covariances changed."""
+        self._cache.clear()
 
     def without_floor(self) -> _EdgeNoise:
         """A copy whose models leave out the per-view floor (``camera_factor`` shared)."""
@@ -654,6 +663,11 @@ def _robust_solve(
             values, it = _lm(problem.build(ids, noise, robust=True), values, config)
             stats["iterations"] += it
 
+    if any(problem.edges[i].model_error_unit is not None for i in ids):
+        values, it, stats["view_floor"] = _estimate_view_floor(problem, ids, noise, values,
+                                                                n_free, config)
+        stats["iterations"] += it
+
     if config.camera_model_error:
         values, it, stats["model_error_outliers"] = _camera_model_error(
             problem, ids, noise, values, config
@@ -672,6 +686,69 @@ def _robust_solve(
             values, it = _lm(problem.build(used, noise, robust=True), values, config)
             stats["iterations"] += it
     return values, used, stats
+
+
+def _estimate_view_floor(
+    problem: _Graph,
+    ids: list[int],
+    noise: _EdgeNoise,
+    values: gtsam.Values,
+    n_free: int,
+    config: PoseGraphConfig,
+) -> tuple[gtsam.Values, int, dict[str, float]]:
+    """Estimate the per-view model-error floor (``pose.model_error_px: auto``) and add it to
+    the edges that carry its unit covariance (``PoseEdge.model_error_unit``).
+
+    A variance component: each view's covariance is its corner noise ``C`` plus ``s^2 U``, the
+    floor of a model error of ``s`` px shared by its corners (:func:`pose.model_error_covariance`).
+    At the robust solution of the graph without it, the typical view's squared whitened
+    residual ``median(r^2)`` is compared with what its corner noise allows,
+    ``chi2_6 median * (1 - free poses / edges)`` (the view poses absorb part of each edge's
+    six degrees of freedom). When it exceeds that by more than :data:`VIEW_FLOOR_RATIO`
+    (the views disagree beyond their corner noise: intrinsics, distortion, a marker bias, a
+    rolling shutter), ``s`` is set so that the median is the allowed one; else the floor is
+    0 and nothing changes (renders, whose views agree within their corner noise). The median
+    makes it the *typical* view's misfit: a few bad views are the outlier test's, and a
+    camera whose every view is off is the camera model-error test's, which whitens without
+    the floor (it runs after this, so no camera factor scales ``C`` here). Edges are
+    replaced in ``problem.edges`` (shared with ``noise``); the graph is re-solved with the
+    floor when one was set.
+
+    Returns the values, LM iterations and ``{"model_error_px": s, "misfit_ratio": median /
+    allowed at s = 0, "edges": edges judged}``."""
+    judged = [i for i in ids if problem.edges[i].model_error_unit is not None
+              and problem.edges[i].covariance is not None]
+    if not judged:
+        return values, 0, {"model_error_px": 0.0, "misfit_ratio": float("nan"), "edges": 0}
+    raw, _ = problem.errors(judged, noise, values)
+    C = np.stack([np.asarray(problem.edges[i].covariance, float) for i in judged])
+    U = np.stack([np.asarray(problem.edges[i].model_error_unit, float) for i in judged])
+    allowed = _CHI2_6_MEDIAN * max(1.0 - n_free / len(ids), 0.2)
+
+    def typical(s2: float) -> float:
+        w = np.linalg.solve(C + s2 * U, raw[..., None])[..., 0]
+        return float(np.median(np.einsum("ni,ni->n", raw, w)))
+
+    ratio = typical(0.0) / allowed
+    out = {"model_error_px": 0.0, "misfit_ratio": ratio, "edges": len(judged)}
+    if not ratio > VIEW_FLOOR_RATIO:
+        return values, 0, out
+    lo, hi = 0.0, 0.01
+    while typical(hi) > allowed and hi < VIEW_FLOOR_MAX_PX**2:
+        lo, hi = hi, 4.0 * hi
+    for _ in range(40):  # bisection on s^2: the median falls monotonically as s grows
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if typical(mid) > allowed else (lo, mid)
+    s2 = min(hi, VIEW_FLOOR_MAX_PX**2)
+    for i in judged:
+        e = problem.edges[i]
+        floor = s2 * np.asarray(e.model_error_unit, float)
+        problem.edges[i] = replace(e, covariance=np.asarray(e.covariance, float) + floor,
+                                   model_error_covariance=floor)
+    noise.forget()
+    values, it = _lm(problem.build(ids, noise, robust=True), values, config)
+    out["model_error_px"] = float(np.sqrt(s2))
+    return values, it, out
 
 
 def _camera_model_error(

@@ -40,7 +40,9 @@ class BoardObservation:
     ``ids``/``corners_px`` ``(N,4,2)``/``object_points`` ``(N,4,3)`` are the markers used;
     ``dropped`` lists markers left out and why (``outlier``, ``minority_face``, ``unrefined``).
     ``model_error_covariance`` is the per-view model-error floor included in ``covariance``
-    (:func:`model_error_covariance`; None when ``PoseConfig.model_error_px`` is 0).
+    (:func:`model_error_covariance`; None when ``PoseConfig.model_error_px`` is 0 or
+    ``auto``); ``model_error_unit`` is that floor for a 1 px model error, not included (with
+    ``auto`` the pose graph estimates the floor from the views and adds it).
     """
 
     camera: str
@@ -57,6 +59,7 @@ class BoardObservation:
     sigma_px: float
     dropped: dict[str, list[int]] = field(default_factory=dict)
     model_error_covariance: np.ndarray | None = None
+    model_error_unit: np.ndarray | None = None
 
     @property
     def sigma_rotation_deg(self) -> float:
@@ -481,9 +484,10 @@ def estimate_board_pose(
     J = pose_jacobian(T_cam_board, obj, intrinsics)
     try:
         covariance, sigma = _pose_covariance(J, resid, config)
+        unit = model_error_covariance(J, corners, 1.0)
         floor = None
-        if config.model_error_px > 0:
-            floor = model_error_covariance(J, corners, config.model_error_px)
+        if config.model_error_px != "auto" and config.model_error_px > 0:
+            floor = config.model_error_px**2 * unit
             covariance = covariance + floor
     except np.linalg.LinAlgError:
         return reject("degenerate", "the reprojection Jacobian is singular")
@@ -502,4 +506,5 @@ def estimate_board_pose(
         sigma,
         dropped,
         floor,
+        unit if config.model_error_px == "auto" else None,
     )

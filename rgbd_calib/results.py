@@ -26,13 +26,17 @@ class PoseEdge:
     pose (a right perturbation ``T_cam_board @ Exp(xi)``); ``None`` = the config's default.
     ``model_error_covariance`` is the part of ``covariance`` that is the per-view model-error
     floor (``pose.model_error_px``): the pose graph's camera model-error test whitens without
-    it, its outlier test and its solve with it."""
+    it, its outlier test and its solve with it. ``model_error_unit`` is that floor's
+    covariance for a 1 px model error, not included in ``covariance``: with
+    ``pose.model_error_px: auto`` the pose graph estimates the floor from the views'
+    disagreement and adds it (``graph._estimate_view_floor``)."""
 
     camera: str
     view: str
     T_cam_board: np.ndarray
     covariance: np.ndarray | None = None
     model_error_covariance: np.ndarray | None = None
+    model_error_unit: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import defaultdict
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -459,3 +460,60 @@ def test_without_rejection_flagged_outliers_stay_in_the_bundle():
     for pg, kept in ((rejecting, False), (keeping, True)):
         views = {(m.camera, m.view) for m in marker_measurements(observations, pg, rig)}
         assert (gross_view in views) is kept
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-view model-error floor estimated from the views (pose.model_error_px: auto)
+
+
+def _with_shared_misfit(edges: list[PoseEdge], rng: np.random.Generator, s_px: float,
+                        unit: np.ndarray) -> list[PoseEdge]:
+    """Each view's pose disturbed by a model error of ``s_px`` (covariance ``s_px^2 unit``)
+    that its covariance does not claim; every edge carries ``unit`` for the estimate."""
+    out = []
+    for e in edges:
+        T = e.T_cam_board
+        if s_px > 0:
+            T = perturb(T, rng.multivariate_normal(np.zeros(6), s_px**2 * unit))
+        out.append(PoseEdge(e.camera, e.view, T, e.covariance, None, unit))
+    return out
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_per_view_floor_is_estimated_from_views_that_disagree(seed):
+    """Views whose poses scatter beyond their claimed covariance by a shared model error of
+    1.5 px (a 1 px error as large as the corner noise): the estimated floor comes back within
+    25 %, and the outlier test, which without it rejects a fifth of the sound views, rejects
+    almost none; cameras stay within the bounds of the noise."""
+    rng = np.random.default_rng(seed)
+    edges, T_true, _, _ = make_scene(rng, 6)
+    unit = EDGE_COV  # a 1 px model error moves a view by as much as its corner noise
+    misfit = _with_shared_misfit(edges, rng, 1.5, unit)
+
+    fixed = calibrate_pose_graph([replace(e, model_error_unit=None) for e in misfit], "cam0")
+    auto = calibrate_pose_graph(misfit, "cam0")
+    floor = auto.stats["view_floor"]
+    assert floor["misfit_ratio"] > 1.5
+    assert floor["model_error_px"] == pytest.approx(1.5, rel=0.25)
+    assert "view_floor" not in fixed.stats
+    assert len(fixed.outlier_edges) > 0.1 * len(edges)
+    assert len(auto.outlier_edges) < 0.02 * len(edges)
+    assert auto.model_error == {}  # a shared misfit is no camera's model error
+    scale = np.sqrt(1 + 1.5**2)
+    for cam, T in T_true.items():
+        deg, mm = transform_error(auto.T_ref_cam[cam], T)
+        assert mm < scale * ATOL_MM and deg < scale * ATOL_DEG, (cam, mm, deg)
+
+
+def test_views_that_agree_get_no_floor_and_the_same_solve():
+    """Views whose scatter is what their covariance claims: the floor is 0 and the solve is
+    the one without the estimate, to the bit (renders measure a misfit ratio of 0.45-0.57)."""
+    rng = np.random.default_rng(5)
+    edges, _, _, _ = make_scene(rng, 5)
+    auto = calibrate_pose_graph(_with_shared_misfit(edges, rng, 0.0, EDGE_COV), "cam0")
+    plain = calibrate_pose_graph(edges, "cam0")
+    floor = auto.stats["view_floor"]
+    assert floor["model_error_px"] == 0.0 and floor["misfit_ratio"] < 1.5
+    for cam in plain.cameras:
+        np.testing.assert_array_equal(auto.T_ref_cam[cam], plain.T_ref_cam[cam])
+        assert auto.cameras[cam].sigma_translation_mm == plain.cameras[cam].sigma_translation_mm
