@@ -556,3 +556,22 @@ def test_camera_model_error_is_an_info_when_the_refined_model_explains_it(
              "rig.yaml: priors loosened 10x"}]}}
         (found,) = camera_model_error(report, [])
         assert found["severity"] == severity
+
+
+def test_an_estimated_view_floor_is_an_info_that_says_its_size():
+    """``pose.model_error_px: auto`` set a floor (real cameras): one info with its size and how
+    far the typical view was off; none when it stayed 0, was fixed, or the report predates it."""
+    from rgbd_calib.report.findings import view_model_error
+
+    def report(floor):
+        pg = {"model_error": []}
+        if floor != "absent":
+            pg["view_floor"] = floor
+        return {"pose_graph": pg}
+
+    (found,) = view_model_error(report({"model_error_px": 0.29, "misfit_ratio": 70.75,
+                                        "edges": 64}), [])
+    assert (found["code"], found["severity"]) == ("view_model_error", "info")
+    assert "0.29 px" in found["message"] and "8.4x" in found["message"]
+    for quiet in ({"model_error_px": 0.0, "misfit_ratio": 0.57, "edges": 40}, None, "absent"):
+        assert view_model_error(report(quiet), []) == []

@@ -479,7 +479,19 @@ def _pose_graph_entry(pg: PoseGraphResult, factors: dict[str, float]) -> dict[st
             }
             for c, m in pg.model_error.items()
         ],
+        "view_floor": _view_floor_entry(pg.stats.get("view_floor")),
     }
+
+
+def _view_floor_entry(floor: dict[str, Any] | None) -> dict[str, Any] | None:
+    """``pose_graph.view_floor``: the per-view model-error floor ``pose.model_error_px: auto``
+    estimated (None when the config fixed it)."""
+    if floor is None:
+        return None
+    ratio = floor["misfit_ratio"]
+    return {"model_error_px": float(floor["model_error_px"]),
+            "misfit_ratio": float(ratio) if np.isfinite(ratio) else None,
+            "edges": int(floor["edges"])}
 
 
 def _board_view_entries(

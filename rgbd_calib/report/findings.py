@@ -661,6 +661,30 @@ def fitting_outlier_views(report: dict[str, Any], earlier: list[Finding]) -> lis
     ]
 
 
+def view_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The per-view model-error floor ``pose.model_error_px: auto`` estimated, when not 0:
+    the board views disagreed beyond their corner noise, and by how much."""
+    floor = report["pose_graph"].get("view_floor")
+    if not floor or not floor["model_error_px"] > 0:
+        return []
+    ratio = floor["misfit_ratio"]
+    typical = f" (the typical view {np.sqrt(ratio):.1f}x its corner-noise sigma)" if ratio else ""
+    return [
+        finding(
+            "info",
+            "view_model_error",
+            [],
+            f"the board views disagree with each other beyond their corner noise{typical}: a "
+            f"model error of {floor['model_error_px']:.2f} px shared by each view's corners "
+            "was estimated and added to every view's uncertainty in the pose graph "
+            "(pose.model_error_px: auto), so such views are weighed, not rejected as outliers.",
+            "Usual for real cameras (intrinsics or lens slightly off, a print or detector "
+            "bias, a rolling shutter on a moving board); above ~1 px hold the board still for "
+            "each view and cover the images with it.",
+        )
+    ]
+
+
 def marker(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     med_marker = median_or_none([m["rms_px"] for m in report["markers"]])
     return [
@@ -995,6 +1019,7 @@ RULES: tuple[Rule, ...] = (
     lens_coverage,
     outlier_views,
     fitting_outlier_views,
+    view_model_error,
     marker,
     reprojection,
     dropped_views,

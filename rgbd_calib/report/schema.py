@@ -14,7 +14,7 @@ from typing import Any
 
 from ..errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.9"
+REPORT_SCHEMA_VERSION = "1.10"
 
 
 class ReportError(RgbdCalibError):
@@ -243,6 +243,8 @@ REPORT_SCHEMA: dict[str, Any] = {
                 "sigma_factor": N,
             }
         ),
+        "view_floor?": Nullable({"model_error_px": N, "misfit_ratio": Nullable(N),
+                                 "edges": INT}),
     },
     "views_file?": {"path": S, "format": S, "count": INT, "sha256": S},
     "views?": ListOf(
