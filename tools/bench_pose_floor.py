@@ -65,6 +65,7 @@ def summary(result) -> dict:
         "bundle_left_out_views": len(left_out),
         "cameras": sorted(result.extrinsics.cameras),
         "cut_off": dict(result.extrinsics.unconnected),
+        **estimated_floor(pg),
     }
 
 
@@ -100,13 +101,25 @@ def renders(values: list[float], work: Path, sets: list[str]) -> None:
                 "worst_err_over_sigma": round(ratio, 2),
                 "outlier_edges": len(pg.outlier_edges),
                 "model_error_cameras": sorted(pg.model_error),
-                "pose_graph_worst_mm": round(pg_mm, 3)}), flush=True)
+                "pose_graph_worst_mm": round(pg_mm, 3), **estimated_floor(pg)}), flush=True)
+
+
+def floor_value(text: str) -> float | str:
+    return text if text == "auto" else float(text)
+
+
+def estimated_floor(pg) -> dict:
+    """What ``model_error_px: auto`` estimated (empty for a fixed value)."""
+    got = pg.stats.get("view_floor")
+    return {} if got is None else {"estimated_px": round(got["model_error_px"], 3),
+                                   "misfit_ratio": round(got["misfit_ratio"], 2)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_caliscope"))
-    ap.add_argument("--model-error-px", type=float, nargs="+", default=[0.0])
+    ap.add_argument("--model-error-px", type=floor_value, nargs="+", default=[0.0],
+                    help="values of pose.model_error_px: numbers (px) or auto")
     ap.add_argument("--intrinsics", nargs="+", default=["scratch", "caliscope"],
                     choices=("scratch", "caliscope"))
     ap.add_argument("--board", nargs="+", default=["charuco"], choices=("charuco", "aruco"))
