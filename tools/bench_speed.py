@@ -320,7 +320,18 @@ def _set_markdown(name: str, block: dict[str, Any]) -> list[str]:
                 f"{_num(s['our_decode_s'], 1)} | {_num(s['ratio_ours'], 2)} | {s['load']:.1f} |"
             )
         lines.append("")
-    for e in block.get("end_to_end", []):
+    runs = block.get("end_to_end", [])
+    if len(runs) > 1:
+        med = statistics.median
+        walls = ", ".join(f"{e['wall_s']:.0f}" for e in runs)
+        peaks = ", ".join(f"{e['peak_tree_rss_mb']:.0f}" for e in runs)
+        lines += [
+            f"End to end, medians of {len(runs)} runs: **{med(e['wall_s'] for e in runs):.0f} s** "
+            f"wall (runs {walls} s), **peak memory "
+            f"{med(e['peak_tree_rss_mb'] for e in runs):.0f} MB** (runs {peaks} MB); each run:",
+            "",
+        ]
+    for e in runs:
         st = e["stages_s"]
         stage_text = ", ".join(f"{k} {v:.1f} s" for k, v in st.items())
         rest_s = e["wall_s"] - sum(st.values())
@@ -412,7 +423,12 @@ def main(argv: list[str] | None = None) -> int:
         "--no-end-to-end", action="store_true", help="skip the command-line run with memory"
     )
     p.add_argument(
-        "--keep", type=Path, default=None, help="keep the end-to-end outputs under this folder"
+        "--end-to-end-repeats", type=int, default=1,
+        help="command-line runs (the markdown gives their medians when more than one)",
+    )
+    p.add_argument(
+        "--keep", type=Path, default=None,
+        help="keep the (first) end-to-end run's outputs under this folder",
     )
     p.add_argument(
         "--json",
@@ -467,7 +483,10 @@ def main(argv: list[str] | None = None) -> int:
                 keep = args.keep / name if args.keep else None
                 if keep:
                     keep.mkdir(parents=True, exist_ok=True)
-                block["end_to_end"] = [end_to_end(path, max(args.workers), keep)]
+                block["end_to_end"] = [
+                    end_to_end(path, max(args.workers), keep if rep == 0 else None)
+                    for rep in range(args.end_to_end_repeats)
+                ]
             payload["sets"][name] = block
         payload = _merge(args.json, payload)
         args.json.parent.mkdir(parents=True, exist_ok=True)
