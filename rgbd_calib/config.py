@@ -15,7 +15,14 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from .camera import DISTORTION_NAMES
 from .errors import ConfigError
@@ -258,6 +265,19 @@ class PoseConfig(BaseModel, extra="forbid"):
         "floor'). A number fixes it (0 turns it off; 0.5 is what the real webcams of "
         "docs/accuracy.md need).",
     )
+    @field_validator("model_error_px", mode="before")
+    @classmethod
+    def _number_or_auto(cls, value: Any) -> Any:
+        # one message naming both forms, not the number branch's alone
+        if isinstance(value, str) and value != "auto":
+            try:
+                return float(value)
+            except ValueError:
+                raise ValueError(
+                    f"expected a number of pixels (>= 0) or 'auto', got {value!r}"
+                ) from None
+        return value
+
     outlier_factor: float = Field(
         5.0,
         gt=1,

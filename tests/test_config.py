@@ -62,6 +62,7 @@ def test_load_config_applies_the_yaml_then_the_overrides(tmp_path):
     [
         ("pose:\n  min_marker: 3\n", "pose.min_marker"),
         ("pose:\n  min_markers: 0\n", "pose.min_markers"),
+        ("pose:\n  model_error_px: autox\n", "pose.model_error_px"),
     ],
 )
 def test_load_config_errors_name_the_file_the_setting_and_the_fix(tmp_path, text, setting):
@@ -75,6 +76,19 @@ def test_load_config_errors_name_the_file_the_setting_and_the_fix(tmp_path, text
     assert "fix this setting" in message
     with pytest.raises(ConfigError, match=r"^options: workers: "):
         load_config(None, workers=0)
+
+
+def test_model_error_floor_is_a_number_or_auto(tmp_path):
+    """``pose.model_error_px``: ``auto`` (the default: estimated by the pose graph), a number of
+    pixels, or one error line that names both forms."""
+    path = tmp_path / "calib.yaml"
+    assert CalibrationConfig().pose.model_error_px == "auto"
+    for text, value in (("auto", "auto"), ("0.5", 0.5), ("'0.25'", 0.25), ("0", 0.0)):
+        path.write_text(f"pose:\n  model_error_px: {text}\n")
+        assert load_config(path).pose.model_error_px == value
+    path.write_text("pose:\n  model_error_px: automatic\n")
+    with pytest.raises(ConfigError, match="a number of pixels .* or 'auto', got 'automatic'"):
+        load_config(path)
 
 
 def test_written_config_reads_back_unchanged(tmp_path):
