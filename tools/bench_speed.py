@@ -129,13 +129,18 @@ def ensure_dataset(data: Path, spec: BenchSet, frames: int, workers: int) -> Pat
 
 
 class _TreeMemory:
-    """Peak of the summed RSS of a process and its descendants, sampled on a thread."""
+    """Peaks of the summed RSS and of the summed PSS of a process and its descendants, sampled
+    on a thread. RSS counts the pages a process shares with others (the libraries every pool
+    worker maps, forked from one server) once per process, so its sum overstates what the tree
+    holds; PSS splits each shared page among its sharers, so its sum is the tree's physical
+    memory (Linux; ``pss`` stays 0 where psutil cannot read it)."""
 
     def __init__(self, pid: int, period_s: float = 0.1):
         self.root = psutil.Process(pid)
         self.period_s = period_s
         self.peak_bytes = 0
         self.peak_processes = 0
+        self.peak_pss_bytes = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._sample, daemon=True)
 
@@ -145,14 +150,17 @@ class _TreeMemory:
                 procs = [self.root, *self.root.children(recursive=True)]
             except psutil.NoSuchProcess:
                 return
-            total = 0
+            total = pss = 0
             for proc in procs:
                 try:
-                    total += proc.memory_info().rss
+                    info = proc.memory_full_info()
+                    total += info.rss
+                    pss += getattr(info, "pss", 0)
                 except psutil.Error:
                     pass
             if total > self.peak_bytes:
                 self.peak_bytes, self.peak_processes = total, len(procs)
+            self.peak_pss_bytes = max(self.peak_pss_bytes, pss)
             self._stop.wait(self.period_s)
 
     def __enter__(self) -> _TreeMemory:
@@ -196,6 +204,7 @@ def end_to_end(path: Path, workers: int, keep: Path | None = None) -> dict[str, 
         "workers": workers,
         "wall_s": wall_s,
         "peak_tree_rss_mb": memory.peak_bytes / 2**20,
+        "peak_tree_pss_mb": memory.peak_pss_bytes / 2**20,
         "processes_at_peak": memory.peak_processes,
         "max_single_process_rss_mb": maxrss_mb,
         "stages_s": report.get("timings_s", {}),
@@ -210,7 +219,7 @@ def end_to_end(path: Path, workers: int, keep: Path | None = None) -> dict[str, 
         shutil.rmtree(out_root, ignore_errors=True)
     print(
         f"end to end ({workers} workers): {wall_s:.0f} s, peak {row['peak_tree_rss_mb']:.0f} MB "
-        f"over {memory.peak_processes} processes",
+        f"RSS over {memory.peak_processes} processes, {row['peak_tree_pss_mb']:.0f} MB PSS",
         file=sys.stderr,
         flush=True,
     )
@@ -325,10 +334,14 @@ def _set_markdown(name: str, block: dict[str, Any]) -> list[str]:
         med = statistics.median
         walls = ", ".join(f"{e['wall_s']:.0f}" for e in runs)
         peaks = ", ".join(f"{e['peak_tree_rss_mb']:.0f}" for e in runs)
+        pss = [e["peak_tree_pss_mb"] for e in runs if e.get("peak_tree_pss_mb")]
+        pss_text = (f", **{med(pss):.0f} MB PSS** (runs {', '.join(f'{x:.0f}' for x in pss)})"
+                    if len(pss) == len(runs) else "")
         lines += [
             f"End to end, medians of {len(runs)} runs: **{med(e['wall_s'] for e in runs):.0f} s** "
             f"wall (runs {walls} s), **peak memory "
-            f"{med(e['peak_tree_rss_mb'] for e in runs):.0f} MB** (runs {peaks} MB); each run:",
+            f"{med(e['peak_tree_rss_mb'] for e in runs):.0f} MB** summed RSS (runs {peaks} MB)"
+            f"{pss_text}; each run:",
             "",
         ]
     for e in runs:
@@ -343,8 +356,10 @@ def _set_markdown(name: str, block: dict[str, Any]) -> list[str]:
             "defaults: depth stage, report, fused cloud, exports): "
             f"**{e['wall_s']:.0f} s** wall ({stage_text}; the other {rest_s:.0f} s: "
             "start-up, the dataset index, writing the outputs, fused cloud and report), "
-            f"**peak memory {e['peak_tree_rss_mb']:.0f} MB** summed over "
-            f"{e['processes_at_peak']} processes ({verdict}; largest single process "
+            f"**peak memory {e['peak_tree_rss_mb']:.0f} MB** RSS summed over "
+            f"{e['processes_at_peak']} processes"
+            + (f", {e['peak_tree_pss_mb']:.0f} MB PSS" if e.get("peak_tree_pss_mb") else "")
+            + f" ({verdict}; largest single process "
             f"{e['max_single_process_rss_mb']:.0f} MB); {e['cameras_calibrated']}/"
             f"{e['cameras']} cameras calibrated from {e['views_used']} board views, "
             f"{e['pairs_accepted']} depth pairs accepted; load "
