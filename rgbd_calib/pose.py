@@ -484,10 +484,11 @@ def estimate_board_pose(
     J = pose_jacobian(T_cam_board, obj, intrinsics)
     try:
         covariance, sigma = _pose_covariance(J, resid, config)
-        unit = model_error_covariance(J, corners, 1.0)
-        floor = None
-        if config.model_error_px != "auto" and config.model_error_px > 0:
-            floor = config.model_error_px**2 * unit
+        fixed = config.model_error_px != "auto"
+        # the floor for 1 px: scaled here when fixed, by the pose graph's estimate when auto
+        unit = None if config.model_error_px == 0 else model_error_covariance(J, corners, 1.0)
+        floor = config.model_error_px**2 * unit if fixed and unit is not None else None
+        if floor is not None:
             covariance = covariance + floor
     except np.linalg.LinAlgError:
         return reject("degenerate", "the reprojection Jacobian is singular")
@@ -506,5 +507,5 @@ def estimate_board_pose(
         sigma,
         dropped,
         floor,
-        unit if config.model_error_px == "auto" else None,
+        None if fixed else unit,
     )
