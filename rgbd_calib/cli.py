@@ -96,12 +96,25 @@ def user_errors(fn):
             _error(f"{exc.filename}: {exc.strerror or exc}; check the path and the free space")
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
-            console.print(
-                "[yellow]interrupted[/]: earlier results were left untouched; run the same "
-                "command again to finish",
-                highlight=False,
-                soft_wrap=True,
-            )
+            from rich.markup import escape
+
+            from .interrupts import committed
+
+            done = committed()
+            if done:  # the Ctrl-C came after the results were in place: say so
+                console.print(
+                    "[yellow]interrupted[/] after the results were written: "
+                    f"{escape(', '.join(str(p) for p in done))} complete; nothing to run again",
+                    highlight=False,
+                    soft_wrap=True,
+                )
+            else:
+                console.print(
+                    "[yellow]interrupted[/]: earlier results were left untouched; run the same "
+                    "command again to finish",
+                    highlight=False,
+                    soft_wrap=True,
+                )
             raise typer.Exit(130) from None
 
     return wrapper

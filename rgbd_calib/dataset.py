@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import struct
 import tempfile
 import threading
@@ -29,6 +28,7 @@ import imagecodecs
 import numpy as np
 
 from .errors import DatasetError
+from .interrupts import mark_committed, sigint_deferred
 from .progress import Tick
 from .rig import CAMERA_NAME, Rig, load_rig, save_rig
 
@@ -474,28 +474,14 @@ def staged_folder(out: Path) -> Iterator[Path]:
     try:
         tmp.mkdir(parents=True)
         yield tmp
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
+        with sigint_deferred():
+            if out.exists():
+                out.rmdir()
+            tmp.rename(out)
+            mark_committed(out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-
-
-@contextmanager
-def _sigint_deferred() -> Iterator[None]:
-    """Hold Ctrl-C back until the block is done (main thread only), then raise it."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, _frame: caught.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if caught:
-        raise KeyboardInterrupt
 
 
 class FolderWriter:
@@ -540,7 +526,7 @@ class FolderWriter:
                     tmp = final.with_name(f".{frame}.png.tmp")  # not a .png: readers skip it
                     staged.append((tmp, final))
                     tmp.write_bytes(encode_png(image, final))
-            with _sigint_deferred():
+            with sigint_deferred():
                 for tmp, final in staged:
                     os.replace(tmp, final)
                 self.sets_written += 1

@@ -28,6 +28,7 @@ from .config import write_config
 from .dataset import FolderDataset
 from .depth import fuse_clouds
 from .exports import write_exports
+from .interrupts import mark_committed, sigint_deferred
 from .ply import write_fused_ply
 from .posegraph_pipeline import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
 from .progress import Progress
@@ -51,7 +52,8 @@ def staged(out_dir: Path, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
     in it is renamed into ``out_dir`` (sub-folders kept), ``extrinsics.yaml`` last, and each
     name (file or folder) in ``replaces`` that the run did not write is removed from
     ``out_dir`` (it would belong to an older run). On an error ``out_dir`` is left exactly
-    as it was."""
+    as it was. A Ctrl-C during the renames waits for them (:func:`sigint_deferred`), so
+    ``out_dir`` holds either the earlier results or this run's, never a mix."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     stage = out_dir / f".staging-{os.getpid()}"
@@ -59,17 +61,20 @@ def staged(out_dir: Path, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
     stage.mkdir()
     try:
         yield stage
-        for name in replaces:
-            if not (stage / name).exists():
-                if (out_dir / name).is_dir():
-                    shutil.rmtree(out_dir / name)
-                else:
-                    (out_dir / name).unlink(missing_ok=True)
-        for path in sorted(stage.rglob("*"), key=lambda p: p.name == "extrinsics.yaml"):
-            if not path.is_dir():
-                target = out_dir / path.relative_to(stage)
-                target.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(path, target)
+        # Ctrl-C waits for the renames: cut in the middle, out_dir would hold two runs
+        with sigint_deferred():
+            for name in replaces:
+                if not (stage / name).exists():
+                    if (out_dir / name).is_dir():
+                        shutil.rmtree(out_dir / name)
+                    else:
+                        (out_dir / name).unlink(missing_ok=True)
+            for path in sorted(stage.rglob("*"), key=lambda p: p.name == "extrinsics.yaml"):
+                if not path.is_dir():
+                    target = out_dir / path.relative_to(stage)
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    os.replace(path, target)
+            mark_committed(out_dir)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
 

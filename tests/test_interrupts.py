@@ -1,0 +1,111 @@
+"""Ctrl-C at the exact moments that matter, sent by the code under test itself (deterministic,
+unlike a signal from outside): while the outputs are renamed into place, and after they are.
+The end-to-end Ctrl-C runs are in tests/test_robustness.py."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import pytest
+import typer
+
+from rgbd_calib import interrupts, outputs
+from rgbd_calib.dataset import staged_folder
+
+
+@pytest.fixture(autouse=True)
+def _fresh_commit_record(monkeypatch):
+    monkeypatch.setattr(interrupts, "_COMMITTED", [])
+
+
+def _earlier(out):
+    out.mkdir()
+    for name in ("report.json", "extrinsics.yaml", "report.html"):
+        (out / name).write_text(f"earlier {name}\n")
+
+
+def _files(out) -> dict[str, str]:
+    return {p.name: p.read_text() for p in sorted(out.iterdir()) if p.is_file()}
+
+
+def test_ctrl_c_during_the_renames_waits_for_the_last_one(tmp_path, monkeypatch):
+    """SIGINT on the first rename: every file is renamed all the same, then the interrupt is
+    raised; the folder holds the new run whole and is recorded as complete."""
+    out = tmp_path / "out"
+    _earlier(out)
+    real_replace = os.replace
+    calls = []
+
+    def replace_then_interrupt(src, dst):
+        calls.append(dst)
+        if len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGINT)  # lands now, during the renames
+        real_replace(src, dst)
+
+    monkeypatch.setattr(outputs.os, "replace", replace_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        with outputs.staged(out, replaces=("report.html",)) as stage:
+            for name in ("extrinsics.yaml", "report.json", "config_resolved.yaml"):
+                (stage / name).write_text(f"new {name}\n")
+    assert len(calls) == 3 and calls[-1].name == "extrinsics.yaml"
+    assert _files(out) == {n: f"new {n}\n" for n in
+                           ("config_resolved.yaml", "extrinsics.yaml", "report.json")}
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+    assert interrupts.committed() == (out,)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_ctrl_c_before_the_renames_leaves_the_earlier_results(tmp_path):
+    out = tmp_path / "out"
+    _earlier(out)
+    before = _files(out)
+    with pytest.raises(KeyboardInterrupt):
+        with outputs.staged(out, replaces=("report.html",)) as stage:
+            (stage / "extrinsics.yaml").write_text("new\n")
+            raise KeyboardInterrupt
+    assert _files(out) == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+    assert interrupts.committed() == ()
+
+
+def test_ctrl_c_while_a_dataset_folder_is_published(tmp_path, monkeypatch):
+    """The convert / synth folder: renamed whole, then the interrupt."""
+    out = tmp_path / "set"
+    real_rename = type(out).rename
+
+    def rename_then_interrupt(self, target):
+        os.kill(os.getpid(), signal.SIGINT)
+        return real_rename(self, target)
+
+    monkeypatch.setattr(type(out), "rename", rename_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        with staged_folder(out) as tmp:
+            (tmp / "rig.yaml").write_text("cameras: {}\n")
+    assert (out / "rig.yaml").is_file()
+    assert [p.name for p in tmp_path.iterdir()] == ["set"]
+    assert interrupts.committed() == (out,)
+
+
+@pytest.mark.parametrize("written", [False, True])
+def test_the_interrupt_line_says_whether_the_results_were_written(tmp_path, capsys, written):
+    from rgbd_calib.cli import user_errors
+
+    out = tmp_path / "out [1]"  # brackets: printed as text, not rich markup
+
+    @user_errors
+    def command():
+        if written:
+            interrupts.mark_committed(out)
+        raise KeyboardInterrupt
+
+    with pytest.raises(typer.Exit) as exc:
+        command()
+    assert exc.value.exit_code == 130
+    text = " ".join(capsys.readouterr().err.split())
+    if written:
+        assert text == (f"interrupted after the results were written: {out} complete; "
+                        "nothing to run again")
+    else:
+        assert text == ("interrupted: earlier results were left untouched; run the same "
+                        "command again to finish")
