@@ -9,7 +9,6 @@ rejected with an RgbdCalibError (a one-line user error), never another exception
 from __future__ import annotations
 
 import functools
-import time
 from pathlib import Path
 
 import cv2
@@ -274,17 +273,21 @@ def test_board_crashers(tmp_path, text):
 
 
 @pytest.mark.parametrize("size", [1000, 100000])
-def test_grid_larger_than_its_dictionary_fails_fast(tmp_path, size):
+def test_grid_larger_than_its_dictionary_fails_fast(tmp_path, monkeypatch, size):
     """Checked against the dictionary before the grid is built (100000 x 100000 would exhaust
-    memory)."""
+    memory): building it is never reached (a structural check, not a timed one)."""
+    import rgbd_calib.board as board_module
+
+    def never(*args, **kwargs):
+        raise AssertionError("the grid was built before its size was checked")
+
+    monkeypatch.setattr(board_module, "board_from_grid", never)
     path = tmp_path / "board.yaml"
     path.write_text(
         GRID.replace("rows: 2, cols: 2", f"rows: {size}, cols: {size}").format(t=0.005, extra="")
     )
-    t0 = time.perf_counter()
     with pytest.raises(RgbdCalibError) as err:
         load_board(path)
-    assert time.perf_counter() - t0 < 0.2
     assert len(str(err.value)) < 300, f"{len(str(err.value))} characters"
     assert "DICT_4X4_100 has only 100 ids" in str(err.value)
 
