@@ -314,17 +314,20 @@ def _decode(path: Path, flags: int, what: str) -> np.ndarray:
     else:
         problem = "an empty file" if not data else "neither PNG nor JPEG"
     if problem is None:
-        level = cv2.utils.logging.getLogLevel()
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-        try:
-            with _libpng_quiet() if png else nullcontext():
-                img = _png_pixels(data, flags) if png else None
-                if img is None:
-                    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
-        except imagecodecs.PngError:
-            img = None
-        finally:
-            cv2.utils.logging.setLogLevel(level)
+        # OpenCV's log level is process-wide: set and restored under the lock, so that two
+        # threads decoding at once (the depth stage's static clouds) cannot leave it silent
+        with _STDERR_LOCK:
+            level = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+            try:
+                with _libpng_quiet() if png else nullcontext():
+                    img = _png_pixels(data, flags) if png else None
+                    if img is None:
+                        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+            except imagecodecs.PngError:
+                img = None
+            finally:
+                cv2.utils.logging.setLogLevel(level)
         if img is not None:
             return img
         problem = (_png_problem(data) if png else None) or f"unreadable or corrupt {what}"
@@ -395,7 +398,7 @@ def _libpng_quiet() -> Iterator[None]:
     """File descriptor 2 goes to a temporary file for the block; afterwards what was written
     there, minus libpng's own lines, goes to the real stderr. libpng prints its errors itself
     (OpenCV's log level does not reach it); other threads' output is delayed, not lost."""
-    with _STDERR_LOCK, tempfile.TemporaryFile() as tmp:
+    with tempfile.TemporaryFile() as tmp:  # the caller holds _STDERR_LOCK
         saved = os.dup(2)
         os.dup2(tmp.fileno(), 2)
         try:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -297,40 +298,48 @@ def _cloud_job(dataset: FolderDataset, camera: str, T_ref_board: dict[str, np.nd
         return None, one_line_error(exc)
 
 
-# Measured (demo rigs, 848x480, 16 frames, 2 workers, load 2.5-3): race, 8 cameras: clouds in
-# the local pool 5.2-9.4 s of depth stage against 4.9-5.1 s here (worker start-up); race16,
-# 16 cameras: clouds 6.6 s in the pool against 8.5 s here.
-CLOUD_POOL_MIN_CAMERAS = 12
-
-
 def static_clouds(dataset: FolderDataset, jobs: list[tuple[str, np.ndarray, float]],
                   T_ref_board: dict[str, np.ndarray], board: Board | None,
                   config: DepthConfig, workers: int | None = None, tick: Tick | None = None,
                   scheduler: str | None = None,
                   ) -> tuple[dict[str, CameraCloud], dict[str, str]]:
     """The static cloud of every ``(camera, T_ref_cam, depth-scale factor)`` of ``jobs``, one
-    camera per task in a process pool of ``workers`` (default: all cores; fewer than
-    :data:`CLOUD_POOL_MIN_CAMERAS` cameras or one worker run here) or on the Dask cluster of
-    ``scheduler`` (:func:`rgbd_calib.parallel.executor`): ``(clouds, skipped)``, skipped =
-    camera -> why it has no cloud. The workers read the depth frames themselves (a Dask
-    worker must see the dataset at the same path)."""
+    camera per task: in ``workers`` threads of this process (default: all cores) or on the
+    Dask cluster of ``scheduler`` (:func:`rgbd_calib.parallel.executor`; a Dask worker reads
+    the depth frames itself and must see the dataset at the same path): ``(clouds,
+    skipped)``, skipped = camera -> why it has no cloud.
+
+    Threads, not the process pool: a cloud is numpy and OpenCV work on whole frames (they
+    release the GIL), its arrays stay where they are made instead of being pickled back, and
+    threads start at once. Measured on race16 (16 cameras, 848x480, 2 cores): 5 frames per
+    camera 1.6 s in 2 threads, 2.6 s in one, 5.0-5.5 s in a pool of 2 processes; 15 frames
+    4.4 s against 7.3 s; and the pool's two workers added ~1 GB of summed RSS to the run's
+    peak (docs/benchmarks.md)."""
     n = min(workers or os.cpu_count() or 1, len(jobs))
-    if len(jobs) < CLOUD_POOL_MIN_CAMERAS:
-        n = 1  # starting the workers costs more than they save
     args = [(dataset, c, T_ref_board, T, board, config, f) for c, T, f in jobs]
-    if n <= 1 and not (scheduler and len(jobs) > 1):
-        results = []
+    if scheduler and len(jobs) > 1:
+        pool = executor(n, scheduler)
+    elif n > 1:
+        pool = ThreadPoolExecutor(n, thread_name_prefix="static-cloud")
+    else:
+        pool = None
+    results = []
+    if pool is None:
         for a in args:
             results.append(_cloud_job(*a))
             if tick:
                 tick(1)
     else:
-        with executor(n, scheduler) as pool:
-            results = []
-            for result in pool.map(_cloud_job, *zip(*args)):  # map: a dead worker explained
-                results.append(result)
-                if tick:
-                    tick(1)
+        with pool:
+            try:
+                for result in pool.map(_cloud_job, *zip(*args)):  # map: a dead worker explained
+                    results.append(result)
+                    if tick:
+                        tick(1)
+            except BaseException:  # Ctrl-C: the cameras not started are dropped, not waited for
+                if isinstance(pool, ThreadPoolExecutor):
+                    pool.shutdown(wait=False, cancel_futures=True)
+                raise
     clouds = {c: cloud for (c, _, _), (cloud, _) in zip(jobs, results) if cloud is not None}
     skipped = {c: why for (c, _, _), (_, why) in zip(jobs, results) if why is not None}
     return clouds, skipped

@@ -379,6 +379,42 @@ def test_libpng_quiet_keeps_other_output(capfd):
     assert capfd.readouterr().err == "other output\n"
 
 
+def test_decoding_in_threads_leaves_opencv_quiet_only_while_it_decodes(clean, tmp_path, capfd):
+    """The depth stage decodes in threads: good and damaged PNGs decoded at once in 4 threads
+    give the same pixels as one at a time, the damaged one its one error, no libpng chatter,
+    and OpenCV's process-wide log level is restored (it was saved and set per decode; two
+    threads interleaving left it silent)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import cv2
+
+    from rgbd_calib.dataset import read_color_image, read_depth_image
+    from rgbd_calib.errors import DatasetError
+
+    good = sorted(clean.dataset.glob("cam7/*/*.png"))[:8]
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(good[0].read_bytes()[:-40])  # truncated
+
+    def read(path):
+        try:
+            if path.parent.name == "depth":
+                return read_depth_image(path, 1280, 720)
+            return read_color_image(path, 1280, 720)
+        except DatasetError as exc:
+            return str(exc)
+
+    paths = (good + [bad]) * 6
+    alone = [read(p) for p in paths]
+    level = cv2.utils.logging.getLogLevel()
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(read, paths))
+    assert cv2.utils.logging.getLogLevel() == level
+    for a, b in zip(alone, together):
+        assert (a == b) if isinstance(a, str) else np.array_equal(a, b)
+    assert sum(isinstance(r, str) and str(bad) in r for r in together) == 6
+    assert capfd.readouterr().err == ""
+
+
 def _png_bytes(layout: str) -> bytes:
     """A small PNG of each layout a user's files may have (PIL writes the ones OpenCV cannot)."""
     import io
