@@ -109,3 +109,34 @@ def test_the_interrupt_line_says_whether_the_results_were_written(tmp_path, caps
     else:
         assert text == ("interrupted: earlier results were left untouched; run the same "
                         "command again to finish")
+
+
+def test_ctrl_c_while_the_static_clouds_are_built_drops_the_cameras_not_started(monkeypatch):
+    """The clouds are built in threads: a Ctrl-C stops the stage after the cameras in hand,
+    the others are never started (not waited for one by one)."""
+    import threading
+    import time
+
+    import numpy as np
+
+    from rgbd_calib import refine
+    from rgbd_calib.config import DepthConfig
+
+    started = []
+    lock = threading.Lock()
+
+    def slow_cloud(dataset, camera, *args):
+        with lock:
+            started.append(camera)
+        time.sleep(0.2)
+        return None, "fake"
+
+    monkeypatch.setattr(refine, "_cloud_job", slow_cloud)
+    jobs = [(f"cam{i}", np.eye(4), 1.0) for i in range(20)]
+
+    def tick(count):
+        raise KeyboardInterrupt  # after the first camera came back
+
+    with pytest.raises(KeyboardInterrupt):
+        refine.static_clouds(None, jobs, {}, None, DepthConfig(), workers=2, tick=tick)
+    assert len(started) <= 4, started  # the first two, and at most the two that followed
