@@ -54,7 +54,7 @@ def check_entry_point() -> None:
 
 
 # imported once by the fork server, before it forks any worker: the modules of the pools'
-# tasks (detection, rendering, depth pairs and clouds). Without it every worker of every pool
+# tasks (detection, rendering, depth pairs). Without it every worker of every pool
 # imported them itself (cv2, open3d, gtsam): ~1.5 s per pool of 2 on a 2-core machine, paid
 # by each calibrate, refine and synth stage
 PRELOAD = ("rgbd_calib.calibrate", "rgbd_calib.refine", "rgbd_calib.synth")
