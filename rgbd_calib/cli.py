@@ -102,19 +102,13 @@ def user_errors(fn):
 
             done = committed()
             if done:  # the Ctrl-C came after the results were in place: say so
-                console.print(
-                    "[yellow]interrupted[/] after the results were written: "
-                    f"{escape(', '.join(str(p) for p in done))} complete; nothing to run again",
-                    highlight=False,
-                    soft_wrap=True,
-                )
+                message = ("[yellow]interrupted[/] after the results were written: "
+                           f"{escape(', '.join(str(p) for p in done))} complete; nothing to "
+                           "run again")
             else:
-                console.print(
-                    "[yellow]interrupted[/]: earlier results were left untouched; run the same "
-                    "command again to finish",
-                    highlight=False,
-                    soft_wrap=True,
-                )
+                message = ("[yellow]interrupted[/]: earlier results were left untouched; run "
+                           "the same command again to finish")
+            console.print(message, highlight=False, soft_wrap=True)
             raise typer.Exit(130) from None
 
     return wrapper

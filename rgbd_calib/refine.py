@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -324,22 +325,19 @@ def static_clouds(dataset: FolderDataset, jobs: list[tuple[str, np.ndarray, floa
     else:
         pool = None
     results = []
-    if pool is None:
-        for a in args:
-            results.append(_cloud_job(*a))
-            if tick:
-                tick(1)
-    else:
-        with pool:
-            try:
-                for result in pool.map(_cloud_job, *zip(*args)):  # map: a dead worker explained
-                    results.append(result)
-                    if tick:
-                        tick(1)
-            except BaseException:  # Ctrl-C: the cameras not started are dropped, not waited for
-                if isinstance(pool, ThreadPoolExecutor):
-                    pool.shutdown(wait=False, cancel_futures=True)
-                raise
+    with pool or nullcontext():
+        try:
+            # map: in order, and a dead Dask worker explained
+            mapped = (pool.map(_cloud_job, *zip(*args)) if pool is not None
+                      else (_cloud_job(*a) for a in args))
+            for result in mapped:
+                results.append(result)
+                if tick:
+                    tick(1)
+        except BaseException:  # Ctrl-C: the cameras not started are dropped, not waited for
+            if isinstance(pool, ThreadPoolExecutor):  # (a Dask executor's exit cancels them)
+                pool.shutdown(wait=False, cancel_futures=True)
+            raise
     clouds = {c: cloud for (c, _, _), (cloud, _) in zip(jobs, results) if cloud is not None}
     skipped = {c: why for (c, _, _), (_, why) in zip(jobs, results) if why is not None}
     return clouds, skipped
