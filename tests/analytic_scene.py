@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from rgbd_calib import depth as D
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.geometry import make_transform, rotvec_to_matrix
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.geometry import make_transform, rotvec_to_matrix
+from rgbd_calib.depth import registration as D
 
 INTR = CameraIntrinsics(width=320, height=180, fx=230.0, fy=230.0, cx=159.5, cy=89.5)
 NOISE_FOCAL_PX = 640.0  # depth noise of a 848x480 D435 stream (a small image, realistic noise)

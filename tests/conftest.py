@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from rgbd_calib.geometry import transform_error
+from rgbd_calib.core.geometry import transform_error
 
 # Property tests: the same examples on every run (a gate that fails on a random draw once in a
 # while helps nobody; the failing example would not come back) and no per-example deadline (a
@@ -54,8 +54,8 @@ def shared_render(tmp_path_factory, name: str, layout: str, n_frames: int, seed:
     is built once per worker): ``synthesize_cached`` into one folder of the run, under a
     file lock. Read-only for the tests: copy it before changing it. Returns the
     ``SynthDataset`` (its ``board_poses`` from the ground truth)."""
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.synth import (
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.synth.render import (
         SynthDataset,
         SynthParams,
         load_ground_truth,
@@ -82,7 +82,7 @@ def shared_render(tmp_path_factory, name: str, layout: str, n_frames: int, seed:
 @pytest.fixture(scope="session")
 def small_race(tmp_path_factory):
     """A small synthetic race rig (8 cameras, 848x480, 3 frames, some frames dropped)."""
-    from rgbd_calib.synth import SynthParams
+    from rgbd_calib.synth.render import SynthParams
 
     return shared_render(tmp_path_factory, "small_race", "race", 3, 7,
                          params=SynthParams(depth_bias=0.005, drop_rate=0.1))
@@ -98,7 +98,7 @@ def small_line(tmp_path_factory):
 def charuco_line(tmp_path_factory):
     """The ChArUco A3 board in small_line's setting (thesis-line, 1280x720, 6 frames, seed
     3, default noise: blur 0.6 px, colour noise 2 DN). About 20 s."""
-    from rgbd_calib.board import load_board
+    from rgbd_calib.model.board import load_board
 
     board = load_board(CONFIGS / "board_charuco_a3.yaml")
     return shared_render(tmp_path_factory, "charuco_line", "thesis-line", 6, 3, board).path
@@ -108,7 +108,7 @@ def charuco_line(tmp_path_factory):
 def tiny_dataset(tmp_path_factory):
     """A tiny thesis-line rig with depth (4 cameras, 640x360, 4 frames): the README's example
     rig. About 6 s."""
-    from rgbd_calib.synth import SynthParams
+    from rgbd_calib.synth.render import SynthParams
 
     return shared_render(tmp_path_factory, "tiny", "thesis-line", 4, 0,
                          params=SynthParams(resolution=(640, 360))).path
@@ -120,7 +120,7 @@ def tiny_calibration(tiny_dataset, tmp_path_factory):
     :func:`tiny_dataset`: ``(dataset, out dir, console)``. About 15 s."""
     from typer.testing import CliRunner
 
-    from rgbd_calib.cli import app
+    from rgbd_calib.cli.commands import app
 
     out = tmp_path_factory.mktemp("tiny_calibration") / "out"
     result = CliRunner().invoke(app, ["calibrate", str(tiny_dataset), "--out", str(out),

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import calibrate
-from rgbd_calib.config import CalibrationConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.geometry import transform_error
-from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize
+from rgbd_calib.core.config import CalibrationConfig
+from rgbd_calib.core.geometry import transform_error
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.pipelines.calibrate import calibrate
+from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize
 
 sys.path.insert(0, str(REPO / "tools"))
 from peers import thesis_method  # noqa: E402

@@ -14,17 +14,17 @@ import pytest
 from conftest import assert_transforms_close
 from test_bundle import K, perturb, scene
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.config import BundleConfig
-from rgbd_calib.geometry import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.config import BundleConfig
+from rgbd_calib.core.geometry import (
     invert_transform,
     look_at,
     make_transform,
     rotvec_to_matrix,
     transform_error,
 )
-from rgbd_calib.graph import (
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.solve.posegraph import (
     MarkerMeasurement,
     _view_factor,
     _view_factor_intrinsics,
@@ -232,7 +232,7 @@ def test_clean_board_refine_no_worse_than_fixed():
 def test_refined_board_file_round_trip(tmp_path):
     """board_refined.yaml is the explicit form (the grid form cannot shift a back sheet):
     load_board reads back the moved back corners and the new thickness."""
-    from rgbd_calib.board import load_board, refined_board, save_board
+    from rgbd_calib.model.board import load_board, refined_board, save_board
 
     board = thesis_board()
     T_fb = _glue_transform(board, 1.5, -1.0, 0.3, dz_mm=-0.4)  # 0.4 mm thicker
@@ -255,10 +255,10 @@ def test_refined_board_file_round_trip(tmp_path):
 def glued_race(tmp_path_factory):
     """Race rig (8 cameras 848x480, 20 frames, seed 3), back sheet glued off by GLUE; the
     board file nominal. Calibrated with the board fixed and refined (no depth stage)."""
-    from rgbd_calib.calibrate import calibrate
-    from rgbd_calib.config import load_config
-    from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.synth import SynthParams, synthesize
+    from rgbd_calib.core.config import load_config
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.pipelines.calibrate import calibrate
+    from rgbd_calib.synth.render import SynthParams, synthesize
 
     out = tmp_path_factory.mktemp("synth") / "glued"
     synth = synthesize(out, "race", 20, 3, thesis_board(), SynthParams(glue=GLUE), workers=2)
@@ -281,7 +281,7 @@ def test_pipeline_glued_board(glued_race):
     0.0004 deg of the truth. (With the per-view model-error floor, ``pose.model_error_px``
     0.1-0.5 px, fixed keeps all 8, the back-facing ones 1.1-3.9 mm off at 7-18 claimed
     sigmas: the floor is off by default.)"""
-    from rgbd_calib.synth import load_ground_truth
+    from rgbd_calib.synth.render import load_ground_truth
 
     synth, runs = glued_race
     gt = load_ground_truth(synth.path)
@@ -312,7 +312,7 @@ def test_pipeline_glued_board_auto(glued_race):
     """The default (``auto`` board and intrinsics) on the glued set: the back sheet is freed
     because it keeps the 4 cameras the nominal board loses; all 8 within the race bounds and
     the glue recovered as with ``refine``."""
-    from rgbd_calib.synth import load_ground_truth
+    from rgbd_calib.synth.render import load_ground_truth
 
     synth, runs = glued_race
     gt = load_ground_truth(synth.path)
@@ -334,11 +334,11 @@ def test_pipeline_writes_board_refined_and_report(glued_race, tmp_path):
     board_glue finding name the offset."""
     import json
 
-    from rgbd_calib.board import load_board
-    from rgbd_calib.outputs import write_outputs
-    from rgbd_calib.report import validate_report
-    from rgbd_calib.rig import load_rig
-    from rgbd_calib.synth import load_ground_truth
+    from rgbd_calib.model.board import load_board
+    from rgbd_calib.model.rig import load_rig
+    from rgbd_calib.outputs.report import validate_report
+    from rgbd_calib.outputs.writer import write_outputs
+    from rgbd_calib.synth.render import load_ground_truth
 
     synth, runs = glued_race
     rig = load_rig(synth.path / "rig.yaml")
@@ -383,7 +383,7 @@ def test_common_depth_scale_names_the_print():
     """A 40 mm print of a 50 mm board file: every camera's depth reads 0.8 of the distance
     the calibration puts the board at; the printed length is the file's times that ratio.
     One board_scale finding replaces the per-camera depth_scale ones."""
-    from rgbd_calib.report.findings import board_scale, common_depth_scale, depth_scale
+    from rgbd_calib.outputs.report.findings import board_scale, common_depth_scale, depth_scale
 
     print_40 = {"a": (0.800, 0.002), "b": (0.803, 0.003), "c": (0.797, 0.002)}
     assert common_depth_scale(print_40) == pytest.approx(0.8, abs=0.002)
@@ -426,12 +426,12 @@ def test_pipeline_names_a_wrong_marker_length(tmp_path_factory, tmp_path):
     32.0 mm, no per-camera depth_scale finding (20 frames: seven cameras, 0.79993-0.80002)."""
     import json
 
-    from rgbd_calib.calibrate import calibrate
-    from rgbd_calib.config import load_config
-    from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.outputs import write_outputs
-    from rgbd_calib.rig import load_rig
-    from rgbd_calib.synth import SynthParams, synthesize
+    from rgbd_calib.core.config import load_config
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.model.rig import load_rig
+    from rgbd_calib.outputs.writer import write_outputs
+    from rgbd_calib.pipelines.calibrate import calibrate
+    from rgbd_calib.synth.render import SynthParams, synthesize
 
     out = tmp_path_factory.mktemp("synth") / "print80"
     synth = synthesize(out, "race", 8, 3, thesis_board(), SynthParams(print_scale=0.8),
@@ -448,7 +448,7 @@ def test_pipeline_names_a_wrong_marker_length(tmp_path_factory, tmp_path):
 def test_board_scale_names_a_charuco_boards_square_and_marker():
     """A ChArUco print scales the squares and the markers together: the line names both
     (before, it called the chessboard square the "marker length")."""
-    from rgbd_calib.report.findings import board_scale, board_scale_sentence
+    from rgbd_calib.outputs.report.findings import board_scale, board_scale_sentence
 
     line = board_scale_sentence(0.8, 0.03, 0.04)
     assert "square_length 32.0 mm and marker_length 24.0 mm" in line, line

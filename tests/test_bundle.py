@@ -5,16 +5,16 @@ import numpy as np
 import pytest
 from conftest import assert_transforms_close
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.config import BundleConfig
-from rgbd_calib.geometry import (
+from rgbd_calib.core.config import BundleConfig
+from rgbd_calib.core.geometry import (
     invert_transform,
     look_at,
     make_transform,
     rotvec_to_matrix,
     transform_error,
 )
-from rgbd_calib.graph import MarkerMeasurement, _view_factor, bundle_adjust
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.solve.posegraph import MarkerMeasurement, _view_factor, bundle_adjust
 
 K = np.array([[600.0, 0, 640], [0, 600.0, 360], [0, 0, 1]])
 

@@ -1,4 +1,4 @@
-"""The camera model (rgbd_calib.camera): OpenCV agreement over whole images, exact inverses,
+"""The camera model (rgbd_calib.core.camera): OpenCV agreement over whole images, exact inverses,
 the old back-projection, numerical Jacobians, and the distorted path of the calibration."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from rgbd_calib.camera import (
+from rgbd_calib.core.camera import (
     DISTORTION_NAMES,
     CameraIntrinsics,
     pinhole_point_jacobian,
@@ -17,7 +17,7 @@ from rgbd_calib.camera import (
     project_pinhole,
     undistort_normalized,
 )
-from rgbd_calib.geometry import skew
+from rgbd_calib.core.geometry import skew
 
 OPENCV_PX = 1e-6  # agreement with cv2.projectPoints / cv2.undistortPoints (px)
 ROUND_TRIP_PX = 1e-8  # distort(undistort(u)) = u (px)
@@ -278,7 +278,7 @@ def distorted_line(small_line, tmp_path_factory):
     D435-like lens distortion, and that distortion in its rig.yaml."""
     import shutil
 
-    from rgbd_calib.rig import Rig, load_rig, save_rig
+    from rgbd_calib.model.rig import Rig, load_rig, save_rig
 
     out = tmp_path_factory.mktemp("distorted") / "line"
     shutil.copytree(small_line.path, out)
@@ -303,12 +303,12 @@ def test_calibration_of_distorted_images(distorted_line):
     """The whole pipeline on distorted images: detection's curved edge fit, PnP with the
     distortion, undistorted corners into the bundle adjustment (the path that crashed on
     ``cv2.undistortPointsIter`` before the camera model)."""
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.calibrate import calibrate
-    from rgbd_calib.config import CalibrationConfig
-    from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.geometry import transform_error
-    from rgbd_calib.synth import load_ground_truth
+    from rgbd_calib.core.config import CalibrationConfig
+    from rgbd_calib.core.geometry import transform_error
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.pipelines.calibrate import calibrate
+    from rgbd_calib.synth.render import load_ground_truth
 
     dataset = FolderDataset(distorted_line)
     assert all(c.has_distortion for c in dataset.rig.cameras.values())

@@ -9,15 +9,9 @@ import yaml
 from conftest import CONFIGS, SHARED_DATA, shared_data_missing
 from typer.testing import CliRunner
 
-from rgbd_calib.board import (
-    Board,
-    charuco_black_squares,
-    cover_quads,
-    load_board,
-    save_board,
-)
-from rgbd_calib.errors import BoardError
-from rgbd_calib.geometry import invert_transform, transform_error
+from rgbd_calib.core.errors import BoardError
+from rgbd_calib.core.geometry import invert_transform, transform_error
+from rgbd_calib.model.board import Board, charuco_black_squares, cover_quads, load_board, save_board
 
 A3 = CONFIGS / "board_charuco_a3.yaml"
 CALISCOPE = CONFIGS / "board_charuco_caliscope.yaml"
@@ -60,7 +54,7 @@ def test_board_file_loads_and_round_trips(tmp_path):
 def test_quads_cover_every_saddle_corner(squares, quads):
     """A whole board is measured with the stride-2 tiling of its unit squares (plus the
     overlapping last column/row when the corner count is odd): every corner in a quad."""
-    from rgbd_calib.board import CharucoSpec
+    from rgbd_calib.model.board import CharucoSpec
 
     spec = CharucoSpec(squares[0], squares[1], 0.05, 0.035)
     q = spec.quads()
@@ -77,7 +71,7 @@ def test_quads_cover_every_saddle_corner(squares, quads):
 def test_cover_quads_keeps_the_corners_of_a_partly_seen_board():
     """Corners that the fixed stride-2 tiling lost (their aligned quad lacks a corner) are
     measured by another whole unit square; a corner in no whole square is left out."""
-    from rgbd_calib.board import CharucoSpec
+    from rgbd_calib.model.board import CharucoSpec
 
     spec = CharucoSpec(5, 5, 0.05, 0.035)  # 4 x 4 corners, ids r * 4 + c
     q = spec.quads()
@@ -121,7 +115,7 @@ def test_bad_board_file_names_file_and_key(tmp_path, change, message):
 
 
 def test_cli_board_rejects_bad_file_and_writes_nothing(tmp_path):
-    from rgbd_calib.cli import app
+    from rgbd_calib.cli.commands import app
 
     data = yaml.safe_load(CALISCOPE.read_text())
     data["marker_length"] = 0.054
@@ -136,7 +130,7 @@ def test_cli_board_rejects_bad_file_and_writes_nothing(tmp_path):
 
 # ----------------------------------------------------------------------------- printing
 def test_print_rejects_a_panel_smaller_than_the_chessboard(tmp_path):
-    from rgbd_calib.printing import write_printable_board
+    from rgbd_calib.outputs.printing import write_printable_board
 
     data = yaml.safe_load(CALISCOPE.read_text())
     data["panel"] = [0.0, 0.2, 0.0, 0.27]  # the chessboard is 0.216 x 0.27 m
@@ -151,8 +145,8 @@ def test_print_rejects_a_panel_smaller_than_the_chessboard(tmp_path):
 def test_printed_board_detects_at_true_scale(tmp_path, config):
     """The printed PNG (inverted for the Caliscope board) gives every saddle quad, each
     corner where the print put it at 1 mm = 1 mm."""
-    from rgbd_calib.detection import detect_charuco
-    from rgbd_calib.printing import board_to_page_mm, write_printable_board
+    from rgbd_calib.detect.markers import detect_charuco
+    from rgbd_calib.outputs.printing import board_to_page_mm, write_printable_board
 
     board = load_board(config)
     dpi = 100
@@ -171,8 +165,8 @@ def test_printed_board_detects_at_true_scale(tmp_path, config):
 # charuco_line: tests/conftest.py (shared with test_scratch_intrinsics.py)
 def corner_errors(path, board: Board, method: str | None, invert: bool = False):
     """Detected minus true saddle corners ``(K,2)`` px over every image of a render."""
-    from rgbd_calib.detection import detect_charuco
-    from rgbd_calib.synth import load_ground_truth
+    from rgbd_calib.detect.markers import detect_charuco
+    from rgbd_calib.synth.render import load_ground_truth
 
     gt = load_ground_truth(path)
     errs = []
@@ -211,8 +205,8 @@ def test_inverted_board_detects_the_same_corners(charuco_line):
 
 
 def test_inverted_render_flips_the_chessboard():
-    from rgbd_calib.board import board_from_charuco
-    from rgbd_calib.synth import INK_BLACK, PAPER_WHITE, _BoardModel
+    from rgbd_calib.model.board import board_from_charuco
+    from rgbd_calib.synth.render import INK_BLACK, PAPER_WHITE, _BoardModel
 
     board = load_board(A3)
     inverted = board_from_charuco(board.dictionary, type(board.charuco)(
@@ -231,8 +225,8 @@ def test_inverted_render_flips_the_chessboard():
 def test_charuco_calibration_end_to_end(charuco_line, tmp_path):
     """rgbd-calib calibrate on the ChArUco render: PnP, pose graph, bundle adjustment (fixed
     intrinsics), report and exports, within the ArUco board's end-to-end bounds."""
-    from rgbd_calib.cli import app
-    from rgbd_calib.synth import load_ground_truth
+    from rgbd_calib.cli.commands import app
+    from rgbd_calib.synth.render import load_ground_truth
 
     out = tmp_path / "out"
     result = CliRunner().invoke(app, ["calibrate", str(charuco_line), "--board", str(A3),
@@ -257,7 +251,7 @@ def test_real_video_saddle_corners_found():
     """Detection only, on Caliscope's real webcam video (inverted print): frames 70-110 of
     cam_0 hold the whole board; every saddle quad is found and the refinement moves OpenCV's
     corners by well under a pixel."""
-    from rgbd_calib.detection import detect_charuco
+    from rgbd_calib.detect.markers import detect_charuco
 
     board = load_board(CALISCOPE)
     cap = cv2.VideoCapture(str(CALISCOPE_DATA / "cam_0.mp4"))
@@ -291,8 +285,9 @@ THESIS_LINE_DEG, THESIS_LINE_MM = 0.05, 0.5
 @pytest.mark.slow
 def test_charuco_thesis_line_within_the_aruco_bound(tmp_path):
     """The issue 3 acceptance setting with the ChArUco board (about 2 min on 2 cores)."""
-    from rgbd_calib import CalibrationConfig, FolderDataset, calibrate
-    from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize
+    from rgbd_calib import CalibrationConfig, FolderDataset
+    from rgbd_calib.pipelines import calibrate
+    from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize
 
     board = load_board(A3)
     path = synthesize(tmp_path / "line40", "thesis-line", SLOW_FRAMES, SLOW_SEED, board,
@@ -310,7 +305,7 @@ def test_charuco_thesis_line_within_the_aruco_bound(tmp_path):
 
 def test_printed_lengths_name_the_charuco_square_and_marker():
     """What a wrong print scale multiplies: the file's marker (and, for ChArUco, square)."""
-    from rgbd_calib.board import CharucoSpec, board_from_charuco, thesis_board
+    from rgbd_calib.model.board import CharucoSpec, board_from_charuco, thesis_board
 
     board = thesis_board()
     assert board.printed_lengths == (pytest.approx(board.marker_length), None)

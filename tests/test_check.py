@@ -15,24 +15,24 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from rgbd_calib.check import (
-    MOVED_CHI2,
-    Tolerance,
-    locate_moved,
-    prior_covariance,
-    variance_factor,
-)
-from rgbd_calib.cli import app
-from rgbd_calib.geometry import (
+from rgbd_calib.cli.commands import app
+from rgbd_calib.core.geometry import (
     invert_transform,
     look_at,
     make_transform,
     rotvec_to_matrix,
     transform_error,
 )
-from rgbd_calib.graph import RelativePose
-from rgbd_calib.report import validate_report
-from rgbd_calib.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
+from rgbd_calib.model.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
+from rgbd_calib.outputs.report import validate_report
+from rgbd_calib.pipelines.check import (
+    MOVED_CHI2,
+    Tolerance,
+    locate_moved,
+    prior_covariance,
+    variance_factor,
+)
+from rgbd_calib.solve.posegraph import RelativePose
 
 PAIR_SIGMA_MM, PAIR_SIGMA_DEG = 1.0, 0.03  # a depth pair's sigma, per axis
 PRIOR_SIGMA_MM, PRIOR_SIGMA_DEG = 0.1, 0.005  # a board calibration's
@@ -163,8 +163,8 @@ def bumped_rig(tmp_path_factory):
     """A race rig rendered after left2 was knocked 5 cm / 5 deg (3 still frame sets, the
     board somewhere in view), and the calibration of the same rig before the knock: the
     ground truth with board-like sigmas (0.1 mm / 0.005 deg)."""
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.synth import SynthParams, make_rig, synthesize
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.synth.render import SynthParams, make_rig, synthesize
 
     root = tmp_path_factory.mktemp("bumped")
     params = SynthParams(bump=((BUMPED, BUMP_MM, BUMP_DEG),))
@@ -241,7 +241,7 @@ def test_check_without_a_calibration_is_one_clear_line(bumped_rig, tmp_path):
 def test_a_moved_reference_re_expresses_the_rig_with_its_uncertainty():
     """The reference frame is the reference camera's: when it moved, every camera is given in
     its new frame, and carries the reference's new uncertainty on top of its own."""
-    from rgbd_calib.check import reexpress
+    from rgbd_calib.pipelines.check import reexpress
 
     T_cal = _ring(4)
     knock = _knock(np.random.default_rng(1), 50.0, 5.0)
@@ -311,8 +311,8 @@ def test_check_rejects_a_bad_method_and_tolerance(tmp_path):
 def test_check_names_the_cameras_it_could_not_check(tiny_calibration, tmp_path, monkeypatch):
     """Exit 0 means every *checked* camera is in place: a camera no pair could measure is
     named on the console as not checked (and listed in check.json), not silently passed."""
-    from rgbd_calib import cli
-    from rgbd_calib.check import CameraCheck, CheckResult, CheckRun, Tolerance
+    from rgbd_calib.cli import commands as cli
+    from rgbd_calib.pipelines.check import CameraCheck, CheckResult, CheckRun, Tolerance
 
     data, calib, _ = tiny_calibration
     ext = load_extrinsics(calib / "extrinsics.yaml")

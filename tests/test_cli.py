@@ -10,9 +10,9 @@ from conftest import CONFIGS, SHARED_DATA, shared_data_missing
 from typer.testing import CliRunner
 
 from rgbd_calib import __version__
-from rgbd_calib.cli import app
-from rgbd_calib.geometry import quaternion_xyzw_to_matrix, transform_error
-from rgbd_calib.synth import load_ground_truth
+from rgbd_calib.cli.commands import app
+from rgbd_calib.core.geometry import quaternion_xyzw_to_matrix, transform_error
+from rgbd_calib.synth.render import load_ground_truth
 
 runner = CliRunner()
 # noisy synthetic data (blur 0.6 px, 2 DN), only 6 frames: loose end-to-end bounds; the
@@ -68,10 +68,10 @@ def test_extrinsics_yaml_follows_the_contract(calibrated):
 
 
 def test_rerun_uses_the_detection_cache(calibrated):
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.calibrate import detect_dataset
-    from rgbd_calib.config import DetectionConfig
-    from rgbd_calib.dataset import FolderDataset
+    from rgbd_calib.core.config import DetectionConfig
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.pipelines.calibrate import detect_dataset
 
     synth, out = calibrated
     ds = FolderDataset(synth.path)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from rgbd_calib.config import (
+from rgbd_calib.core.config import (
     CalibrationConfig,
     DepthConfig,
     DetectionConfig,
@@ -15,7 +15,7 @@ from rgbd_calib.config import (
     load_config,
     write_config,
 )
-from rgbd_calib.errors import ConfigError
+from rgbd_calib.core.errors import ConfigError
 
 
 def test_detection_config_rejects_unknown_and_inconsistent_fields():
@@ -113,13 +113,13 @@ _CHILD = """
 import importlib, json, sys
 from pathlib import Path
 
-from rgbd_calib.config import load_config
+from rgbd_calib.core.config import load_config
 
 config_path, image, width, height, *functions = sys.argv[1:]
 cfg = load_config(Path(config_path), method="posegraph", **{"detection.refinement": "subpix"})
 assert cfg.pose.min_markers == 2 and cfg.detection.refinement == "subpix", cfg
 
-from rgbd_calib.board import thesis_board
+from rgbd_calib.model.board import thesis_board
 
 init, job = (getattr(importlib.import_module(f.split(":")[0]), f.split(":")[1]) for f in functions)
 init(thesis_board(), cfg.detection)
@@ -140,8 +140,8 @@ def test_config_and_a_detection_worker_load_no_open3d_kiss_icp_or_gtsam(tmp_path
     import cv2
     import numpy as np
 
-    from rgbd_calib import calibrate
-    from rgbd_calib.board import aruco_dictionary, thesis_board
+    from rgbd_calib.model.board import aruco_dictionary, thesis_board
+    from rgbd_calib.pipelines import calibrate
 
     board = thesis_board()
     marker_id = int(board.ids[5])

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA, shared_data_missing
 
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.errors import ConfigError, DatasetError
-from rgbd_calib.geometry import invert_transform, make_transform, rotvec_to_matrix
-from rgbd_calib.rig import load_rig
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.errors import ConfigError, DatasetError
+from rgbd_calib.core.geometry import invert_transform, make_transform, rotvec_to_matrix
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.model.rig import load_rig
 from rgbd_calib.sources import (
     align_depth_to_color,
     convert,
@@ -52,8 +52,8 @@ def synth_rig(tmp_path_factory):
     """Three cameras of a small synthetic thesis-line rig, two frames each: (name,
     intrinsics, [(colour BGR, depth counts aligned to colour)]). Depth without stereo noise,
     so re-aligned depth can be compared with the truth pixel by pixel."""
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.synth import SynthParams, synthesize
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.synth.render import SynthParams, synthesize
 
     out = tmp_path_factory.mktemp("convert_synth") / "line"
     ds = synthesize(
@@ -699,9 +699,9 @@ def calib_rig(tmp_path_factory):
     calibration (board only) to compare the recordings' with."""
     from typer.testing import CliRunner
 
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.cli import app
-    from rgbd_calib.synth import SynthParams, synthesize
+    from rgbd_calib.cli.commands import app
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.synth.render import SynthParams, synthesize
 
     root = tmp_path_factory.mktemp("convert_calib")
     ds = synthesize(
@@ -728,7 +728,7 @@ def calib_rig(tmp_path_factory):
 def _calibrate_cli(sources, out: Path, *options: str):
     from typer.testing import CliRunner
 
-    from rgbd_calib.cli import app
+    from rgbd_calib.cli.commands import app
 
     args = ["calibrate", *map(str, sources), "--out", str(out), "--refine", "none", *options]
     return CliRunner().invoke(app, args)
@@ -738,8 +738,8 @@ def _calibrate_cli(sources, out: Path, *options: str):
 def test_recordings_calibrate_to_the_folder_form_extrinsics(calib_rig, tmp_path, kind):
     """`calibrate` takes the recordings themselves (converted once into OUT/cache) and finds
     the extrinsics it finds from the folder form of the same frames."""
-    from rgbd_calib.geometry import transform_error
-    from rgbd_calib.results import load_extrinsics
+    from rgbd_calib.core.geometry import transform_error
+    from rgbd_calib.model.results import load_extrinsics
 
     cams, folder_result = calib_rig
     names = [name for name, _, _ in cams]

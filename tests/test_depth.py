@@ -10,10 +10,7 @@ import pytest
 from conftest import assert_transforms_close
 from scipy.spatial import cKDTree
 
-from rgbd_calib import depth as D
-from rgbd_calib.board import thesis_board
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.geometry import (
+from rgbd_calib.core.geometry import (
     adjoint,
     invert_transform,
     make_transform,
@@ -21,8 +18,11 @@ from rgbd_calib.geometry import (
     transform_error,
     transform_points,
 )
-from rgbd_calib.ply import read_ply, write_fused_ply
-from rgbd_calib.synth import SynthParams, load_ground_truth, render_background, synthesize
+from rgbd_calib.core.ply import read_ply, write_fused_ply
+from rgbd_calib.depth import registration as D
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.synth.render import SynthParams, load_ground_truth, render_background, synthesize
 
 DEPTH_BIAS = 0.006  # max |relative depth-scale error| injected per camera
 SCALE_ATOL = 0.001  # issue acceptance: factor recovered within 0.1 % absolute

@@ -11,10 +11,10 @@ import pytest
 from analytic_scene import BOX, BOX_SIDE, CAM_A, CAM_B, FLOOR, SIDE, WALL, scene_cloud
 from analytic_scene import nudge as _nudge
 
-from rgbd_calib import depth as D
-from rgbd_calib import refine as R
-from rgbd_calib.config import DepthConfig
-from rgbd_calib.geometry import invert_transform, transform_error
+from rgbd_calib.core.config import DepthConfig
+from rgbd_calib.core.geometry import invert_transform, transform_error
+from rgbd_calib.depth import registration as D
+from rgbd_calib.pipelines import refine as R
 
 
 @pytest.fixture(scope="module")
@@ -102,10 +102,10 @@ def _open3d_failure(*args, **kwargs):
 def line_board_only(small_line, tmp_path_factory):
     """The small thesis-line rig calibrated without depth (detections cached for the runs
     below)."""
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.calibrate import calibrate
-    from rgbd_calib.config import CalibrationConfig
-    from rgbd_calib.dataset import FolderDataset
+    from rgbd_calib.core.config import CalibrationConfig
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.pipelines.calibrate import calibrate
 
     cache = tmp_path_factory.mktemp("fallback")
     run = lambda **kw: calibrate(FolderDataset(small_line.path), thesis_board(),  # noqa: E731
@@ -115,7 +115,7 @@ def line_board_only(small_line, tmp_path_factory):
 
 
 def _assert_board_result(result, board_only, rig):
-    from rgbd_calib.report.build import report_dict
+    from rgbd_calib.outputs.report.build import report_dict
 
     assert result.depth is not None and result.depth.fallback
     assert not result.depth.relative_poses and not any(p["accepted"] for p in result.depth.pairs)
@@ -138,7 +138,7 @@ def test_calibrate_falls_back_to_the_board_when_every_pair_fails(line_board_only
 
 
 def test_calibrate_falls_back_when_the_joint_solve_fails(line_board_only, monkeypatch):
-    from rgbd_calib import calibrate as C
+    from rgbd_calib.pipelines import calibrate as C
 
     run, board_only, rig = line_board_only
     real = C.bundle_sound_first

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from analytic_scene import CAM_A, CAM_B, RECTS, nudge, scene_cloud
 
-from rgbd_calib import depth as D
-from rgbd_calib.geometry import invert_transform
+from rgbd_calib.core.geometry import invert_transform
+from rgbd_calib.depth import registration as D
 
 # issue 14: RMS(error / sigma) of the depth factors alone on synthetic pairs
 NORMALISED_RMS_RANGE = (0.7, 1.5)
@@ -89,7 +89,7 @@ def test_kinect_noise_model_is_chosen_per_camera_and_correlated(realisations):
     (z^2 s / (f B) with the Kinect's constants, not the configured D435 ones), and a voxel mean
     of its pixels counts one independent error per correlation_px^2 pixels, not one per pixel
     (docs/depth.md, "Real data: TUM fr1/xyz")."""
-    from rgbd_calib.config import DepthConfig
+    from rgbd_calib.core.config import DepthConfig
 
     a = realisations[0][0]
     kinect = replace(a.intrinsics, depth_noise="kinect-v1")

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from analytic_scene import CAM_A, CAM_B, RECTS, nudge, scene_cloud
 
-from rgbd_calib import refine as R
-from rgbd_calib.config import DepthConfig
+from rgbd_calib.core.config import DepthConfig
+from rgbd_calib.pipelines import refine as R
 
 
 def _cov(sigma_deg: float, sigma_mm: float, worst_axis: int = 0) -> np.ndarray:
@@ -54,8 +54,8 @@ def test_pairs_in_a_process_pool_give_the_same_registrations():
 
 
 def test_a_camera_moved_beyond_its_board_uncertainty_is_found():
-    from rgbd_calib.geometry import make_transform
-    from rgbd_calib.results import CameraExtrinsics
+    from rgbd_calib.core.geometry import make_transform
+    from rgbd_calib.model.results import CameraExtrinsics
 
     cov = _cov(0.003, 0.5, worst_axis=2)  # 0.5 mm along z, 0.05 mm along x and y
     board = {"c": CameraExtrinsics("c", np.eye(4), covariance=cov)}

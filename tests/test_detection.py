@@ -1,6 +1,6 @@
 """ArUco detection and the edge-fit corner refinement against exact synthetic ground truth.
 
-Views are rendered with :mod:`rgbd_calib.synth` (exact area coverage of the board texture): a
+Views are rendered with :mod:`rgbd_calib.synth.render` (exact area coverage of the board texture): a
 640x360 camera at the origin, a textured wall behind, the board 0.5-0.85 m away (markers of
 14-24 px), tilted up to 35 deg. Ground-truth corners are the board corners projected through
 the true ``T_cam_board``. "Inward" is the offset of a detected corner towards its marker's
@@ -18,10 +18,9 @@ import cv2
 import numpy as np
 import pytest
 
-from rgbd_calib import synth
-from rgbd_calib.board import BACK, FRONT, Board, load_board
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.detection import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.geometry import make_transform, rotvec_to_matrix, transform_points
+from rgbd_calib.detect.markers import (
     DetectionConfig,
     MarkerDetections,
     _gray_float,
@@ -30,8 +29,9 @@ from rgbd_calib.detection import (
     marker_pattern,
     refine_corners_edges,
 )
-from rgbd_calib.geometry import make_transform, rotvec_to_matrix, transform_points
-from rgbd_calib.scene import rect
+from rgbd_calib.model.board import BACK, FRONT, Board, load_board
+from rgbd_calib.synth import render as synth
+from rgbd_calib.synth.scene import rect
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 WIDTH, HEIGHT = 640, 360

@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.cli import app
-from rgbd_calib.dataset import FolderDataset, read_color_image
-from rgbd_calib.depth import board_mask, estimate_depth_scale
-from rgbd_calib.detection import detect_markers
-from rgbd_calib.geometry import invert_transform, transform_error, transform_points
-from rgbd_calib.results import load_extrinsics
-from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize
+from rgbd_calib.cli.commands import app
+from rgbd_calib.core.geometry import invert_transform, transform_error, transform_points
+from rgbd_calib.depth.registration import board_mask, estimate_depth_scale
+from rgbd_calib.detect.markers import detect_markers
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset, read_color_image
+from rgbd_calib.model.results import load_extrinsics
+from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize
 
 DISTORTION = (0.08, -0.15, 5e-4, -5e-4, 0.03)  # the issue's "mild unlisted" lens, now listed
 PARAMS = dict(resolution=(640, 360), distortion=DISTORTION)
@@ -161,8 +161,8 @@ def test_pipeline_detection_bends_the_edge_fit(distorted):
     """``detect_dataset`` (the pipeline's pool) hands each distorted camera's lens to the edge
     fit: its corners equal ``detect_markers(..., intrinsics=...)`` (before, the pool fitted
     straight lines along the curved edges whatever rig.yaml said)."""
-    from rgbd_calib.calibrate import detect_dataset
-    from rgbd_calib.config import DetectionConfig
+    from rgbd_calib.core.config import DetectionConfig
+    from rgbd_calib.pipelines.calibrate import detect_dataset
 
     _, ds, _ = distorted
     board = thesis_board()
@@ -183,9 +183,9 @@ def test_unlisted_distortion_self_calibrated(distorted):
     truth; with the intrinsics held the same data is far off."""
     from dataclasses import replace
 
-    from rgbd_calib.calibrate import calibrate
-    from rgbd_calib.config import load_config
-    from rgbd_calib.rig import Rig
+    from rgbd_calib.core.config import load_config
+    from rgbd_calib.model.rig import Rig
+    from rgbd_calib.pipelines.calibrate import calibrate
 
     path, ds, gt = distorted
     pinhole = Rig({c: replace(i, distortion=(0.0,) * 5) for c, i in ds.rig.cameras.items()},

@@ -11,8 +11,18 @@ import pytest
 import yaml
 from conftest import assert_transforms_close
 
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.exports import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.geometry import (
+    invert_transform,
+    make_transform,
+    matrix_to_quaternion_xyzw,
+    quaternion_xyzw_to_matrix,
+    rotvec_to_matrix,
+)
+from rgbd_calib.model.posegraph_csv import camera_node_id, read_edges_csv, read_nodes_csv
+from rgbd_calib.model.results import CameraExtrinsics, Extrinsics, PoseEdge
+from rgbd_calib.model.rig import Rig
+from rgbd_calib.outputs.exports import (
     EXPORT_FILES,
     g2o_information,
     g2o_text,
@@ -23,16 +33,6 @@ from rgbd_calib.exports import (
     urdf_text,
     write_exports,
 )
-from rgbd_calib.geometry import (
-    invert_transform,
-    make_transform,
-    matrix_to_quaternion_xyzw,
-    quaternion_xyzw_to_matrix,
-    rotvec_to_matrix,
-)
-from rgbd_calib.posegraph_csv import camera_node_id, read_edges_csv, read_nodes_csv
-from rgbd_calib.results import CameraExtrinsics, Extrinsics, PoseEdge
-from rgbd_calib.rig import Rig
 
 EXACT_MM = 1e-9
 EXACT_DEG = 1e-5  # arccos resolution of transform_error

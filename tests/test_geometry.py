@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.linalg import expm
 
-from rgbd_calib.geometry import (
+from rgbd_calib.core.geometry import (
     adjoint,
     invert_transform,
     is_rigid,

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA, assert_transforms_close, shared_data_missing
 
-from rgbd_calib.errors import CalibrationError
-from rgbd_calib.geometry import (
+from rgbd_calib.core.errors import CalibrationError
+from rgbd_calib.core.geometry import (
     invert_transform,
     look_at,
     make_transform,
@@ -19,7 +19,8 @@ from rgbd_calib.geometry import (
     rotvec_to_matrix,
     transform_error,
 )
-from rgbd_calib.graph import (
+from rgbd_calib.model.results import PoseEdge
+from rgbd_calib.solve.posegraph import (
     REASON_NO_SHARED_VIEW,
     PoseGraphConfig,
     calibrate_pose_graph,
@@ -30,7 +31,6 @@ from rgbd_calib.graph import (
     robust_mean_pose,
     solve_pose_graph,
 )
-from rgbd_calib.results import PoseEdge
 
 THESIS = SHARED_DATA / "thesis-posegraph"
 
@@ -300,7 +300,7 @@ def test_default_sigmas_are_estimated_from_the_residuals(rng):
 def thesis():
     if not (THESIS / "Edges.csv").is_file():
         pytest.skip(shared_data_missing("thesis-posegraph"))
-    from rgbd_calib.posegraph_csv import read_edges_csv, read_optimised_camera_poses
+    from rgbd_calib.model.posegraph_csv import read_edges_csv, read_optimised_camera_poses
 
     edges = read_edges_csv(THESIS / "Edges.csv")
     published = read_optimised_camera_poses(THESIS / "optimised_camera_poses.csv")
@@ -435,10 +435,10 @@ def test_without_rejection_flagged_outliers_stay_in_the_bundle():
     """``reject_outliers: false``: a gross edge is flagged (``outlier_edges``) but the solve
     keeps it, so the bundle adjustment's measurements keep its view too (they used to drop
     every flagged view, cutting cameras off even with rejection off)."""
-    from rgbd_calib.calibrate import marker_measurements
-    from rgbd_calib.camera import CameraIntrinsics
-    from rgbd_calib.pose import BoardObservation
-    from rgbd_calib.rig import Rig
+    from rgbd_calib.core.camera import CameraIntrinsics
+    from rgbd_calib.model.rig import Rig
+    from rgbd_calib.pipelines.calibrate import marker_measurements
+    from rgbd_calib.solve.pose import BoardObservation
 
     rng = np.random.default_rng(11)
     edges, _, _, _ = make_scene(rng, 4)

@@ -10,8 +10,9 @@ import signal
 import pytest
 import typer
 
-from rgbd_calib import interrupts, outputs
-from rgbd_calib.dataset import staged_folder
+from rgbd_calib.core import interrupts
+from rgbd_calib.model.dataset import staged_folder
+from rgbd_calib.outputs import writer as outputs
 
 
 @pytest.fixture(autouse=True)
@@ -89,7 +90,7 @@ def test_ctrl_c_while_a_dataset_folder_is_published(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("written", [False, True])
 def test_the_interrupt_line_says_whether_the_results_were_written(tmp_path, capsys, written):
-    from rgbd_calib.cli import user_errors
+    from rgbd_calib.cli.commands import user_errors
 
     out = tmp_path / "out [1]"  # brackets: printed as text, not rich markup
 
@@ -119,8 +120,8 @@ def test_ctrl_c_while_the_static_clouds_are_built_drops_the_cameras_not_started(
 
     import numpy as np
 
-    from rgbd_calib import refine
-    from rgbd_calib.config import DepthConfig
+    from rgbd_calib.core.config import DepthConfig
+    from rgbd_calib.pipelines import refine
 
     started = []
     lock = threading.Lock()

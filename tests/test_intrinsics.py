@@ -22,19 +22,19 @@ import numpy as np
 import pytest
 from test_bundle import perturb
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.config import BundleConfig, CalibrationConfig, load_config
-from rgbd_calib.detection import MarkerDetections
-from rgbd_calib.errors import ConfigError
-from rgbd_calib.geometry import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.config import BundleConfig, CalibrationConfig, load_config
+from rgbd_calib.core.errors import ConfigError
+from rgbd_calib.core.geometry import (
     invert_transform,
     look_at,
     make_transform,
     rotvec_to_matrix,
     transform_error,
 )
-from rgbd_calib.graph import (
+from rgbd_calib.detect.markers import MarkerDetections
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.solve.posegraph import (
     MarkerMeasurement,
     _view_factor_intrinsics,
     bundle_adjust,
@@ -234,9 +234,9 @@ def test_refined_lens_uses_the_views_the_pose_graph_did_not_solve():
     lens, where it matters most: the board near the camera, in the image's corners. The
     bundle used to drop such frames (issue 13: 40 px at the image corners, 3.1 px inside the
     detected corners' hull on ring seed 11 with the board volume 2.5)."""
-    from rgbd_calib.calibrate import board_poses, pose_edges, self_calibrated_bundle
-    from rgbd_calib.graph import calibrate_pose_graph
-    from rgbd_calib.rig import Rig
+    from rgbd_calib.model.rig import Rig
+    from rgbd_calib.pipelines.calibrate import board_poses, pose_edges, self_calibrated_bundle
+    from rgbd_calib.solve.posegraph import calibrate_pose_graph
 
     board, truth, detections = _lone_view_scene(np.random.default_rng(0))
     listed = Rig({c: replace(t, distortion=(0.0,) * 5) for c, t in truth.items()}, "c0")
@@ -259,8 +259,8 @@ def test_lens_moved_names_the_cameras_to_detect_again():
     """Another detection pass is due for a camera whose refined lens images the rays of its
     detected corners more than LENS_SETTLED_PX from the lens they were detected with: here
     only where its corners reach the image's edge."""
-    from rgbd_calib.calibrate import LENS_SETTLED_PX, board_poses, lens_moved
-    from rgbd_calib.rig import Rig
+    from rgbd_calib.model.rig import Rig
+    from rgbd_calib.pipelines.calibrate import LENS_SETTLED_PX, board_poses, lens_moved
 
     board, truth, detections = _lone_view_scene(np.random.default_rng(0))
     rig = Rig(truth, "c0")
@@ -291,9 +291,9 @@ OFFSETS_LINE = [(1.007, 0.993, 4, -3), (0.993, 1.007, -5, 4), (1, 1, 0, 0), (1.0
 
 @pytest.fixture(scope="module")
 def line_refined(small_line):
-    from rgbd_calib.calibrate import calibrate
-    from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.rig import Rig, load_rig
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.model.rig import Rig, load_rig
+    from rgbd_calib.pipelines.calibrate import calibrate
 
     truth = load_rig(small_line.path / "rig.yaml")
     wrong = Rig({c: replace(t, fx=t.fx * o[0], fy=t.fy * o[1], cx=t.cx + o[2], cy=t.cy + o[3])
@@ -307,7 +307,7 @@ def line_refined(small_line):
 
 
 def test_pipeline_refines_wrong_intrinsics(line_refined, small_line):
-    from rgbd_calib.synth import load_ground_truth
+    from rgbd_calib.synth.render import load_ground_truth
 
     truth, _, runs = line_refined
     gt = load_ground_truth(small_line.path)
@@ -334,9 +334,9 @@ def test_pipeline_refines_wrong_intrinsics(line_refined, small_line):
 def test_refined_rig_and_report_written(line_refined, tmp_path):
     import json
 
-    from rgbd_calib.outputs import write_outputs
-    from rgbd_calib.report import validate_report
-    from rgbd_calib.rig import load_rig
+    from rgbd_calib.model.rig import load_rig
+    from rgbd_calib.outputs.report import validate_report
+    from rgbd_calib.outputs.writer import write_outputs
 
     _, wrong, runs = line_refined
     write_outputs(runs["refine"], wrong, tmp_path)
@@ -357,7 +357,7 @@ def test_refined_rig_and_report_written(line_refined, tmp_path):
     # rig.yaml's, which are ~0.7 % / 3-5 px off here
     import yaml
 
-    from rgbd_calib.exports import _ordered
+    from rgbd_calib.outputs.exports import _ordered
 
     chain = yaml.safe_load((tmp_path / "exports" / "camchain.yaml").read_text())
     names = _ordered(runs["refine"].extrinsics)
@@ -385,8 +385,8 @@ def test_refined_rig_and_report_written(line_refined, tmp_path):
 def test_cli_intrinsics_option(small_line, tmp_path):
     from typer.testing import CliRunner
 
-    from rgbd_calib.cli import app
-    from rgbd_calib.rig import load_rig
+    from rgbd_calib.cli.commands import app
+    from rgbd_calib.model.rig import load_rig
 
     runner = CliRunner()
     bad = runner.invoke(app, ["calibrate", str(small_line.path), "--out", str(tmp_path / "x"),
@@ -405,7 +405,7 @@ def test_cli_intrinsics_option(small_line, tmp_path):
 
 
 def test_unsupported_intrinsics_are_reported():
-    from rgbd_calib.report.findings import intrinsics_unsupported
+    from rgbd_calib.outputs.report.findings import intrinsics_unsupported
 
     def cam(**sigmas):
         return {"intrinsics_refined": {p: {"sigma": s, "prior_sigma": prior}

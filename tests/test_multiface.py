@@ -13,10 +13,9 @@ from conftest import CONFIGS, assert_transforms_close
 from test_board_refine import _numerical_jacobian
 from test_bundle import K, perturb
 
-from rgbd_calib.board import load_board
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.config import BundleConfig, CalibrationConfig
-from rgbd_calib.geometry import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.config import BundleConfig, CalibrationConfig
+from rgbd_calib.core.geometry import (
     invert_transform,
     look_at,
     make_transform,
@@ -24,8 +23,9 @@ from rgbd_calib.geometry import (
     transform_error,
     transform_points,
 )
-from rgbd_calib.graph import MarkerMeasurement, _view_factor, bundle_adjust
-from rgbd_calib.pose import estimate_board_pose
+from rgbd_calib.model.board import load_board
+from rgbd_calib.solve.pose import estimate_board_pose
+from rgbd_calib.solve.posegraph import MarkerMeasurement, _view_factor, bundle_adjust
 
 CUBE = CONFIGS / "board_cube.yaml"
 FACE_ERROR = (2.0, 0.5)  # mm, deg: each non-reference face off its board-file pose
@@ -36,7 +36,7 @@ EXACT_MM, EXACT_DEG = 1e-6, 1e-7
 
 
 def _true_faces(board, mm, deg):
-    from rgbd_calib.synth import face_perturbation
+    from rgbd_calib.synth.render import face_perturbation
 
     return {s.label: s.T_board_face @ face_perturbation(s.label, mm, deg)
             for s in board.sheets if s.label != board.reference_face}
@@ -174,7 +174,7 @@ def test_pnp_uses_every_face_seen():
         if (T_cam_board[:3, :3] @ board.face_normal(int(f))) @ p.mean(axis=0) < 0:
             ids.append(int(i))
             corners.append(intr.project(p) + rng.normal(0, 0.1, (4, 2)))
-    from rgbd_calib.detection import MarkerDetections
+    from rgbd_calib.detect.markers import MarkerDetections
 
     det = MarkerDetections(np.array(ids), np.array(corners), np.ones((len(ids), 4), bool))
     seen = set(board.faces_of(ids).tolist())
@@ -188,7 +188,7 @@ def test_synth_face_error_is_where_ground_truth_says(tmp_path):
     """``synth --face-error``: the rendered target's faces are where ground_truth.yaml's
     ``board.T_board_face`` puts them (the reference face unmoved), and BoardPrint.corners moves
     each face's markers by exactly that pose."""
-    from rgbd_calib.synth import SynthParams, board_print
+    from rgbd_calib.synth.render import SynthParams, board_print
 
     board = load_board(CUBE)
     printed = board_print(board, SynthParams(face_error=FACE_ERROR))
@@ -210,7 +210,7 @@ def test_synth_face_error_is_where_ground_truth_says(tmp_path):
 def cube_race(tmp_path_factory):
     """A small rendered cube set: race rig (8 cameras, 848x480), 6 frame sets, seed 11, the
     synth defaults (blur 0.6 px, colour noise 2 DN). About 20-40 s."""
-    from rgbd_calib.synth import SynthParams, synthesize
+    from rgbd_calib.synth.render import SynthParams, synthesize
 
     out = tmp_path_factory.mktemp("cube") / "race"
     return synthesize(out, "race", 6, 11, load_board(CUBE), SynthParams(), workers=2).path
@@ -221,9 +221,9 @@ def test_rendered_cube_calibrates_within_the_aruco_board_bounds(cube_race, tmp_p
     """Detection (ids -> faces), PnP over several faces and the bundle adjustment on a rendered
     cube: every camera within the race bound of the ArUco board (1.0 mm / 0.1 deg); views with
     several faces seen exist and are used. Measured: 0.17 mm / 0.005 deg worst."""
-    from rgbd_calib.calibrate import calibrate
-    from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.synth import load_ground_truth
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.pipelines.calibrate import calibrate
+    from rgbd_calib.synth.render import load_ground_truth
 
     gt = load_ground_truth(cube_race)
     config = CalibrationConfig(refine="none", workers=2)
@@ -241,10 +241,10 @@ def test_multiface_result_round_trips_report_and_refined_board(cube_race, tmp_pa
     a multiface board file that loads with the refined poses."""
     import json
 
-    from rgbd_calib.calibrate import calibrate
-    from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.outputs import write_outputs
-    from rgbd_calib.report.schema import validate_report
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.outputs.report.schema import validate_report
+    from rgbd_calib.outputs.writer import write_outputs
+    from rgbd_calib.pipelines.calibrate import calibrate
 
     board = load_board(CUBE)
     config = CalibrationConfig(refine="none", workers=2,

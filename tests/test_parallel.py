@@ -15,15 +15,15 @@ import pytest
 from distributed import Client, LocalCluster
 from typer.testing import CliRunner
 
-import rgbd_calib.parallel as parallel
-from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import detect_dataset
-from rgbd_calib.cli import app
-from rgbd_calib.config import DepthConfig, DetectionConfig, load_config
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.errors import ConfigError
-from rgbd_calib.parallel import DaskExecutor, executor
-from rgbd_calib.synth import load_ground_truth
+import rgbd_calib.core.parallel as parallel
+from rgbd_calib.cli.commands import app
+from rgbd_calib.core.config import DepthConfig, DetectionConfig, load_config
+from rgbd_calib.core.errors import ConfigError
+from rgbd_calib.core.parallel import DaskExecutor, executor
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.pipelines.calibrate import detect_dataset
+from rgbd_calib.synth.render import load_ground_truth
 
 runner = CliRunner()
 # a port nobody listens on, and a short wait for it: the one-line error comes in ~1 s
@@ -51,8 +51,8 @@ def test_detection_on_dask_equals_the_local_pool_and_its_cache(tiny_dataset, clu
 
 
 def test_pair_registrations_on_dask_are_bit_identical_to_the_local_pool(tiny_dataset, cluster):
-    from rgbd_calib.depth import find_overlapping_pairs, static_cloud
-    from rgbd_calib.refine import register_pairs
+    from rgbd_calib.depth.registration import find_overlapping_pairs, static_cloud
+    from rgbd_calib.pipelines.refine import register_pairs
 
     ds = FolderDataset(tiny_dataset)
     T = load_ground_truth(tiny_dataset).T_ref_cam
@@ -77,7 +77,7 @@ def test_static_clouds_in_threads_and_on_dask_equal_the_ones_made_one_at_a_time(
     with its reason."""
     import shutil
 
-    from rgbd_calib.refine import static_clouds
+    from rgbd_calib.pipelines.refine import static_clouds
 
     data = tmp_path / "ds"
     shutil.copytree(tiny_dataset, data)
@@ -111,7 +111,7 @@ def test_calibrate_through_a_cluster_gives_the_same_extrinsics(tiny_calibration,
 
 
 def test_initializer_runs_on_every_worker_and_map_keeps_order(tiny_dataset, cluster):
-    from rgbd_calib.detection import detect_job, init_detector
+    from rgbd_calib.detect.markers import detect_job, init_detector
 
     ds = FolderDataset(tiny_dataset)
     jobs = [(c, fs.frame, str(p), ds.rig.cameras[c].width, ds.rig.cameras[c].height)
@@ -215,7 +215,7 @@ def test_a_pool_broken_before_the_last_submit_is_one_clear_error():
     import os
     from concurrent.futures.process import BrokenProcessPool
 
-    from rgbd_calib.errors import RgbdCalibError
+    from rgbd_calib.core.errors import RgbdCalibError
 
     with parallel.WorkerPool(1) as pool:
         dead = pool.submit(os._exit, 1)

@@ -1,6 +1,6 @@
 """Per-view board pose: exact recovery, accuracy on noisy renders, an honest covariance, gates.
 
-Views are rendered with :mod:`rgbd_calib.synth` as in ``test_detection.py``: a 640x360 camera at
+Views are rendered with :mod:`rgbd_calib.synth.render` as in ``test_detection.py``: a 640x360 camera at
 the origin, the board 0.5-0.85 m away showing its front or its back. The pose error of a view is
 ``xi = Log(T_true^-1 T_est)`` (right perturbation, ``[omega, v]``), the convention of the
 covariance (GTSAM Pose3, board/body frame).
@@ -15,12 +15,9 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from rgbd_calib import synth
-from rgbd_calib.board import BACK, FRONT, Board, load_board
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.config import DetectionConfig
-from rgbd_calib.detection import MarkerDetections, detect_markers
-from rgbd_calib.geometry import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.config import DetectionConfig
+from rgbd_calib.core.geometry import (
     invert_transform,
     make_transform,
     matrix_to_rotvec,
@@ -29,7 +26,9 @@ from rgbd_calib.geometry import (
     transform_error,
     transform_points,
 )
-from rgbd_calib.pose import (
+from rgbd_calib.detect.markers import MarkerDetections, detect_markers
+from rgbd_calib.model.board import BACK, FRONT, Board, load_board
+from rgbd_calib.solve.pose import (
     BoardObservation,
     PoseConfig,
     RejectedView,
@@ -40,7 +39,8 @@ from rgbd_calib.pose import (
     reprojection_residuals,
     se3_exp,
 )
-from rgbd_calib.scene import rect
+from rgbd_calib.synth import render as synth
+from rgbd_calib.synth.scene import rect
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 N_VIEWS = 16
@@ -255,7 +255,7 @@ def test_charuco_views_need_corners_not_four_quads():
     """A ChArUco view is judged by its distinct saddle corners (``min_charuco_corners``), not
     by ``min_markers`` quads: two whole squares (8 corners) give a pose, one (4) does not, and
     two overlapping squares (6 corners) do not either."""
-    from rgbd_calib.board import cover_quads, load_board
+    from rgbd_calib.model.board import cover_quads, load_board
 
     cboard = load_board(CONFIGS / "board_charuco_caliscope.yaml")  # 3 x 4 corners, 6 quads
     K = make_camera().intrinsics

@@ -9,15 +9,14 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA, assert_transforms_close, shared_data_missing
 
-from rgbd_calib.errors import ConfigError
-from rgbd_calib.geometry import (
+from rgbd_calib.core.errors import ConfigError
+from rgbd_calib.core.geometry import (
     invert_transform,
     make_transform,
     quaternion_xyzw_to_matrix,
     rotvec_to_matrix,
 )
-from rgbd_calib.outputs import write_posegraph_outputs
-from rgbd_calib.posegraph_csv import (
+from rgbd_calib.model.posegraph_csv import (
     camera_name,
     camera_node_id,
     node_ids,
@@ -28,8 +27,9 @@ from rgbd_calib.posegraph_csv import (
     write_nodes_csv,
     write_optimised_camera_poses,
 )
-from rgbd_calib.posegraph_pipeline import run_posegraph
-from rgbd_calib.results import PoseEdge, load_extrinsics
+from rgbd_calib.model.results import PoseEdge, load_extrinsics
+from rgbd_calib.outputs.writer import write_posegraph_outputs
+from rgbd_calib.pipelines.posegraph import run_posegraph
 
 THESIS = SHARED_DATA / "thesis-posegraph"
 

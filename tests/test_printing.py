@@ -17,9 +17,9 @@ import pytest
 import yaml
 from PIL import Image
 
-from rgbd_calib.board import BACK, FRONT, Board, board_from_grid, load_board
-from rgbd_calib.errors import BoardError
-from rgbd_calib.printing import PrintResult, write_printable_board
+from rgbd_calib.core.errors import BoardError
+from rgbd_calib.model.board import BACK, FRONT, Board, board_from_grid, load_board
+from rgbd_calib.outputs.printing import PrintResult, write_printable_board
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 CORNER_TOL_MM = 0.1  # detected corner vs board corner, after pixel -> page -> board mapping

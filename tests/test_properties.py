@@ -18,10 +18,9 @@ import yaml
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from rgbd_calib.board import Board, board_from_grid, load_board, save_board
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.errors import RgbdCalibError
-from rgbd_calib.geometry import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.errors import RgbdCalibError
+from rgbd_calib.core.geometry import (
     invert_transform,
     is_rigid,
     look_at,
@@ -35,9 +34,10 @@ from rgbd_calib.geometry import (
     skew,
     transform_error,
 )
-from rgbd_calib.pose import se3_exp
-from rgbd_calib.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
-from rgbd_calib.rig import Rig, load_rig, save_rig
+from rgbd_calib.model.board import Board, board_from_grid, load_board, save_board
+from rgbd_calib.model.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
+from rgbd_calib.model.rig import Rig, load_rig, save_rig
+from rgbd_calib.solve.pose import se3_exp
 
 # tmp_path is reused across examples: every example writes its own file first
 SETTINGS = settings(max_examples=60, deadline=None,
@@ -276,7 +276,7 @@ def test_board_crashers(tmp_path, text):
 def test_grid_larger_than_its_dictionary_fails_fast(tmp_path, monkeypatch, size):
     """Checked against the dictionary before the grid is built (100000 x 100000 would exhaust
     memory): building it is never reached (a structural check, not a timed one)."""
-    import rgbd_calib.board as board_module
+    import rgbd_calib.model.board as board_module
 
     def never(*args, **kwargs):
         raise AssertionError("the grid was built before its size was checked")

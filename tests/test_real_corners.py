@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from conftest import REPO, SHARED_DATA, shared_data_missing
 
-from rgbd_calib.corner_bias import (
+from rgbd_calib.detect.corner_bias import (
     apply_homography,
     corner_components,
     fit_homography,
@@ -148,12 +148,12 @@ def test_model_error_floor_keeps_real_views_in(tmp_path):
     sys.path.insert(0, str(REPO / "tools"))
     import bench_caliscope
 
-    from rgbd_calib.board import load_board
-    from rgbd_calib.calibrate import pose_edges
-    from rgbd_calib.config import CalibrationConfig, PoseConfig
-    from rgbd_calib.detection import detect_markers
-    from rgbd_calib.graph import PoseGraphConfig, calibrate_pose_graph
-    from rgbd_calib.pose import BoardObservation, estimate_board_pose
+    from rgbd_calib.core.config import CalibrationConfig, PoseConfig
+    from rgbd_calib.detect.markers import detect_markers
+    from rgbd_calib.model.board import load_board
+    from rgbd_calib.pipelines.calibrate import pose_edges
+    from rgbd_calib.solve.pose import BoardObservation, estimate_board_pose
+    from rgbd_calib.solve.posegraph import PoseGraphConfig, calibrate_pose_graph
 
     board = load_board(REPO / "configs" / "board_charuco_caliscope.yaml")
     intrinsics, _ = bench_caliscope.caliscope()

@@ -20,19 +20,19 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA, shared_data_missing
 
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.geometry import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.geometry import (
     look_at,
     make_transform,
     matrix_to_quaternion_xyzw,
     rotvec_to_matrix,
     transform_error,
 )
-from rgbd_calib.refine import refine_extrinsics
-from rgbd_calib.results import load_extrinsics
-from rgbd_calib.scene import box, rect
-from rgbd_calib.synth import SynthCamera, load_ground_truth, render_background
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.model.results import load_extrinsics
+from rgbd_calib.pipelines.refine import refine_extrinsics
+from rgbd_calib.synth.render import SynthCamera, load_ground_truth, render_background
+from rgbd_calib.synth.scene import box, rect
 
 REPO = Path(__file__).resolve().parents[1]
 MAX_MM, MAX_DEG = 10.0, 1.5  # issue 4 (rendered pair below: half of it)

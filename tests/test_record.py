@@ -9,14 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-import rgbd_calib.dataset as dataset_module
-import rgbd_calib.record as record_module
-from rgbd_calib.board import thesis_board
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.console import cli_record
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.errors import DatasetError
-from rgbd_calib.record import CapturedFrame, record
+import rgbd_calib.model.dataset as dataset_module
+import rgbd_calib.sources.record as record_module
+from rgbd_calib.cli.console import cli_record
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.errors import DatasetError
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.sources.record import CapturedFrame, record
 
 PERIOD_MS = 1000.0 / 30.0
 

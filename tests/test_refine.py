@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import calibrate
-from rgbd_calib.cli import app
-from rgbd_calib.config import CalibrationConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.geometry import make_transform, rotvec_to_matrix, transform_error
-from rgbd_calib.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
-from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize
+from rgbd_calib.cli.commands import app
+from rgbd_calib.core.config import CalibrationConfig
+from rgbd_calib.core.geometry import make_transform, rotvec_to_matrix, transform_error
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.model.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
+from rgbd_calib.pipelines.calibrate import calibrate
+from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize
 
 SCALE_TOL = 0.001  # issue 4: depth-scale factor within 0.1 % (absolute)
 WEAK_GAIN = 0.30  # issue 4: refinement lowers the mean camera error by >= 30 % on weak data
@@ -126,7 +126,7 @@ def test_refinement_helps_weak_board_data_and_never_hurts_strong(tmp_path_factor
 def test_refine_writes_the_calibration_report_with_a_verdict(tiny_calibration, tmp_path):
     """Issue 14, item 3: refine writes report.json (the calibrate schema, method ``depth``,
     board sections empty) and report.html, with refine_report.json's verdict."""
-    from rgbd_calib.report import rebuild_report, validate_report
+    from rgbd_calib.outputs.report import rebuild_report, validate_report
 
     data, calib, _ = tiny_calibration
     out = tmp_path / "refined"
@@ -172,7 +172,7 @@ def test_refine_writes_the_calibration_report_with_a_verdict(tiny_calibration, t
 
 def test_a_failing_figure_costs_the_page_not_the_refined_extrinsics(tiny_calibration, tmp_path,
                                                                      monkeypatch):
-    from rgbd_calib.report import figures
+    from rgbd_calib.outputs.report import figures
 
     def boom(*_):
         raise RuntimeError("no display")
@@ -224,7 +224,7 @@ def _pose_graph_case(rng, pair_noise_factor: float):
     """A reference and 7 cameras on a 2 m circle; each camera held to its (noisy) start by a
     prior of 0.1 mm / 0.005 deg at that noise, and a pair between every two cameras claiming
     0.2 mm / 0.01 deg but drawn ``pair_noise_factor`` times wider."""
-    from rgbd_calib.graph import RelativePose
+    from rgbd_calib.solve.posegraph import RelativePose
 
     names = ["ref"] + [f"c{i}" for i in range(7)]
     angle = {c: 2 * np.pi * i / len(names) for i, c in enumerate(names)}
@@ -248,7 +248,7 @@ def test_relative_pose_redundancy_sums_to_the_graph_redundancy():
     """Redundancy numbers (Foerstner): over all factors they sum to observations minus
     unknowns, and two priors on one camera split its 6 by their weights (r_1 = tr(W_2 (W_1 +
     W_2)^-1), 6 x 1/5 for a prior 4x tighter in information)."""
-    from rgbd_calib.graph import RelativePose, relative_pose_redundancy
+    from rgbd_calib.solve.posegraph import RelativePose, relative_pose_redundancy
 
     rng = np.random.default_rng(2)
     T_true, T_init, priors, pairs = _pose_graph_case(rng, 1.0)
@@ -268,7 +268,7 @@ def test_variance_components_recover_the_pairs_noise(k):
     """Pairs drawn k times wider than their information claims: the estimated pair factor is
     ~k^2 (the priors', drawn at their model, stays ~1), and the result is closer to the truth
     than the plain solve when the pairs overclaim (k = 2)."""
-    from rgbd_calib.refine import solve_variance_components
+    from rgbd_calib.pipelines.refine import solve_variance_components
 
     rng = np.random.default_rng(11)
     T_true, T_init, priors, pairs = _pose_graph_case(rng, k)

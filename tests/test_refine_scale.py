@@ -8,9 +8,9 @@ from dataclasses import replace
 import numpy as np
 from analytic_scene import CAM_A, CAM_B, RECTS, scene_cloud
 
-from rgbd_calib import depth as D
-from rgbd_calib import refine as R
-from rgbd_calib.results import CameraExtrinsics, Extrinsics
+from rgbd_calib.depth import registration as D
+from rgbd_calib.model.results import CameraExtrinsics, Extrinsics
+from rgbd_calib.pipelines import refine as R
 
 SCALE_ERROR = 1.01  # camera a's depth reads 1 % long
 

@@ -18,12 +18,10 @@ import numpy as np
 import pytest
 import yaml
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import calibrate
-from rgbd_calib.config import CalibrationConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.outputs import write_outputs
-from rgbd_calib.report import (
+from rgbd_calib.core.config import CalibrationConfig
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.outputs.report import (
     REPORT_SCHEMA_VERSION,
     ReportError,
     dump_report,
@@ -37,7 +35,9 @@ from rgbd_calib.report import (
     schema_paths,
     validate_report,
 )
-from rgbd_calib.synth import SynthParams, synthesize
+from rgbd_calib.outputs.writer import write_outputs
+from rgbd_calib.pipelines.calibrate import calibrate
+from rgbd_calib.synth.render import SynthParams, synthesize
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "report_schema.md"
 FX_ERROR = 1.05  # the wrong camera's fx in rig.yaml, relative to the true one
@@ -417,7 +417,7 @@ def test_depth_that_confirms_the_board_result_is_an_info_not_a_warning(runs, tmp
 def test_edge_figure_draws_a_rig_without_edge_residuals():
     """Only the reference calibrated (no edge residual anywhere): the log-scaled residual
     panels say "no data" instead of raising (it stopped report.html being written)."""
-    from rgbd_calib.report.figures import fig_edges
+    from rgbd_calib.outputs.report.figures import fig_edges
 
     report = {"reference": "a", "cameras": {"a": {}, "b": {}}}
     empty = {"camera": "a", "edge_status": "used", "edge_translation_mm": None,
@@ -444,7 +444,7 @@ def test_outlier_views_that_fit_the_final_calibration_are_not_an_inconsistent_ca
     was CHECK for 4 views rejected at 4.6-5.4 whitened sigmas that fit at 0.03-0.07 px
     (typical 0.044). Views the final calibration fits are an info; views it does not fit
     still count."""
-    from rgbd_calib.report.findings import (
+    from rgbd_calib.outputs.report.findings import (
         fitting_outlier_views,
         inconsistent_camera,
         outlier_views,
@@ -488,7 +488,7 @@ def test_few_views_is_relative_to_the_rig_but_capped(views, median, warned):
     """`few_views` flags a camera far below the rig's median number of used views, but not
     one with 30 or more: on a long recording that is plenty (its precision is weak_camera's
     test)."""
-    from rgbd_calib.report.findings import few_views
+    from rgbd_calib.outputs.report.findings import few_views
 
     cams = {"ref": {"views_used": median, "calibrated": True},
             "other": {"views_used": median, "calibrated": True},
@@ -501,7 +501,7 @@ def test_cameras_the_refined_model_explains_share_one_info():
     """Every lens off (the usual factory-intrinsics case): the whole rig's views disagreed
     under rig.yaml, the refined model explains each camera. One info naming them, not one
     identical line per camera; a camera beyond its prior keeps its own warning."""
-    from rgbd_calib.report.findings import camera_model_error
+    from rgbd_calib.outputs.report.findings import camera_model_error
 
     def entry(name, n):
         return {"camera": name, "outliers_before": n, "edges": 12, "translation_mm": 4.0,
@@ -531,7 +531,7 @@ def test_camera_model_error_is_an_info_when_the_refined_model_explains_it(
     prior is for (factory intrinsics a fraction of a percent off): it must not turn the
     verdict to CHECK. One they absorb far beyond it means rig.yaml is wrong: a warning that
     names the parameter."""
-    from rgbd_calib.report.findings import camera_model_error
+    from rgbd_calib.outputs.report.findings import camera_model_error
 
     fx = {"prior": 600.0, "prior_sigma": 2.0, "refined": 600.0 + fx_change, "sigma": 0.3,
           "change": fx_change, "change_pct": fx_change / 6.0}
@@ -561,7 +561,7 @@ def test_camera_model_error_is_an_info_when_the_refined_model_explains_it(
 def test_an_estimated_view_floor_is_an_info_that_says_its_size():
     """``pose.model_error_px: auto`` set a floor (real cameras): one info with its size and how
     far the typical view was off; none when it stayed 0, was fixed, or the report predates it."""
-    from rgbd_calib.report.findings import view_model_error
+    from rgbd_calib.outputs.report.findings import view_model_error
 
     def report(floor):
         pg = {"model_error": []}

@@ -19,13 +19,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import calibrate
-from rgbd_calib.config import CalibrationConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.outputs import write_outputs
-from rgbd_calib.report import dump_report, error_map, finalize_report, pair_entry, rebuild_report
-from rgbd_calib.synth import SynthParams, synthesize
+from rgbd_calib.core.config import CalibrationConfig
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.outputs.report import (
+    dump_report,
+    error_map,
+    finalize_report,
+    pair_entry,
+    rebuild_report,
+)
+from rgbd_calib.outputs.writer import write_outputs
+from rgbd_calib.pipelines.calibrate import calibrate
+from rgbd_calib.synth.render import SynthParams, synthesize
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 BROWSER = next((shutil.which(b) for b in BROWSERS if shutil.which(b)), None)

@@ -11,12 +11,10 @@ import shutil
 
 import pytest
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import calibrate
-from rgbd_calib.config import CalibrationConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.outputs import write_outputs
-from rgbd_calib.report import (
+from rgbd_calib.core.config import CalibrationConfig
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.outputs.report import (
     VIEWS_FILE,
     ReportError,
     dump_report,
@@ -24,7 +22,9 @@ from rgbd_calib.report import (
     rebuild_report,
     validate_report,
 )
-from rgbd_calib.report.storage import join_views, split_report
+from rgbd_calib.outputs.report.storage import join_views, split_report
+from rgbd_calib.outputs.writer import write_outputs
+from rgbd_calib.pipelines.calibrate import calibrate
 
 SMALL = 3  # views kept inline in these tests (2000 in use)
 

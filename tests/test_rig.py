@@ -4,8 +4,8 @@ import pytest
 import yaml
 from conftest import CONFIGS, SHARED_DATA
 
-from rgbd_calib.errors import ConfigError
-from rgbd_calib.rig import load_rig, save_rig
+from rgbd_calib.core.errors import ConfigError
+from rgbd_calib.model.rig import load_rig, save_rig
 
 GOOD = {"reference": "cam8", "cameras": {
     "cam7": {"width": 1280, "height": 720, "fx": 633.47, "fy": 633.47, "cx": 643.2, "cy": 358.4},

@@ -38,11 +38,11 @@ import yaml
 from conftest import REPO
 from typer.testing import CliRunner
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.cli import app
-from rgbd_calib.console import PROGRESS_LINE
-from rgbd_calib.geometry import transform_error
-from rgbd_calib.synth import load_ground_truth
+from rgbd_calib.cli.commands import app
+from rgbd_calib.cli.console import PROGRESS_LINE
+from rgbd_calib.core.geometry import transform_error
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.synth.render import load_ground_truth
 
 runner = CliRunner()
 RGBD_CALIB = Path(sys.executable).parent / "rgbd-calib"
@@ -370,7 +370,7 @@ def test_no_library_chatter_on_stderr(clean, tmp_path, damage):
 def test_libpng_quiet_keeps_other_output(capfd):
     """The decode's stderr capture drops libpng's own lines only: anything else written to
     file descriptor 2 meanwhile (another thread's progress, a warning) comes out after it."""
-    from rgbd_calib.dataset import _libpng_quiet
+    from rgbd_calib.model.dataset import _libpng_quiet
 
     with _libpng_quiet():
         os.write(2, b"libpng error: bad adaptive filter value\n")
@@ -388,8 +388,8 @@ def test_decoding_in_threads_leaves_opencv_quiet_only_while_it_decodes(clean, tm
 
     import cv2
 
-    from rgbd_calib.dataset import read_color_image, read_depth_image
-    from rgbd_calib.errors import DatasetError
+    from rgbd_calib.core.errors import DatasetError
+    from rgbd_calib.model.dataset import read_color_image, read_depth_image
 
     good = sorted(clean.dataset.glob("cam7/*/*.png"))[:8]
     bad = tmp_path / "bad.png"
@@ -453,7 +453,7 @@ def test_png_decoding_matches_opencv(tmp_path, layout, flags):
     """The faster PNG path (imagecodecs) gives what cv2.imdecode gives, for every layout and
     read mode; only grey from colour may differ by 1 DN (OpenCV's cvtColor weights, as for an
     image in memory, instead of libpng's own conversion)."""
-    from rgbd_calib.dataset import _decode
+    from rgbd_calib.model.dataset import _decode
 
     data = _png_bytes(layout)
     (path := tmp_path / "x.png").write_bytes(data)
@@ -466,7 +466,7 @@ def test_png_decoding_matches_opencv(tmp_path, layout, flags):
     assert diff <= (1 if grey_from_colour else 0)
     if grey_from_colour and layout in ("opencv bgr", "pil rgba", "pil interlaced"):
         # 8-bit colour takes the fast path: grey as for an image in memory (to_gray of BGR)
-        from rgbd_calib.detection import to_gray
+        from rgbd_calib.detect.markers import to_gray
 
         colour = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         assert np.array_equal(ours, to_gray(colour))
@@ -824,7 +824,7 @@ def test_stray_markers_are_listed_in_the_report(stray_run):
 def test_a_stray_copy_costs_only_its_own_id(clean):
     """Duplicated ids are dropped before refineDetectedMarkers (was: the duplicate spoiled its
     board fit and one stray cost about half the view's markers, 21 -> 13)."""
-    from rgbd_calib.detection import detect_markers
+    from rgbd_calib.detect.markers import detect_markers
 
     board = thesis_board()
     img = cv2.imread(str(clean.dataset / "cam9" / "color" / "000002.png"))
@@ -1028,9 +1028,9 @@ def test_ctrl_c_leaves_earlier_results_and_resumes(clean, tmp_path):
 
 def test_interrupted_detection_keeps_what_it_detected(clean, tmp_path):
     """Library level: an interrupt after k images saves those k; the next run starts there."""
-    from rgbd_calib.calibrate import detect_dataset
-    from rgbd_calib.config import DetectionConfig
-    from rgbd_calib.dataset import FolderDataset
+    from rgbd_calib.core.config import DetectionConfig
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.pipelines.calibrate import detect_dataset
 
     ds = FolderDataset(clean.dataset)
     cache = tmp_path / "detections.json"
@@ -1062,9 +1062,9 @@ def test_interrupted_detection_keeps_what_it_detected(clean, tmp_path):
 def test_camera_without_depth_on_the_board_does_not_abort(clean, tmp_path):
     """A depth stream of zeros: no depth-scale estimate for that camera, no abort (was a
     DatasetError out of the whole calibration before c8f0708)."""
-    from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.geometry import invert_transform
-    from rgbd_calib.refine import measure_depth
+    from rgbd_calib.core.geometry import invert_transform
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.pipelines.refine import measure_depth
 
     w = workspace(clean, tmp_path, cache=False)
     for p in (w.ds / "cam8" / "depth").glob("*.png"):  # the depth stream delivered zeros
@@ -1081,7 +1081,7 @@ def test_camera_without_depth_on_the_board_does_not_abort(clean, tmp_path):
 # ----------------------------------------------------------------------------- 5 % corrupted
 @pytest.fixture(scope="module")
 def race40(tmp_path_factory):
-    from rgbd_calib.synth import SynthParams, synthesize
+    from rgbd_calib.synth.render import SynthParams, synthesize
 
     out = tmp_path_factory.mktemp("race40") / "race"
     return synthesize(out, "race", 40, 11, thesis_board(), SynthParams(), workers=2)
@@ -1215,9 +1215,9 @@ def test_no_usable_view_says_why_the_views_with_markers_were_dropped(side_px, ex
     seed 104), calibrated with the thesis board file by mistake, gives 577 markers of 12 px
     in 53 views and not one pose. The error gives the drop reasons, the markers' size when it
     is at ArUco's limit, and the board-file check."""
-    from rgbd_calib.calibrate import _why_dropped
-    from rgbd_calib.detection import MarkerDetections
-    from rgbd_calib.pose import RejectedView
+    from rgbd_calib.detect.markers import MarkerDetections
+    from rgbd_calib.pipelines.calibrate import _why_dropped
+    from rgbd_calib.solve.pose import RejectedView
 
     square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) * side_px + 100
     det = MarkerDetections(np.array([3, 4]), np.stack([square, square + 2 * side_px]),
@@ -1258,8 +1258,8 @@ def test_zz_every_case_is_in_docs_robustness(tmp_path_factory):
 def test_image_header_reads_the_ends_of_a_png_and_finds_a_jpeg_frame_behind_metadata(tmp_path):
     """The pre-flight header check reads a PNG's first 64 and last 12 bytes only, and still
     finds a JPEG's frame header behind a large metadata segment (here 20 kB of APP1)."""
-    from rgbd_calib.dataset import image_header
-    from rgbd_calib.errors import DatasetError
+    from rgbd_calib.core.errors import DatasetError
+    from rgbd_calib.model.dataset import image_header
 
     image = np.zeros((48, 64, 3), np.uint8)
     png = tmp_path / "a.png"

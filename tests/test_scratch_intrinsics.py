@@ -21,13 +21,13 @@ import yaml
 from conftest import CONFIGS, SHARED_DATA, shared_data_missing
 from typer.testing import CliRunner
 
-from rgbd_calib.board import load_board
-from rgbd_calib.cli import app
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.detection import detect_markers
-from rgbd_calib.errors import ConfigError
-from rgbd_calib.geometry import transform_error
-from rgbd_calib.rig import load_rig, save_rig
+from rgbd_calib.cli.commands import app
+from rgbd_calib.core.errors import ConfigError
+from rgbd_calib.core.geometry import transform_error
+from rgbd_calib.detect.markers import detect_markers
+from rgbd_calib.model.board import load_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.model.rig import load_rig, save_rig
 from rgbd_calib.sources.video import frames_of
 
 A3 = CONFIGS / "board_charuco_a3.yaml"
@@ -83,7 +83,7 @@ def test_intrinsics_from_scratch_recover_the_render(charuco_line, tmp_path):
     """Every camera of the render calibrated from scratch through the command line: the
     refined intrinsics (rig_refined.yaml, with sigmas in report.json) and the extrinsics
     against the truth, and the coverage warning (the board reached < 10 % of each image)."""
-    from rgbd_calib.synth import load_ground_truth
+    from rgbd_calib.synth.render import load_ground_truth
 
     ds = size_only(charuco_line, tmp_path / "ds")
     out = tmp_path / "out"
@@ -241,9 +241,9 @@ def test_real_webcams_get_an_estimated_view_floor_instead_of_outlier_views(tmp_p
     every camera is kept either way."""
     from dataclasses import replace
 
-    from rgbd_calib.calibrate import calibrate, pose_edges
-    from rgbd_calib.config import CalibrationConfig
-    from rgbd_calib.graph import calibrate_pose_graph
+    from rgbd_calib.core.config import CalibrationConfig
+    from rgbd_calib.pipelines.calibrate import calibrate, pose_edges
+    from rgbd_calib.solve.posegraph import calibrate_pose_graph
 
     ds = tmp_path / "ds"
     videos = [str(CALISCOPE_DATA / f"cam_{c}.mp4") for c in range(4)]
@@ -278,7 +278,7 @@ def test_board_motion_is_the_largest_corner_move_to_either_neighbour():
 
 
 def test_timestamps_csv_without_its_columns_is_one_line(tmp_path):
-    from rgbd_calib.errors import DatasetError
+    from rgbd_calib.core.errors import DatasetError
     from rgbd_calib.sources.video import read_timestamps
 
     path = tmp_path / "ts.csv"

@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from rgbd_calib import selfcal
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.config import BundleConfig
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.config import BundleConfig
+from rgbd_calib.solve import selfcal
 
 
 def _terms(rms, n=500, cam="c"):
@@ -95,7 +95,7 @@ def test_lens_refined_from_thin_coverage_is_named():
     or never reaching one of its corners (the polynomial is extrapolated towards them);
     focal/centre only, or good coverage (an edge region missed is not a corner), raise
     nothing."""
-    from rgbd_calib.report.findings import lens_coverage
+    from rgbd_calib.outputs.report.findings import lens_coverage
 
     entry = {"prior": 0.0, "prior_sigma": 0.1, "refined": 0.08, "sigma": 0.001,
              "change": 0.08, "change_pct": None}

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import yaml
 
-from rgbd_calib.board import FRONT, thesis_board
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.errors import ConfigError
-from rgbd_calib.geometry import invert_transform, is_rigid, transform_points
-from rgbd_calib.synth import (
+from rgbd_calib.core.errors import ConfigError
+from rgbd_calib.core.geometry import invert_transform, is_rigid, transform_points
+from rgbd_calib.model.board import FRONT, thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.synth.render import (
     SynthParams,
     _BoardModel,
     finish_color,
@@ -165,7 +165,7 @@ def test_synthesize_refuses_a_non_empty_folder(tmp_path):
     (tmp_path / "x").mkdir()
     (tmp_path / "x" / "keep.txt").write_text("mine")
     with pytest.raises(ConfigError, match="not empty"):
-        from rgbd_calib.synth import synthesize
+        from rgbd_calib.synth.render import synthesize
 
         synthesize(tmp_path / "x", "race", 1, 0, thesis_board())
     assert (tmp_path / "x" / "keep.txt").read_text() == "mine"
@@ -175,8 +175,8 @@ def test_compiled_cast_equals_the_numpy_reference():
     """scene.cast's numba kernels give the numpy version's hits bit for bit: a pinhole race
     camera's whole pixel grid (the row/column path; rectangles crossing the camera plane take
     the every-ray path) and a distorting lens's pixel grid (the bounding-box path)."""
-    from rgbd_calib.scene import cast
-    from rgbd_calib.synth import _grid, camera_rays
+    from rgbd_calib.synth.render import _grid, camera_rays
+    from rgbd_calib.synth.scene import cast
 
     for params in (SynthParams(), SynthParams(distortion=(0.05, -0.1, 0.0003, 0.0002, 0.02))):
         rig = make_rig("race", 4, params)

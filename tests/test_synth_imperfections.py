@@ -12,13 +12,17 @@ import numpy as np
 import pytest
 import yaml
 
-from rgbd_calib.board import BACK, FRONT, board_from_grid, thesis_board
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.errors import ConfigError
-from rgbd_calib.geometry import invert_transform, make_transform, rotvec_to_matrix, transform_points
-from rgbd_calib.rig import load_rig
-from rgbd_calib.scene import cast
-from rgbd_calib.synth import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.errors import ConfigError
+from rgbd_calib.core.geometry import (
+    invert_transform,
+    make_transform,
+    rotvec_to_matrix,
+    transform_points,
+)
+from rgbd_calib.model.board import BACK, FRONT, board_from_grid, thesis_board
+from rgbd_calib.model.rig import load_rig
+from rgbd_calib.synth.render import (
     CLOSEUP_TARGETS,
     LIGHT_DIR_WORLD,
     SynthCamera,
@@ -34,6 +38,7 @@ from rgbd_calib.synth import (
     render_board,
     synthesize,
 )
+from rgbd_calib.synth.scene import cast
 
 # A strong barrel lens (test_camera.py's "strong-barrel"): ~40 px at the image border here.
 BARREL = (-0.3, 0.1, 5e-4, 2e-4, -0.01)

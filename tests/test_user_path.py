@@ -14,10 +14,10 @@ from conftest import assert_transforms_close
 from test_exports import _launch_nodes
 from typer.testing import CliRunner
 
-from rgbd_calib.cli import app
-from rgbd_calib.exports import urdf_rpy_to_matrix
-from rgbd_calib.geometry import invert_transform, make_transform, quaternion_xyzw_to_matrix
-from rgbd_calib.results import load_extrinsics
+from rgbd_calib.cli.commands import app
+from rgbd_calib.core.geometry import invert_transform, make_transform, quaternion_xyzw_to_matrix
+from rgbd_calib.model.results import load_extrinsics
+from rgbd_calib.outputs.exports import urdf_rpy_to_matrix
 
 EXACT_MM, EXACT_DEG = 1e-6, 1e-5  # the same numbers written in another format
 # the thesis pose graph re-solved from the exported CSVs: another method on the same views
@@ -80,8 +80,8 @@ def test_every_export_reads_back_with_its_consumer(tiny_calibration, tmp_path):
         assert np.allclose(values.atPose3(i).matrix(), ext.T_ref_cam(name), atol=1e-9)
 
     # the other outputs: config, fused cloud, report.json rebuilt by `rgbd-calib report`
-    from rgbd_calib.config import load_config
-    from rgbd_calib.ply import read_ply
+    from rgbd_calib.core.config import load_config
+    from rgbd_calib.core.ply import read_ply
 
     assert load_config(out / "config_resolved.yaml").method == "bundle"
     points, _, _, cloud_names = read_ply(out / "fused.ply")
@@ -116,7 +116,7 @@ def test_console_off_a_terminal_shows_progress_verdict_warnings_and_report(tiny_
 
 
 def test_plain_progress_lines_have_rate_and_eta():
-    from rgbd_calib.console import PROGRESS_LINE, PlainProgress
+    from rgbd_calib.cli.console import PROGRESS_LINE, PlainProgress
 
     now = [0.0]
     lines: list[str] = []
@@ -182,7 +182,7 @@ def test_script_without_main_guard_fails_with_one_line(tmp_path):
     from conftest import REPO
 
     script = tmp_path / "noguard.py"
-    script.write_text("from rgbd_calib.parallel import process_context\n"
+    script.write_text("from rgbd_calib.core.parallel import process_context\n"
                       "from rgbd_calib import RgbdCalibError\n"
                       "try:\n    process_context()\n"
                       "except RgbdCalibError as exc:\n    print(exc)\n")
@@ -194,16 +194,15 @@ def test_script_without_main_guard_fails_with_one_line(tmp_path):
     assert str(script) in run.stdout and 'if __name__ == "__main__":' in run.stdout
 
 
-def test_public_api_keeps_the_calibrate_module_importable():
+def test_public_api_names_load_on_use():
     import importlib
 
     import rgbd_calib
     from rgbd_calib import CalibrationConfig, FolderDataset, calibrate, load_board, write_outputs
 
-    module = importlib.import_module("rgbd_calib.calibrate")
-    assert calibrate is module is rgbd_calib.calibrate  # the module, and callable
-    assert callable(calibrate) and module.calibrate.__name__ == "calibrate"
-    assert FolderDataset.__module__ == "rgbd_calib.dataset"
+    module = importlib.import_module("rgbd_calib.pipelines.calibrate")
+    assert calibrate is module.calibrate and callable(calibrate)
+    assert FolderDataset.__module__ == "rgbd_calib.model.dataset"
     assert load_board.__name__ == "load_board" and write_outputs.__name__ == "write_outputs"
     assert CalibrationConfig().method == "bundle"
     assert set(rgbd_calib.__all__) >= {"calibrate", "FolderDataset", "load_board",
@@ -225,11 +224,11 @@ def _anchors(markdown: str) -> set[str]:
 def test_errors_about_a_format_link_its_section_of_docs_formats_md(tmp_path):
     from conftest import REPO
 
-    from rgbd_calib.board import load_board
-    from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.errors import RgbdCalibError
-    from rgbd_calib.posegraph_csv import read_edges_csv
-    from rgbd_calib.rig import load_rig
+    from rgbd_calib.core.errors import RgbdCalibError
+    from rgbd_calib.model.board import load_board
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.model.posegraph_csv import read_edges_csv
+    from rgbd_calib.model.rig import load_rig
 
     anchors = _anchors((REPO / "docs" / "formats.md").read_text())
     (tmp_path / "rig.yaml").write_text("cameras: []\n")
@@ -264,7 +263,7 @@ def test_help_shows_plain_types_not_python_annotations():
 
 
 def test_side_view_labels_of_close_cameras_are_stacked():
-    from rgbd_calib.report.figures import label_row
+    from rgbd_calib.outputs.report.figures import label_row
 
     placed: list[tuple[float, float]] = []
     rows = []
@@ -278,8 +277,8 @@ def test_unity_and_open3d_exports_read_back(tiny_calibration):
     """Open3D's own readers take the Open3D files; the Unity poses convert back exactly."""
     import json
 
-    from rgbd_calib.exports import UNITY_FROM_OPENCV
-    from rgbd_calib.rig import load_rig
+    from rgbd_calib.model.rig import load_rig
+    from rgbd_calib.outputs.exports import UNITY_FROM_OPENCV
 
     dataset, out, _ = tiny_calibration
     ext = load_extrinsics(out / "extrinsics.yaml")
@@ -322,8 +321,8 @@ def test_unity_and_open3d_exports_read_back(tiny_calibration):
 def test_a_second_render_with_the_same_options_is_reused(tmp_path, monkeypatch):
     """The demo's render is cached like the detections: same options and renderer, no
     render (the renderer is replaced by a stub that records its calls)."""
-    import rgbd_calib.synth as synth
-    from rgbd_calib.board import thesis_board
+    import rgbd_calib.synth.render as synth
+    from rgbd_calib.model.board import thesis_board
 
     renders = []
 
@@ -356,7 +355,7 @@ def test_script_calling_at_import_time_despite_a_guard_word_gets_one_clear_error
     script = tmp_path / "halfguard.py"
     script.write_text("# __main__ is mentioned, yet the pool starts at import time\n"
                       "from rgbd_calib import RgbdCalibError\n"
-                      "from rgbd_calib.parallel import WorkerPool\n"
+                      "from rgbd_calib.core.parallel import WorkerPool\n"
                       "try:\n"
                       "    with WorkerPool(2) as pool:\n"
                       "        print(list(pool.map(abs, [1, -2, 3, -4])))\n"
@@ -380,9 +379,9 @@ def test_a_failing_figure_or_export_never_loses_the_calibration(tiny_dataset, tm
     leaves no half-written exports/ (issue 16: a finished calibration is never lost)."""
     from typer.testing import CliRunner
 
-    from rgbd_calib import exports
-    from rgbd_calib.cli import app
-    from rgbd_calib.report import figures
+    from rgbd_calib.cli.commands import app
+    from rgbd_calib.outputs import exports
+    from rgbd_calib.outputs.report import figures
 
     def boom(*_args, **_kwargs):
         raise RuntimeError("broken on purpose")

@@ -78,16 +78,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/peers.py
 
 from peers import opencv_multiview, thesis_method  # noqa: E402
 
-from rgbd_calib.board import Board, thesis_board  # noqa: E402
-from rgbd_calib.calibrate import calibrate, detect_dataset  # noqa: E402
-from rgbd_calib.config import (
-    CalibrationConfig,  # noqa: E402
-    DetectionConfig,  # noqa: E402
-)
-from rgbd_calib.dataset import FolderDataset  # noqa: E402
-from rgbd_calib.geometry import matrix_to_rotvec, transform_error  # noqa: E402
-from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize  # noqa: E402
-from rgbd_calib.yamlio import atomic_write_text, read_yaml_mapping  # noqa: E402
+from rgbd_calib.core.config import CalibrationConfig, DetectionConfig
+from rgbd_calib.core.geometry import matrix_to_rotvec, transform_error  # noqa: E402
+from rgbd_calib.core.yamlio import atomic_write_text, read_yaml_mapping  # noqa: E402
+from rgbd_calib.model.board import Board, thesis_board  # noqa: E402
+from rgbd_calib.model.dataset import FolderDataset  # noqa: E402
+from rgbd_calib.pipelines.calibrate import calibrate, detect_dataset  # noqa: E402
+from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize  # noqa: E402
 
 LAYOUTS = ("race", "race16", "ring", "thesis-line")
 RESOLUTION = {"race": "848x480", "race16": "848x480", "ring": "1280x720", "thesis-line": "1280x720"}

@@ -35,12 +35,9 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from rgbd_calib.board import load_board
-from rgbd_calib.calibrate import calibrate, detect_dataset, refined_rig
-from rgbd_calib.camera import CameraIntrinsics
-from rgbd_calib.config import CalibrationConfig, DetectionConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.geometry import (
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.config import CalibrationConfig, DetectionConfig
+from rgbd_calib.core.geometry import (
     invert_transform,
     make_transform,
     matrix_to_rotvec,
@@ -48,7 +45,10 @@ from rgbd_calib.geometry import (
     rotvec_to_matrix,
     transform_points,
 )
-from rgbd_calib.intrinsics_init import view_points
+from rgbd_calib.model.board import load_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.pipelines.calibrate import calibrate, detect_dataset, refined_rig
+from rgbd_calib.solve.intrinsics_init import view_points
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("RGBD_CALIB_SHARED_DATA", REPO.parent / "shared" / "data")) / (
@@ -236,7 +236,7 @@ def main() -> None:
 
 
 def _codes(result) -> list[str]:
-    from rgbd_calib.report import report_dict
+    from rgbd_calib.outputs.report import report_dict
 
     return [w["code"] for w in report_dict(result, result.rig)["warnings"]]
 

@@ -24,12 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.check import check_dataset, fix_moved
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.geometry import transform_error
-from rgbd_calib.results import CameraExtrinsics, Extrinsics
-from rgbd_calib.synth import SynthParams, make_rig, synthesize_cached
+from rgbd_calib.core.geometry import transform_error
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.model.results import CameraExtrinsics, Extrinsics
+from rgbd_calib.pipelines.check import check_dataset, fix_moved
+from rgbd_calib.synth.render import SynthParams, make_rig, synthesize_cached
 
 SCENARIOS = {"still": (0, 0.0, 0.0), "one": (1, 50.0, 5.0), "reference": (1, 50.0, 5.0),
              "two": (2, 30.0, 3.0), "small": (1, 1.0, 0.05)}

@@ -34,11 +34,11 @@ def main() -> None:
 
     from distributed import LocalCluster
 
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.calibrate import calibrate
-    from rgbd_calib.config import load_config
-    from rgbd_calib.dataset import FolderDataset
-    from rgbd_calib.synth import SynthParams, synthesize
+    from rgbd_calib.core.config import load_config
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.pipelines.calibrate import calibrate
+    from rgbd_calib.synth.render import SynthParams, synthesize
 
     data = args.data / f"thesis-line-{args.frames}"
     if not (data / "rig.yaml").is_file():

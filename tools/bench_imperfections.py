@@ -47,15 +47,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_accuracy import _f, _rounded, camera_record, code_hash  # noqa: E402
 from peers import thesis_method  # noqa: E402
 
-from rgbd_calib.board import Board, thesis_board  # noqa: E402
-from rgbd_calib.calibrate import calibrate  # noqa: E402
-from rgbd_calib.camera import CameraIntrinsics  # noqa: E402
-from rgbd_calib.config import BundleConfig, CalibrationConfig  # noqa: E402
-from rgbd_calib.dataset import FolderDataset  # noqa: E402
-from rgbd_calib.geometry import transform_error  # noqa: E402
-from rgbd_calib.rig import Rig, parse_camera, save_rig  # noqa: E402
-from rgbd_calib.synth import SynthParams, load_ground_truth, make_rig, synthesize  # noqa: E402
-from rgbd_calib.yamlio import atomic_write_text, read_yaml_mapping, write_yaml  # noqa: E402
+from rgbd_calib.core.camera import CameraIntrinsics  # noqa: E402
+from rgbd_calib.core.config import BundleConfig, CalibrationConfig  # noqa: E402
+from rgbd_calib.core.geometry import transform_error  # noqa: E402
+from rgbd_calib.core.yamlio import atomic_write_text, read_yaml_mapping, write_yaml  # noqa: E402
+from rgbd_calib.model.board import Board, thesis_board  # noqa: E402
+from rgbd_calib.model.dataset import FolderDataset  # noqa: E402
+from rgbd_calib.model.rig import Rig, parse_camera, save_rig  # noqa: E402
+from rgbd_calib.pipelines.calibrate import calibrate  # noqa: E402
+from rgbd_calib.synth.render import SynthParams, load_ground_truth, make_rig, synthesize  # noqa: E402
 
 GLUE = {"glue": (1.5, -1.0, 0.3)}
 INTR = {"intrinsics_error": (0.7, 3.0)}

@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_calib.board import load_board
-from rgbd_calib.calibrate import calibrate
-from rgbd_calib.config import BundleConfig, CalibrationConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.geometry import invert_transform, transform_error, transform_points
-from rgbd_calib.synth import SynthParams, load_ground_truth, synthesize_cached
+from rgbd_calib.core.config import BundleConfig, CalibrationConfig
+from rgbd_calib.core.geometry import invert_transform, transform_error, transform_points
+from rgbd_calib.model.board import load_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.pipelines.calibrate import calibrate
+from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize_cached
 
 BOUNDS = {"race": (0.1, 1.0), "race16": (0.1, 1.0), "ring": (0.05, 0.5),
           "thesis-line": (0.05, 0.5)}  # (deg, mm) on every camera, as the ArUco board's

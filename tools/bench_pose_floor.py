@@ -28,11 +28,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_caliscope as bc  # noqa: E402
 
-from rgbd_calib.board import load_board, marker_board  # noqa: E402
-from rgbd_calib.calibrate import calibrate, refined_rig  # noqa: E402
-from rgbd_calib.config import CalibrationConfig  # noqa: E402
-from rgbd_calib.dataset import FolderDataset  # noqa: E402
-from rgbd_calib.rig import Rig, load_rig, save_rig  # noqa: E402
+from rgbd_calib.core.config import CalibrationConfig  # noqa: E402
+from rgbd_calib.model.board import load_board, marker_board  # noqa: E402
+from rgbd_calib.model.dataset import FolderDataset  # noqa: E402
+from rgbd_calib.model.rig import Rig, load_rig, save_rig  # noqa: E402
+from rgbd_calib.pipelines.calibrate import calibrate, refined_rig  # noqa: E402
 
 
 def with_caliscope_intrinsics(folder: Path) -> Path:
@@ -72,9 +72,9 @@ def summary(result) -> dict:
 def renders(values: list[float], work: Path, sets: list[str]) -> None:
     """The same sweep on renders with ground truth: worst camera error, worst error over its
     claimed sigma, pose-graph outlier edges and the pose graph's own worst error."""
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.geometry import transform_error
-    from rgbd_calib.synth import load_ground_truth, synthesize_cached
+    from rgbd_calib.core.geometry import transform_error
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.synth.render import load_ground_truth, synthesize_cached
 
     for spec in sets:
         layout, frames, seed = spec.split(":")

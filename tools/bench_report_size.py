@@ -6,9 +6,9 @@ frames) from the schema's own view keys with random values, then times medians o
 
 - ``inline``: today's report.json, every view in it (``dump_report``);
 - ``ndjson``: report.json without the views + ``report_views.ndjson`` (stdlib json, one view a
-  line), what :func:`rgbd_calib.report.write_report_json` writes above its threshold;
+  line), what :func:`rgbd_calib.outputs.report.write_report_json` writes above its threshold;
 - ``ndjson.gz``: the same side file gzip-compressed (level 6), written and read back by
-  :func:`rgbd_calib.report.write_report_json` / :func:`~rgbd_calib.report.load_report`;
+  :func:`rgbd_calib.outputs.report.write_report_json` / :func:`~rgbd_calib.outputs.report.load_report`;
 - ``parquet``: the same rows as a Parquet table (pyarrow, zstd), when pyarrow is importable
   (``--extra-path`` adds a folder it was installed into with ``pip install --target``).
 
@@ -33,7 +33,7 @@ import numpy as np
 
 def fabricate(n_views: int, n_cameras: int = 20, seed: int = 0) -> dict:
     """A report dict with ``n_views`` views (the other per-view lists scaled to match)."""
-    from rgbd_calib.report.schema import REPORT_SCHEMA_VERSION
+    from rgbd_calib.outputs.report.schema import REPORT_SCHEMA_VERSION
 
     rng = np.random.default_rng(seed)
     cams = [f"cam{i:02d}" for i in range(n_cameras)]
@@ -89,7 +89,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.extra_path:
         sys.path.append(args.extra_path)
-    from rgbd_calib.report.schema import dump_report
+    from rgbd_calib.outputs.report.schema import dump_report
 
     report = fabricate(args.views)
     rest = {k: v for k, v in report.items() if k != "views"}
@@ -121,7 +121,7 @@ def main() -> None:
 
     measure("ndjson (stdlib json)", write_ndjson, read_ndjson, ["report.json", "views.ndjson"])
 
-    from rgbd_calib.report.storage import VIEWS_FILE, load_report, write_report_json
+    from rgbd_calib.outputs.report.storage import VIEWS_FILE, load_report, write_report_json
 
     (tmp / "side").mkdir()
     measure("ndjson.gz (stdlib; what write_report_json writes)",

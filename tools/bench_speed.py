@@ -13,7 +13,7 @@ worker count, repeated ``--repeats`` times:
 - ``decode``: ``cv2.imread`` of every colour image (BGR, as a user would read them) in the
   same number of processes, started and chunked like the detection stage's pool (forkserver,
   4 images per task); the floor any pipeline that reads the PNGs has to pay;
-- ``calibrate``: ``rgbd_calib.calibrate`` with the default config and no detection cache;
+- ``calibrate``: ``rgbd_calib.pipelines.calibrate`` with the default config and no detection cache;
   its detection stage gives the throughput. ``--refine none`` (default here) leaves out the
   depth stage (colored ICP), which is not part of the board calibration measured here.
 
@@ -52,12 +52,12 @@ from typing import Any
 import cv2
 import psutil
 
-from rgbd_calib.board import thesis_board
-from rgbd_calib.calibrate import calibrate
-from rgbd_calib.config import CalibrationConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.parallel import process_context
-from rgbd_calib.synth import SynthParams, synthesize
+from rgbd_calib.core.config import CalibrationConfig
+from rgbd_calib.core.parallel import process_context
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.pipelines.calibrate import calibrate
+from rgbd_calib.synth.render import SynthParams, synthesize
 
 MD_BEGIN, MD_END = "<!-- bench_speed:begin -->", "<!-- bench_speed:end -->"
 STAGE_ORDER = ("detection", "pose", "pose_graph", "bundle", "depth", "joint", "depth_check")
@@ -97,7 +97,7 @@ def _decode(path: str) -> int:
 
 def _decode_ours(path: str) -> int:
     """What a detection worker decodes: the grey image, by the dataset reader's decoder."""
-    from rgbd_calib.dataset import _decode as read
+    from rgbd_calib.model.dataset import _decode as read
 
     return int(read(Path(path), cv2.IMREAD_GRAYSCALE, "image").shape[0])
 

@@ -20,11 +20,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbd_calib import CalibrationConfig, FolderDataset, calibrate, load_board
-from rgbd_calib.config import DetectionConfig
-from rgbd_calib.detection import detect_charuco
-from rgbd_calib.geometry import invert_transform, transform_error
-from rgbd_calib.synth import load_ground_truth
+from rgbd_calib import CalibrationConfig, FolderDataset, load_board
+from rgbd_calib.core.config import DetectionConfig
+from rgbd_calib.core.geometry import invert_transform, transform_error
+from rgbd_calib.detect.markers import detect_charuco
+from rgbd_calib.pipelines import calibrate
+from rgbd_calib.synth.render import load_ground_truth
 
 
 def corner_stats(path: Path, board, method: str) -> dict[str, float]:

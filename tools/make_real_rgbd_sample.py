@@ -55,7 +55,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbd_calib.geometry import (
+from rgbd_calib.core.geometry import (
     invert_transform,
     make_transform,
     matrix_to_quaternion_xyzw,
@@ -63,8 +63,8 @@ from rgbd_calib.geometry import (
     rotation_angle_deg,
     rotvec_to_matrix,
 )
-from rgbd_calib.results import CameraExtrinsics, Extrinsics, write_extrinsics
-from rgbd_calib.yamlio import write_yaml
+from rgbd_calib.core.yamlio import write_yaml
+from rgbd_calib.model.results import CameraExtrinsics, Extrinsics, write_extrinsics
 
 DEPTH_COUNTS_PER_M = 5000.0  # TUM RGB-D depth PNGs (File Formats page)
 WIDTH, HEIGHT = 640, 480

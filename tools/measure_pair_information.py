@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_calib import depth as D
-from rgbd_calib.board import thesis_board
-from rgbd_calib.config import DepthConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.geometry import invert_transform, make_transform, rotvec_to_matrix
-from rgbd_calib.rig import load_rig
-from rgbd_calib.synth import load_ground_truth
+from rgbd_calib.core.config import DepthConfig
+from rgbd_calib.core.geometry import invert_transform, make_transform, rotvec_to_matrix
+from rgbd_calib.depth import registration as D
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.model.rig import load_rig
+from rgbd_calib.synth.render import load_ground_truth
 
 
 def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, calibration=None,

@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbd_calib.config import DepthConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.geometry import transform_error
-from rgbd_calib.refine import refine_extrinsics
-from rgbd_calib.results import load_extrinsics
-from rgbd_calib.synth import load_ground_truth
+from rgbd_calib.core.config import DepthConfig
+from rgbd_calib.core.geometry import transform_error
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.model.results import load_extrinsics
+from rgbd_calib.pipelines.refine import refine_extrinsics
+from rgbd_calib.synth.render import load_ground_truth
 
 TOOLS = Path(__file__).resolve().parent
 

@@ -15,12 +15,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbd_calib.board import Board
-from rgbd_calib.calibrate import CalibrationResult, calibrate
-from rgbd_calib.config import CalibrationConfig, DetectionConfig, PoseGraphConfig
-from rgbd_calib.dataset import FolderDataset
-from rgbd_calib.detection import MarkerDetections
-from rgbd_calib.geometry import invert_transform, make_transform
+from rgbd_calib.core.config import CalibrationConfig, DetectionConfig, PoseGraphConfig
+from rgbd_calib.core.geometry import invert_transform, make_transform
+from rgbd_calib.detect.markers import MarkerDetections
+from rgbd_calib.model.board import Board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.pipelines.calibrate import CalibrationResult, calibrate
 
 
 def thesis_config(refinement: str = "none", workers: int | None = None) -> CalibrationConfig:

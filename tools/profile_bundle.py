@@ -27,11 +27,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import rgbd_calib.calibrate as cal  # noqa: E402
-from rgbd_calib import graph as new  # noqa: E402
-from rgbd_calib.board import thesis_board  # noqa: E402
-from rgbd_calib.dataset import FolderDataset  # noqa: E402
-from rgbd_calib.geometry import transform_error  # noqa: E402
+import rgbd_calib.pipelines.calibrate as cal  # noqa: E402
+from rgbd_calib.core.geometry import transform_error  # noqa: E402
+from rgbd_calib.model.board import thesis_board  # noqa: E402
+from rgbd_calib.model.dataset import FolderDataset  # noqa: E402
+from rgbd_calib.solve import posegraph as new  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "tools"))
 from baseline import module_at  # noqa: E402

@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from rgbd_calib.board import thesis_board  # noqa: E402
+from rgbd_calib.model.board import thesis_board  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "tools"))
 from baseline import load_module, module_at  # noqa: E402

@@ -44,9 +44,9 @@ def main() -> None:
     import cv2
     import numpy as np
 
-    from rgbd_calib import detection
-    from rgbd_calib.board import thesis_board
-    from rgbd_calib.config import DetectionConfig
+    from rgbd_calib.core.config import DetectionConfig
+    from rgbd_calib.detect import markers as detection
+    from rgbd_calib.model.board import thesis_board
 
     cv2.setNumThreads(1)
     detection.init_detector(thesis_board(), DetectionConfig(), 1)

@@ -13,7 +13,7 @@ marker are mapped into the image by a homography fitted, in pixels undistorted w
 intrinsics (``camera_array.toml``), to the saddle corners within ``--radius`` squares of the
 marker (``--plane image``: in raw pixels), and mapped back to image pixels; each detected
 corner minus that prediction is split into the outward edge normal and the tangent
-(:mod:`rgbd_calib.corner_bias`). Only markers every method found and the reference could
+(:mod:`rgbd_calib.detect.corner_bias`). Only markers every method found and the reference could
 predict are compared, so every method is measured on the same corners.
 
 Also: the reference's own floor (each saddle corner predicted from its neighbours), the
@@ -38,24 +38,24 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from rgbd_calib import detection  # noqa: E402
-from rgbd_calib.board import Board, charuco_saddles, load_board, marker_board  # noqa: E402
-from rgbd_calib.camera import CameraIntrinsics  # noqa: E402
-from rgbd_calib.config import DetectionConfig, PoseConfig  # noqa: E402
-from rgbd_calib.corner_bias import (  # noqa: E402
+from rgbd_calib.core.camera import CameraIntrinsics  # noqa: E402
+from rgbd_calib.core.config import DetectionConfig, PoseConfig  # noqa: E402
+from rgbd_calib.core.geometry import covariance_sigmas, transform_error  # noqa: E402
+from rgbd_calib.detect import markers as detection  # noqa: E402
+from rgbd_calib.detect.corner_bias import (  # noqa: E402
     BiasSummary,
     corner_components,
     predict_local,
     saddle_self_consistency,
 )
-from rgbd_calib.detection import (  # noqa: E402
+from rgbd_calib.detect.markers import (  # noqa: E402
     MarkerDetections,
     detect_charuco,
     detect_markers,
     detect_saddles,
 )
-from rgbd_calib.geometry import covariance_sigmas, transform_error  # noqa: E402
-from rgbd_calib.pose import BoardObservation, estimate_board_pose  # noqa: E402
+from rgbd_calib.model.board import Board, charuco_saddles, load_board, marker_board  # noqa: E402
+from rgbd_calib.solve.pose import BoardObservation, estimate_board_pose  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "caliscope-charuco-4cam"
 BOARD = ROOT / "configs" / "board_charuco_caliscope.yaml"

@@ -14,13 +14,7 @@ matches cameras by timestamp; :func:`convert` (:mod:`.conversion`) writes the fr
 
 from .align import align_depth_to_color, distortion_from_realsense, extrinsics_matrix
 from .cache import CACHE_MARKER, cached_report, convert_to_cache, dataset_folder
-from .conversion import (
-    RECORDING_SUFFIXES,
-    CameraCounts,
-    ConversionReport,
-    convert,
-    is_recording,
-)
+from .conversion import RECORDING_SUFFIXES, CameraCounts, ConversionReport, convert, is_recording
 from .sync import match_frames
 from .video import VIDEO_SUFFIXES, convert_videos, is_video
 

@@ -6,8 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..camera import CameraIntrinsics
-from ..errors import DatasetError
+from ..core.camera import CameraIntrinsics
+from ..core.errors import DatasetError
 
 
 def extrinsics_matrix(rotation: Sequence[float], translation: Sequence[float]) -> np.ndarray:

@@ -13,15 +13,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError, DatasetError
-from ..progress import Progress
-from ..yamlio import atomic_write_text
-from .conversion import (
-    ConversionReport,
-    check_source,
-    convert,
-    is_recording,
-)
+from ..core.errors import ConfigError, DatasetError
+from ..core.progress import Progress
+from ..core.yamlio import atomic_write_text
+from .conversion import ConversionReport, check_source, convert, is_recording
 from .staging import sanitize_name
 
 CACHE_MARKER = ".rgbd-calib-source.json"

@@ -19,11 +19,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..camera import CameraIntrinsics
-from ..dataset import FolderWriter, staged_folder
-from ..errors import ConfigError, DatasetError
-from ..progress import Progress, start
-from ..rig import CAMERA_NAME, Rig
+from ..core.camera import CameraIntrinsics
+from ..core.errors import ConfigError, DatasetError
+from ..core.progress import Progress, start
+from ..model.dataset import FolderWriter, staged_folder
+from ..model.rig import CAMERA_NAME, Rig
 from .align import align_depth_to_color
 from .realsense import read_sdk
 from .ros import read_ros
@@ -164,7 +164,7 @@ def convert(
     ``names`` renames the cameras, in the order they are found (sources in order, the
     cameras of one ROS bag in namespace order). ``sync_tolerance_ms`` is how far apart two
     cameras' frames may be and still form a set; default half the reference camera's frame
-    period. ``progress`` (:mod:`rgbd_calib.progress`) has a stage per source read and one for
+    period. ``progress`` (:mod:`rgbd_calib.core.progress`) has a stage per source read and one for
     writing the frame sets."""
     out = Path(out)
     sources = [Path(s) for s in sources]

@@ -15,9 +15,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..camera import CameraIntrinsics
-from ..errors import DatasetError
-from ..progress import Progress, start
+from ..core.camera import CameraIntrinsics
+from ..core.errors import DatasetError
+from ..core.progress import Progress, start
 from .align import distortion_from_realsense, extrinsics_matrix, same_geometry
 from .staging import StagedCamera, StagedFrame, Stager, sanitize_name
 

@@ -14,9 +14,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import CameraIntrinsics
-from ..errors import DatasetError
-from ..progress import Progress, start
+from ..core.camera import CameraIntrinsics
+from ..core.errors import DatasetError
+from ..core.progress import Progress, start
 from .align import extrinsics_matrix
 from .staging import StagedCamera, StagedFrame, Stager, sanitize_name
 

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import CameraIntrinsics
-from ..dataset import write_png
-from ..rig import CAMERA_NAME
+from ..core.camera import CameraIntrinsics
+from ..model.dataset import write_png
+from ..model.rig import CAMERA_NAME
 
 
 @dataclass

@@ -6,7 +6,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..errors import DatasetError
+from ..core.errors import DatasetError
 from .staging import StagedCamera, StagedFrame
 
 DEFAULT_FPS = 30.0  # frame rate assumed when a stream has a single frame

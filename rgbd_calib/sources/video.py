@@ -26,12 +26,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..board import Board
-from ..dataset import FolderWriter, staged_folder
-from ..detection import detect_markers
-from ..errors import ConfigError, DatasetError
-from ..progress import Progress, start
-from ..rig import CAMERA_NAME, Rig, placeholder_intrinsics
+from ..core.errors import ConfigError, DatasetError
+from ..core.progress import Progress, start
+from ..detect.markers import detect_markers
+from ..model.board import Board
+from ..model.dataset import FolderWriter, staged_folder
+from ..model.rig import CAMERA_NAME, Rig, placeholder_intrinsics
 from .conversion import CameraCounts, ConversionReport
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")

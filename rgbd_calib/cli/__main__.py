@@ -1,0 +1,5 @@
+"""``python -m rgbd_calib.cli``: the ``rgbd-calib`` command."""
+
+from .commands import app
+
+app()

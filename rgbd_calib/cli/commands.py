@@ -1,0 +1,1077 @@
+"""The ``rgbd-calib`` command line: thin wrappers around the library API.
+
+Heavy imports happen inside the commands so ``--help`` stays fast. Every user mistake is a
+:class:`~rgbd_calib.core.errors.RgbdCalibError`, printed as one line with a non-zero exit.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from .. import __version__
+from ..core.errors import ConfigError, RgbdCalibError
+from .console import console, print_verdict, stage_progress
+
+app = typer.Typer(
+    name="rgbd-calib",
+    help="Extrinsic calibration of multi-camera RGB-D rigs with a double-sided ArUco board.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+
+
+class _PlainHelpCommand(typer.core.TyperCommand):
+    """``--help`` with click's plain type names (PATH, INT, PATH...) instead of typer's
+    ``<path>``, ``<list[Path]>``, and nothing for on/off flags (typer shows ``<bool>``)."""
+
+    def get_params(self, ctx):
+        params = super().get_params(ctx)
+        for param in params:
+            if getattr(param, "metavar", None) is None:
+                param.display_type_rich = functools.partial(_plain_type, param)
+        return params
+
+
+def _plain_type(param, ctx) -> str | None:
+    if getattr(param, "is_flag", False):
+        return None
+    label = type(param).display_type_rich(param, ctx) or ""
+    label = label.strip("<>")
+    many = label.startswith("list[")
+    label = label.removeprefix("list[").removesuffix("]").removesuffix("...")
+    label = {"str": "TEXT", "float": "NUMBER"}.get(label.lower(), label.upper())
+    return label + ("..." if many else "")
+
+
+command = functools.partial(app.command, cls=_PlainHelpCommand)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"rgbd-calib {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print version.")
+    ] = False,
+) -> None:
+    """rgbd-calib: record a calibration set, run one command, trust the result."""
+
+
+def _error(message: str) -> None:
+    """Print one ``error:`` line (the message is text, never rich markup: paths and YAML
+    snippets may hold brackets)."""
+    from rich.markup import escape
+
+    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+
+
+def user_errors(fn):
+    """Turn library errors into one clear line and a non-zero exit (no traceback)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except RgbdCalibError as exc:
+            _error(" ".join(str(exc).split("\n")))
+            raise typer.Exit(2) from None
+        except PermissionError as exc:
+            _error(f"{exc.filename}: permission denied; choose a writable folder")
+            raise typer.Exit(2) from None
+        except OSError as exc:  # disk full, a file where a folder should be, ...
+            if exc.filename is None:
+                raise
+            _error(f"{exc.filename}: {exc.strerror or exc}; check the path and the free space")
+            raise typer.Exit(2) from None
+        except KeyboardInterrupt:
+            from rich.markup import escape
+
+            from ..core.interrupts import committed
+
+            done = committed()
+            if done:  # the Ctrl-C came after the results were in place: say so
+                message = ("[yellow]interrupted[/] after the results were written: "
+                           f"{escape(', '.join(str(p) for p in done))} complete; nothing to "
+                           "run again")
+            else:
+                message = ("[yellow]interrupted[/]: earlier results were left untouched; run "
+                           "the same command again to finish")
+            console.print(message, highlight=False, soft_wrap=True)
+            raise typer.Exit(130) from None
+
+    return wrapper
+
+
+def _check_method(method: str) -> None:
+    """``--method`` of the depth-only commands: a registration method, not ``none``."""
+    from ..core.errors import ConfigError
+
+    if method not in ("colored-icp", "geometric"):
+        raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
+
+
+def _check_output_folder(out: Path, option: str = "--out") -> None:
+    """Fail before any long step when ``out`` cannot become a folder: it is a file, or the
+    first existing folder above it is a file or not writable."""
+    from ..core.errors import ConfigError
+
+    out = Path(out)
+    if out.exists():
+        if not out.is_dir():
+            raise ConfigError(f"{out}: {option} is a file, not a folder; choose a folder path")
+        parent = out
+    else:
+        parent = next((p for p in out.parents if p.exists()), Path("."))
+        if not parent.is_dir():
+            raise ConfigError(
+                f"{out}: cannot create {option} there because {parent} is a file; "
+                "choose another folder"
+            )
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{out}: {parent} is not writable; choose another {option} folder")
+
+
+def _workers_ignore_ctrl_c() -> None:
+    """Start the worker server with SIGINT ignored, so every pool worker inherits that and
+    Ctrl-C reaches only this process: it stops cleanly with one line, the workers do not
+    print their own tracebacks. (Python keeps SIGINT ignored in a child started with it
+    ignored; the forkserver hands its original disposition to each worker.)"""
+    import multiprocessing.forkserver
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _parse_resolution(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w <= 0 or h <= 0:
+            raise ValueError
+    except ValueError:
+        raise typer.BadParameter(f"{text!r}: expected WIDTHxHEIGHT, e.g. 848x480") from None
+    return w, h
+
+
+@command()
+@user_errors
+def board(
+    board_file: Annotated[Path, typer.Argument(help="Board YAML (grid or explicit form).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("board_print"),
+    dpi: Annotated[int, typer.Option(help="Resolution of the PNG files (dots per inch).")] = 300,
+    page: Annotated[
+        str | None,
+        typer.Option(
+            help="Page size, e.g. A3 or A4-landscape; default: the smallest A size that fits."
+        ),
+    ] = None,
+    fix_winding: Annotated[
+        bool, typer.Option(help="Reorder mirrored markers instead of rejecting them.")
+    ] = False,
+) -> None:
+    """Write the board's faces as true-scale PDFs and PNGs, ready to print and glue."""
+    from ..model.board import load_board
+    from ..outputs.printing import write_printable_board
+
+    _check_output_folder(out)
+    b = load_board(board_file, fix_winding=fix_winding)
+    result = write_printable_board(b, out, dpi=dpi, page=page)
+    for path in result.files:
+        typer.echo(path)
+
+
+@command()
+@user_errors
+def synth(
+    out: Annotated[
+        Path, typer.Argument(help="Output dataset folder (must not exist or be empty).")
+    ],
+    layout: Annotated[
+        str, typer.Option(help="thesis-line, race, race16 (16 cameras, two tiers) or ring.")
+    ] = "race",
+    frames: Annotated[int, typer.Option(help="Number of synchronised frame sets.")] = 40,
+    seed: Annotated[int, typer.Option(help="Random seed (rig jitter, board motion, noise).")] = 0,
+    resolution: Annotated[
+        str | None,
+        typer.Option(help="WIDTHxHEIGHT; default: 848x480 for race, 1280x720 otherwise."),
+    ] = None,
+    board_file: Annotated[
+        Path | None, typer.Option("--board", help="Board YAML; default: the thesis board.")
+    ] = None,
+    depth_bias: Annotated[
+        float,
+        typer.Option(help="Max |relative depth-scale error| per camera, e.g. 0.006 for +-0.6%."),
+    ] = 0.0,
+    blur: Annotated[float, typer.Option(help="Lens blur sigma (px).")] = 0.6,
+    noise: Annotated[float, typer.Option(help="Colour noise sigma (8-bit DN).")] = 2.0,
+    depth_dropout: Annotated[float, typer.Option(help="Fraction of depth pixels lost.")] = 0.02,
+    drop_rate: Annotated[float, typer.Option(help="Probability a camera misses a frame.")] = 0.0,
+    cameras: Annotated[int | None, typer.Option(help="Camera count (ring layout).")] = None,
+    workers: Annotated[int | None, typer.Option(help="Processes; default all cores.")] = None,
+    distortion: Annotated[
+        tuple[float, float, float, float, float] | None,
+        typer.Option(
+            metavar="K1 K2 P1 P2 K3",
+            help="true lens distortion of every camera (OpenCV order), rendered "
+            "exactly per pixel ray; e.g. 0.1 -0.2 0.001 -0.001 0.05.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = None,
+    rig_distortion: Annotated[
+        str,
+        typer.Option(
+            help="What rig.yaml lists with --distortion: zeros (as the D435 colour stream "
+            "reports) or truth.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = "zeros",
+    intrinsics_error: Annotated[
+        tuple[float, float],
+        typer.Option(
+            metavar="F_PCT PX",
+            help="rig.yaml's fx, fy off by one factor within +-F_PCT % and cx, "
+            "cy each off by up to +-PX pixels (seeded); the images use the truth.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = (0.0, 0.0),
+    glue: Annotated[
+        tuple[float, float, float],
+        typer.Option(
+            metavar="DX_MM DY_MM ROT_DEG",
+            help="the back sheet rotated by ROT_DEG about the board normal "
+            "(through the back grid's centre) and shifted by DX_MM, DY_MM along the board's "
+            "x, y; the board file stays nominal.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = (0.0, 0.0, 0.0),
+    thickness_error: Annotated[
+        float,
+        typer.Option(
+            metavar="MM",
+            help="the panel is MM thicker (negative: thinner) than the board file.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = 0.0,
+    print_scale: Annotated[
+        float,
+        typer.Option(
+            metavar="S",
+            help="both faces printed S times the board file's size (scaled about "
+            "the board origin), e.g. 0.995; the board file stays nominal.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = 1.0,
+    face_error: Annotated[
+        tuple[float, float],
+        typer.Option(
+            metavar="MM DEG",
+            help="multi-face target (a cube, an L): every face but the first moved off its "
+            "board-file pose by MM and turned by DEG, each in a seeded direction of its own "
+            "(a hand-built target); the board file stays nominal.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = (0.0, 0.0),
+    board_volume: Annotated[
+        float,
+        typer.Option(
+            metavar="S",
+            help="move the board through S times the layout's volume (about its centre): "
+            "e.g. 2.5 on the ring brings it near the cameras and over more of each image "
+            "(docs/synthetic.md).",
+        ),
+    ] = 1.0,
+    closeups: Annotated[
+        int,
+        typer.Option(
+            metavar="N",
+            help="N extra frame sets per camera with the board near it, reaching its image's "
+            "corners and edges in turn, as a user records to calibrate a lens "
+            "(docs/synthetic.md).",
+        ),
+    ] = 0,
+    bump: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="NAME:MM:DEG",
+            help="camera NAME knocked after the calibration: shifted MM and turned DEG in a "
+            "seeded direction (repeat for more cameras); render the same seed without it to "
+            "calibrate, with it to test `check` and `refine --fix-others`.",
+            rich_help_panel="Imperfections (docs/synthetic.md)",
+        ),
+    ] = None,
+) -> None:
+    """Render a synthetic RGB-D rig with ground truth (dataset folder + ground_truth.yaml).
+
+    By default the cameras are ideal and rig.yaml is exact; the imperfection options render
+    real-world errors and record their truth in ground_truth.yaml (docs/synthetic.md)."""
+    from ..model.board import load_board, thesis_board
+    from ..synth.render import SynthParams, synthesize
+
+    _check_output_folder(out, "the output dataset folder")
+    _workers_ignore_ctrl_c()
+    params = SynthParams(
+        resolution=_parse_resolution(resolution),
+        blur_sigma_px=blur,
+        color_noise_dn=noise,
+        depth_bias=depth_bias,
+        depth_dropout=depth_dropout,
+        drop_rate=drop_rate,
+        cameras=cameras,
+        distortion=distortion,
+        rig_distortion=rig_distortion,
+        intrinsics_error=intrinsics_error,
+        glue=glue,
+        thickness_error_mm=thickness_error,
+        print_scale=print_scale,
+        face_error=face_error,
+        board_volume=board_volume,
+        closeups=closeups,
+        bump=tuple(_parse_bump(text) for text in bump or ()),
+    )
+    b = load_board(board_file) if board_file else thesis_board()
+    with stage_progress() as progress:
+        ds = synthesize(out, layout, frames, seed, b, params, workers, progress=progress)
+    extra = f" + {closeups} close-ups per camera" if closeups else ""
+    console.print(f"wrote {len(ds.rig.cameras)} cameras x {frames} frames{extra} to {ds.path}")
+
+
+def _parse_bump(text: str) -> tuple[str, float, float]:
+    """``--bump NAME:MM:DEG`` as ``(name, mm, deg)``."""
+    from ..core.errors import ConfigError
+
+    name, _, rest = text.partition(":")
+    try:
+        mm, deg = (float(x) for x in rest.split(":"))
+    except ValueError:
+        raise ConfigError(f"--bump {text!r}: give NAME:MM:DEG, e.g. left2:50:5") from None
+    return name, mm, deg
+
+
+NAMES_OPTION = typer.Option(
+    help="Recordings only: comma-separated camera names, in source order "
+    "(default: serial / ROS namespace)."
+)
+SYNC_OPTION = typer.Option(
+    help="Recordings only: largest timestamp gap between cameras of one frame set (ms); "
+    "default half a frame period."
+)
+
+
+def _name_list(names: str | None) -> list[str] | None:
+    """``--names a,b,c`` as a list (each name is checked where it is used)."""
+    return names.split(",") if names else None
+
+
+def _open_dataset(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms):
+    """A dataset folder as it is, or recordings converted once under OUT/cache/recordings
+    (with a progress bar and the per-camera frame counts of the conversion)."""
+    from ..model.dataset import FolderDataset
+    from ..sources import cached_report, dataset_folder
+    from .console import print_conversion_report
+
+    with stage_progress() as progress:
+        folder = dataset_folder(
+            sources,
+            out / "cache" / "recordings",
+            _name_list(names),
+            sync_tolerance_ms,
+            progress,
+        )
+    report = cached_report(folder)
+    if report is not None:
+        print_conversion_report(report)
+        console.print(f"recordings as a dataset folder: {folder}", highlight=False)
+    return FolderDataset(folder)
+
+
+SCHEDULER_OPTION = typer.Option(
+    "--scheduler",
+    help="Address of a Dask scheduler (tcp://HOST:8786): its workers run the detection and "
+    "the depth pair registrations instead of local processes; they must see the dataset at "
+    "the same path (README, Running on a Dask cluster).",
+)
+
+
+@command()
+@user_errors
+def calibrate(
+    dataset: Annotated[
+        list[Path],
+        typer.Argument(
+            help="Dataset folder (rig.yaml + <camera>/color, depth), or recordings: RealSense "
+            ".bag/.db3 files (one per camera) or ROS 1/ROS 2 bags, converted once into "
+            "OUT/cache/recordings.",
+            show_default=False,
+        ),
+    ],
+    board_file: Annotated[
+        Path | None, typer.Option("--board", help="Board YAML; default: the thesis board.")
+    ] = None,
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("calib_out"),
+    config: Annotated[
+        Path | None, typer.Option(help="YAML overriding any calibration setting.")
+    ] = None,
+    method: Annotated[
+        str | None, typer.Option(help="bundle (default) or posegraph (the thesis method).")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Detection processes; default all cores.")
+    ] = None,
+    refine: Annotated[
+        str | None,
+        typer.Option(
+            help="Depth refinement: colored-icp (default when there is depth), geometric or none."
+        ),
+    ] = None,
+    intrinsics: Annotated[
+        str | None,
+        typer.Option(
+            help="auto (default): estimate them in the bundle adjustment only when the "
+            "views disagree camera by camera and the corners fit better for it (writes "
+            "rig_refined.yaml then); fixed: trust the rig.yaml intrinsics; refine: always "
+            "estimate them. A camera whose rig.yaml gives only width/height is calibrated from "
+            "scratch from its own views first (auto then refines; fixed holds that estimate)."
+        ),
+    ] = None,
+    board_model: Annotated[
+        str | None,
+        typer.Option(
+            "--board-model",
+            help="auto (default): estimate where the back sheet really is (offset, "
+            "rotation, thickness) when that keeps more cameras or fits the corners better "
+            "(writes board_refined.yaml then); fixed: the board file is exact; refine: "
+            "always estimate it.",
+        ),
+    ] = None,
+    fix: Annotated[
+        Path | None,
+        typer.Option(
+            help="extrinsics.yaml of an earlier calibration: "
+            "hold its cameras fixed (adding cameras)."
+        ),
+    ] = None,
+    names: Annotated[str | None, NAMES_OPTION] = None,
+    sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
+    scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
+) -> None:
+    """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports."""
+    from ..core.config import load_config
+    from ..core.parallel import check_scheduler
+    from ..model.board import load_board, thesis_board
+    from ..model.results import load_extrinsics
+
+    _check_output_folder(out)
+    cfg = load_config(config, method=method, workers=workers, refine=refine,
+                      scheduler=scheduler,
+                      **{"bundle.intrinsics": intrinsics, "bundle.board": board_model})
+    check_scheduler(cfg.scheduler)
+    b = load_board(board_file) if board_file else thesis_board()
+    ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
+    fixed = None
+    if fix is not None:
+        prior = load_extrinsics(fix, check_redundant=True)
+        _check_fixed(prior, ds.rig, fix)
+        fixed = {n: c.T_ref_cam for n, c in prior.cameras.items() if n in ds.rig.cameras}
+    ds.check_images()
+    _workers_ignore_ctrl_c()
+    result = _calibrate_and_write(ds, b, cfg, out, fixed)
+    _print_summary(result, out)
+
+
+def _check_fixed(prior, rig, path: Path) -> None:
+    """``--fix`` poses are in the prior's reference frame: it must be this rig's reference,
+    and at least one of its cameras must be in the dataset."""
+    from ..core.errors import ConfigError
+
+    if prior.reference != rig.reference:
+        raise ConfigError(
+            f"{path}: its poses are relative to {prior.reference!r} but the dataset's rig.yaml "
+            f"uses reference {rig.reference!r}; set the same reference in rig.yaml"
+        )
+    if not any(n in rig.cameras and n != rig.reference for n in prior.cameras):
+        raise ConfigError(
+            f"{path}: none of its cameras ({', '.join(prior.cameras)}) besides the reference "
+            "is in the dataset; check the --fix file"
+        )
+
+
+def _calibrate_and_write(ds, board, cfg, out: Path, fixed=None):
+    """Run the pipeline and write its outputs, with progress bars on every long step."""
+    from ..outputs.writer import write_outputs
+    from ..pipelines.calibrate import calibrate as run_calibration
+
+    with stage_progress() as progress:
+        result = run_calibration(
+            ds, board, cfg, cache_dir=out / "cache", fixed_cameras=fixed, progress=progress
+        )
+        write_outputs(result, ds.rig, out, progress=progress, warn=_warn_line)
+    return result
+
+
+def _fixed(value: float, digits: int) -> str:
+    """``value`` with ``digits`` decimals, never ``-0.000`` (a rounding, not a sign)."""
+    return f"{round(float(value), digits) + 0.0:.{digits}f}"
+
+
+def _print_summary(result, out: Path, verdict: bool = True) -> None:
+    """The extrinsics table and notes, then (``verdict``) the verdict, the warnings and where
+    the results are."""
+    from rich.table import Table
+
+    from ..outputs.report.build import board_refined_entry
+    from ..outputs.report.findings import (
+        board_scale_sentence,
+        common_depth_scale,
+        confirming_pairs,
+        glue_sentence,
+    )
+
+    table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
+    for col, unit in (
+        ("camera", ""),
+        ("views", ""),
+        ("x", "m"),
+        ("y", "m"),
+        ("z", "m"),
+        ("sigma rot", "deg"),
+        ("sigma trans", "mm"),
+    ):
+        table.add_column(f"{col} ({unit})" if unit else col, justify="right")
+    views = {}
+    for o in result.observations:
+        views[o.camera] = views.get(o.camera, 0) + 1
+    for name, cam in result.extrinsics.cameras.items():
+        t = cam.T_ref_cam[:3, 3]
+        table.add_row(
+            name,
+            str(views.get(name, 0)),
+            _fixed(t[0], 4),
+            _fixed(t[1], 4),
+            _fixed(t[2], 4),
+            _fixed(cam.sigma_rotation_deg, 4),
+            _fixed(cam.sigma_translation_mm, 3),
+        )
+    Console().print(table)
+    for name, why in result.extrinsics.unconnected.items():
+        console.print(f"[yellow]not calibrated[/]: {name}: {why}")
+    ladder = result.self_calibration
+    if ladder is not None and ladder.chosen.name != "nominal":
+        chosen = next((f for f in ladder.fits if f.level == ladder.chosen), None)
+        why = f": {chosen.reason}" if chosen is not None else ""
+        console.print(f"self-calibration: refined {ladder.chosen.name}{why}"
+                      + ("; markers detected again with the refined lens"
+                         if ladder.redetected else ""))
+    board = board_refined_entry(result).get("refined")
+    if board and board["held"]:
+        console.print(f"[yellow]board not refined[/]: {board['held']}")
+    elif board:
+        s = board["sigmas"]
+        console.print(
+            f"board: {glue_sentence(board)}; sigma {s['offset_mm'][0]:.2f} / "
+            f"{s['offset_mm'][1]:.2f} mm, {s['rotation_deg']:.3f} deg, "
+            f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
+        )
+    pairs = result.depth.pairs if result.depth is not None else []
+    agree = len(confirming_pairs(pairs))
+    if result.depth is not None and result.depth.fallback is not None and agree:
+        console.print(f"depth registration: {agree} of {len(pairs)} camera pairs "
+                      "agree with the board result within their own uncertainty; nothing to "
+                      "correct, the extrinsics are the board result")
+    elif result.depth is not None and result.depth.fallback is not None:
+        console.print(f"[yellow]depth refinement not used[/]: {result.depth.fallback}; "
+                      "the extrinsics are the board result")
+    elif result.depth is not None and result.depth.note is not None:
+        console.print(f"depth registration: {result.depth.note}")
+    scales = result.depth.depth_scale_dict() if result.depth is not None else {}
+    ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
+    if ratio is not None:
+        marker, square = (result.board.printed_lengths if result.board is not None
+                          else (None, None))
+        console.print(f"[red]board scale[/]: {board_scale_sentence(ratio, marker, square)}")
+    if verdict:
+        print_verdict(out)
+
+
+def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms,
+             scheduler: str | None, extrinsics: Path):
+    """What refine and check start from: the output folder and the scheduler checked before
+    anything is read, the dataset of the rig as it is now opened (its images checked) with the
+    intrinsics the calibration refined (its rig_refined.yaml, if any), the calibration's
+    ``extrinsics`` and the depth scales of the report.json beside them:
+    ``(dataset, extrinsics, scales)``."""
+    from ..core.parallel import check_scheduler
+    from ..model.results import load_extrinsics
+    from ..pipelines.refine import load_depth_scales, with_refined_intrinsics
+
+    _check_output_folder(out)
+    check_scheduler(scheduler)
+    ds = _open_dataset(sources, out, names, sync_tolerance_ms)
+    ds.check_images()
+    ds.rig, changed = with_refined_intrinsics(ds.rig, extrinsics.parent)
+    if changed:
+        console.print(f"intrinsics: the refined ones of {extrinsics.parent / 'rig_refined.yaml'}"
+                      f" for {', '.join(changed)}", highlight=False, soft_wrap=True)
+    return (ds, load_extrinsics(extrinsics, check_redundant=True),
+            load_depth_scales(extrinsics.parent / "report.json"))
+
+
+@command()
+@user_errors
+def refine(
+    dataset: Annotated[
+        list[Path],
+        typer.Argument(
+            help="Dataset folder with depth, or recordings (as for calibrate).",
+            show_default=False,
+        ),
+    ],
+    init: Annotated[
+        Path,
+        typer.Option(
+            "--init", help="extrinsics.yaml to start from (hand-measured or an older calibration)."
+        ),
+    ],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("refine_out"),
+    method: Annotated[str, typer.Option(help="colored-icp or geometric.")] = "colored-icp",
+    names: Annotated[str | None, NAMES_OPTION] = None,
+    sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
+    board_file: Annotated[
+        Path | None,
+        typer.Option("--board", help="Board YAML of the starting calibration (default: the "
+                     "thesis board); with its report.json's board poses it masks the board and "
+                     "gives each camera's depth scale."),
+    ] = None,
+    fix_others: Annotated[
+        bool,
+        typer.Option("--fix-others", help="Only the cameras that moved since --init (found as "
+                     "`check` finds them) are registered again, from a global alignment "
+                     "(FPFH + RANSAC) then ICP, against the others, which keep --init exactly."),
+    ] = False,
+    tolerance_mm: Annotated[float, TOLERANCE_MM_OPTION] = 2.0,
+    tolerance_deg: Annotated[float, TOLERANCE_DEG_OPTION] = 0.2,
+    scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
+    config: Annotated[Path | None, DEPTH_CONFIG_OPTION] = None,
+) -> None:
+    """Depth-only refinement of existing extrinsics (no board needed in view)."""
+    import math
+
+    from ..model.board import load_board, thesis_board
+    from ..outputs.writer import DepthOnlyRun, write_refine_outputs
+    from ..pipelines.refine import load_board_views, refine_extrinsics, refine_verdict
+
+    _check_method(method)
+    depth_config = _depth_config(config)
+    ds, init_ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, init)
+    T_ref_board, board_cameras = load_board_views(init.parent / "report.json")
+    if fix_others:
+        _fix_others(ds, init, init_ext, scales, method, out, tolerance_mm, tolerance_deg,
+                    scheduler, depth_config)
+        return
+    b = load_board(board_file) if board_file else thesis_board()
+    with stage_progress() as progress:
+        ext, depth = refine_extrinsics(ds, init_ext, method, depth_config, progress=progress,
+                                       depth_scales=scales, board=b, T_ref_board=T_ref_board,
+                                       board_cameras=board_cameras, scheduler=scheduler)
+    sources = depth.scale_source
+    for kind, what in (("given", "from the report.json next to --init"),
+                       ("board", "estimated from the board in view"),
+                       ("unknown", "unknown (not moved along what a scale error explains)")):
+        if cams := [c for c, k in sources.items() if k == kind]:
+            console.print(f"depth scale {what}: {', '.join(cams)}")
+    verdict = refine_verdict(init_ext, ext, depth)
+    run = DepthOnlyRun(ds, init, method, verdict, depth.pairs, sources, scales,
+                       depth.status_dict(), depth.depth_scale_dict(), depth.timings_s)
+    write_refine_outputs(ext, depth, out, method, init, verdict=verdict, run=run,
+                         warn=_warn_line)
+    for p in depth.pairs:
+        state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
+        before, final = p["rmse_before_mm"], p["rmse_final_mm"]
+        rmse = (f"rmse {before:.2f} -> {final:.2f} mm, "
+                if before is not None and final is not None and math.isfinite(before)
+                and math.isfinite(final) else "")
+        console.print(f"{p['cam_a']} -> {p['cam_b']}: {rmse}{state}")
+    colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
+    console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}")
+    console.print(f"results in {out}/ (extrinsics.yaml, report.html, report.json, "
+                  "refine_report.json, fused.ply)")
+
+
+def _warn_line(message: str) -> None:
+    console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
+
+
+DEPTH_CONFIG_OPTION = typer.Option(
+    "--config", help="YAML overriding depth settings: its `depth:` section (the same file "
+    "calibrate --config takes; config_resolved.yaml beside a result lists them all).")
+
+
+def _depth_config(config: Path | None):
+    """The ``depth`` settings of a ``--config`` file (None: the defaults); a bad file or key
+    stops with one line naming it, before anything is read."""
+    from ..core.config import load_config
+
+    return load_config(config).depth if config is not None else None
+
+
+TOLERANCE_MM_OPTION = typer.Option(
+    "--tolerance-mm", help="A camera counts as moved only beyond this shift (mm) or turn, "
+    "and only if the depth says so significantly (chi-square 6 dof, 0.1 %).")
+TOLERANCE_DEG_OPTION = typer.Option("--tolerance-deg", help="Same, turn (deg).")
+
+
+def _check_table(result, title: str) -> None:
+    """Per camera: status, move and its sigma, pairs."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for col in ("camera", "status", "moved mm", "moved deg", "chi2", "pairs"):
+        table.add_column(col, justify="left" if col in ("camera", "status") else "right")
+    style = {"in_place": "green", "moved": "bold red", "unknown": "yellow"}
+    for c, r in result.cameras.items():
+        if r.status == "unknown" or not math.isfinite(r.moved_mm):
+            table.add_row(c, f"[{style[r.status]}]{r.status}[/]", "-", "-", "-", str(r.n_pairs))
+            continue
+        table.add_row(c, f"[{style[r.status]}]{r.status}[/]",
+                      f"{r.moved_mm:.2f} ± {r.sigma_mm:.2f}",
+                      f"{r.moved_deg:.3f} ± {r.sigma_deg:.3f}", f"{r.chi2:.1f}", str(r.n_pairs))
+    console.print(table)
+    for c in result.unknown:
+        console.print(f"[yellow]not checked[/]: {c}: {result.cameras[c].reason}",
+                      highlight=False, soft_wrap=True)
+    for c in result.moved:
+        if result.cameras[c].reason:
+            console.print(f"[yellow]{c}[/] {result.cameras[c].reason}", highlight=False,
+                          soft_wrap=True)
+
+
+def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler=None,
+               depth_config=None):
+    from ..pipelines.check import Tolerance, check_dataset
+
+    with stage_progress() as progress:
+        return check_dataset(ds, calib, scales, method, depth_config,
+                             tolerance=Tolerance(tolerance_mm, tolerance_deg), progress=progress,
+                             scheduler=scheduler)
+
+
+def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolerance_deg,
+                scheduler=None, depth_config=None):
+    """refine --fix-others: check, then re-register only the moved cameras."""
+    from ..core.progress import start
+    from ..outputs.writer import DepthOnlyRun, write_fix_outputs
+    from ..pipelines.check import fix_moved
+    from ..pipelines.refine import fix_verdict
+
+    run = _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler,
+                     depth_config)
+    _check_table(run.result, f"{ds.path} against {init}")
+    unknown = {c for c, k in run.scale_source.items() if k == "unknown"}
+    with stage_progress() as progress:
+        tick = start(progress, "re-registering the moved cameras", 1)
+        fixed, pairs = fix_moved(run.clouds, calib, run.result, run.overlaps, method,
+                                 depth_config, unknown_scale=unknown, scheduler=scheduler)
+        tick(1)
+    moved = run.result.moved
+    verdict = fix_verdict(calib, fixed, moved, pairs)
+    status = ({"status": "skipped", "reason": "no camera moved beyond the tolerance",
+               "weak_cameras": {}} if not moved else
+              {"status": "used", "reason": None, "weak_cameras": {}}
+              if any(p["accepted"] for p in pairs) else
+              {"status": "fallback", "reason": "no pair of a moved camera fits after "
+               "re-registration", "weak_cameras": {}})
+    depth_only = DepthOnlyRun(ds, init, method, verdict, pairs, run.scale_source, scales,
+                              status, timings_s=run.result.timings_s, moved=moved)
+    write_fix_outputs(fixed, run, pairs, out, method, init, verdict, depth_only=depth_only,
+                      warn=_warn_line)
+    colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
+    console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}", highlight=False,
+                  soft_wrap=True)
+    console.print(f"results in {out}/ (extrinsics.yaml, report.html, report.json, "
+                  "refine_report.json, fused.ply)")
+
+
+@command()
+@user_errors
+def check(
+    dataset: Annotated[
+        list[Path],
+        typer.Argument(help="A frame set of the rig as it is now (a dataset folder with depth, "
+                       "or recordings as for calibrate); no board needed. A short still "
+                       "recording (8+ frames) is better than one frame.", show_default=False),
+    ],
+    calib: Annotated[
+        Path,
+        typer.Option("--calib", help="The calibration to check: its output folder (with "
+                     "extrinsics.yaml and report.json) or an extrinsics.yaml."),
+    ],
+    out: Annotated[Path, typer.Option("--out", help="Output folder (check.json).")] = Path(
+        "check_out"),
+    method: Annotated[str, typer.Option(help="colored-icp or geometric.")] = "colored-icp",
+    tolerance_mm: Annotated[float, TOLERANCE_MM_OPTION] = 2.0,
+    tolerance_deg: Annotated[float, TOLERANCE_DEG_OPTION] = 0.2,
+    names: Annotated[str | None, NAMES_OPTION] = None,
+    sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
+    scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
+    config: Annotated[Path | None, DEPTH_CONFIG_OPTION] = None,
+) -> None:
+    """Has a camera moved since the calibration? Exit 0: all in place; 1: moved (named)."""
+    from ..core.errors import ConfigError
+    from ..outputs.writer import write_check_outputs
+
+    _check_method(method)
+    if tolerance_mm < 0 or tolerance_deg < 0:
+        raise ConfigError("--tolerance-mm / --tolerance-deg must be >= 0")
+    path = calib / "extrinsics.yaml" if calib.is_dir() else calib
+    if not path.is_file():
+        raise ConfigError(f"{calib}: no extrinsics.yaml; give a calibrate output folder or an "
+                          "extrinsics.yaml with --calib")
+    depth_config = _depth_config(config)
+    ds, ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, path)
+    run = _run_check(ds, ext, scales, method, tolerance_mm, tolerance_deg, scheduler,
+                     depth_config)
+    _check_table(run.result, f"{ds.path} against {path}")
+    if unknown := [c for c, k in run.scale_source.items() if k == "unknown"]:
+        console.print(f"depth scale unknown (no report.json with depth_scale_factor next to "
+                      f"{path.name}): {', '.join(unknown)}", highlight=False, soft_wrap=True)
+    write_check_outputs(run, out, path)
+    moved = run.result.moved
+    if moved:
+        console.print(f"[bold red]moved[/]: {', '.join(moved)} -> put back with: rgbd-calib "
+                      f"refine {' '.join(map(str, dataset))} --init {path} --fix-others "
+                      f"--out DIR", highlight=False, soft_wrap=True)
+        console.print(f"check: {out / 'check.json'}", highlight=False)
+        raise typer.Exit(1)
+    unchecked = run.result.unknown
+    if unchecked:  # exit 0 is "every checked camera in place": say which were not checked
+        console.print(f"[yellow]not checked[/]: {', '.join(unchecked)} (no depth pair of theirs "
+                      "could tell; reasons in check.json)", highlight=False, soft_wrap=True)
+    console.print(f"[green]in place[/]: {'every checked camera' if unchecked else 'every camera'} "
+                  f"within {tolerance_mm} mm / {tolerance_deg} deg", highlight=False)
+    console.print(f"check: {out / 'check.json'}", highlight=False)
+
+
+@command()
+@user_errors
+def report(
+    out: Annotated[Path, typer.Argument(help="Output folder of an earlier calibrate run.")],
+) -> None:
+    """Rebuild report.html (and report.json) from the saved results of a calibration."""
+    from ..outputs.report import rebuild_report
+
+    with stage_progress() as progress:
+        path = rebuild_report(out, progress=progress)
+    console.print(f"report: {path}")
+
+
+@command()
+@user_errors
+def posegraph(
+    nodes: Annotated[Path, typer.Argument(help="Thesis Nodes.csv (initial guesses).")],
+    edges: Annotated[Path, typer.Argument(help="Thesis Edges.csv (T_cam_board per row).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("posegraph_out"),
+    kernel: Annotated[str, typer.Option(help="cauchy, huber, tukey, gm or none.")] = "cauchy",
+    optimizer: Annotated[str, typer.Option(help="lm or gnc.")] = "lm",
+) -> None:
+    """Robustly optimise a thesis-format pose graph (Nodes.csv / Edges.csv)."""
+    from pydantic import ValidationError
+
+    from ..core.config import PoseGraphConfig
+    from ..core.errors import ConfigError
+    from ..outputs.writer import write_posegraph_outputs
+    from ..pipelines.posegraph import run_posegraph
+
+    try:
+        cfg = PoseGraphConfig(kernel=kernel, optimizer=optimizer)
+    except ValidationError as exc:
+        raise ConfigError(f"options: {exc.errors()[0]['msg']}") from None
+    _check_output_folder(out)
+    run = run_posegraph(nodes, edges, cfg)
+    write_posegraph_outputs(run, out)
+    console.print(
+        f"edges: {len(run.edges)}, stale: {len(run.stale_edges)}, "
+        f"outliers: {len(run.outlier_edges)}"
+    )
+    for name, cam in run.extrinsics.cameras.items():
+        t = cam.T_ref_cam[:3, 3]
+        console.print(
+            f"{name}: t = [{t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}] m, sigma "
+            f"{cam.sigma_rotation_deg:.3f} deg / {cam.sigma_translation_mm:.2f} mm"
+        )
+    console.print(f"results in {out}/ (extrinsics.yaml, posegraph_report.json, exports/)")
+
+
+@command()
+@user_errors
+def demo(
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("demo_out"),
+    layout: Annotated[
+        str, typer.Option(help="thesis-line, race, race16 (16 cameras, two tiers) or ring.")
+    ] = "race",
+    frames: Annotated[int, typer.Option(help="Frame sets to render.")] = 16,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+) -> None:
+    """Render a small synthetic rig, calibrate it and compare with its ground truth (a re-run
+    with the same options reuses the render and the detections)."""
+    from ..core.geometry import transform_error
+    from ..model.board import thesis_board
+    from ..model.dataset import FolderDataset
+    from ..synth.render import SynthParams, load_ground_truth, synthesize_cached
+
+    _check_output_folder(out)
+    _workers_ignore_ctrl_c()
+    b = thesis_board()
+    with stage_progress() as progress:
+        dataset, reused = synthesize_cached(out / "dataset", layout, frames, seed, b,
+                                            SynthParams(depth_bias=0.004), progress=progress)
+    if reused:
+        console.print(f"reusing the rendered rig in {dataset}/ (same options)", highlight=False)
+    ds = FolderDataset(dataset)
+    result = _calibrate_and_write(ds, b, None, out / "calibration")
+    _print_summary(result, out / "calibration", verdict=False)
+    gt = load_ground_truth(dataset)
+    from rich.table import Table
+
+    table = Table(
+        title="error against the synthetic ground truth",
+        caption=f"good: under {DEMO_GOOD_MM} mm and {DEMO_GOOD_DEG} deg, and within 3 sigma "
+        "(the sigmas above are honest when the errors are about their size)",
+    )
+    table.add_column("camera")
+    table.add_column("rotation (deg)", justify="right")
+    table.add_column("translation (mm)", justify="right")
+    table.add_column("error / sigma", justify="right")
+    table.add_column("good", justify="right")
+    for name, cam in result.extrinsics.cameras.items():
+        deg, mm = transform_error(cam.T_ref_cam, gt.T_ref_cam[name])
+        if name == result.extrinsics.reference:
+            table.add_row(name, f"{deg:.4f}", f"{mm:.3f}", "-", "reference")
+            continue
+        ratio = max(mm / cam.sigma_translation_mm, deg / cam.sigma_rotation_deg)
+        good = mm < DEMO_GOOD_MM and deg < DEMO_GOOD_DEG and ratio <= 3.0
+        table.add_row(name, f"{deg:.4f}", f"{mm:.3f}", f"{ratio:.1f}", "yes" if good else "no")
+    Console().print(table)
+    console.print(f"dataset: {dataset}/", highlight=False)
+    print_verdict(out / "calibration")
+
+
+# what the demo's error table calls good on its small synthetic rig (16 frames, 848x480)
+DEMO_GOOD_MM = 1.0
+DEMO_GOOD_DEG = 0.05
+
+
+@command()
+@user_errors
+def convert(
+    sources: Annotated[
+        list[Path],
+        typer.Argument(help="RealSense .bag/.db3 files (one per camera), ROS 1/ROS 2 bags, or "
+                       "video files (one per camera: .mp4, .avi, ...)."),
+    ],
+    out: Annotated[Path, typer.Option("--out", help="Dataset folder to write.")],
+    names: Annotated[
+        str | None,
+        typer.Option(
+            help="Comma-separated camera names, in source order (default: serial / ROS namespace)."
+        ),
+    ] = None,
+    sync_tolerance_ms: Annotated[
+        float | None,
+        typer.Option(
+            help="Largest timestamp gap between cameras of one frame set (ms); default half a "
+            "frame period."
+        ),
+    ] = None,
+    timestamps: Annotated[
+        Path | None,
+        typer.Option(help="Videos: CSV sync_index,cam_id,frame_index,frame_time grouping the "
+                     "frames into sets (default: frame k of every video is set k)."),
+    ] = None,
+    board_file: Annotated[
+        Path | None,
+        typer.Option("--board", help="Videos: keep only frames where this board is seen and "
+                     "still (see --still-px-s)."),
+    ] = None,
+    still_px_s: Annotated[
+        float | None,
+        typer.Option(help="Videos with --board: a view is still when its corners move at most "
+                     "this many pixels per second (default 100)."),
+    ] = None,
+    step: Annotated[
+        int, typer.Option(help="Videos without --board: keep every STEP-th frame set.")
+    ] = 1,
+) -> None:
+    """Convert RealSense SDK recordings, ROS bags or one video per camera into the dataset
+    folder form (videos: colour only, rig.yaml with the image sizes: intrinsics calibrated from
+    scratch)."""
+    from ..sources import is_video
+
+    _check_output_folder(out)
+    videos = [is_video(s) for s in sources]
+    if any(videos):
+        from .console import cli_convert_videos
+
+        if not all(videos):
+            raise ConfigError("convert: give either video files or recordings, not both")
+        board = None
+        if board_file is not None:
+            from ..model.board import load_board
+
+            board = load_board(board_file)
+        cli_convert_videos(sources, out, _name_list(names), timestamps, board, step, still_px_s)
+        return
+    from .console import cli_convert
+
+    cli_convert(sources, out, _name_list(names), sync_tolerance_ms)
+
+
+@command()
+@user_errors
+def record(
+    out: Annotated[Path, typer.Option("--out", help="Dataset folder to write.")],
+    sets: Annotated[
+        int | None, typer.Option(help="Stop after this many frame sets (default: until Ctrl-C).")
+    ] = None,
+    resolution: Annotated[str, typer.Option(help="WIDTHxHEIGHT of colour and depth.")] = "1280x720",
+    fps: Annotated[int, typer.Option(help="Frame rate.")] = 30,
+    hardware_sync: Annotated[
+        bool, typer.Option(help="First camera master, others slaves (needs sync cables).")
+    ] = False,
+    board_file: Annotated[
+        Path | None, typer.Option("--board", help="Board YAML for the live marker count.")
+    ] = None,
+    names: Annotated[
+        str | None, typer.Option(help="Comma-separated camera names in serial order.")
+    ] = None,
+) -> None:
+    """Record colour + aligned depth from connected D435i cameras (Ctrl-C stops)."""
+    from ..model.board import load_board, thesis_board
+    from .console import cli_record
+
+    _check_output_folder(out)
+    w, h = _parse_resolution(resolution)
+    b = load_board(board_file) if board_file else thesis_board()
+    cli_record(out, sets, (w, h, fps), hardware_sync, b, _name_list(names))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()

@@ -1,0 +1,275 @@
+"""The command line's output: rich progress bars, live displays and tables.
+
+The library reports through :mod:`rgbd_calib.core.progress` and typed results and never imports
+rich; this module turns those into terminal output for :mod:`rgbd_calib.cli.commands`. Bars draw only
+on a terminal (stderr); tables and notes are printed either way.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import sys
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+from rich.console import Console
+
+from ..core.progress import Progress
+
+console = Console(stderr=True)
+
+
+# --------------------------------------------------------------------------- progress
+def progress_bar():
+    """A rich bar with counts and times, shown only when stderr is a terminal."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+    from rich.progress import Progress as RichProgress
+
+    return RichProgress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        disable=not sys.stderr.isatty(),
+    )
+
+
+# every line PlainProgress writes (a log reader or a test can tell them from results and errors)
+PROGRESS_LINE = re.compile(r"^(?!error:)[^:\n]+: (started$|\d+/\d+ |\d+ done, )")
+
+
+class PlainProgress:
+    """The progress protocol as plain lines, for a log file or a pipe (CI, nohup, ssh):
+    ``stage: done/total (pct), rate/s, ETA`` when a stage starts, at most every
+    ``interval_s`` seconds while it runs, and ``stage: total/total done in T s`` when it ends
+    (``total`` None: counts and rate only)."""
+
+    def __init__(self, write=None, interval_s: float = 10.0, clock=None) -> None:
+        import time
+
+        self.write = write or (lambda line: print(line, file=sys.stderr, flush=True))
+        self.interval_s = interval_s
+        self.clock = clock or time.monotonic
+
+    def __call__(self, label: str, total: int | None, done: int = 0):
+        start_done, t0 = done, self.clock()
+        state = {"done": done, "last": t0}
+
+        def line(now: float) -> str:
+            n = state["done"]
+            elapsed = now - t0
+            rate = (n - start_done) / elapsed if elapsed > 0 else 0.0
+            if total is None:
+                return f"{label}: {n} done, {rate:.1f}/s, {elapsed:.0f} s"
+            if n >= total:
+                return f"{label}: {n}/{total} done in {elapsed:.1f} s"
+            eta = f"ETA {(total - n) / rate:.0f} s" if rate > 0 else "ETA unknown"
+            pct = 100.0 * n / total if total else 100.0
+            return f"{label}: {n}/{total} ({pct:.0f}%), {rate:.1f}/s, {eta}"
+
+        if total is None:
+            self.write(f"{label}: started")
+        elif done >= total:
+            self.write(f"{label}: {done}/{total} (nothing to do)" if not total
+                       else f"{label}: {done}/{total} already done (cached)")
+        else:
+            self.write(f"{label}: {done}/{total} started")
+
+        def tick(n: int = 1) -> None:
+            before = state["done"]
+            state["done"] += n
+            now = self.clock()
+            finished = total is not None and before < total <= state["done"]
+            if finished or now - state["last"] >= self.interval_s:
+                state["last"] = now
+                self.write(line(now))
+
+        return tick
+
+
+@contextlib.contextmanager
+def stage_progress() -> Iterator[Progress]:
+    """The library's progress protocol, ``progress(label, total, done) -> tick(n=1)``, as one
+    rich bar per stage on a terminal (``total`` None: a bar without an end), as plain
+    :class:`PlainProgress` lines otherwise."""
+    if not sys.stderr.isatty():
+        yield PlainProgress()
+        return
+    with progress_bar() as bar:
+
+        def progress(label: str, total: int | None, done: int = 0):
+            task = bar.add_task(label, total=total, completed=done)
+            return lambda n=1: bar.advance(task, n)
+
+        yield progress
+
+
+# --------------------------------------------------------------------------- verdict
+VERDICT_MEANING = {
+    "good": "no warning; the extrinsics are ready to use",
+    "check": "usable, but look at the warnings below first",
+    "poor": "do not use these extrinsics as they are; see the errors below",
+}
+VERDICT_STYLE = {"good": "bold green", "check": "bold yellow", "poor": "bold red"}
+SEVERITY_STYLE = {"error": "red", "warning": "yellow", "info": "cyan"}
+SEVERITY_RANK = {"error": 0, "warning": 1, "info": 2}
+
+
+def verdict_lines(report: dict) -> list[tuple[str, str]]:
+    """``(style, text)`` lines ending a calibration's console output: the verdict, then each
+    warning of ``report.json`` on one line, worst first (errors, warnings, then advice)."""
+    verdict = report.get("summary", {}).get("verdict", "check")
+    lines = [(VERDICT_STYLE.get(verdict, "bold"),
+              f"verdict: {verdict.upper()}: {VERDICT_MEANING.get(verdict, '')}")]
+    found = sorted(report.get("warnings", []),
+                   key=lambda w: SEVERITY_RANK.get(w.get("severity"), 3))
+    for w in found:
+        cams = f" [{', '.join(w['cameras'])}]" if w.get("cameras") else ""
+        advice = f" -> {w['advice']}" if w.get("advice") else ""
+        text = " ".join(f"{w['severity']}: {w['code']}{cams}: {w['message']}{advice}".split())
+        lines.append((SEVERITY_STYLE.get(w["severity"], ""), text))
+    return lines
+
+
+def print_verdict(out: Path) -> None:
+    """Print where the results are, then the verdict and warnings of ``out/report.json``, and
+    last the path of ``report.html``."""
+    import json
+
+    from rich.markup import escape
+
+    report = json.loads((Path(out) / "report.json").read_text())
+    extras = [n for n in ("fused.ply", "rig_refined.yaml", "board_refined.yaml")
+              if (Path(out) / n).exists()]
+    files = ", ".join(["extrinsics.yaml", "report.json", *extras, "exports/"])
+    console.print(f"results in {out}/ ({files})", highlight=False, soft_wrap=True)
+    for style, text in verdict_lines(report):
+        head, _, rest = text.partition(":")
+        console.print(f"[{style}]{escape(head)}:[/]{escape(rest)}" if style else escape(text),
+                      highlight=False, soft_wrap=True)
+    console.print(f"report: {Path(out) / 'report.html'}", highlight=False, soft_wrap=True)
+
+
+# --------------------------------------------------------------------------- convert
+def print_conversion_report(report) -> None:
+    """The per-camera counts of a :class:`~rgbd_calib.sources.ConversionReport` as a table,
+    then its notes."""
+    from rich.table import Table
+
+    table = Table(
+        title=f"{report.out}: {report.frames_written} frame sets "
+        f"(sync tolerance {report.sync_tolerance_ms:.1f} ms)"
+    )
+    for col in ("camera", "read", "matched", "unmatched", "dropped", "no depth", "depth"):
+        table.add_column(col, justify="right" if col not in ("camera", "depth") else "left")
+    for name in report.cameras:
+        c = report.counts[name]
+        table.add_row(
+            name,
+            str(c.frames_read),
+            str(c.matched),
+            str(c.unmatched),
+            str(c.dropped),
+            str(c.without_depth),
+            report.depth_source[name],
+        )
+    console.print(table)
+    for note in report.notes:
+        console.print(f"[yellow]note:[/] {note}", highlight=False)
+
+
+def cli_convert(
+    sources: Sequence[Path],
+    out: Path,
+    names: Sequence[str] | None = None,
+    sync_tolerance_ms: float | None = None,
+):
+    """Run :func:`~rgbd_calib.sources.convert` with progress bars and print a table of the
+    result."""
+    from ..sources import convert
+
+    with stage_progress() as progress:
+        report = convert(sources, out, names, sync_tolerance_ms, progress)
+    print_conversion_report(report)
+    return report
+
+
+def cli_convert_videos(videos: Sequence[Path], out: Path, names: Sequence[str] | None = None,
+                       timestamps: Path | None = None, board=None, step: int = 1,
+                       still_px_s: float | None = None):
+    """Run :func:`~rgbd_calib.sources.convert_videos` with progress bars and print a table of
+    the result."""
+    from ..sources import convert_videos
+    from ..sources.video import STILL_PX_S
+
+    with stage_progress() as progress:
+        report = convert_videos(videos, out, names, timestamps, board, step,
+                                still_px_s or STILL_PX_S, progress)
+    print_conversion_report(report)
+    return report
+
+
+# --------------------------------------------------------------------------- record
+def cli_record(
+    out: Path,
+    n_sets: int | None = None,
+    mode: tuple[int, int, int] | None = None,
+    hardware_sync: bool = False,
+    board=None,
+    names: Sequence[str] | None = None,
+    device_source=None,
+):
+    """Run :func:`~rgbd_calib.sources.record.record` with a live table of board markers per camera."""
+    from rich.live import Live
+    from rich.table import Table
+
+    from ..sources.record import DEFAULT_MODE, RecordStatus, record
+
+    def table(status: RecordStatus) -> Table:
+        t = Table(title=f"recording into {out}  (Ctrl-C to stop)")
+        t.add_column("camera")
+        t.add_column("markers", justify="right")
+        for name, n in status.markers.items():
+            t.add_row(name, "-" if n < 0 else str(n))
+        t.caption = f"{status.sets_written} set(s) written; cameras {status.spread_ms:.1f} ms apart"
+        return t
+
+    live: Live | None = None
+
+    def show(status: RecordStatus) -> None:
+        nonlocal live
+        if live is None:  # only once the cameras stream: errors stay one clean line
+            live = Live(table(status), console=console, refresh_per_second=4)
+            live.start()
+        live.update(table(status))
+
+    try:
+        report = record(
+            out,
+            n_sets,
+            mode or DEFAULT_MODE,
+            hardware_sync,
+            board,
+            names,
+            device_source,
+            status_callback=show,
+        )
+    finally:
+        if live is not None:
+            live.stop()
+    how = "stopped by Ctrl-C" if report.interrupted else "done"
+    console.print(
+        f"{how}: {report.sets_written} set(s) of {len(report.cameras)} camera(s) in {report.out}"
+    )
+    for note in report.notes:
+        console.print(f"[yellow]note:[/] {note}", highlight=False)
+    return report

@@ -1,0 +1,1126 @@
+"""Calibration targets: geometry in the board frame, loading and validation.
+
+A target is rigid and carries markers on one or more planar faces. Each face has a label and
+a pose ``T_board_face`` (4x4, metres; face frame: markers in its z = 0 plane, z the outward
+normal) that every "which face / which normal / which plane" question goes through
+(:meth:`Board.T_board_face`, :meth:`Board.face_normal`):
+
+- the double-sided board (ArUco grid, explicit markers, or one-faced ChArUco): labels +1 (front,
+  z = 0, the identity) and -1 (back, ``z = -thickness``, the front flipped about y), derived from
+  ``thickness`` as they always were;
+- a multi-face target (``type: multiface``: a cube, an L of two boards, ...): labels 1..F, one
+  per listed face, each face a single-face ArUco grid or ChArUco sheet (``Board.sheets``) at its
+  own pose. Face 1 is the reference face of the board self-calibration.
+
+Board frame (docs/formats.md): origin at the outer bottom-left corner of the front-face marker
+grid, x right and y up as seen from the front, z out of the front face. Back-face markers lie
+at ``z = -thickness``. A multi-face target's board frame is the one its file's face poses are
+given in.
+
+Every marker's corners are stored in **ArUco detection order**: top-left, top-right,
+bottom-right, bottom-left *as seen from outside that marker's face*. For a back-face marker
+that order is the mirror of the front-face order (the thesis's Table 4.2 lists back markers in
+front-face order; :func:`load_board` detects and rejects or fixes that).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..core.errors import BoardError, ConfigError
+from ..core.geometry import make_transform, matrix_to_rotvec, rotvec_to_matrix, transform_points
+from ..core.yamlio import check_keys, read_yaml_mapping, write_yaml
+
+FRONT, BACK = 1, -1
+CHARUCO_ID_BASE = 10000  # a multi-face target's ChArUco face k (0-based): quad q has id
+#                          CHARUCO_ID_BASE * (k + 1) + q (ArUco dictionaries hold < 1100 ids)
+FACE_CROSS_TOL_M = 0.005  # faces passing this far through each other are rejected (a pose
+#                           typo; a hand-built or refined target's faces may overlap ~mm at edges)
+PLANE_TOL_M = 1e-4  # corners further than this from their face plane are "non-planar"
+SQUARE_TOL = 1e-3  # relative tolerance on equal sides and diagonals
+
+
+def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
+    """Predefined OpenCV dictionary by name, e.g. ``DICT_4X4_100``."""
+    code = getattr(cv2.aruco, str(name), None)
+    if not str(name).startswith("DICT_") or not isinstance(code, int):
+        raise BoardError(
+            f"unknown ArUco dictionary {name!r}; use an OpenCV name like DICT_4X4_100")
+    return cv2.aruco.getPredefinedDictionary(code)
+
+
+@dataclass(frozen=True)
+class FaceSheet:
+    """One face of a multi-face target: a single-face ``board`` (an ArUco grid or ChArUco, its
+    markers in its own frame at z = 0) whose frame sits at ``T_board_face`` (4x4, metres) in the
+    target's board frame; ``label`` (1..F) is its face label, ``id_offset`` what is added to the
+    sheet's measurement ids (ChArUco quads, :data:`CHARUCO_ID_BASE`; 0 for ArUco markers)."""
+
+    label: int
+    board: Board
+    T_board_face: np.ndarray
+    id_offset: int = 0
+
+    def to_board(self, quads: np.ndarray) -> np.ndarray:
+        """Quads ``(K,4,3)`` of this face's frame (m) in the target's board frame."""
+        return transform_points(self.T_board_face, quads.reshape(-1, 3)).reshape(-1, 4, 3)
+
+
+def _back_face_pose(thickness: float) -> np.ndarray:
+    """``T_board_face`` of the legacy back face: the front flipped about y, at z = -thickness
+    (x = -x_board, seen from the back "right" is -x, as :func:`grid_corners` prints it)."""
+    T = np.diag([-1.0, 1.0, -1.0, 1.0])
+    T[2, 3] = -thickness
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class Board:
+    """A rigid target carrying markers on one or more planar faces.
+
+    ``corners`` is ``(M,4,3)`` in metres in the board frame, detection order per marker;
+    ``faces`` is ``(M,)`` the face label of each marker: +1 (front, z = 0) or -1 (back,
+    z = -thickness) on a double-sided board, 1..F on a multi-face target (``sheets``).
+    ``panel`` is the physical outline ``(xmin, xmax, ymin, ymax)`` in metres (a multi-face
+    target: the xy box of its faces' panels).
+    """
+
+    dictionary: str
+    ids: np.ndarray
+    corners: np.ndarray
+    faces: np.ndarray
+    thickness: float
+    panel: tuple[float, float, float, float]
+    name: str = "board"
+    grid: dict[str, Any] | None = None
+    source: Path | None = field(default=None, compare=False)
+    charuco: CharucoSpec | None = None  # a ChArUco board: ids/corners are saddle-corner quads
+    sheets: tuple[FaceSheet, ...] = ()  # a multi-face target: its faces (empty otherwise)
+    body: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+
+    @cached_property
+    def index_of(self) -> dict[int, int]:
+        return {int(i): k for k, i in enumerate(self.ids)}
+
+    @property
+    def is_multiface(self) -> bool:
+        return bool(self.sheets)
+
+    @cached_property
+    def face_labels(self) -> tuple[int, ...]:
+        """The labels of the faces that carry markers, the reference face first."""
+        if self.sheets:
+            return tuple(s.label for s in self.sheets)
+        return tuple(f for f in (FRONT, BACK) if np.any(self.faces == f))
+
+    def most_seen_face(self, faces: np.ndarray) -> int:
+        """The face label most frequent in ``faces`` (one label per seen marker); the
+        reference face wins a tie."""
+        labels = self.face_labels
+        return labels[int(np.argmax([np.sum(faces == f) for f in labels]))]
+
+    @property
+    def reference_face(self) -> int:
+        """The face whose pose defines the board frame (held in the self-calibration)."""
+        return self.sheets[0].label if self.sheets else FRONT
+
+    def T_board_face(self, face: int) -> np.ndarray:
+        """Pose (4x4, metres) of face ``face``'s frame (markers at its z = 0, z the outward
+        normal) in the board frame."""
+        if self.sheets:
+            return self.sheet(face).T_board_face.copy()
+        if face == FRONT:
+            return np.eye(4)
+        if face == BACK:
+            return _back_face_pose(self.thickness)
+        raise KeyError(f"board {self.name} has no face {face}")
+
+    def sheet(self, face: int) -> FaceSheet:
+        """A multi-face target's face ``face``."""
+        for s in self.sheets:
+            if s.label == face:
+                return s
+        raise KeyError(f"board {self.name} has no face {face}")
+
+    @cached_property
+    def aruco_faces(self) -> Board | None:
+        """A multi-face target's ArUco faces as one plain board (what one ArUco detector pass
+        looks for; labels kept); None without ArUco faces."""
+        sel = [s for s in self.sheets if s.board.charuco is None]
+        if not sel:
+            return None
+        ids = np.concatenate([s.board.ids for s in sel])
+        corners = np.concatenate([s.to_board(s.board.corners) for s in sel])
+        faces = np.concatenate([np.full(len(s.board.ids), s.label) for s in sel])
+        return Board(self.dictionary, ids, corners, faces, self.thickness, self.panel,
+                     f"{self.name}_aruco")
+
+    @cached_property
+    def printed_ids(self) -> np.ndarray:
+        """Every ArUco marker id printed on the board."""
+        return printed_markers(self)[0]
+
+    def faces_of(self, ids) -> np.ndarray:
+        """Face labels ``(N,)`` of the given marker ids."""
+        return np.array([self.faces[self.index_of[int(i)]] for i in ids], dtype=int)
+
+    @cached_property
+    def aruco_dict(self) -> cv2.aruco.Dictionary:
+        return aruco_dictionary(self.dictionary)
+
+    @property
+    def marker_length(self) -> float:
+        """Mean side length of the markers (metres)."""
+        return float(np.linalg.norm(np.diff(self.corners[:, [0, 1]], axis=1), axis=-1).mean())
+
+    @property
+    def printed_lengths(self) -> tuple[float, float | None]:
+        """``(marker side, chessboard square side or None)`` in metres as the file gives them:
+        the lengths a wrong print scale multiplies (a ChArUco board's corner quads are its
+        squares, so :attr:`marker_length` is the square there)."""
+        if self.charuco is not None:
+            return self.charuco.marker_length, self.charuco.square_length
+        return self.marker_length, None
+
+    @property
+    def bits(self) -> int:
+        return int(self.aruco_dict.markerSize)
+
+    def object_points(self, ids: np.ndarray) -> np.ndarray:
+        """Board-frame corners ``(N,4,3)`` of the given marker ids (metres)."""
+        return self.corners[[self.index_of[int(i)] for i in ids]]
+
+    def face_ids(self, face: int) -> np.ndarray:
+        return self.ids[self.faces == face]
+
+    def marker_cells(self, marker_id: int) -> np.ndarray:
+        """Marker pattern as a ``(bits+2, bits+2)`` uint8 image (0 black, 255 white), row 0 at
+        the marker's top edge, including the one-cell black border."""
+        n = self.bits + 2
+        return cv2.aruco.generateImageMarker(self.aruco_dict, int(marker_id), n, borderBits=1)
+
+    def face_normal(self, face: int) -> np.ndarray:
+        """Outward unit normal of a face in the board frame."""
+        if not self.sheets:
+            return np.array([0.0, 0.0, float(face)])  # the two faces of a flat board
+        return self.T_board_face(face)[:3, 2].copy()
+
+    def to_dict(self) -> dict[str, Any]:
+        if self.sheets:
+            out: dict[str, Any] = {"name": self.name, "type": "multiface",
+                                   "dictionary": self.dictionary, "thickness": self.thickness}
+            if self.body is not None:
+                out["body"] = {"box": [list(self.body[0]), list(self.body[1])]}
+            out["faces"] = [{"board": _sheet_dict(s.board), "pose": pose_dict(s.T_board_face)}
+                            for s in self.sheets]
+            return out
+        if self.charuco is not None:
+            return {"name": self.name, "type": "charuco", "dictionary": self.dictionary,
+                    **self.charuco.to_dict(), "thickness": self.thickness,
+                    "panel": list(self.panel)}
+        out: dict[str, Any] = {
+            "name": self.name,
+            "dictionary": self.dictionary,
+            "thickness": self.thickness,
+        }
+        if self.grid is not None:
+            out["grid"] = dict(self.grid)
+        else:
+            out["corner_order"] = "detection"
+            out["markers"] = {int(i): c.tolist() for i, c in zip(self.ids, self.corners)}
+        out["panel"] = list(self.panel)
+        return out
+
+
+@dataclass(frozen=True)
+class CharucoSpec:
+    """A ChArUco board as OpenCV defines it (``cv2.aruco.CharucoBoard``): ``squares_x`` x
+    ``squares_y`` chessboard squares of ``square_length`` m, an ArUco marker of
+    ``marker_length`` m centred in every white square, ids from ``first_id`` row-major from
+    the top-left. ``inverted``: printed white-on-black (the image is inverted before detection).
+
+    Its measurements are the chessboard *saddle* corners (OpenCV's ChArUco corners, id
+    ``r * (squares_x - 1) + c`` row-major from the top-left). The pipeline's unit of
+    measurement is a quad of 4 points (a "marker"): the board's quads are all its unit squares
+    of neighbouring corners (:meth:`quads`, one chessboard square each, overlapping), and each
+    view measures with the set of them that :func:`cover_quads` picks from the corners it
+    found (on a whole board the stride-2 tiling; a few corners are in two quads)."""
+
+    squares_x: int
+    squares_y: int
+    square_length: float
+    marker_length: float
+    legacy_pattern: bool = False
+    first_id: int = 0
+    inverted: bool = False
+
+    @property
+    def n_markers(self) -> int:
+        return (self.squares_x * self.squares_y) // 2
+
+    @property
+    def height(self) -> float:
+        return self.squares_y * self.square_length
+
+    def cv_board(self, dictionary: cv2.aruco.Dictionary) -> cv2.aruco.CharucoBoard:
+        """OpenCV's board (built on demand: cv2 objects cannot be pickled to workers)."""
+        ids = np.arange(self.first_id, self.first_id + self.n_markers, dtype=np.int32)
+        b = cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_length,
+                                   self.marker_length, dictionary, ids)
+        b.setLegacyPattern(bool(self.legacy_pattern))
+        return b
+
+    def to_board_frame(self, xy_cv: np.ndarray) -> np.ndarray:
+        """OpenCV's board points (x right, y down from the top-left, m) -> the board frame
+        (origin bottom-left, y up, z out of the printed face)."""
+        p = np.asarray(xy_cv, dtype=float).reshape(-1, 3).copy()
+        p[:, 1] = self.height - p[:, 1]
+        p[:, 2] = 0.0
+        return p
+
+    def quads(self) -> np.ndarray:
+        """Saddle-corner ids ``(Q,4)`` of every unit square of the corner grid (row-major
+        from the top-left; quad ``r * (nx - 1) + c`` has corner ``(r, c)`` at its TL), TL,
+        TR, BR, BL as seen from the front."""
+        nx, ny = self.squares_x - 1, self.squares_y - 1
+        return np.array([[r * nx + c, r * nx + c + 1, (r + 1) * nx + c + 1, (r + 1) * nx + c]
+                         for r in range(ny - 1) for c in range(nx - 1)], dtype=int)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "squares_x": self.squares_x,
+            "squares_y": self.squares_y,
+            "square_length": self.square_length,
+            "marker_length": self.marker_length,
+            "legacy_pattern": self.legacy_pattern,
+            "first_id": self.first_id,
+            "inverted": self.inverted,
+        }
+
+
+def cover_quads(quads: np.ndarray, found: np.ndarray) -> np.ndarray:
+    """Which of ``quads`` ``(Q,4)`` (:meth:`CharucoSpec.quads`) one view measures with, given
+    the saddle-corner ids it ``found``: indices, ascending, of whole quads (all 4 corners
+    found) that use every found corner lying in any whole quad. First disjoint quads in raster
+    order (on a whole board: the stride-2 tiling), then, while a found corner in a whole quad is
+    unused, the whole quad with the most unused corners (the first of them), which overlaps
+    quads already taken: their shared corners are used twice or more (slightly optimistic
+    covariances; each quad taken adds a corner, so there are never more quads than corners).
+    A corner in no whole quad (e.g. a lone row of corners at the image edge) is not used: the
+    measurement unit is 4 points."""
+    have = np.zeros(int(quads.max()) + 1 if len(quads) else 0, dtype=bool)
+    f = np.asarray(found, dtype=int).reshape(-1)
+    have[f[(f >= 0) & (f < have.size)]] = True
+    whole = np.nonzero(have[quads].all(axis=1))[0] if len(quads) else np.zeros(0, int)
+    used = np.zeros_like(have)
+    chosen = []
+    for i in whole:
+        if not used[quads[i]].any():
+            chosen.append(int(i))
+            used[quads[i]] = True
+    while whole.size:
+        new = (~used[quads[whole]]).sum(axis=1)
+        best = int(np.argmax(new))  # the first of the most
+        if new[best] == 0:
+            break
+        chosen.append(int(whole[best]))
+        used[quads[whole[best]]] = True
+    return np.array(sorted(chosen), dtype=int)
+
+
+def charuco_markers(spec: CharucoSpec, dictionary: str) -> tuple[np.ndarray, np.ndarray]:
+    """The printed ArUco markers: ids ``(K,)`` and corners ``(K,4,3)`` in the board frame (m),
+    TL, TR, BR, BL as seen from the front (what the renderer draws, not measurements)."""
+    b = spec.cv_board(aruco_dictionary(dictionary))
+    corners = np.array([spec.to_board_frame(c) for c in b.getObjPoints()])
+    return np.asarray(b.getIds(), dtype=int).reshape(-1), corners
+
+
+def printed_markers(board: Board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ArUco markers printed on ``board``: ids ``(K,)``, corners ``(K,4,3)`` (board frame,
+    m, TL TR BR BL) and faces ``(K,)``; a ChArUco board's are its markers (one face), not the
+    saddle-corner quads it measures with."""
+    if board.sheets:
+        parts = [(s, *printed_markers(s.board)) for s in board.sheets]
+        ids = np.concatenate([p[1] for p in parts])
+        corners = np.concatenate([s.to_board(c) for s, _, c, _ in parts])
+        faces = np.concatenate([np.full(len(i), s.label) for s, i, _, _ in parts])
+        return ids, corners, faces
+    if board.charuco is None:
+        return board.ids, board.corners, board.faces
+    ids, corners = charuco_markers(board.charuco, board.dictionary)
+    return ids, corners, np.full(len(ids), FRONT)
+
+
+def marker_board(board: Board) -> Board:
+    """An ArUco :class:`Board` of the markers ``board`` prints (a ChArUco board's own markers
+    instead of its saddle-corner quads; an ArUco board itself): to measure the marker corners
+    of a ChArUco board against its saddle corners (``tools/real_corner_bias.py``). Detect on
+    the inverted image when ``board.charuco.inverted``."""
+    if board.charuco is None:
+        return board
+    ids, corners, faces = printed_markers(board)
+    return Board(board.dictionary, ids, corners, faces, board.thickness, board.panel,
+                 f"{board.name}_markers", None, board.source)
+
+
+def charuco_saddles(spec: CharucoSpec, dictionary: str) -> np.ndarray:
+    """The saddle corners ``(C,3)`` in the board frame (m), in OpenCV's ChArUco corner order."""
+    b = spec.cv_board(aruco_dictionary(dictionary))
+    return spec.to_board_frame(b.getChessboardCorners())
+
+
+def charuco_black_squares(spec: CharucoSpec, dictionary: str) -> np.ndarray:
+    """``(squares_y, squares_x)`` bool, True where a square is printed black (row 0 at the
+    top): every square without a marker (before ``inverted``)."""
+    ids, corners = charuco_markers(spec, dictionary)
+    black = np.ones((spec.squares_y, spec.squares_x), dtype=bool)
+    centre = corners.mean(axis=1)
+    cols = np.floor(centre[:, 0] / spec.square_length).astype(int)
+    rows = np.floor((spec.height - centre[:, 1]) / spec.square_length).astype(int)
+    black[rows, cols] = False
+    return black
+
+
+def board_from_charuco(
+    dictionary: str,
+    spec: CharucoSpec,
+    panel: tuple[float, float, float, float] | None = None,
+    margin: float | None = None,
+    name: str = "charuco",
+    source: Path | None = None,
+    thickness: float = 0.003,
+) -> Board:
+    """A one-faced ChArUco :class:`Board`: its "markers" are the saddle-corner quads of
+    :meth:`CharucoSpec.quads` (ids 0..Q-1), the panel the chessboard plus ``margin`` (default
+    half a square) unless given. ``thickness`` (m) is the panel's (the renderer and the depth
+    stage use it; no marker is on the back)."""
+    saddles = charuco_saddles(spec, dictionary)
+    quads = spec.quads()
+    if panel is None:
+        m = spec.square_length / 2 if margin is None else margin
+        panel = (-m, spec.squares_x * spec.square_length + m, -m, spec.height + m)
+    return Board(dictionary, np.arange(len(quads)), saddles[quads], np.ones(len(quads), int),
+                 thickness, tuple(map(float, panel)), name, None, source, spec)
+
+
+def grid_corners(
+    rows: int, cols: int, length: float, sep: float, first_id: int, face: int, thickness: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Markers of one printed sheet: ids row-major from the sheet's top-left as printed.
+
+    The front sheet is seen from +z, so its column 0 sits at x = 0. The back sheet is printed
+    the same way and glued on the back, so seen from the back (from -z) its column 0 sits at
+    the board's largest x, and "right" on the sheet is -x in the board frame.
+    """
+    pitch = length + sep
+    width = cols * length + (cols - 1) * sep
+    height = rows * length + (rows - 1) * sep
+    ids, corners = [], []
+    for r in range(rows):
+        for c in range(cols):
+            top = height - r * pitch
+            if face == FRONT:
+                left, right = c * pitch, c * pitch + length
+                z = 0.0
+            else:
+                left, right = width - c * pitch, width - c * pitch - length
+                z = -thickness
+            tl = (left, top, z)
+            tr = (right, top, z)
+            br = (right, top - length, z)
+            bl = (left, top - length, z)
+            ids.append(first_id + r * cols + c)
+            corners.append((tl, tr, br, bl))
+    return np.asarray(ids, dtype=int), np.asarray(corners, dtype=float)
+
+
+def winding_sign(corners: np.ndarray, face: int) -> float:
+    """+1 when a marker's corners are in detection order seen from outside ``face``.
+
+    Seen from outside a face the camera looks along the inward normal; image x (TL->TR) cross
+    image y (TL->BL) is the viewing direction, so it must oppose the outward normal."""
+    c = np.asarray(corners, dtype=float)
+    n = np.cross(c[1] - c[0], c[3] - c[0])
+    return float(-np.sign(n[2] * face))
+
+
+def _number(value: Any, where: str, positive: bool = True, allow_zero: bool = False) -> float:
+    try:
+        ok = (not isinstance(value, bool) and isinstance(value, (int, float))
+              and math.isfinite(float(value)))
+    except OverflowError:
+        ok = False
+    if not ok:
+        raise BoardError(f"{where}: expected a finite number, got {str(value)[:40]!r}")
+    if positive and (value < 0 or (value == 0 and not allow_zero)):
+        raise BoardError(f"{where}: must be positive, got {value!r}")
+    return float(value)
+
+
+def _int(value: Any, where: str, minimum: int = 0) -> int:
+    if (isinstance(value, bool) or not isinstance(value, int) or value < minimum
+            or value >= 2**31):
+        raise BoardError(f"{where}: expected a whole number >= {minimum}, got "
+                         f"{str(value)[:40]!r}")
+    return int(value)
+
+
+MAX_LISTED_IDS = 10  # a one-line error lists at most this many ids
+
+
+def id_list(ids, total: int | None = None) -> str:
+    """``[1, 2, 3]``, or the first :data:`MAX_LISTED_IDS` and ``(N in all)`` for a long list
+    (``total`` when the ids given are only the first ones)."""
+    ids = [int(i) for i in ids]
+    total = len(ids) if total is None else total
+    if total <= MAX_LISTED_IDS:
+        return str(ids)
+    return f"[{', '.join(map(str, ids[:MAX_LISTED_IDS]))}, ...] ({total} in all)"
+
+
+def validate_markers(
+    ids: np.ndarray,
+    corners: np.ndarray,
+    thickness: float,
+    dict_size: int,
+    where: str,
+    fix_winding: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Check ids and marker geometry; return ``(corners, faces)`` (corners fixed if asked).
+
+    Raises BoardError naming the offending markers: duplicate ids, ids outside the dictionary,
+    markers off both face planes, non-planar or non-square markers, mirrored winding."""
+    uniq, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        raise BoardError(
+            f"{where}: duplicate marker id(s) {id_list(uniq[counts > 1])}; give each marker its "
+            "own id (grid: front_first_id and back_first_id must not overlap)"
+        )
+    bad = ids[(ids < 0) | (ids >= dict_size)]
+    if bad.size:
+        raise BoardError(
+            f"{where}: marker id(s) {id_list(bad)} outside the dictionary "
+            f"(ids 0..{dict_size - 1}); use a larger dictionary or fix the ids"
+        )
+    z = corners[:, :, 2]
+    faces = np.where(
+        np.all(np.abs(z) <= PLANE_TOL_M, axis=1),
+        FRONT,
+        np.where(np.all(np.abs(z + thickness) <= PLANE_TOL_M, axis=1), BACK, 0),
+    )
+    off = ids[faces == 0]
+    if off.size:
+        raise BoardError(
+            f"{where}: marker(s) {id_list(off)} are not planar on the front face (z = 0) or the "
+            f"back face (z = -{thickness}); check their z coordinates and the thickness"
+        )
+    sides = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=-1)
+    diag = np.linalg.norm(corners[:, [0, 1]] - corners[:, [2, 3]], axis=-1)
+    side_ref = sides.mean(axis=1, keepdims=True)
+    not_square = (np.abs(sides - side_ref) > SQUARE_TOL * side_ref).any(axis=1) | (
+        np.abs(diag[:, 0] - diag[:, 1]) > SQUARE_TOL * side_ref[:, 0]
+    )
+    if np.any(not_square):
+        raise BoardError(
+            f"{where}: marker(s) {id_list(ids[not_square])} are not squares; "
+            "list the 4 corners of each marker in order around the square"
+        )
+    signs = np.array([winding_sign(c, f) for c, f in zip(corners, faces)])
+    mirrored = signs < 0
+    if np.any(mirrored):
+        if not fix_winding:
+            raise BoardError(
+                f"{where}: marker(s) {id_list(ids[mirrored])} are listed mirrored for their face "
+                "(e.g. back-face corners in front-face order, as in the thesis Table 4.2); "
+                "list corners TL,TR,BR,BL as seen from outside the face, or set "
+                "corner_order: front / pass --fix-winding"
+            )
+        corners = corners.copy()
+        corners[mirrored] = corners[mirrored][:, [1, 0, 3, 2]]
+    return corners, faces
+
+
+def board_from_grid(
+    dictionary: str,
+    rows: int,
+    cols: int,
+    marker_length: float,
+    separation: float,
+    thickness: float,
+    front_first_id: int,
+    back_first_id: int | None,
+    margin: float | None = None,
+    panel: tuple[float, float, float, float] | None = None,
+    name: str = "board",
+    where: str = "board",
+) -> Board:
+    """Build a (double-sided unless ``back_first_id`` is None) grid board."""
+    ids, corners = grid_corners(
+        rows, cols, marker_length, separation, front_first_id, FRONT, thickness
+    )
+    if back_first_id is not None:
+        ids_b, corners_b = grid_corners(
+            rows, cols, marker_length, separation, back_first_id, BACK, thickness
+        )
+        ids = np.concatenate([ids, ids_b])
+        corners = np.concatenate([corners, corners_b])
+    d = aruco_dictionary(dictionary)
+    corners, faces = validate_markers(ids, corners, thickness, d.bytesList.shape[0], where)
+    if panel is None:
+        m = separation if margin is None else margin
+        w = cols * marker_length + (cols - 1) * separation
+        h = rows * marker_length + (rows - 1) * separation
+        panel = (-m, w + m, -m, h + m)
+    grid = {
+        "rows": rows,
+        "cols": cols,
+        "marker_length": marker_length,
+        "separation": separation,
+        "front_first_id": front_first_id,
+        "back_first_id": back_first_id,
+    }
+    return Board(dictionary, ids, corners, faces, thickness, tuple(map(float, panel)), name, grid)
+
+
+_TOP_KEYS = {
+    "name",
+    "dictionary",
+    "thickness",
+    "grid",
+    "markers",
+    "corner_order",
+    "panel",
+    "margin",
+    "type",
+}
+_CHARUCO_KEYS = {
+    "name", "type", "dictionary", "squares_x", "squares_y", "square_length", "marker_length",
+    "legacy_pattern", "first_id", "inverted", "panel", "margin", "thickness",
+}
+_GRID_KEYS = {"rows", "cols", "marker_length", "separation", "front_first_id", "back_first_id"}
+
+
+def _check_grid_fits(
+    rows: int,
+    cols: int,
+    front_first_id: int,
+    back_first_id: int | None,
+    dictionary: str,
+    dict_size: int,
+    where: str,
+) -> None:
+    """Reject a grid with more markers than its dictionary has ids, or ids beyond it, before
+    it is built marker by marker (a 100000 x 100000 grid would exhaust memory)."""
+    per_face = rows * cols
+    firsts = [front_first_id] + ([] if back_first_id is None else [back_first_id])
+    if per_face * len(firsts) > dict_size:
+        faces = " on each of 2 faces" if len(firsts) == 2 else ""
+        raise BoardError(
+            f"{where}: grid: {rows} x {cols} markers{faces} ({per_face * len(firsts)} in all) but "
+            f"{dictionary} has only {dict_size} ids; use a larger dictionary or a smaller grid"
+        )
+    outside = [range(max(first, dict_size), first + per_face) for first in firsts]
+    total = sum(len(r) for r in outside)
+    if total:
+        shown = [i for r in outside for i in r[:MAX_LISTED_IDS]][:MAX_LISTED_IDS]
+        raise BoardError(
+            f"{where}: marker id(s) {id_list(shown, total)} outside the dictionary "
+            f"(ids 0..{dict_size - 1}); use a larger dictionary or fix the ids"
+        )
+
+
+def load_board(path: Path, fix_winding: bool = False) -> Board:
+    """Load a board YAML in grid form or explicit form (see configs/board_thesis*.yaml).
+
+    ``fix_winding`` (or ``corner_order: front`` in the file) reorders mirrored markers instead
+    of rejecting them."""
+    path = Path(path)
+    where = str(path)
+    raw = _read_raw_mapping(path)
+    return _board_from_mapping(raw, path, where, fix_winding)
+
+
+def _board_from_mapping(raw: dict, path: Path, where: str, fix_winding: bool = False) -> Board:
+    """The board of a board file's top-level mapping (any ``type``)."""
+    if raw.get("type", "aruco") == "charuco":
+        return _load_charuco(raw, path, where)
+    if raw.get("type", "aruco") == "multiface":
+        return _load_multiface(raw, path, where)
+    if raw.get("type", "aruco") != "aruco":
+        raise BoardError(f"{where}: type must be 'aruco' (default) or 'charuco' for one board, "
+                         f"or 'multiface' for several faces; got {str(raw['type'])[:40]!r}")
+    data = _check_board_mapping(raw, where)
+    # the keys both forms share
+    dictionary = str(data["dictionary"])
+    try:
+        d = aruco_dictionary(dictionary)
+    except BoardError as exc:
+        raise BoardError(f"{where}: {exc}") from None
+    n_dict = d.bytesList.shape[0]
+    thickness = _number(data["thickness"], f"{where}: thickness", allow_zero=True)
+    name = str(data.get("name", path.stem))
+    panel = _panel(data.get("panel"), where)
+    # the form-specific part
+    if "grid" in data:
+        return _board_from_grid_form(data, dictionary, n_dict, thickness, panel, name, path, where)
+    return _board_from_explicit_form(
+        data, dictionary, n_dict, thickness, panel, name, path, where, fix_winding
+    )
+
+
+def _read_raw_mapping(path: Path) -> dict:
+    """The board file's top-level mapping, unchecked (a BoardError when it is not one)."""
+    try:
+        return read_yaml_mapping(path, "board file")
+    except BoardError:
+        raise
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+
+
+def _bool(value: Any, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise BoardError(f"{where}: expected true or false, got {str(value)[:40]!r}")
+    return value
+
+
+def _load_charuco(data: dict, path: Path, where: str) -> Board:
+    """A ``type: charuco`` board file (docs/formats.md): every key checked, one line per
+    mistake naming the file, the key and the fix."""
+    try:
+        check_keys(data, _CHARUCO_KEYS, where, required=(
+            "dictionary", "squares_x", "squares_y", "square_length", "marker_length"))
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    dictionary = str(data["dictionary"])
+    try:
+        d = aruco_dictionary(dictionary)
+    except BoardError as exc:
+        raise BoardError(f"{where}: dictionary: {exc}") from None
+    spec = CharucoSpec(
+        _int(data["squares_x"], f"{where}: squares_x", 3),
+        _int(data["squares_y"], f"{where}: squares_y", 3),
+        _number(data["square_length"], f"{where}: square_length"),
+        _number(data["marker_length"], f"{where}: marker_length"),
+        _bool(data.get("legacy_pattern", False), f"{where}: legacy_pattern"),
+        _int(data.get("first_id", 0), f"{where}: first_id"),
+        _bool(data.get("inverted", False), f"{where}: inverted"),
+    )
+    if spec.marker_length >= spec.square_length:
+        raise BoardError(
+            f"{where}: marker_length ({spec.marker_length}) must be smaller than square_length "
+            f"({spec.square_length}); both in metres, the marker sits inside a white square")
+    n_dict = d.bytesList.shape[0]
+    if spec.first_id + spec.n_markers > n_dict:
+        raise BoardError(
+            f"{where}: first_id {spec.first_id} + {spec.n_markers} markers exceeds {dictionary} "
+            f"({n_dict} ids); use a larger dictionary or a smaller first_id")
+    if spec.squares_x * spec.squares_y > 10000:
+        raise BoardError(f"{where}: squares_x x squares_y is more than 10000 squares; "
+                         "check squares_x and squares_y")
+    margin = data.get("margin")
+    margin = None if margin is None else _number(margin, f"{where}: margin", allow_zero=True)
+    thickness = _number(data.get("thickness", 0.003), f"{where}: thickness")
+    return board_from_charuco(dictionary, spec, _panel(data.get("panel"), where), margin,
+                              str(data.get("name", path.stem)), path, thickness)
+
+
+def _check_board_mapping(data: dict, where: str) -> dict:
+    """An ArUco board file's top-level mapping: known keys only, the required ones present,
+    and exactly one of the grid and explicit forms (every failure a BoardError)."""
+    try:
+        check_keys(data, _TOP_KEYS, where, required=("dictionary", "thickness"))
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    if ("grid" in data) == ("markers" in data):
+        raise BoardError(
+            f"{where}: give exactly one of 'grid' (grid form) or 'markers' (explicit form)"
+        )
+    return data
+
+
+def _panel(panel: Any, where: str) -> tuple[float, float, float, float] | None:
+    """The optional ``panel`` key: ``[xmin, xmax, ymin, ymax]`` in metres, min < max."""
+    if panel is None:
+        return None
+    if not (isinstance(panel, list) and len(panel) == 4):
+        raise BoardError(f"{where}: panel must be [xmin, xmax, ymin, ymax] in metres")
+    panel = tuple(_number(v, f"{where}: panel", positive=False) for v in panel)
+    if panel[0] >= panel[1] or panel[2] >= panel[3]:
+        raise BoardError(f"{where}: panel must be [xmin, xmax, ymin, ymax] with min < max")
+    return panel
+
+
+def _board_from_grid_form(
+    data: dict,
+    dictionary: str,
+    n_dict: int,
+    thickness: float,
+    panel: tuple[float, float, float, float] | None,
+    name: str,
+    path: Path,
+    where: str,
+) -> Board:
+    """The board of a grid-form file (the ``grid`` mapping and the optional ``margin``, m);
+    ``n_dict`` is the dictionary's marker count."""
+    g = data["grid"]
+    if not isinstance(g, dict):
+        raise BoardError(f"{where}: grid must be a mapping")
+    try:
+        check_keys(
+            g,
+            _GRID_KEYS,
+            f"{where}: grid",
+            required=("rows", "cols", "marker_length", "separation", "front_first_id"),
+        )
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    back = g.get("back_first_id")
+    margin = data.get("margin")
+    rows = _int(g["rows"], f"{where}: grid.rows", 1)
+    cols = _int(g["cols"], f"{where}: grid.cols", 1)
+    front_id = _int(g["front_first_id"], f"{where}: grid.front_first_id")
+    back_id = None if back is None else _int(back, f"{where}: grid.back_first_id")
+    _check_grid_fits(rows, cols, front_id, back_id, dictionary, n_dict, where)
+    board = board_from_grid(
+        dictionary,
+        rows,
+        cols,
+        _number(g["marker_length"], f"{where}: grid.marker_length"),
+        _number(g["separation"], f"{where}: grid.separation", allow_zero=True),
+        thickness,
+        front_id,
+        back_id,
+        None if margin is None else _number(margin, f"{where}: margin", allow_zero=True),
+        panel,
+        name,
+        where,
+    )
+    return Board(
+        board.dictionary,
+        board.ids,
+        board.corners,
+        board.faces,
+        board.thickness,
+        board.panel,
+        board.name,
+        board.grid,
+        path,
+    )  # (an ArUco board: charuco stays None)
+
+
+def _board_from_explicit_form(
+    data: dict,
+    dictionary: str,
+    n_dict: int,
+    thickness: float,
+    panel: tuple[float, float, float, float] | None,
+    name: str,
+    path: Path,
+    where: str,
+    fix_winding: bool,
+) -> Board:
+    """The board of an explicit-form file (``markers``: id -> 4 corners in metres, the
+    optional ``corner_order`` and ``margin``); faces and winding checked by
+    :func:`validate_markers`, the panel defaulting to the corners' extent plus the margin."""
+    order = data.get("corner_order", "detection")
+    if order not in ("detection", "front"):
+        raise BoardError(f"{where}: corner_order must be 'detection' or 'front', got {order!r}")
+    ids_a, corners_a = _explicit_markers(data["markers"], where)
+    corners_a, faces = validate_markers(
+        ids_a,
+        corners_a,
+        thickness,
+        n_dict,
+        where,
+        fix_winding=fix_winding or order == "front",
+    )
+    if panel is None:
+        m = _number(data.get("margin", 0.0) or 0.0, f"{where}: margin", allow_zero=True)
+        lo = corners_a.reshape(-1, 3).min(axis=0)
+        hi = corners_a.reshape(-1, 3).max(axis=0)
+        panel = (lo[0] - m, hi[0] + m, lo[1] - m, hi[1] + m)
+    return Board(
+        dictionary, ids_a, corners_a, faces, thickness, tuple(map(float, panel)), name, None, path
+    )
+
+
+def _explicit_markers(markers: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """The ``markers`` mapping as ids ``(N,)`` and corners ``(N,4,3)`` (m, file order):
+    whole-number ids in [0, 2^31), four finite 3-D corners each."""
+    if not isinstance(markers, dict) or not markers:
+        raise BoardError(
+            f"{where}: markers must map marker id -> 4 corners [[x,y,z], ...]; use the form of "
+            "configs/board_thesis_table42.yaml"
+        )
+    ids, corners = [], []
+    for key, value in markers.items():
+        try:
+            if isinstance(key, bool) or (isinstance(key, float) and not key.is_integer()):
+                raise ValueError("not a whole number")
+            mid = int(key)
+            if not 0 <= mid < 2**31:
+                raise ValueError("id out of range")
+            c = np.asarray(value, dtype=float)
+        except (TypeError, ValueError, OverflowError):
+            raise BoardError(
+                f"{where}: marker {key!r}: expected an integer id and 4 corners of 3 numbers"
+            ) from None
+        if c.shape != (4, 3) or not np.all(np.isfinite(c)):
+            raise BoardError(
+                f"{where}: marker {key}: expected 4 corners of 3 finite numbers, "
+                f"got shape {c.shape}"
+            )
+        ids.append(mid)
+        corners.append(c)
+    return np.asarray(ids, dtype=int), np.asarray(corners, dtype=float)
+
+
+def save_board(board: Board, path: Path) -> None:
+    write_yaml(path, board.to_dict())
+
+
+def refined_board(board: Board, T_front_back: np.ndarray) -> Board:
+    """``board`` with its back sheet where ``T_front_back`` (4x4, metres, board frame) puts it:
+    each back-face corner ``p`` becomes ``T_front_back p`` (the bundle adjustment's board
+    self-calibration). The grid form cannot express a shifted or rotated back sheet, so the
+    result is in the explicit form (every corner listed; :func:`save_board` writes it, and
+    :func:`load_board` reads it back). The thickness becomes the mean depth of the moved back
+    corners, which are put exactly on that plane (the tilts of the sheet are held at zero)."""
+    T = np.asarray(T_front_back, dtype=float)
+    corners = board.corners.copy()
+    back = board.faces == BACK
+    moved = corners[back].reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+    thickness = board.thickness
+    if len(moved):
+        thickness = float(-moved[:, 2].mean())
+        moved[:, 2] = -thickness
+        corners[back] = moved.reshape(-1, 4, 3)
+    return Board(board.dictionary, board.ids.copy(), corners, board.faces.copy(), thickness,
+                 board.panel, board.name, None)
+
+
+def thesis_board() -> Board:
+    """The seed thesis's board (configs/board_thesis.yaml), built in code for defaults."""
+    return board_from_grid("DICT_4X4_100", 4, 7, 0.04, 0.02, 0.0066, 0, 28,
+                           panel=(-0.01, 0.41, -0.0385, 0.2585), name="thesis")
+
+
+# ------------------------------------------------------------------------ multi-face targets
+_MULTIFACE_KEYS = {"name", "type", "dictionary", "thickness", "faces", "body"}
+_FACE_KEYS = {"board", "pose"}
+_POSE_KEYS = {"rotation_deg", "translation_m"}
+
+
+def pose_dict(T_board_face: np.ndarray) -> dict[str, list[float]]:
+    """A face pose as the board file writes it: ``rotation_deg`` (rotation vector, axis times
+    angle in degrees) and ``translation_m``."""
+    T = np.asarray(T_board_face, dtype=float)
+    return {"rotation_deg": [float(v) for v in np.degrees(matrix_to_rotvec(T[:3, :3]))],
+            "translation_m": [float(v) for v in T[:3, 3]]}
+
+
+def _sheet_dict(sheet: Board) -> dict[str, Any]:
+    """A face's single-face board as its ``board:`` mapping (no name, thickness or type
+    repeated where the target gives them)."""
+    out = sheet.to_dict()
+    out.pop("name", None)
+    out.pop("thickness", None)
+    if sheet.charuco is None and out.get("grid") is not None:
+        out["grid"] = {k: v for k, v in out["grid"].items() if v is not None}
+    return out
+
+
+def _vector3(value: Any, where: str) -> np.ndarray:
+    if not (isinstance(value, list) and len(value) == 3):
+        raise BoardError(f"{where}: expected 3 numbers [x, y, z]")
+    return np.array([_number(v, where, positive=False) for v in value])
+
+
+def _face_pose(value: Any, where: str) -> np.ndarray:
+    """A face's ``pose`` mapping: ``rotation_deg`` (rotation vector, degrees; default none)
+    and ``translation_m`` (default zeros): ``T_board_face``."""
+    if value is None:
+        return np.eye(4)
+    if not isinstance(value, dict):
+        raise BoardError(f"{where}: expected a mapping with rotation_deg: [rx, ry, rz] (rotation "
+                         "vector, degrees) and translation_m: [x, y, z]")
+    try:
+        check_keys(value, _POSE_KEYS, where)
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    rot = _vector3(value.get("rotation_deg", [0, 0, 0]), f"{where}.rotation_deg")
+    t = _vector3(value.get("translation_m", [0, 0, 0]), f"{where}.translation_m")
+    return make_transform(rotvec_to_matrix(np.radians(rot)), t)
+
+
+def _load_multiface(data: dict, path: Path, where: str) -> Board:
+    """A ``type: multiface`` board file (docs/formats.md): each face a single-face ArUco grid
+    (or explicit markers) or ChArUco board at a pose; the target's ``dictionary`` and
+    ``thickness`` are the faces' defaults. Every mistake one line naming the file, the face
+    and the fix: a face with markers on its back, another dictionary, marker ids used twice
+    over the target, faces crossing each other."""
+    try:
+        check_keys(data, _MULTIFACE_KEYS, where, required=("faces",))
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    faces = data["faces"]
+    if not isinstance(faces, list) or not faces:
+        raise BoardError(f"{where}: faces must be a list of {{board: ..., pose: ...}}, one per "
+                         "face; see configs/board_cube.yaml")
+    dictionary = data.get("dictionary")
+    thickness = _number(data.get("thickness", 0.003), f"{where}: thickness")
+    sheets = []
+    for k, face in enumerate(faces):
+        fwhere = f"{where}: faces[{k}]"
+        if not isinstance(face, dict):
+            raise BoardError(f"{fwhere}: expected a mapping {{board: ..., pose: ...}}")
+        try:
+            check_keys(face, _FACE_KEYS, fwhere, required=("board",))
+        except ConfigError as exc:
+            raise BoardError(str(exc)) from None
+        sheet = _face_board(face["board"], path, fwhere, dictionary, thickness)
+        if dictionary is None:
+            dictionary = sheet.dictionary
+        if sheet.dictionary != dictionary:
+            raise BoardError(f"{fwhere}: dictionary {sheet.dictionary} differs from the "
+                             f"target's {dictionary}; one dictionary for every face")
+        T = _face_pose(face.get("pose"), f"{fwhere}.pose")
+        offset = CHARUCO_ID_BASE * (k + 1) if sheet.charuco is not None else 0
+        sheets.append(FaceSheet(k + 1, sheet, T, offset))
+    return multiface_board(str(dictionary), sheets, thickness, str(data.get("name", path.stem)),
+                           _body(data.get("body"), where), path, where)
+
+
+def _face_board(value: Any, path: Path, where: str, dictionary: str | None,
+                thickness: float) -> Board:
+    """A face's ``board``: a mapping in a single-face board file's form, or the path of such a
+    file (relative to the target's file); the target's dictionary and thickness fill in."""
+    if isinstance(value, str):
+        sub = (path.parent / value) if not Path(value).is_absolute() else Path(value)
+        return _face_board(_read_raw_mapping(sub), sub, f"{where} ({sub})", dictionary,
+                           thickness)
+    if not isinstance(value, dict):
+        raise BoardError(f"{where}.board: expected a board mapping (grid or ChArUco form) or "
+                         "the path of a single-face board file")
+    raw = dict(value)
+    if raw.get("type") == "multiface":
+        raise BoardError(f"{where}.board: a face cannot itself be a multiface target")
+    if dictionary is not None:
+        raw.setdefault("dictionary", dictionary)
+    if raw.get("type", "aruco") == "aruco":
+        raw.setdefault("thickness", thickness)
+        if isinstance(raw.get("grid"), dict) and raw["grid"].get("back_first_id") is not None:
+            raise BoardError(f"{where}.board: grid.back_first_id: a face is one sheet; give "
+                             "the back sheet as a face of its own with its pose")
+    sheet = _board_from_mapping(raw, path, f"{where}.board")
+    if np.any(sheet.faces != FRONT):
+        raise BoardError(f"{where}.board: markers off the sheet's z = 0 plane; a face is one "
+                         "sheet: list its markers at z = 0 and give the face a pose")
+    return sheet
+
+
+def _body(value: Any, where: str):
+    """The optional ``body: {box: [[x0, y0, z0], [x1, y1, z1]]}`` (m, board frame): the solid
+    the faces are mounted on (rendered and masked like the faces)."""
+    if value is None:
+        return None
+    if not (isinstance(value, dict) and set(value) == {"box"} and isinstance(value["box"], list)
+            and len(value["box"]) == 2):
+        raise BoardError(f"{where}: body must be {{box: [[x0, y0, z0], [x1, y1, z1]]}} "
+                         "(metres, board frame)")
+    lo = _vector3(value["box"][0], f"{where}: body.box[0]")
+    hi = _vector3(value["box"][1], f"{where}: body.box[1]")
+    if np.any(lo >= hi):
+        raise BoardError(f"{where}: body.box must be [[x0, y0, z0], [x1, y1, z1]] with "
+                         "x0 < x1, y0 < y1, z0 < z1")
+    return tuple(map(float, lo)), tuple(map(float, hi))
+
+
+def sheet_panel_corners(sheet: FaceSheet) -> np.ndarray:
+    """The four panel corners ``(4,3)`` of a face in the board frame (m)."""
+    x0, x1, y0, y1 = sheet.board.panel
+    local = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    return transform_points(sheet.T_board_face, local)
+
+
+def _crossing(a: FaceSheet, b: FaceSheet, tol: float = FACE_CROSS_TOL_M) -> bool:
+    """True when face ``b``'s panel passes through face ``a``'s panel: ``b`` has corners more
+    than ``tol`` on both sides of ``a``'s plane and the line where it crosses that plane runs
+    more than ``tol`` inside ``a``'s panel (faces meeting at an edge, as on a cube, do not)."""
+    local = transform_points(np.linalg.inv(a.T_board_face), sheet_panel_corners(b))
+    z = local[:, 2]
+    if not (z.max() > tol and z.min() < -tol):
+        return False
+    pts = []
+    for i in range(4):
+        p, q = local[i], local[(i + 1) % 4]
+        if (p[2] > 0) != (q[2] > 0):
+            pts.append(p + (q - p) * (p[2] / (p[2] - q[2])))
+    if len(pts) < 2:
+        return False
+    p, q = pts[0][:2], pts[1][:2]
+    x0, x1, y0, y1 = a.board.panel
+    lo, hi = np.array([x0 + tol, y0 + tol]), np.array([x1 - tol, y1 - tol])
+    # clip the segment p + s (q - p), s in [0, 1], to the shrunk panel (Liang-Barsky)
+    d, s0, s1 = q - p, 0.0, 1.0
+    for k in range(2):
+        if abs(d[k]) < 1e-15:
+            if p[k] < lo[k] or p[k] > hi[k]:
+                return False
+            continue
+        ta, tb = (lo[k] - p[k]) / d[k], (hi[k] - p[k]) / d[k]
+        s0, s1 = max(s0, min(ta, tb)), min(s1, max(ta, tb))
+    return s1 - s0 > 0 and (s1 - s0) * float(np.linalg.norm(d)) > tol
+
+
+def multiface_board(dictionary: str, sheets: list[FaceSheet], thickness: float = 0.003,
+                    name: str = "multiface", body=None, source: Path | None = None,
+                    where: str = "board") -> Board:
+    """A multi-face target from its faces (:class:`FaceSheet`, labels 1..F): the measurement
+    ids (ArUco markers as they are, ChArUco quads shifted by the face's ``id_offset``) and
+    corners in the board frame. Raises BoardError for printed marker ids used on two faces
+    and for faces crossing each other."""
+    sheets = list(sheets)
+    printed = [(s, printed_markers(s.board)[0]) for s in sheets]
+    seen: dict[int, int] = {}
+    for s, ids in printed:
+        for i in ids.tolist():
+            if i in seen:
+                raise BoardError(
+                    f"{where}: marker id {i} is printed on faces[{seen[i] - 1}] and "
+                    f"faces[{s.label - 1}]; ids must be unique over the target: give the faces "
+                    "first ids (front_first_id / first_id) that do not overlap")
+            seen[i] = s.label
+    for i, a in enumerate(sheets):
+        for b in sheets[i + 1:]:
+            if _crossing(a, b) or _crossing(b, a):
+                raise BoardError(
+                    f"{where}: faces[{a.label - 1}] and faces[{b.label - 1}] pass through each "
+                    "other; check their pose (rotation_deg, translation_m) and panels: faces may "
+                    "meet at an edge but not cross")
+    ids = np.concatenate([s.board.ids + s.id_offset for s in sheets]).astype(int)
+    corners = np.concatenate([s.to_board(s.board.corners) for s in sheets])
+    faces = np.concatenate([np.full(len(s.board.ids), s.label) for s in sheets]).astype(int)
+    xy = np.concatenate([sheet_panel_corners(s) for s in sheets])
+    panel = (float(xy[:, 0].min()), float(xy[:, 0].max()),
+             float(xy[:, 1].min()), float(xy[:, 1].max()))
+    return Board(dictionary, ids, corners, faces, float(thickness), panel, name, None, source,
+                 None, tuple(sheets), body)
+
+
+def refined_multiface(board: Board, T_board_face: dict[int, np.ndarray]) -> Board:
+    """``board`` (multi-face) with its faces at the given poses (the bundle adjustment's
+    self-calibration; faces not given keep theirs): what ``board_refined.yaml`` holds."""
+    sheets = [replace(s, T_board_face=np.asarray(T_board_face.get(s.label, s.T_board_face),
+                                                 dtype=float)) for s in board.sheets]
+    return multiface_board(board.dictionary, sheets, board.thickness, board.name, board.body,
+                           None, board.name)
