@@ -39,7 +39,7 @@ _API = {
     "load_config": "core.config",
     "FolderDataset": "model.dataset",
     "Board": "model.board",
-    "load_board": "model.board",
+    "load_board": "model.board_file",
     "thesis_board": "model.board",
     "Rig": "model.rig",
     "load_rig": "model.rig",

@@ -7,7 +7,8 @@ import numpy as np
 
 from rgbd_calib.core.camera import CameraIntrinsics
 from rgbd_calib.core.geometry import make_transform, rotvec_to_matrix
-from rgbd_calib.depth import registration as D
+from rgbd_calib.depth import clouds as DC
+from rgbd_calib.depth import noise as DN
 
 INTR = CameraIntrinsics(width=320, height=180, fx=230.0, fy=230.0, cx=159.5, cy=89.5)
 NOISE_FOCAL_PX = 640.0  # depth noise of a 848x480 D435 stream (a small image, realistic noise)
@@ -34,7 +35,7 @@ BOX_SIDE = (np.array([1.2, 0.3, 0.0]), np.array([0.0, 0.4, 0.0]), np.array([0.0,
 
 
 def scene_cloud(name: str, T_world_cam: np.ndarray, rects, rng, textured: bool = True,
-                ) -> D.CameraCloud:
+                ) -> DC.CameraCloud:
     """The cloud camera ``name`` sees of ``rects``: nearest hit per pixel, D435 depth noise
     (``d435_sigma_z``), colours a smooth texture of each rectangle's coordinates."""
     vs, us = np.mgrid[0:INTR.height, 0:INTR.width]
@@ -58,11 +59,11 @@ def scene_cloud(name: str, T_world_cam: np.ndarray, rects, rng, textured: bool =
         colour[ok] = tex[ok] if textured else 0.5
     keep = np.isfinite(best)
     z = best[keep]
-    sigma = D.d435_sigma_z(z, NOISE_FOCAL_PX) * MEDIAN_GAIN
+    sigma = DN.d435_sigma_z(z, NOISE_FOCAL_PX) * MEDIAN_GAIN
     z = z + rng.normal(0.0, 1.0, z.size) * sigma
     points = rays_c[keep] * z[:, None]
-    stats = D.CloudStats(1, INTR.width * INTR.height, int(keep.sum()), 0, 0, 0, 0, 0)
-    return D.CameraCloud(
+    stats = DC.CloudStats(1, INTR.width * INTR.height, int(keep.sum()), 0, 0, 0, 0, 0)
+    return DC.CameraCloud(
         camera=name, intrinsics=INTR, points=points.astype(np.float32),
         colors=np.repeat(colour[keep, None], 3, axis=1).astype(np.float32),
         sigma_z=sigma.astype(np.float32),

@@ -98,7 +98,7 @@ def small_line(tmp_path_factory):
 def charuco_line(tmp_path_factory):
     """The ChArUco A3 board in small_line's setting (thesis-line, 1280x720, 6 frames, seed
     3, default noise: blur 0.6 px, colour noise 2 DN). About 20 s."""
-    from rgbd_calib.model.board import load_board
+    from rgbd_calib.model.board_file import load_board
 
     board = load_board(CONFIGS / "board_charuco_a3.yaml")
     return shared_render(tmp_path_factory, "charuco_line", "thesis-line", 6, 3, board).path

@@ -9,7 +9,8 @@ import yaml
 from conftest import CONFIGS
 
 from rgbd_calib.core.errors import BoardError
-from rgbd_calib.model.board import BACK, FRONT, load_board, save_board, thesis_board, winding_sign
+from rgbd_calib.model.board import BACK, FRONT, thesis_board, winding_sign
+from rgbd_calib.model.board_file import load_board, save_board
 
 TABLE = CONFIGS / "board_thesis_table42.yaml"
 
@@ -112,7 +113,7 @@ def test_bad_boards_fail_with_one_line(text, message):
 
 
 def test_explicit_form_round_trip(tmp_path):
-    from rgbd_calib.model.board import save_board
+    from rgbd_calib.model.board_file import save_board
 
     board = thesis_board()
     save_board(board, tmp_path / "b.yaml")

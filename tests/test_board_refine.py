@@ -24,13 +24,13 @@ from rgbd_calib.core.geometry import (
     transform_error,
 )
 from rgbd_calib.model.board import thesis_board
-from rgbd_calib.solve.posegraph import (
+from rgbd_calib.solve.bundle import (
+    BundleProblem,
     MarkerMeasurement,
-    _view_factor,
-    _view_factor_intrinsics,
     bundle_adjust,
     intrinsics_vector,
 )
+from rgbd_calib.solve.bundle_factors import view_factor, view_factor_intrinsics
 
 GLUE = (1.5, -1.0, 0.3)  # back sheet off by dx mm, dy mm, rot deg (as synth --glue)
 GLUE_OFFSET_TOL_MM = 0.1  # acceptance of the issue
@@ -85,7 +85,7 @@ def test_back_sheet_jacobians_match_numerical():
     """The whole factor's error against numerical differences, for every key (right
     perturbations, rotation first), with pinhole K."""
     values, P, back, measured = _factor_values(np.random.default_rng(2))
-    f = _view_factor(0, 1, K, P, measured, 1.0, "none", 3.0, moving=[(3, back, None)])
+    f = view_factor(0, 1, K, P, measured, 1.0, "none", 3.0, moving=[(3, back, None)])
     A, b = f.linearize(values).jacobian()
     e0, numerical = _numerical_jacobian(f, values, [(0, "pose", 6), (1, "pose", 6),
                                                     (3, "pose", 6)])
@@ -101,7 +101,7 @@ def test_back_sheet_with_refined_intrinsics_jacobians_match_numerical():
     intr = CameraIntrinsics(1280, 720, 600.0, 605.0, 640.0, 360.0,
                             (-0.05, 0.02, 0.001, -0.0005, 0.01))
     values.insert(2, intrinsics_vector(intr, names) * 1.002)
-    f = _view_factor_intrinsics(0, 1, 2, intr, names, P, measured, 1.0, "none", 3.0,
+    f = view_factor_intrinsics(0, 1, 2, intr, names, P, measured, 1.0, "none", 3.0,
                                 moving=[(3, back, None)])
     A, b = f.linearize(values).jacobian()
     e0, numerical = _numerical_jacobian(
@@ -146,8 +146,8 @@ def _solve(T_ref_cam, boards, meas, mode, seed=0):
     rng = np.random.default_rng(seed)
     init_cam = {c: (T if c == "c0" else perturb(T, rng)) for c, T in T_ref_cam.items()}
     init_board = {v: perturb(T, rng) for v, T in boards.items()}
-    return bundle_adjust(meas, {c: K for c in T_ref_cam}, "c0", init_cam, init_board,
-                         BundleConfig(board=mode))
+    return bundle_adjust(BundleProblem(meas, {c: K for c in T_ref_cam}, "c0", init_cam,
+                                       init_board, BundleConfig(board=mode)))
 
 
 def test_fixed_board_path_ignores_the_faces():
@@ -232,7 +232,8 @@ def test_clean_board_refine_no_worse_than_fixed():
 def test_refined_board_file_round_trip(tmp_path):
     """board_refined.yaml is the explicit form (the grid form cannot shift a back sheet):
     load_board reads back the moved back corners and the new thickness."""
-    from rgbd_calib.model.board import load_board, refined_board, save_board
+    from rgbd_calib.model.board import refined_board
+    from rgbd_calib.model.board_file import load_board, save_board
 
     board = thesis_board()
     T_fb = _glue_transform(board, 1.5, -1.0, 0.3, dz_mm=-0.4)  # 0.4 mm thicker
@@ -334,7 +335,7 @@ def test_pipeline_writes_board_refined_and_report(glued_race, tmp_path):
     board_glue finding name the offset."""
     import json
 
-    from rgbd_calib.model.board import load_board
+    from rgbd_calib.model.board_file import load_board
     from rgbd_calib.model.rig import load_rig
     from rgbd_calib.outputs.report import validate_report
     from rgbd_calib.outputs.writer import write_outputs
@@ -410,10 +411,11 @@ def test_board_and_intrinsics_refined_together():
     rng = np.random.default_rng(0)
     init_cam = {c: (T if c == "c0" else perturb(T, rng)) for c, T in T_ref_cam.items()}
     init_board = {v: perturb(T, rng) for v, T in boards.items()}
-    res = bundle_adjust(meas, {c: K for c in T_ref_cam}, "c0", init_cam, init_board,
-                        BundleConfig(board="refine", intrinsics="refine",
-                                     intrinsics_params=["fx", "fy", "cx", "cy"]),
-                        intrinsics={c: intr for c in T_ref_cam})
+    res = bundle_adjust(BundleProblem(meas, {c: K for c in T_ref_cam}, "c0", init_cam,
+                                      init_board,
+                                      BundleConfig(board="refine", intrinsics="refine",
+                                                   intrinsics_params=["fx", "fy", "cx", "cy"]),
+                                      intrinsics={c: intr for c in T_ref_cam}))
     assert set(res.intrinsics) == set(T_ref_cam)
     assert_transforms_close(res.board.T_front_back, T_fb, GLUE_OFFSET_TOL_MM,
                             GLUE_ROTATION_TOL_DEG)

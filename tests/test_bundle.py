@@ -14,7 +14,8 @@ from rgbd_calib.core.geometry import (
     transform_error,
 )
 from rgbd_calib.model.board import thesis_board
-from rgbd_calib.solve.posegraph import MarkerMeasurement, _view_factor, bundle_adjust
+from rgbd_calib.solve.bundle import BundleProblem, MarkerMeasurement, bundle_adjust
+from rgbd_calib.solve.bundle_factors import view_factor
 
 K = np.array([[600.0, 0, 640], [0, 600.0, 360], [0, 0, 1]])
 
@@ -55,7 +56,7 @@ def test_analytic_jacobians_match_numerical(rng):
     T_ref_cam, boards, meas = scene(rng, 2, 2)
     m = next(x for x in meas if x.camera == "c1")
     # the bundle's own factor, one marker, no kernel, sigma 1: residuals in pixels
-    f = _view_factor(0, 1, K, m.object_points[None], m.corners_px[None], 1.0, "none", 1.0)
+    f = view_factor(0, 1, K, m.object_points[None], m.corners_px[None], 1.0, "none", 1.0)
     values = gtsam.Values()
     values.insert(0, gtsam.Pose3(T_ref_cam["c1"]))
     values.insert(1, gtsam.Pose3(boards[m.view]))
@@ -80,8 +81,8 @@ def test_recovers_truth_with_honest_sigmas():
         T_ref_cam, boards, meas = scene(rng)
         init_cam = {c: (T if c == "c0" else perturb(T, rng)) for c, T in T_ref_cam.items()}
         init_board = {v: perturb(T, rng) for v, T in boards.items()}
-        res = bundle_adjust(meas, dict.fromkeys(T_ref_cam, K), "c0", init_cam, init_board,
-                            BundleConfig(pixel_sigma=0.5))
+        res = bundle_adjust(BundleProblem(meas, dict.fromkeys(T_ref_cam, K), "c0", init_cam,
+                                          init_board, BundleConfig(pixel_sigma=0.5)))
         assert res.pixel_sigma_estimated == pytest.approx(0.2, rel=0.1)
         for c in ("c1", "c2", "c3"):
             assert_transforms_close(res.T_ref_cam[c], T_ref_cam[c], atol_mm=0.5, atol_deg=0.05)
@@ -99,10 +100,10 @@ def test_wrong_markers_are_rejected(rng):
                                    m.corners_px + (rng.normal(0, 15, 2) if i in bad else 0),
                                    m.object_points) for i, m in enumerate(meas)]
     Ks = dict.fromkeys(T_ref_cam, K)
-    clean = bundle_adjust(meas, Ks, "c0", T_ref_cam, boards)
-    res = bundle_adjust(corrupted, Ks, "c0", T_ref_cam, boards)
-    plain = bundle_adjust(corrupted, Ks, "c0", T_ref_cam, boards,
-                          BundleConfig(robust="none", outlier_px=1e9))
+    clean = bundle_adjust(BundleProblem(meas, Ks, "c0", T_ref_cam, boards))
+    res = bundle_adjust(BundleProblem(corrupted, Ks, "c0", T_ref_cam, boards))
+    plain = bundle_adjust(BundleProblem(corrupted, Ks, "c0", T_ref_cam, boards,
+                                        BundleConfig(robust="none", outlier_px=1e9)))
     for c in ("c1", "c2", "c3"):
         # the robust result stays at the clean one; plain least squares is pulled away
         assert_transforms_close(res.T_ref_cam[c], clean.T_ref_cam[c], atol_mm=0.1,
@@ -116,6 +117,6 @@ def test_wrong_markers_are_rejected(rng):
 def test_fixed_camera_stays_put(rng):
     T_ref_cam, boards, meas = scene(rng)
     held = perturb(T_ref_cam["c2"], rng, 0.0, 0.0)
-    res = bundle_adjust(meas, dict.fromkeys(T_ref_cam, K), "c0", T_ref_cam, boards,
-                        fixed_cameras={"c2": held})
+    res = bundle_adjust(BundleProblem(meas, dict.fromkeys(T_ref_cam, K), "c0", T_ref_cam, boards,
+                                      fixed_cameras={"c2": held}))
     assert_transforms_close(res.T_ref_cam["c2"], held, atol_mm=1e-3, atol_deg=1e-4)

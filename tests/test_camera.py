@@ -253,8 +253,8 @@ def test_intrinsics_jacobian_without_distortion_still_has_the_coefficient_column
 
 
 def test_pose_jacobian_is_the_point_jacobian_times_dp_dxi(rng):
-    """graph._project's camera Jacobian: right perturbation T_ref_cam Exp(xi) moves camera
-    points by dp/dxi = [[p]x, -I]."""
+    """solve.bundle_factors.project_board's camera Jacobian: right perturbation
+    T_ref_cam Exp(xi) moves camera points by dp/dxi = [[p]x, -I]."""
     pts = rng.uniform([-1, -1, 1], [1, 1, 3], (30, 3))
     J_point = pinhole_point_jacobian(pts, 600.0, 610.0)
     J_pose = pinhole_pose_jacobian(pts, 600.0, 610.0)

@@ -11,7 +11,8 @@ from typer.testing import CliRunner
 
 from rgbd_calib.core.errors import BoardError
 from rgbd_calib.core.geometry import invert_transform, transform_error
-from rgbd_calib.model.board import Board, charuco_black_squares, cover_quads, load_board, save_board
+from rgbd_calib.model.board import Board, charuco_black_squares, cover_quads
+from rgbd_calib.model.board_file import load_board, save_board
 
 A3 = CONFIGS / "board_charuco_a3.yaml"
 CALISCOPE = CONFIGS / "board_charuco_caliscope.yaml"
@@ -286,7 +287,7 @@ THESIS_LINE_DEG, THESIS_LINE_MM = 0.05, 0.5
 def test_charuco_thesis_line_within_the_aruco_bound(tmp_path):
     """The issue 3 acceptance setting with the ChArUco board (about 2 min on 2 cores)."""
     from rgbd_calib import CalibrationConfig, FolderDataset
-    from rgbd_calib.pipelines import calibrate
+    from rgbd_calib.pipelines.calibrate import calibrate
     from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize
 
     board = load_board(A3)

@@ -25,14 +25,14 @@ from rgbd_calib.core.geometry import (
 )
 from rgbd_calib.model.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
 from rgbd_calib.outputs.report import validate_report
-from rgbd_calib.pipelines.check import (
+from rgbd_calib.solve.bundle import RelativePose
+from rgbd_calib.solve.moved import (
     MOVED_CHI2,
     Tolerance,
     locate_moved,
     prior_covariance,
     variance_factor,
 )
-from rgbd_calib.solve.posegraph import RelativePose
 
 PAIR_SIGMA_MM, PAIR_SIGMA_DEG = 1.0, 0.03  # a depth pair's sigma, per axis
 PRIOR_SIGMA_MM, PRIOR_SIGMA_DEG = 0.1, 0.005  # a board calibration's
@@ -312,7 +312,8 @@ def test_check_names_the_cameras_it_could_not_check(tiny_calibration, tmp_path, 
     """Exit 0 means every *checked* camera is in place: a camera no pair could measure is
     named on the console as not checked (and listed in check.json), not silently passed."""
     from rgbd_calib.cli import commands as cli
-    from rgbd_calib.pipelines.check import CameraCheck, CheckResult, CheckRun, Tolerance
+    from rgbd_calib.pipelines.check import CheckResult, CheckRun
+    from rgbd_calib.solve.moved import CameraCheck, Tolerance
 
     data, calib, _ = tiny_calibration
     ext = load_extrinsics(calib / "extrinsics.yaml")

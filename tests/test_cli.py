@@ -69,9 +69,9 @@ def test_extrinsics_yaml_follows_the_contract(calibrated):
 
 def test_rerun_uses_the_detection_cache(calibrated):
     from rgbd_calib.core.config import DetectionConfig
+    from rgbd_calib.detect.run import detect_dataset
     from rgbd_calib.model.board import thesis_board
     from rgbd_calib.model.dataset import FolderDataset
-    from rgbd_calib.pipelines.calibrate import detect_dataset
 
     synth, out = calibrated
     ds = FolderDataset(synth.path)

@@ -140,8 +140,8 @@ def test_config_and_a_detection_worker_load_no_open3d_kiss_icp_or_gtsam(tmp_path
     import cv2
     import numpy as np
 
+    from rgbd_calib.detect import run as detect_run
     from rgbd_calib.model.board import aruco_dictionary, thesis_board
-    from rgbd_calib.pipelines import calibrate
 
     board = thesis_board()
     marker_id = int(board.ids[5])
@@ -152,7 +152,7 @@ def test_config_and_a_detection_worker_load_no_open3d_kiss_icp_or_gtsam(tmp_path
     cv2.imwrite(str(image_path), cv2.GaussianBlur(image, (0, 0), 0.7))
     config_path = tmp_path / "calib.yaml"
     config_path.write_text("pose:\n  min_markers: 2\ndetection:\n  refinement: edges\n")
-    pool_functions = [calibrate.init_detector, calibrate.detect_job]  # what detect_dataset runs
+    pool_functions = [detect_run.init_detector, detect_run.detect_job]  # detect_dataset's pool
     refs = [f"{f.__module__}:{f.__qualname__}" for f in pool_functions]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     done = subprocess.run(

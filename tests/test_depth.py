@@ -19,6 +19,8 @@ from rgbd_calib.core.geometry import (
     transform_points,
 )
 from rgbd_calib.core.ply import read_ply, write_fused_ply
+from rgbd_calib.depth import clouds as DC
+from rgbd_calib.depth import information as DI
 from rgbd_calib.depth import registration as D
 from rgbd_calib.model.board import thesis_board
 from rgbd_calib.model.dataset import FolderDataset
@@ -80,14 +82,14 @@ def line_scales(line):
         cam: {f: invert_transform(gt.T_ref_cam[cam]) @ T for f, T in gt.T_ref_board.items()}
         for cam in ds.cameras
     }
-    return {cam: D.estimate_depth_scale(ds, cam, T_cam_board[cam], board) for cam in ds.cameras}
+    return {cam: DC.estimate_depth_scale(ds, cam, T_cam_board[cam], board) for cam in ds.cameras}
 
 
 @pytest.fixture(scope="module")
 def line_clouds(line, line_scales):
     _, ds, gt = line
     return {
-        cam: D.static_cloud(ds, cam, gt.T_ref_board, gt.T_ref_cam[cam], thesis_board(),
+        cam: DC.static_cloud(ds, cam, gt.T_ref_board, gt.T_ref_cam[cam], thesis_board(),
                             depth_scale_factor=line_scales[cam].factor)
         for cam in ds.cameras
     }
@@ -98,7 +100,7 @@ def race_clouds(small_race):
     ds = FolderDataset(small_race.path)
     gt = load_ground_truth(small_race.path)
     clouds = {
-        cam: D.static_cloud(ds, cam, gt.T_ref_board, gt.T_ref_cam[cam], thesis_board(),
+        cam: DC.static_cloud(ds, cam, gt.T_ref_board, gt.T_ref_cam[cam], thesis_board(),
                             depth_scale_factor=gt.depth_scale_bias[cam])
         for cam in ds.cameras
     }
@@ -124,7 +126,7 @@ def test_board_mask_covers_the_projected_board(line):
     cam = synth.rig.cameras[1]
     frame = "000000"
     T_cam_board = invert_transform(gt.T_ref_cam[cam.name]) @ gt.T_ref_board[frame]
-    mask = D.board_mask(cam.intrinsics, T_cam_board, board, margin_m=0.0, dilate_px=0.0)
+    mask = DC.board_mask(cam.intrinsics, T_cam_board, board, margin_m=0.0, dilate_px=0.0)
     corners = transform_points(T_cam_board, board.corners.reshape(-1, 3))
     uv = np.rint(cam.intrinsics.project(corners)).astype(int)
     inside = ((uv[:, 0] >= 0) & (uv[:, 0] < cam.intrinsics.width) & (uv[:, 1] >= 0)
@@ -133,7 +135,7 @@ def test_board_mask_covers_the_projected_board(line):
     assert mask[uv[inside, 1], uv[inside, 0]].all()
     # the mask is the board's image, not the whole frame; a margin grows it
     assert 0 < mask.mean() < 0.5
-    grown = D.board_mask(cam.intrinsics, T_cam_board, board, margin_m=0.05, dilate_px=3.0)
+    grown = DC.board_mask(cam.intrinsics, T_cam_board, board, margin_m=0.05, dilate_px=3.0)
     assert grown.sum() > mask.sum() and grown[mask].all()
 
 
@@ -169,7 +171,7 @@ def test_static_cloud_drops_the_moving_board_without_its_poses(line):
     out."""
     synth, ds, gt = line
     cam = synth.rig.cameras[2]
-    cloud = D.static_cloud(ds, cam.name, {}, gt.T_ref_cam[cam.name], thesis_board(),
+    cloud = DC.static_cloud(ds, cam.name, {}, gt.T_ref_cam[cam.name], thesis_board(),
                            depth_scale_factor=gt.depth_scale_bias[cam.name])
     assert cloud.stats.n_board_masked == 0 and cloud.stats.n_moving > 1000
     z_true = render_background(synth.rig.scene, cam, samples=1).depth
@@ -196,7 +198,7 @@ def test_depth_scale_factor_applied_to_the_cloud(line, line_clouds):
     synth, ds, gt = line
     cam = synth.rig.cameras[0]
     z_true = render_background(synth.rig.scene, cam, samples=1).depth
-    raw = D.static_cloud(ds, cam.name, gt.T_ref_board, gt.T_ref_cam[cam.name], thesis_board())
+    raw = DC.static_cloud(ds, cam.name, gt.T_ref_board, gt.T_ref_cam[cam.name], thesis_board())
     for cloud, expected in ((line_clouds[cam.name], 1.0), (raw, gt.depth_scale_bias[cam.name])):
         u, v = cloud.pixels.T
         ratio = np.median(cloud.points[:, 2] / z_true[v, u])
@@ -320,9 +322,9 @@ def test_point_to_plane_information_is_for_a_right_perturbation(rng):
         return np.einsum("ij,ij->i", n_b, transform_points(T_b_a @ delta, p_a) - q_b)
 
     J = _numeric_jacobian(residual)
-    matches = D._Matches(p_a, q_b, n_b, residual(np.eye(4)), sigma, np.zeros(50),
+    matches = DI.Matches(p_a, q_b, n_b, residual(np.eye(4)), sigma, np.zeros(50),
                          np.arange(50), np.arange(50))
-    np.testing.assert_allclose(D.point_to_plane_information(matches, T_b_a), J.T @ J,
+    np.testing.assert_allclose(DI.point_to_plane_information(matches, T_b_a), J.T @ J,
                                rtol=1e-5, atol=1e-6)
 
 
@@ -347,15 +349,15 @@ def test_open3d_information_converted_to_gtsam_right_perturbation(rng):
 def test_conditioning_sees_a_plane(rng):
     points = np.column_stack([rng.uniform(-1, 1, (500, 2)), np.full(500, 2.0)])
     normals = np.tile([0.0, 0.0, -1.0], (500, 1))
-    m = D._Matches(points, points, normals, np.zeros(500), np.full(500, 0.01), np.zeros(500),
+    m = DI.Matches(points, points, normals, np.zeros(500), np.full(500, 0.01), np.zeros(500),
                    np.arange(500), np.arange(500))
-    plane = D.point_to_plane_information(m, np.eye(4))
-    assert D.conditioning(plane, points) < 1e-9
+    plane = DI.point_to_plane_information(m, np.eye(4))
+    assert DI.conditioning(plane, points) < 1e-9
     bumpy = normals + rng.normal(0, 0.5, normals.shape)
     bumpy /= np.linalg.norm(bumpy, axis=1, keepdims=True)
-    m_bumpy = D._Matches(points, points, bumpy, np.zeros(500), np.full(500, 0.01),
+    m_bumpy = DI.Matches(points, points, bumpy, np.zeros(500), np.full(500, 0.01),
                          np.zeros(500), np.arange(500), np.arange(500))
-    assert D.conditioning(D.point_to_plane_information(m_bumpy, np.eye(4)), points) > 0.05
+    assert DI.conditioning(DI.point_to_plane_information(m_bumpy, np.eye(4)), points) > 0.05
 
 
 # --------------------------------------------------------------------------- outputs
@@ -375,7 +377,7 @@ def test_overlap_error_small_at_truth_and_large_when_perturbed(line, line_clouds
 
 def test_fused_ply_round_trip_with_camera_index(line, line_clouds, tmp_path):
     _, ds, gt = line
-    points, colors, index = D.fuse_clouds(line_clouds, gt.T_ref_cam, voxel_size=0.01)
+    points, colors, index = DC.fuse_clouds(line_clouds, gt.T_ref_cam, voxel_size=0.01)
     names = list(line_clouds)
     assert set(np.unique(index)) == set(range(len(names)))
     assert points.shape[0] < sum(c.n_points for c in line_clouds.values())

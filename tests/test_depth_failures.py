@@ -11,10 +11,11 @@ import pytest
 from analytic_scene import BOX, BOX_SIDE, CAM_A, CAM_B, FLOOR, SIDE, WALL, scene_cloud
 from analytic_scene import nudge as _nudge
 
-from rgbd_calib.core.config import DepthConfig
+from rgbd_calib.core.config import REGISTRATION_METHODS, DepthConfig
 from rgbd_calib.core.geometry import invert_transform, transform_error
+from rgbd_calib.depth import information as DI
 from rgbd_calib.depth import registration as D
-from rgbd_calib.pipelines import refine as R
+from rgbd_calib.depth import stage as S
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,7 @@ def test_a_good_scene_pair_registers(scene):
     assert err_mm < 3.0 and err_deg < 0.1
 
 
-@pytest.mark.parametrize("method", ["colored-icp", "geometric"])
+@pytest.mark.parametrize("method", REGISTRATION_METHODS)
 def test_no_overlap_rejects_the_pair_instead_of_raising(scene, method):
     """b sees only a plane 0.5 m behind what a sees, inside a's view: ICP has points but no
     correspondence within its distance (Open3D raised "No correspondences found")."""
@@ -57,7 +58,7 @@ def test_tiny_overlap_is_rejected_with_a_reason(scene):
     assert not reg.accepted and "correspondences" in reg.reason
 
 
-@pytest.mark.parametrize("method", ["colored-icp", "geometric"])
+@pytest.mark.parametrize("method", REGISTRATION_METHODS)
 def test_single_untextured_plane_is_rejected_as_degenerate(method):
     rng = np.random.default_rng(6)
     a = scene_cloud("a", CAM_A, (FLOOR,), rng, textured=False)
@@ -81,8 +82,8 @@ def test_an_exception_inside_one_pair_rejects_only_that_pair(scene, monkeypatch)
     reg = D.register_pair(scene["a"], scene["b"], _nudge(CAM_A), CAM_B, "colored-icp")
     assert not reg.accepted and "No correspondences found" in reg.reason
     # anything else a pair raises is caught one level up, in the stage
-    monkeypatch.setattr(R, "register_pair", lambda *a, **k: 1 / 0)
-    reg = R._register_safely(scene["a"], scene["b"], CAM_A, CAM_B, "colored-icp",
+    monkeypatch.setattr(S, "register_pair", lambda *a, **k: 1 / 0)
+    reg = S._register_safely(scene["a"], scene["b"], CAM_A, CAM_B, "colored-icp",
                              DepthConfig())
     assert not reg.accepted and "ZeroDivisionError" in reg.reason
 
@@ -129,7 +130,7 @@ def _assert_board_result(result, board_only, rig):
 
 def test_calibrate_falls_back_to_the_board_when_every_pair_fails(line_board_only, monkeypatch):
     run, board_only, rig = line_board_only
-    monkeypatch.setattr(R, "register_pair", _open3d_failure)
+    monkeypatch.setattr(S, "register_pair", _open3d_failure)
     result = run()  # default: colored ICP
     assert result.depth.pairs, "the thesis line has overlapping pairs"
     for p in result.depth.pairs:
@@ -144,7 +145,7 @@ def test_calibrate_falls_back_when_the_joint_solve_fails(line_board_only, monkey
     real = C.bundle_sound_first
 
     def failing(*args, **kwargs):
-        if len(args) > 8 and args[8]:  # the call with depth pairs
+        if args[0].relative_poses:  # the call with depth pairs
             raise RuntimeError("Indeterminant linear system detected while working near "
                                "variable 7 (Symbol: x7).")
         return real(*args, **kwargs)
@@ -153,9 +154,9 @@ def test_calibrate_falls_back_when_the_joint_solve_fails(line_board_only, monkey
         T_b_a = invert_transform(T_ref_b) @ T_ref_a
         return D.PairRegistration(
             cloud_a.camera, cloud_b.camera, method, T_b_a, T_b_a, np.eye(6) * 1e6,
-            D.INFORMATION_FRAME, 0.9, 1.0, 1.0, 1.0, 0.1, 5000, 0.0, 0.0, True, None, 0.0)
+            DI.INFORMATION_FRAME, 0.9, 1.0, 1.0, 1.0, 0.1, 5000, 0.0, 0.0, True, None, 0.0)
 
-    monkeypatch.setattr(R, "register_pair", accepted)
+    monkeypatch.setattr(S, "register_pair", accepted)
     monkeypatch.setattr(C, "bundle_sound_first", failing)
     result = run()
     assert any("not used: the joint solve with the depth pairs failed" in p["reason"]

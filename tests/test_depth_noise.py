@@ -10,6 +10,9 @@ import pytest
 from analytic_scene import CAM_A, CAM_B, RECTS, nudge, scene_cloud
 
 from rgbd_calib.core.geometry import invert_transform
+from rgbd_calib.depth import clouds as DC
+from rgbd_calib.depth import information as DI
+from rgbd_calib.depth import noise as DN
 from rgbd_calib.depth import registration as D
 
 # issue 14: RMS(error / sigma) of the depth factors alone on synthetic pairs
@@ -36,7 +39,7 @@ def test_information_matches_the_errors_it_claims(realisations):
     z = []
     for _, _, reg in realisations:
         assert reg.accepted, reg.reason
-        xi = D.tangent_error(reg.T_b_a, T_true)
+        xi = DI.tangent_error(reg.T_b_a, T_true)
         z.append(np.linalg.cholesky(reg.information).T @ xi)
     rms = float(np.sqrt(np.mean(np.square(z))))
     assert NORMALISED_RMS_RANGE[0] <= rms <= NORMALISED_RMS_RANGE[1], rms
@@ -48,16 +51,16 @@ def test_sandwich_reduces_to_the_noise_model_for_independent_unit_residuals(rng)
     n = 20000
     J = rng.normal(size=(n, 6))
     r = rng.normal(size=n)
-    rows = D._WhitenedRows(J, r, np.arange(n), n, n)
-    info = D.noise_model_information(rows)
+    rows = DI._WhitenedRows(J, r, np.arange(n), n, n)
+    info = DI.noise_model_information(rows)
     ratio = np.linalg.eigvals(np.linalg.solve(J.T @ J, info)).real
     assert np.all(np.abs(ratio - 1.0) < 0.1), ratio
     # each row repeated 10 times in its patch (10 copies of one measurement): the same
     # information as the n/10 distinct rows, not 10x more
     patch = np.arange(n) // 10
     J10, r10 = np.repeat(J[: n // 10], 10, axis=0), np.repeat(r[: n // 10], 10)
-    rows = D._WhitenedRows(J10, r10, patch, n // 10, n)
-    ratio = np.linalg.eigvals(np.linalg.solve(J10.T @ J10, D.noise_model_information(rows))).real
+    rows = DI._WhitenedRows(J10, r10, patch, n // 10, n)
+    ratio = np.linalg.eigvals(np.linalg.solve(J10.T @ J10, DI.noise_model_information(rows))).real
     assert np.all((ratio > 0.05) & (ratio < 0.2)), ratio
 
 
@@ -94,11 +97,11 @@ def test_kinect_noise_model_is_chosen_per_camera_and_correlated(realisations):
     a = realisations[0][0]
     kinect = replace(a.intrinsics, depth_noise="kinect-v1")
     config = DepthConfig()
-    assert D.depth_noise(a.intrinsics, config).correlation_px == 1.0
-    assert D.depth_noise(a.intrinsics, config).sigma_z(np.array(2.0)) == pytest.approx(
+    assert DN.depth_noise(a.intrinsics, config).correlation_px == 1.0
+    assert DN.depth_noise(a.intrinsics, config).sigma_z(np.array(2.0)) == pytest.approx(
         4.0 * config.subpixel_px / (a.intrinsics.fx * config.baseline_m))
-    noise = D.depth_noise(kinect, config)
-    assert noise == D.KINECT_V1_NOISE
+    noise = DN.depth_noise(kinect, config)
+    assert noise == DN.KINECT_V1_NOISE
     assert float(noise.sigma_z(np.array(1.0))) == pytest.approx(0.125 / (580.0 * 0.075))
     # one voxel of 64 pixels of equal sigma: 64 independent errors for the D435 model,
     # 64 / 4^2 = 4 for the Kinect's
@@ -106,13 +109,13 @@ def test_kinect_noise_model_is_chosen_per_camera_and_correlated(realisations):
     flat = replace(a, points=pts.astype(np.float32), colors=np.zeros((64, 3), np.float32),
                    sigma_z=np.full(64, 0.002, np.float32), pixels=np.zeros((64, 2), np.int32),
                    normals=None)
-    field = D._NormalField(pts, 0.02, 0.08)
+    field = DC.NormalField(pts, 0.02, 0.08)
     keep = np.ones(64, bool)
-    assert D._make_level(flat, keep, 0.05, field).sigma_z == pytest.approx([0.002 / 8])
+    assert DC.voxel_level(flat, keep, 0.05, field).sigma_z == pytest.approx([0.002 / 8])
     correlated = replace(flat, correlation_px=noise.correlation_px)
-    assert D._make_level(correlated, keep, 0.05, field).sigma_z == pytest.approx([0.002 / 2])
+    assert DC.voxel_level(correlated, keep, 0.05, field).sigma_z == pytest.approx([0.002 / 2])
     # the median of one or two frames is their mean: no pi/2 penalty
-    assert D._median_efficiency(np.array([1, 2, 3])).tolist() == [1.0, 1.0, D._MEDIAN_EFFICIENCY]
+    assert DN.median_efficiency(np.array([1, 2, 3])).tolist() == [1.0, 1.0, DN._MEDIAN_EFFICIENCY]
 
 
 def test_back_projection_jacobian_matches_finite_differences():
@@ -127,7 +130,7 @@ def test_back_projection_jacobian_matches_finite_differences():
     dist = ("k1", "k2", "p1", "p2", "k3")
     for intr, tol in ((pinhole, 1e-4),
                       (replace(pinhole, distortion=(0.02, -0.01, 0.0005, -0.0003, 0.002)), 0.05)):
-        jac = D.back_projection_jacobian(intr.rays(u, v) * z[:, None], intr, names)
+        jac = DI.back_projection_jacobian(intr.rays(u, v) * z[:, None], intr, names)
         for k, name in enumerate(names):
             h = 1e-5 if name in dist else 1e-3
 
@@ -162,7 +165,7 @@ def test_refined_intrinsics_uncertainty_covers_the_error_it_causes():
         for variance, out in (({}, without), ({k: s**2 for k, s in sigma.items()}, with_var)):
             reg = D.register_pair(replace(a, intrinsics_variance=variance), b, CAM_A, CAM_B,
                                   "colored-icp")
-            xi = D.tangent_error(reg.T_b_a, T_true)
+            xi = DI.tangent_error(reg.T_b_a, T_true)
             out.append(np.linalg.cholesky(reg.information).T @ xi)
     rms_with = float(np.sqrt(np.mean(np.square(with_var))))
     rms_without = float(np.sqrt(np.mean(np.square(without))))

@@ -7,7 +7,7 @@ import pytest
 from analytic_scene import CAM_A, CAM_B, RECTS, nudge, scene_cloud
 
 from rgbd_calib.core.config import DepthConfig
-from rgbd_calib.pipelines import refine as R
+from rgbd_calib.depth import stage as S
 
 
 def _cov(sigma_deg: float, sigma_mm: float, worst_axis: int = 0) -> np.ndarray:
@@ -20,7 +20,7 @@ def _cov(sigma_deg: float, sigma_mm: float, worst_axis: int = 0) -> np.ndarray:
 
 def test_weak_cameras_from_the_worst_direction_of_the_board_marginal():
     config = DepthConfig(board_weak_sigma_mm=0.2, board_weak_sigma_deg=0.01)
-    weak = R.weak_cameras({
+    weak = S.weak_cameras({
         "strong": _cov(0.003, 0.06),
         "long_axis": _cov(0.003, 0.5, worst_axis=2),  # weak along one direction only
         "rotation": _cov(0.05, 0.06),
@@ -30,10 +30,10 @@ def test_weak_cameras_from_the_worst_direction_of_the_board_marginal():
     assert "0.500 mm" in weak["long_axis"]
     # the trace-based sigma of long_axis is 0.5 mm too, but a camera weak in one direction
     # of three is found even when its mean sigma would pass
-    weak = R.weak_cameras({"flat": _cov(0.003, 0.25, worst_axis=1)},
+    weak = S.weak_cameras({"flat": _cov(0.003, 0.25, worst_axis=1)},
                           DepthConfig(board_weak_sigma_mm=0.2))
     assert "flat" in weak
-    assert not R.weak_cameras({"x": _cov(0.003, 0.06)}, config)
+    assert not S.weak_cameras({"x": _cov(0.003, 0.06)}, config)
 
 
 @pytest.mark.slow  # forkserver start-up and 4 registrations: ~10 s idle, ~30 s on a loaded machine
@@ -43,9 +43,9 @@ def test_pairs_in_a_process_pool_give_the_same_registrations():
     free = (False, False)
     jobs = [("a", "b", nudge(CAM_A), CAM_B, free), ("b", "a", nudge(CAM_B, 5.0, 0.2), CAM_A, free)]
     config = DepthConfig()
-    here = R.register_pairs(clouds, jobs, "colored-icp", config, workers=1)
+    here = S.register_pairs(clouds, jobs, "colored-icp", config, workers=1)
     ticks = []
-    pooled = R.register_pairs(clouds, jobs, "colored-icp", config, workers=2, tick=ticks.append)
+    pooled = S.register_pairs(clouds, jobs, "colored-icp", config, workers=2, tick=ticks.append)
     assert len(ticks) == 2
     for h, p in zip(here, pooled):
         assert (h.cam_a, h.cam_b, h.accepted) == (p.cam_a, p.cam_b, p.accepted)
@@ -61,5 +61,5 @@ def test_a_camera_moved_beyond_its_board_uncertainty_is_found():
     board = {"c": CameraExtrinsics("c", np.eye(4), covariance=cov)}
     along_z = {"c": CameraExtrinsics("c", make_transform(np.eye(3), [0.0, 0.0, 0.001]))}
     along_x = {"c": CameraExtrinsics("c", make_transform(np.eye(3), [0.001, 0.0, 0.0]))}
-    assert not R.moved_beyond_board(board, along_z)  # 1 mm = 2 sigma along z
-    assert "moved 1.00 mm" in R.moved_beyond_board(board, along_x)["c"]  # 20 sigma along x
+    assert not S.moved_beyond_board(board, along_z)  # 1 mm = 2 sigma along z
+    assert "moved 1.00 mm" in S.moved_beyond_board(board, along_x)["c"]  # 20 sigma along x

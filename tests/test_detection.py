@@ -20,16 +20,16 @@ import pytest
 
 from rgbd_calib.core.camera import CameraIntrinsics
 from rgbd_calib.core.geometry import make_transform, rotvec_to_matrix, transform_points
+from rgbd_calib.detect.edge_fit import edge_residual_bound, refine_corners_edges
 from rgbd_calib.detect.markers import (
     DetectionConfig,
     MarkerDetections,
     _gray_float,
     detect_markers,
-    edge_residual_bound,
     marker_pattern,
-    refine_corners_edges,
 )
-from rgbd_calib.model.board import BACK, FRONT, Board, load_board
+from rgbd_calib.model.board import BACK, FRONT, Board
+from rgbd_calib.model.board_file import load_board
 from rgbd_calib.synth import render as synth
 from rgbd_calib.synth.scene import rect
 

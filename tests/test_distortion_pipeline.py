@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 
 from rgbd_calib.cli.commands import app
 from rgbd_calib.core.geometry import invert_transform, transform_error, transform_points
-from rgbd_calib.depth.registration import board_mask, estimate_depth_scale
+from rgbd_calib.depth.clouds import board_mask, estimate_depth_scale
 from rgbd_calib.detect.markers import detect_markers
 from rgbd_calib.model.board import thesis_board
 from rgbd_calib.model.dataset import FolderDataset, read_color_image
@@ -162,7 +162,7 @@ def test_pipeline_detection_bends_the_edge_fit(distorted):
     fit: its corners equal ``detect_markers(..., intrinsics=...)`` (before, the pool fitted
     straight lines along the curved edges whatever rig.yaml said)."""
     from rgbd_calib.core.config import DetectionConfig
-    from rgbd_calib.pipelines.calibrate import detect_dataset
+    from rgbd_calib.detect.run import detect_dataset
 
     _, ds, _ = distorted
     board = thesis_board()

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA, assert_transforms_close, shared_data_missing
 
+from rgbd_calib.core.config import PoseGraphConfig
 from rgbd_calib.core.errors import CalibrationError
 from rgbd_calib.core.geometry import (
     invert_transform,
@@ -21,15 +22,16 @@ from rgbd_calib.core.geometry import (
 )
 from rgbd_calib.model.results import PoseEdge
 from rgbd_calib.solve.posegraph import (
-    REASON_NO_SHARED_VIEW,
-    PoseGraphConfig,
     calibrate_pose_graph,
-    flag_stale_edges,
-    initialise_from_edges,
     median_edge_residual,
     refit_board_nodes,
-    robust_mean_pose,
     solve_pose_graph,
+)
+from rgbd_calib.solve.posegraph_init import (
+    REASON_NO_SHARED_VIEW,
+    flag_stale_edges,
+    initialise_from_edges,
+    robust_mean_pose,
 )
 
 THESIS = SHARED_DATA / "thesis-posegraph"
@@ -437,7 +439,7 @@ def test_without_rejection_flagged_outliers_stay_in_the_bundle():
     every flagged view, cutting cameras off even with rejection off)."""
     from rgbd_calib.core.camera import CameraIntrinsics
     from rgbd_calib.model.rig import Rig
-    from rgbd_calib.pipelines.calibrate import marker_measurements
+    from rgbd_calib.solve.ladder import marker_measurements
     from rgbd_calib.solve.pose import BoardObservation
 
     rng = np.random.default_rng(11)

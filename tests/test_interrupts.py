@@ -121,7 +121,7 @@ def test_ctrl_c_while_the_static_clouds_are_built_drops_the_cameras_not_started(
     import numpy as np
 
     from rgbd_calib.core.config import DepthConfig
-    from rgbd_calib.pipelines import refine
+    from rgbd_calib.depth import stage
 
     started = []
     lock = threading.Lock()
@@ -132,12 +132,12 @@ def test_ctrl_c_while_the_static_clouds_are_built_drops_the_cameras_not_started(
         time.sleep(0.2)
         return None, "fake"
 
-    monkeypatch.setattr(refine, "_cloud_job", slow_cloud)
+    monkeypatch.setattr(stage, "_cloud_job", slow_cloud)
     jobs = [(f"cam{i}", np.eye(4), 1.0) for i in range(20)]
 
     def tick(count):
         raise KeyboardInterrupt  # after the first camera came back
 
     with pytest.raises(KeyboardInterrupt):
-        refine.static_clouds(None, jobs, {}, None, DepthConfig(), workers=2, tick=tick)
+        stage.static_clouds(None, jobs, {}, None, DepthConfig(), workers=2, tick=tick)
     assert len(started) <= 4, started  # the first two, and at most the two that followed

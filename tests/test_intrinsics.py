@@ -34,12 +34,13 @@ from rgbd_calib.core.geometry import (
 )
 from rgbd_calib.detect.markers import MarkerDetections
 from rgbd_calib.model.board import thesis_board
-from rgbd_calib.solve.posegraph import (
+from rgbd_calib.solve.bundle import (
+    BundleProblem,
     MarkerMeasurement,
-    _view_factor_intrinsics,
     bundle_adjust,
     intrinsics_vector,
 )
+from rgbd_calib.solve.bundle_factors import view_factor_intrinsics
 
 ALL = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 BASE = CameraIntrinsics(1280, 720, 600.0, 600.0, 640.0, 360.0, (-0.05, 0.02, 0.001, -0.0005, 0.0))
@@ -87,10 +88,12 @@ def solve(rig, params, seed=0):
                                      rig[m.camera].undistort_pixels(m.corners_px),
                                      m.object_points) for m in meas]
     Ks = {c: rig[c].K for c in rig}
-    fixed = bundle_adjust(undistorted, Ks, "c0", init_cam, init_board, BundleConfig())
-    refined = bundle_adjust(meas, Ks, "c0", init_cam, init_board,
-                            BundleConfig(intrinsics="refine", intrinsics_params=list(params)),
-                            intrinsics=rig)
+    fixed = bundle_adjust(BundleProblem(undistorted, Ks, "c0", init_cam, init_board,
+                                        BundleConfig()))
+    refined = bundle_adjust(BundleProblem(meas, Ks, "c0", init_cam, init_board,
+                                          BundleConfig(intrinsics="refine",
+                                                       intrinsics_params=list(params)),
+                                          intrinsics=rig))
     return T, fixed, refined
 
 
@@ -121,7 +124,7 @@ def test_intrinsics_factor_jacobians_match_numerical(names):
     P[..., 2] = 0.0
     measured = rng.normal([640, 360], 80, (3, 4, 2))
     # no kernel, sigma 1: the factor's error is the pixel residual itself
-    f = _view_factor_intrinsics(0, 1, 2, intr, names, P, measured, 1.0, "none", 3.0)
+    f = view_factor_intrinsics(0, 1, 2, intr, names, P, measured, 1.0, "none", 3.0)
     values = gtsam.Values()
     values.insert(0, gtsam.Pose3(T_cam))
     values.insert(1, gtsam.Pose3(T_board))
@@ -156,8 +159,8 @@ def test_fixed_path_ignores_the_intrinsics_argument():
     T, boards, meas = scene(rng, {c: replace(t, distortion=(0.0,) * 5)
                                   for c, t in TRUTH.items()}, n_views=6)
     Ks = {c: t.K for c, t in TRUTH.items()}
-    a = bundle_adjust(meas, Ks, "c0", T, boards)
-    b = bundle_adjust(meas, Ks, "c0", T, boards, intrinsics=TRUTH)
+    a = bundle_adjust(BundleProblem(meas, Ks, "c0", T, boards))
+    b = bundle_adjust(BundleProblem(meas, Ks, "c0", T, boards, intrinsics=TRUTH))
     assert not b.intrinsics and not b.intrinsics_sigma
     for c in a.T_ref_cam:
         np.testing.assert_array_equal(a.T_ref_cam[c], b.T_ref_cam[c])
@@ -235,7 +238,8 @@ def test_refined_lens_uses_the_views_the_pose_graph_did_not_solve():
     bundle used to drop such frames (issue 13: 40 px at the image corners, 3.1 px inside the
     detected corners' hull on ring seed 11 with the board volume 2.5)."""
     from rgbd_calib.model.rig import Rig
-    from rgbd_calib.pipelines.calibrate import board_poses, pose_edges, self_calibrated_bundle
+    from rgbd_calib.solve.ladder import self_calibrated_bundle
+    from rgbd_calib.solve.pose import board_poses, pose_edges
     from rgbd_calib.solve.posegraph import calibrate_pose_graph
 
     board, truth, detections = _lone_view_scene(np.random.default_rng(0))
@@ -246,7 +250,7 @@ def test_refined_lens_uses_the_views_the_pose_graph_did_not_solve():
     pg = calibrate_pose_graph(pose_edges(observations, config), "c0", config.graph)
     lone = {f"{100 + k:06d}" for k in range(4)}
     assert lone & {o.frame for o in observations} == lone and not lone & set(pg.T_ref_board)
-    bundle, _, _, _ = self_calibrated_bundle(observations, pg, listed, board, config)
+    bundle, _, _ = self_calibrated_bundle(observations, pg, listed, board, config.bundle)
     assert lone <= {view for cam, view, _, _ in bundle.residuals_px if cam == "c1"}
     pts = np.concatenate([d.corners_px.reshape(-1, 2) for (c, _), d in detections.items()
                           if c == "c1"])
@@ -260,7 +264,8 @@ def test_lens_moved_names_the_cameras_to_detect_again():
     detected corners more than LENS_SETTLED_PX from the lens they were detected with: here
     only where its corners reach the image's edge."""
     from rgbd_calib.model.rig import Rig
-    from rgbd_calib.pipelines.calibrate import LENS_SETTLED_PX, board_poses, lens_moved
+    from rgbd_calib.solve.ladder import LENS_SETTLED_PX, lens_moved
+    from rgbd_calib.solve.pose import board_poses
 
     board, truth, detections = _lone_view_scene(np.random.default_rng(0))
     rig = Rig(truth, "c0")

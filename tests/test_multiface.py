@@ -23,9 +23,10 @@ from rgbd_calib.core.geometry import (
     transform_error,
     transform_points,
 )
-from rgbd_calib.model.board import load_board
+from rgbd_calib.model.board_file import load_board
+from rgbd_calib.solve.bundle import BundleProblem, MarkerMeasurement, bundle_adjust
+from rgbd_calib.solve.bundle_factors import view_factor
 from rgbd_calib.solve.pose import estimate_board_pose
-from rgbd_calib.solve.posegraph import MarkerMeasurement, _view_factor, bundle_adjust
 
 CUBE = CONFIGS / "board_cube.yaml"
 FACE_ERROR = (2.0, 0.5)  # mm, deg: each non-reference face off its board-file pose
@@ -103,7 +104,7 @@ def test_face_factor_jacobians_match_numerical():
     values.insert(6, gtsam.Pose3(make_transform(rotvec_to_matrix([-0.01, 0.0, 0.02]),
                                                 [-0.001, 0.002, 0.0])))
     moving = [(5, faces == 2, board.T_board_face(2)), (6, faces == 3, board.T_board_face(3))]
-    f = _view_factor(0, 1, K, P, measured, 1.0, "none", 3.0, moving=moving)
+    f = view_factor(0, 1, K, P, measured, 1.0, "none", 3.0, moving=moving)
     A, b = f.linearize(values).jacobian()
     e0, numerical = _numerical_jacobian(f, values, [(0, "pose", 6), (1, "pose", 6),
                                                     (5, "pose", 6), (6, "pose", 6)])
@@ -125,10 +126,11 @@ def test_cube_faces_self_calibrated_within_bounds():
     init_cam = {c: (T if c == "c0" else perturb(T, rng)) for c, T in T_ref_cam.items()}
     init_board = {v: perturb(T, rng) for v, T in boards.items()}
     Ks = {c: K for c in T_ref_cam}
-    fixed = bundle_adjust(meas, Ks, "c0", init_cam, init_board, BundleConfig(board="fixed"),
-                          face_frames=_frames(board))
-    refined = bundle_adjust(meas, Ks, "c0", init_cam, init_board, BundleConfig(board="refine"),
-                            face_frames=_frames(board))
+    fixed = bundle_adjust(BundleProblem(meas, Ks, "c0", init_cam, init_board,
+                                        BundleConfig(board="fixed"), face_frames=_frames(board)))
+    refined = bundle_adjust(BundleProblem(meas, Ks, "c0", init_cam, init_board,
+                                          BundleConfig(board="refine"),
+                                          face_frames=_frames(board)))
     assert not fixed.faces and len(refined.faces) == 5
     for f in refined.faces:
         assert not f.held
@@ -154,8 +156,8 @@ def test_face_never_seen_with_another_is_held():
         first = by_view.setdefault((m.view, "face"), m.face)
         if m.face == first:
             alone.append(m)
-    r = bundle_adjust(alone, {c: K for c in T_ref_cam}, "c0", T_ref_cam, boards,
-                      BundleConfig(board="refine"), face_frames=_frames(board))
+    r = bundle_adjust(BundleProblem(alone, {c: K for c in T_ref_cam}, "c0", T_ref_cam, boards,
+                                    BundleConfig(board="refine"), face_frames=_frames(board)))
     assert r.faces and all(f.held for f in r.faces)
     assert all("held at the board file" in f.held for f in r.faces)
 

@@ -20,9 +20,9 @@ from rgbd_calib.cli.commands import app
 from rgbd_calib.core.config import DepthConfig, DetectionConfig, load_config
 from rgbd_calib.core.errors import ConfigError
 from rgbd_calib.core.parallel import DaskExecutor, executor
+from rgbd_calib.detect.run import detect_dataset
 from rgbd_calib.model.board import thesis_board
 from rgbd_calib.model.dataset import FolderDataset
-from rgbd_calib.pipelines.calibrate import detect_dataset
 from rgbd_calib.synth.render import load_ground_truth
 
 runner = CliRunner()
@@ -51,8 +51,9 @@ def test_detection_on_dask_equals_the_local_pool_and_its_cache(tiny_dataset, clu
 
 
 def test_pair_registrations_on_dask_are_bit_identical_to_the_local_pool(tiny_dataset, cluster):
-    from rgbd_calib.depth.registration import find_overlapping_pairs, static_cloud
-    from rgbd_calib.pipelines.refine import register_pairs
+    from rgbd_calib.depth.clouds import static_cloud
+    from rgbd_calib.depth.registration import find_overlapping_pairs
+    from rgbd_calib.depth.stage import register_pairs
 
     ds = FolderDataset(tiny_dataset)
     T = load_ground_truth(tiny_dataset).T_ref_cam
@@ -77,7 +78,7 @@ def test_static_clouds_in_threads_and_on_dask_equal_the_ones_made_one_at_a_time(
     with its reason."""
     import shutil
 
-    from rgbd_calib.pipelines.refine import static_clouds
+    from rgbd_calib.depth.stage import static_clouds
 
     data = tmp_path / "ds"
     shutil.copytree(tiny_dataset, data)

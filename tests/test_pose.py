@@ -1,6 +1,6 @@
 """Per-view board pose: exact recovery, accuracy on noisy renders, an honest covariance, gates.
 
-Views are rendered with :mod:`rgbd_calib.synth.render` as in ``test_detection.py``: a 640x360 camera at
+Views are rendered with :mod:`rgbd_calib.synth` as in ``test_detection.py``: a 640x360 camera at
 the origin, the board 0.5-0.85 m away showing its front or its back. The pose error of a view is
 ``xi = Log(T_true^-1 T_est)`` (right perturbation, ``[omega, v]``), the convention of the
 covariance (GTSAM Pose3, board/body frame).
@@ -27,7 +27,8 @@ from rgbd_calib.core.geometry import (
     transform_points,
 )
 from rgbd_calib.detect.markers import MarkerDetections, detect_markers
-from rgbd_calib.model.board import BACK, FRONT, Board, load_board
+from rgbd_calib.model.board import BACK, FRONT, Board
+from rgbd_calib.model.board_file import load_board
 from rgbd_calib.solve.pose import (
     BoardObservation,
     PoseConfig,
@@ -255,7 +256,8 @@ def test_charuco_views_need_corners_not_four_quads():
     """A ChArUco view is judged by its distinct saddle corners (``min_charuco_corners``), not
     by ``min_markers`` quads: two whole squares (8 corners) give a pose, one (4) does not, and
     two overlapping squares (6 corners) do not either."""
-    from rgbd_calib.model.board import cover_quads, load_board
+    from rgbd_calib.model.board import cover_quads
+    from rgbd_calib.model.board_file import load_board
 
     cboard = load_board(CONFIGS / "board_charuco_caliscope.yaml")  # 3 x 4 corners, 6 quads
     K = make_camera().intrinsics

@@ -18,7 +18,8 @@ import yaml
 from PIL import Image
 
 from rgbd_calib.core.errors import BoardError
-from rgbd_calib.model.board import BACK, FRONT, Board, board_from_grid, load_board
+from rgbd_calib.model.board import BACK, FRONT, Board, board_from_grid
+from rgbd_calib.model.board_file import load_board
 from rgbd_calib.outputs.printing import PrintResult, write_printable_board
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

@@ -34,7 +34,8 @@ from rgbd_calib.core.geometry import (
     skew,
     transform_error,
 )
-from rgbd_calib.model.board import Board, board_from_grid, load_board, save_board
+from rgbd_calib.model.board import Board, board_from_grid
+from rgbd_calib.model.board_file import load_board, save_board
 from rgbd_calib.model.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
 from rgbd_calib.model.rig import Rig, load_rig, save_rig
 from rgbd_calib.solve.pose import se3_exp
@@ -276,7 +277,7 @@ def test_board_crashers(tmp_path, text):
 def test_grid_larger_than_its_dictionary_fails_fast(tmp_path, monkeypatch, size):
     """Checked against the dictionary before the grid is built (100000 x 100000 would exhaust
     memory): building it is never reached (a structural check, not a timed one)."""
-    import rgbd_calib.model.board as board_module
+    import rgbd_calib.model.board_file as board_module
 
     def never(*args, **kwargs):
         raise AssertionError("the grid was built before its size was checked")

@@ -150,9 +150,8 @@ def test_model_error_floor_keeps_real_views_in(tmp_path):
 
     from rgbd_calib.core.config import CalibrationConfig, PoseConfig
     from rgbd_calib.detect.markers import detect_markers
-    from rgbd_calib.model.board import load_board
-    from rgbd_calib.pipelines.calibrate import pose_edges
-    from rgbd_calib.solve.pose import BoardObservation, estimate_board_pose
+    from rgbd_calib.model.board_file import load_board
+    from rgbd_calib.solve.pose import BoardObservation, estimate_board_pose, pose_edges
     from rgbd_calib.solve.posegraph import PoseGraphConfig, calibrate_pose_graph
 
     board = load_board(REPO / "configs" / "board_charuco_caliscope.yaml")

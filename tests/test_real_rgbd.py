@@ -21,6 +21,7 @@ import pytest
 from conftest import SHARED_DATA, shared_data_missing
 
 from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.config import REGISTRATION_METHODS
 from rgbd_calib.core.geometry import (
     look_at,
     make_transform,
@@ -247,7 +248,7 @@ def test_converter_ground_truth_and_start(converted):
     np.testing.assert_allclose(init.T_ref_cam("a"), np.eye(4))
 
 
-@pytest.mark.parametrize("method", ["colored-icp", "geometric"])
+@pytest.mark.parametrize("method", REGISTRATION_METHODS)
 def test_refine_on_converted_rendered_pair(converted, method):
     _, out = converted
     (deg0, mm0), (deg1, mm1), _, _ = _refine(out, method)

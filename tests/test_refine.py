@@ -224,7 +224,7 @@ def _pose_graph_case(rng, pair_noise_factor: float):
     """A reference and 7 cameras on a 2 m circle; each camera held to its (noisy) start by a
     prior of 0.1 mm / 0.005 deg at that noise, and a pair between every two cameras claiming
     0.2 mm / 0.01 deg but drawn ``pair_noise_factor`` times wider."""
-    from rgbd_calib.solve.posegraph import RelativePose
+    from rgbd_calib.solve.bundle import RelativePose
 
     names = ["ref"] + [f"c{i}" for i in range(7)]
     angle = {c: 2 * np.pi * i / len(names) for i, c in enumerate(names)}
@@ -248,7 +248,7 @@ def test_relative_pose_redundancy_sums_to_the_graph_redundancy():
     """Redundancy numbers (Foerstner): over all factors they sum to observations minus
     unknowns, and two priors on one camera split its 6 by their weights (r_1 = tr(W_2 (W_1 +
     W_2)^-1), 6 x 1/5 for a prior 4x tighter in information)."""
-    from rgbd_calib.solve.posegraph import RelativePose, relative_pose_redundancy
+    from rgbd_calib.solve.bundle import RelativePose, relative_pose_redundancy
 
     rng = np.random.default_rng(2)
     T_true, T_init, priors, pairs = _pose_graph_case(rng, 1.0)
@@ -268,7 +268,7 @@ def test_variance_components_recover_the_pairs_noise(k):
     """Pairs drawn k times wider than their information claims: the estimated pair factor is
     ~k^2 (the priors', drawn at their model, stays ~1), and the result is closer to the truth
     than the plain solve when the pairs overclaim (k = 2)."""
-    from rgbd_calib.pipelines.refine import solve_variance_components
+    from rgbd_calib.solve.variance_components import solve_variance_components
 
     rng = np.random.default_rng(11)
     T_true, T_init, priors, pairs = _pose_graph_case(rng, k)

@@ -9,6 +9,8 @@ import numpy as np
 from analytic_scene import CAM_A, CAM_B, RECTS, scene_cloud
 
 from rgbd_calib.depth import registration as D
+from rgbd_calib.depth import stage as S
+from rgbd_calib.model import calib_folder as CF
 from rgbd_calib.model.results import CameraExtrinsics, Extrinsics
 from rgbd_calib.pipelines import refine as R
 
@@ -33,10 +35,10 @@ def test_unknown_depth_scale_does_not_count_a_move_it_explains():
 
 def test_depth_scales_read_from_the_calibration_report(tmp_path):
     report = tmp_path / "report.json"
-    assert R.load_depth_scales(report) == {}
+    assert CF.load_depth_scales(report) == {}
     report.write_text(json.dumps({"cameras": {
         "left0": {"depth_scale_factor": 1.004}, "left1": {"depth_scale_factor": None}}}))
-    assert R.load_depth_scales(report) == {"left0": 1.004}
+    assert CF.load_depth_scales(report) == {"left0": 1.004}
 
 
 def test_initial_sigmas_become_priors_and_the_verdict_names_the_outcome():
@@ -50,7 +52,7 @@ def test_initial_sigmas_become_priors_and_the_verdict_names_the_outcome():
     priors = R.initial_pose_priors(init, {c: e.T_ref_cam for c, e in init.cameras.items()})
     assert [(p.cam_a, p.cam_b) for p in priors] == [("good", "ref")]
     np.testing.assert_allclose(1.0 / np.sqrt(np.diag(priors[0].information))[3:], 5e-5)
-    depth = R.DepthRefinement("colored-icp", {}, {}, [], [], {}, fallback="no pair overlaps",
+    depth = S.DepthRefinement("colored-icp", {}, {}, [], [], {}, fallback="no pair overlaps",
                               scale_source={"good": "unknown"})
     verdict = R.refine_verdict(init, init, depth)
     assert verdict["verdict"] == "unchanged" and "no pair overlaps" in verdict["message"]

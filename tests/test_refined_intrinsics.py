@@ -12,10 +12,10 @@ import pytest
 
 from rgbd_calib.core.config import DepthConfig
 from rgbd_calib.core.errors import DatasetError
-from rgbd_calib.depth.registration import static_cloud
+from rgbd_calib.depth.clouds import static_cloud
+from rgbd_calib.model.calib_folder import with_refined_intrinsics
 from rgbd_calib.model.dataset import FolderDataset
 from rgbd_calib.model.rig import Rig, load_rig, save_rig
-from rgbd_calib.pipelines.refine import with_refined_intrinsics
 
 
 def _calibration(folder, rig: Rig, shift_fx: float, sigma: float | None, width=None):

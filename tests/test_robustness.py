@@ -686,8 +686,8 @@ def test_reference_never_sees_the_board(clean, tmp_path):
 
 
 def test_no_camera_shares_a_view(clean, tmp_path):
-    """The dataset-level line of calibrate.py, not the pose graph's own error (which names no
-    dataset: 'no board view is seen by two connected cameras ...')."""
+    """The dataset-level line of pipelines/calibrate.py, not the pose graph's own error (which
+    names no dataset: 'no board view is seen by two connected cameras ...')."""
     w = workspace(clean, tmp_path)
     for k, cam in enumerate(("cam8", "cam9", "cam10")):
         rename_frames(w.ds, w.out, cam, str(7 + k))
@@ -1029,8 +1029,8 @@ def test_ctrl_c_leaves_earlier_results_and_resumes(clean, tmp_path):
 def test_interrupted_detection_keeps_what_it_detected(clean, tmp_path):
     """Library level: an interrupt after k images saves those k; the next run starts there."""
     from rgbd_calib.core.config import DetectionConfig
+    from rgbd_calib.detect.run import detect_dataset
     from rgbd_calib.model.dataset import FolderDataset
-    from rgbd_calib.pipelines.calibrate import detect_dataset
 
     ds = FolderDataset(clean.dataset)
     cache = tmp_path / "detections.json"
@@ -1063,8 +1063,8 @@ def test_camera_without_depth_on_the_board_does_not_abort(clean, tmp_path):
     """A depth stream of zeros: no depth-scale estimate for that camera, no abort (was a
     DatasetError out of the whole calibration before c8f0708)."""
     from rgbd_calib.core.geometry import invert_transform
+    from rgbd_calib.depth.stage import measure_depth
     from rgbd_calib.model.dataset import FolderDataset
-    from rgbd_calib.pipelines.refine import measure_depth
 
     w = workspace(clean, tmp_path, cache=False)
     for p in (w.ds / "cam8" / "depth").glob("*.png"):  # the depth stream delivered zeros

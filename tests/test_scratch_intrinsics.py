@@ -25,7 +25,7 @@ from rgbd_calib.cli.commands import app
 from rgbd_calib.core.errors import ConfigError
 from rgbd_calib.core.geometry import transform_error
 from rgbd_calib.detect.markers import detect_markers
-from rgbd_calib.model.board import load_board
+from rgbd_calib.model.board_file import load_board
 from rgbd_calib.model.dataset import FolderDataset
 from rgbd_calib.model.rig import load_rig, save_rig
 from rgbd_calib.sources.video import frames_of
@@ -242,7 +242,8 @@ def test_real_webcams_get_an_estimated_view_floor_instead_of_outlier_views(tmp_p
     from dataclasses import replace
 
     from rgbd_calib.core.config import CalibrationConfig
-    from rgbd_calib.pipelines.calibrate import calibrate, pose_edges
+    from rgbd_calib.pipelines.calibrate import calibrate
+    from rgbd_calib.solve.pose import pose_edges
     from rgbd_calib.solve.posegraph import calibrate_pose_graph
 
     ds = tmp_path / "ds"

@@ -225,7 +225,7 @@ def test_errors_about_a_format_link_its_section_of_docs_formats_md(tmp_path):
     from conftest import REPO
 
     from rgbd_calib.core.errors import RgbdCalibError
-    from rgbd_calib.model.board import load_board
+    from rgbd_calib.model.board_file import load_board
     from rgbd_calib.model.dataset import FolderDataset
     from rgbd_calib.model.posegraph_csv import read_edges_csv
     from rgbd_calib.model.rig import load_rig

@@ -81,9 +81,10 @@ from peers import opencv_multiview, thesis_method  # noqa: E402
 from rgbd_calib.core.config import CalibrationConfig, DetectionConfig
 from rgbd_calib.core.geometry import matrix_to_rotvec, transform_error  # noqa: E402
 from rgbd_calib.core.yamlio import atomic_write_text, read_yaml_mapping  # noqa: E402
+from rgbd_calib.detect.run import detect_dataset  # noqa: E402
 from rgbd_calib.model.board import Board, thesis_board  # noqa: E402
 from rgbd_calib.model.dataset import FolderDataset  # noqa: E402
-from rgbd_calib.pipelines.calibrate import calibrate, detect_dataset  # noqa: E402
+from rgbd_calib.pipelines.calibrate import calibrate  # noqa: E402
 from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize  # noqa: E402
 
 LAYOUTS = ("race", "race16", "ring", "thesis-line")

@@ -45,10 +45,12 @@ from rgbd_calib.core.geometry import (
     rotvec_to_matrix,
     transform_points,
 )
-from rgbd_calib.model.board import load_board
+from rgbd_calib.detect.run import detect_dataset
+from rgbd_calib.model.board_file import load_board
 from rgbd_calib.model.dataset import FolderDataset
-from rgbd_calib.pipelines.calibrate import calibrate, detect_dataset, refined_rig
+from rgbd_calib.pipelines.calibrate import calibrate
 from rgbd_calib.solve.intrinsics_init import view_points
+from rgbd_calib.solve.ladder import refined_rig
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("RGBD_CALIB_SHARED_DATA", REPO.parent / "shared" / "data")) / (

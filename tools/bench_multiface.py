@@ -29,7 +29,7 @@ import numpy as np
 
 from rgbd_calib.core.config import BundleConfig, CalibrationConfig
 from rgbd_calib.core.geometry import invert_transform, transform_error, transform_points
-from rgbd_calib.model.board import load_board
+from rgbd_calib.model.board_file import load_board
 from rgbd_calib.model.dataset import FolderDataset
 from rgbd_calib.pipelines.calibrate import calibrate
 from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize_cached

@@ -29,10 +29,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_caliscope as bc  # noqa: E402
 
 from rgbd_calib.core.config import CalibrationConfig  # noqa: E402
-from rgbd_calib.model.board import load_board, marker_board  # noqa: E402
+from rgbd_calib.model.board import marker_board  # noqa: E402
+from rgbd_calib.model.board_file import load_board  # noqa: E402
 from rgbd_calib.model.dataset import FolderDataset  # noqa: E402
 from rgbd_calib.model.rig import Rig, load_rig, save_rig  # noqa: E402
-from rgbd_calib.pipelines.calibrate import calibrate, refined_rig  # noqa: E402
+from rgbd_calib.pipelines.calibrate import calibrate  # noqa: E402
+from rgbd_calib.solve.ladder import refined_rig  # noqa: E402
 
 
 def with_caliscope_intrinsics(folder: Path) -> Path:

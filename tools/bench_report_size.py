@@ -8,7 +8,8 @@ frames) from the schema's own view keys with random values, then times medians o
 - ``ndjson``: report.json without the views + ``report_views.ndjson`` (stdlib json, one view a
   line), what :func:`rgbd_calib.outputs.report.write_report_json` writes above its threshold;
 - ``ndjson.gz``: the same side file gzip-compressed (level 6), written and read back by
-  :func:`rgbd_calib.outputs.report.write_report_json` / :func:`~rgbd_calib.outputs.report.load_report`;
+  :func:`rgbd_calib.outputs.report.write_report_json` /
+  :func:`~rgbd_calib.outputs.report.load_report`;
 - ``parquet``: the same rows as a Parquet table (pyarrow, zstd), when pyarrow is importable
   (``--extra-path`` adds a folder it was installed into with ``pip install --target``).
 

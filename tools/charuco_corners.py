@@ -24,7 +24,7 @@ from rgbd_calib import CalibrationConfig, FolderDataset, load_board
 from rgbd_calib.core.config import DetectionConfig
 from rgbd_calib.core.geometry import invert_transform, transform_error
 from rgbd_calib.detect.markers import detect_charuco
-from rgbd_calib.pipelines import calibrate
+from rgbd_calib.pipelines.calibrate import calibrate
 from rgbd_calib.synth.render import load_ground_truth
 
 

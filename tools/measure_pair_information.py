@@ -15,6 +15,8 @@ import numpy as np
 
 from rgbd_calib.core.config import DepthConfig
 from rgbd_calib.core.geometry import invert_transform, make_transform, rotvec_to_matrix
+from rgbd_calib.depth import clouds as DC
+from rgbd_calib.depth import information as DI
 from rgbd_calib.depth import registration as D
 from rgbd_calib.model.board import thesis_board
 from rgbd_calib.model.dataset import FolderDataset
@@ -34,7 +36,7 @@ def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, cal
         variances = {c: {k: (config.lens_sigma_factor * v["sigma"]) ** 2
                          for k, v in (cam.get("intrinsics_refined") or {}).items()}
                      for c, cam in report["cameras"].items()}
-    clouds = {c: D.static_cloud(ds, c, gt.T_ref_board, gt.T_ref_cam[c], thesis_board(), config,
+    clouds = {c: DC.static_cloud(ds, c, gt.T_ref_board, gt.T_ref_cam[c], thesis_board(), config,
                                 depth_scale_factor=gt.depth_scale_bias.get(c, 1.0))
               for c in ds.cameras}
     clouds = {c: D.replace(cl, intrinsics_variance=variances.get(c, {}))
@@ -51,7 +53,7 @@ def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, cal
             d / np.linalg.norm(d) * perturb_mm / 1000)
         t = time.perf_counter()
         reg = D.register_pair(clouds[a], clouds[b], T_ref_a, gt.T_ref_cam[b], method, config)
-        xi = D.tangent_error(reg.T_b_a, invert_transform(gt.T_ref_cam[b]) @ gt.T_ref_cam[a])
+        xi = DI.tangent_error(reg.T_b_a, invert_transform(gt.T_ref_cam[b]) @ gt.T_ref_cam[a])
         info = reg.information
         if np.any(info):
             L = np.linalg.cholesky(info)

@@ -4,9 +4,10 @@
         --cache /tmp/bundle_cache --sets thesis-line-f40-s0 race-f40-s0 --repeats 3
 
 For each set, runs the calibration once up to the bundle stage (detections cached under
-``--cache/<set>``, so only the first run pays detection) and captures the arguments of
-``bundle_adjust``. Then calls the working-tree ``bundle_adjust`` ("new") and the one at
-``--baseline-rev`` ("old", loaded with ``git show``) on them, interleaved and alternating which
+``--cache/<set>``, so only the first run pays detection) and captures the first
+:class:`~rgbd_calib.solve.bundle.BundleProblem` solved. Then calls the working-tree
+``bundle_adjust`` ("new") and the one at ``--baseline-rev`` ("old", loaded with ``git show``,
+given the problem's fields as its loose parameters) on it, interleaved and alternating which
 goes first so that machine load hits both alike, and reports the median time of each, the
 split of each (LM solves, marginals, rest) and the largest differences of the results:
 camera poses (mm, deg), sigmas (relative), estimated pixel sigma, marker residuals, iterations
@@ -28,47 +29,68 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import rgbd_calib.pipelines.calibrate as cal  # noqa: E402
+import rgbd_calib.solve.ladder as ladder  # noqa: E402
+from rgbd_calib.core.config import CalibrationConfig  # noqa: E402
 from rgbd_calib.core.geometry import transform_error  # noqa: E402
 from rgbd_calib.model.board import thesis_board  # noqa: E402
 from rgbd_calib.model.dataset import FolderDataset  # noqa: E402
-from rgbd_calib.solve import posegraph as new  # noqa: E402
+from rgbd_calib.solve import bundle as new  # noqa: E402
+from rgbd_calib.solve.bundle import BundleProblem  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "tools"))
 from baseline import module_at  # noqa: E402
 
 
-def capture_inputs(data: Path, cache: Path) -> tuple[tuple, dict]:
-    """Arguments of the calibration's ``bundle_adjust`` call on ``data`` (no depth refine)."""
+def capture_inputs(data: Path, cache: Path) -> BundleProblem:
+    """The first problem the calibration's ``bundle_adjust`` solves on ``data`` (no depth
+    refine)."""
     captured: dict = {}
-    original = cal.bundle_adjust
+    original = ladder.bundle_adjust
 
-    def spy(*args, **kwargs):
-        captured.setdefault("call", (args, kwargs))
-        return original(*args, **kwargs)
+    def spy(problem):
+        captured.setdefault("problem", problem)
+        return original(problem)
 
-    cal.bundle_adjust = spy
+    ladder.bundle_adjust = spy
     try:
         cache.mkdir(parents=True, exist_ok=True)
         cal.calibrate(FolderDataset(data), thesis_board(),
-                      cal.CalibrationConfig(refine="none", workers=2), cache_dir=cache)
+                      CalibrationConfig(refine="none", workers=2), cache_dir=cache)
     finally:
-        cal.bundle_adjust = original
-    return captured["call"]
+        ladder.bundle_adjust = original
+    return captured["problem"]
+
+
+def solver(mod):
+    """``mod.bundle_adjust`` as a function of a problem: the working tree's takes it, a
+    baseline's (before ``BundleProblem``) its fields as loose parameters."""
+    if mod is new:
+        return new.bundle_adjust
+
+    def loose(p: BundleProblem):
+        extra = {k: v for k, v in (("back_centre", p.back_centre),
+                                   ("face_frames", p.face_frames)) if v is not None}
+        return mod.bundle_adjust(list(p.measurements), p.K, p.reference, p.T_ref_cam,
+                                 p.T_ref_board, p.config, p.fixed_cameras, p.relative_poses,
+                                 intrinsics=p.intrinsics, **extra)
+
+    return loose
 
 
 def calibrate_bundle_time(data: Path, cache: Path, bundle_adjust) -> float:
-    """``timings_s["bundle"]`` of a calibration run with ``bundle_adjust`` patched in."""
-    original = cal.bundle_adjust
-    cal.bundle_adjust = bundle_adjust
+    """``timings_s["bundle"]`` of a calibration run with ``bundle_adjust`` (a function of a
+    problem) patched in."""
+    original = ladder.bundle_adjust
+    ladder.bundle_adjust = bundle_adjust
     try:
         res = cal.calibrate(FolderDataset(data), thesis_board(),
-                            cal.CalibrationConfig(refine="none", workers=2), cache_dir=cache)
+                            CalibrationConfig(refine="none", workers=2), cache_dir=cache)
     finally:
-        cal.bundle_adjust = original
+        ladder.bundle_adjust = original
     return res.timings_s["bundle"]
 
 
-def timed_split(mod, args, kwargs) -> tuple[float, dict[str, float], object]:
+def timed_split(mod, problem: BundleProblem) -> tuple[float, dict[str, float], object]:
     """Run ``mod.bundle_adjust`` with the LM solves and the marginals timed."""
     split = {"lm": 0.0, "marginals": 0.0}
     gt = mod.gtsam
@@ -101,7 +123,7 @@ def timed_split(mod, args, kwargs) -> tuple[float, dict[str, float], object]:
     mod.gtsam = Proxy()
     try:
         t = time.perf_counter()
-        res = mod.bundle_adjust(*args, **kwargs)
+        res = solver(mod)(problem)
         total = time.perf_counter() - t
     finally:
         mod.gtsam = gt
@@ -142,18 +164,18 @@ def main() -> None:
     opts = ap.parse_args()
     old = module_at(opts.baseline_rev, "rgbd_calib/graph.py", "graph_baseline")
     for name in opts.sets:
-        args, kwargs = capture_inputs(opts.data / name, opts.cache / name)
+        problem = capture_inputs(opts.data / name, opts.cache / name)
         times: dict[str, list[float]] = {"old": [], "new": []}
         splits: dict[str, list[dict]] = {"old": [], "new": []}
         results = {}
         for r in range(opts.repeats):
             order = ("old", "new") if r % 2 == 0 else ("new", "old")
             for tag in order:
-                t, split, res = timed_split(old if tag == "old" else new, args, kwargs)
+                t, split, res = timed_split(old if tag == "old" else new, problem)
                 times[tag].append(t)
                 splits[tag].append(split)
                 results[tag] = res
-        n = len(args[0])
+        n = len(problem.measurements)
         print(f"{name}: {n} markers")
         for tag in ("old", "new"):
             med = {k: statistics.median(s[k] for s in splits[tag]) for k in splits[tag][0]}
@@ -166,7 +188,7 @@ def main() -> None:
             cal_times: dict[str, list[float]] = {"old": [], "new": []}
             for r in range(opts.repeats):
                 for tag in (("old", "new") if r % 2 == 0 else ("new", "old")):
-                    fn = (old if tag == "old" else new).bundle_adjust
+                    fn = solver(old if tag == "old" else new)
                     cal_times[tag].append(
                         calibrate_bundle_time(opts.data / name, opts.cache / name, fn))
             print("  calibrate timings_s['bundle'] median: " + ", ".join(

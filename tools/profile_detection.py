@@ -2,7 +2,7 @@
 
     python tools/profile_detection.py --baseline-rev 5b7b74f --images 40 --repeats 3 --check
 
-Loads ``rgbd_calib/detection.py`` as it is in the working tree ("new") and as it is at
+Loads ``rgbd_calib/detect/markers.py`` as it is in the working tree ("new") and as it is at
 ``--baseline-rev`` ("old", via ``git show``), then times both on the same grey images of the
 synthetic sets ``<data>/thesis-line-f40-s0`` (1280x720) and ``<data>/race-f40-s0`` (848x480)
 (decoded once, as the calibration's detection job does), interleaved image by image and
@@ -71,7 +71,7 @@ def images(folder: str, n: int) -> list[Path]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--baseline-rev", default="HEAD", help="git revision of the baseline")
-    ap.add_argument("--baseline-file", type=Path, help="baseline detection.py (overrides rev)")
+    ap.add_argument("--baseline-file", type=Path, help="baseline markers.py (overrides rev)")
     ap.add_argument("--data", type=Path, default=Path("/tmp/bench_data"), help="synthetic sets")
     ap.add_argument("--images", type=int, default=20, help="images per resolution")
     ap.add_argument("--repeats", type=int, default=3)
@@ -80,11 +80,11 @@ def main() -> None:
     cv2.setNumThreads(1)
     versions = {
         "old": (
-            load_module("_detection_old", args.baseline_file)
+            load_module("detect._markers_old", args.baseline_file)
             if args.baseline_file
-            else module_at(args.baseline_rev, "rgbd_calib/detection.py", "_detection_old")
+            else module_at(args.baseline_rev, "rgbd_calib/detect/markers.py", "detect._markers_old")
         ),
-        "new": load_module("_detection_new", ROOT / "rgbd_calib" / "detection.py"),
+        "new": load_module("detect._markers_new", ROOT / "rgbd_calib" / "detect" / "markers.py"),
     }
     acc = {k: instrument(m) for k, m in versions.items()}
     board = thesis_board()

@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT))
 from rgbd_calib.core.camera import CameraIntrinsics  # noqa: E402
 from rgbd_calib.core.config import DetectionConfig, PoseConfig  # noqa: E402
 from rgbd_calib.core.geometry import covariance_sigmas, transform_error  # noqa: E402
-from rgbd_calib.detect import markers as detection  # noqa: E402
+from rgbd_calib.detect import edge_fit  # noqa: E402
 from rgbd_calib.detect.corner_bias import (  # noqa: E402
     BiasSummary,
     corner_components,
@@ -54,7 +54,8 @@ from rgbd_calib.detect.markers import (  # noqa: E402
     detect_markers,
     detect_saddles,
 )
-from rgbd_calib.model.board import Board, charuco_saddles, load_board, marker_board  # noqa: E402
+from rgbd_calib.model.board import Board, charuco_saddles, marker_board  # noqa: E402
+from rgbd_calib.model.board_file import load_board  # noqa: E402
 from rgbd_calib.solve.pose import BoardObservation, estimate_board_pose  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "caliscope-charuco-4cam"
@@ -102,22 +103,22 @@ def _method_config(method: str) -> tuple[DetectionConfig, bool]:
 
 
 class EdgeTestLog:
-    """The edge fit's tests (``detection._edge_tests``, by name, ``(M,4)``) of its last pass
+    """The edge fit's tests (``edge_fit._edge_tests``, by name, ``(M,4)``) of its last pass
     in the ``with`` block: why edges fell back to SUBPIX."""
 
     def __enter__(self) -> EdgeTestLog:
         self.last: dict[str, np.ndarray] | None = None
-        self._tests = detection._edge_tests
+        self._tests = edge_fit._edge_tests
 
         def spy(*args, **kwargs):
             self.last = self._tests(*args, **kwargs)
             return self.last
 
-        detection._edge_tests = spy
+        edge_fit._edge_tests = spy
         return self
 
     def __exit__(self, *exc) -> None:
-        detection._edge_tests = self._tests
+        edge_fit._edge_tests = self._tests
 
 
 @dataclass

@@ -6,171 +6,30 @@ Heavy imports happen inside the commands so ``--help`` stays fast. Every user mi
 
 from __future__ import annotations
 
-import functools
-import math
-import os
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 
-from .. import __version__
-from ..core.errors import ConfigError, RgbdCalibError
-from .console import console, print_verdict, stage_progress
-
-app = typer.Typer(
-    name="rgbd-calib",
-    help="Extrinsic calibration of multi-camera RGB-D rigs with a double-sided ArUco board.",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-    rich_markup_mode="rich",
+from ..core.errors import ConfigError
+from .app import (
+    app,
+    check_method,
+    check_output_folder,
+    command,
+    parse_resolution,
+    user_errors,
+    workers_ignore_ctrl_c,
 )
-
-
-class _PlainHelpCommand(typer.core.TyperCommand):
-    """``--help`` with click's plain type names (PATH, INT, PATH...) instead of typer's
-    ``<path>``, ``<list[Path]>``, and nothing for on/off flags (typer shows ``<bool>``)."""
-
-    def get_params(self, ctx):
-        params = super().get_params(ctx)
-        for param in params:
-            if getattr(param, "metavar", None) is None:
-                param.display_type_rich = functools.partial(_plain_type, param)
-        return params
-
-
-def _plain_type(param, ctx) -> str | None:
-    if getattr(param, "is_flag", False):
-        return None
-    label = type(param).display_type_rich(param, ctx) or ""
-    label = label.strip("<>")
-    many = label.startswith("list[")
-    label = label.removeprefix("list[").removesuffix("]").removesuffix("...")
-    label = {"str": "TEXT", "float": "NUMBER"}.get(label.lower(), label.upper())
-    return label + ("..." if many else "")
-
-
-command = functools.partial(app.command, cls=_PlainHelpCommand)
-
-
-def _version(value: bool) -> None:
-    if value:
-        typer.echo(f"rgbd-calib {__version__}")
-        raise typer.Exit()
-
-
-@app.callback()
-def main(
-    version: Annotated[
-        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print version.")
-    ] = False,
-) -> None:
-    """rgbd-calib: record a calibration set, run one command, trust the result."""
-
-
-def _error(message: str) -> None:
-    """Print one ``error:`` line (the message is text, never rich markup: paths and YAML
-    snippets may hold brackets)."""
-    from rich.markup import escape
-
-    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
-
-
-def user_errors(fn):
-    """Turn library errors into one clear line and a non-zero exit (no traceback)."""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except RgbdCalibError as exc:
-            _error(" ".join(str(exc).split("\n")))
-            raise typer.Exit(2) from None
-        except PermissionError as exc:
-            _error(f"{exc.filename}: permission denied; choose a writable folder")
-            raise typer.Exit(2) from None
-        except OSError as exc:  # disk full, a file where a folder should be, ...
-            if exc.filename is None:
-                raise
-            _error(f"{exc.filename}: {exc.strerror or exc}; check the path and the free space")
-            raise typer.Exit(2) from None
-        except KeyboardInterrupt:
-            from rich.markup import escape
-
-            from ..core.interrupts import committed
-
-            done = committed()
-            if done:  # the Ctrl-C came after the results were in place: say so
-                message = ("[yellow]interrupted[/] after the results were written: "
-                           f"{escape(', '.join(str(p) for p in done))} complete; nothing to "
-                           "run again")
-            else:
-                message = ("[yellow]interrupted[/]: earlier results were left untouched; run "
-                           "the same command again to finish")
-            console.print(message, highlight=False, soft_wrap=True)
-            raise typer.Exit(130) from None
-
-    return wrapper
-
-
-def _check_method(method: str) -> None:
-    """``--method`` of the depth-only commands: a registration method, not ``none``."""
-    from ..core.errors import ConfigError
-
-    if method not in ("colored-icp", "geometric"):
-        raise ConfigError(f"--method {method!r}: use colored-icp or geometric")
-
-
-def _check_output_folder(out: Path, option: str = "--out") -> None:
-    """Fail before any long step when ``out`` cannot become a folder: it is a file, or the
-    first existing folder above it is a file or not writable."""
-    from ..core.errors import ConfigError
-
-    out = Path(out)
-    if out.exists():
-        if not out.is_dir():
-            raise ConfigError(f"{out}: {option} is a file, not a folder; choose a folder path")
-        parent = out
-    else:
-        parent = next((p for p in out.parents if p.exists()), Path("."))
-        if not parent.is_dir():
-            raise ConfigError(
-                f"{out}: cannot create {option} there because {parent} is a file; "
-                "choose another folder"
-            )
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"{out}: {parent} is not writable; choose another {option} folder")
-
-
-def _workers_ignore_ctrl_c() -> None:
-    """Start the worker server with SIGINT ignored, so every pool worker inherits that and
-    Ctrl-C reaches only this process: it stops cleanly with one line, the workers do not
-    print their own tracebacks. (Python keeps SIGINT ignored in a child started with it
-    ignored; the forkserver hands its original disposition to each worker.)"""
-    import multiprocessing.forkserver
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        multiprocessing.forkserver.ensure_running()
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
-def _parse_resolution(text: str | None) -> tuple[int, int] | None:
-    if text is None:
-        return None
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-        if w <= 0 or h <= 0:
-            raise ValueError
-    except ValueError:
-        raise typer.BadParameter(f"{text!r}: expected WIDTHxHEIGHT, e.g. 848x480") from None
-    return w, h
+from .console import (
+    console,
+    print_check_table,
+    print_demo_errors,
+    print_summary,
+    print_verdict,
+    stage_progress,
+    warn_line,
+)
 
 
 @command()
@@ -190,14 +49,79 @@ def board(
     ] = False,
 ) -> None:
     """Write the board's faces as true-scale PDFs and PNGs, ready to print and glue."""
-    from ..model.board import load_board
+    from ..model.board_file import load_board
     from ..outputs.printing import write_printable_board
 
-    _check_output_folder(out)
+    check_output_folder(out)
     b = load_board(board_file, fix_winding=fix_winding)
     result = write_printable_board(b, out, dpi=dpi, page=page)
     for path in result.files:
         typer.echo(path)
+
+
+# the options of `synth` (its imperfections shown in a panel of their own)
+IMPERFECTIONS_PANEL = "Imperfections (docs/synthetic.md)"
+DISTORTION_OPTION = typer.Option(
+    metavar="K1 K2 P1 P2 K3",
+    help="true lens distortion of every camera (OpenCV order), rendered "
+    "exactly per pixel ray; e.g. 0.1 -0.2 0.001 -0.001 0.05.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+RIG_DISTORTION_OPTION = typer.Option(
+    help="What rig.yaml lists with --distortion: zeros (as the D435 colour stream "
+    "reports) or truth.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+INTRINSICS_ERROR_OPTION = typer.Option(
+    metavar="F_PCT PX",
+    help="rig.yaml's fx, fy off by one factor within +-F_PCT % and cx, "
+    "cy each off by up to +-PX pixels (seeded); the images use the truth.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+GLUE_OPTION = typer.Option(
+    metavar="DX_MM DY_MM ROT_DEG",
+    help="the back sheet rotated by ROT_DEG about the board normal "
+    "(through the back grid's centre) and shifted by DX_MM, DY_MM along the board's "
+    "x, y; the board file stays nominal.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+THICKNESS_ERROR_OPTION = typer.Option(
+    metavar="MM",
+    help="the panel is MM thicker (negative: thinner) than the board file.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+PRINT_SCALE_OPTION = typer.Option(
+    metavar="S",
+    help="both faces printed S times the board file's size (scaled about "
+    "the board origin), e.g. 0.995; the board file stays nominal.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+FACE_ERROR_OPTION = typer.Option(
+    metavar="MM DEG",
+    help="multi-face target (a cube, an L): every face but the first moved off its "
+    "board-file pose by MM and turned by DEG, each in a seeded direction of its own "
+    "(a hand-built target); the board file stays nominal.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+BOARD_VOLUME_OPTION = typer.Option(
+    metavar="S",
+    help="move the board through S times the layout's volume (about its centre): "
+    "e.g. 2.5 on the ring brings it near the cameras and over more of each image "
+    "(docs/synthetic.md).",
+)
+CLOSEUPS_OPTION = typer.Option(
+    metavar="N",
+    help="N extra frame sets per camera with the board near it, reaching its image's "
+    "corners and edges in turn, as a user records to calibrate a lens "
+    "(docs/synthetic.md).",
+)
+BUMP_OPTION = typer.Option(
+    metavar="NAME:MM:DEG",
+    help="camera NAME knocked after the calibration: shifted MM and turned DEG in a "
+    "seeded direction (repeat for more cameras); render the same seed without it to "
+    "calibrate, with it to test `check` and `refine --fix-others`.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
 
 
 @command()
@@ -229,108 +153,30 @@ def synth(
     cameras: Annotated[int | None, typer.Option(help="Camera count (ring layout).")] = None,
     workers: Annotated[int | None, typer.Option(help="Processes; default all cores.")] = None,
     distortion: Annotated[
-        tuple[float, float, float, float, float] | None,
-        typer.Option(
-            metavar="K1 K2 P1 P2 K3",
-            help="true lens distortion of every camera (OpenCV order), rendered "
-            "exactly per pixel ray; e.g. 0.1 -0.2 0.001 -0.001 0.05.",
-            rich_help_panel="Imperfections (docs/synthetic.md)",
-        ),
+        tuple[float, float, float, float, float] | None, DISTORTION_OPTION
     ] = None,
-    rig_distortion: Annotated[
-        str,
-        typer.Option(
-            help="What rig.yaml lists with --distortion: zeros (as the D435 colour stream "
-            "reports) or truth.",
-            rich_help_panel="Imperfections (docs/synthetic.md)",
-        ),
-    ] = "zeros",
-    intrinsics_error: Annotated[
-        tuple[float, float],
-        typer.Option(
-            metavar="F_PCT PX",
-            help="rig.yaml's fx, fy off by one factor within +-F_PCT % and cx, "
-            "cy each off by up to +-PX pixels (seeded); the images use the truth.",
-            rich_help_panel="Imperfections (docs/synthetic.md)",
-        ),
-    ] = (0.0, 0.0),
-    glue: Annotated[
-        tuple[float, float, float],
-        typer.Option(
-            metavar="DX_MM DY_MM ROT_DEG",
-            help="the back sheet rotated by ROT_DEG about the board normal "
-            "(through the back grid's centre) and shifted by DX_MM, DY_MM along the board's "
-            "x, y; the board file stays nominal.",
-            rich_help_panel="Imperfections (docs/synthetic.md)",
-        ),
-    ] = (0.0, 0.0, 0.0),
-    thickness_error: Annotated[
-        float,
-        typer.Option(
-            metavar="MM",
-            help="the panel is MM thicker (negative: thinner) than the board file.",
-            rich_help_panel="Imperfections (docs/synthetic.md)",
-        ),
-    ] = 0.0,
-    print_scale: Annotated[
-        float,
-        typer.Option(
-            metavar="S",
-            help="both faces printed S times the board file's size (scaled about "
-            "the board origin), e.g. 0.995; the board file stays nominal.",
-            rich_help_panel="Imperfections (docs/synthetic.md)",
-        ),
-    ] = 1.0,
-    face_error: Annotated[
-        tuple[float, float],
-        typer.Option(
-            metavar="MM DEG",
-            help="multi-face target (a cube, an L): every face but the first moved off its "
-            "board-file pose by MM and turned by DEG, each in a seeded direction of its own "
-            "(a hand-built target); the board file stays nominal.",
-            rich_help_panel="Imperfections (docs/synthetic.md)",
-        ),
-    ] = (0.0, 0.0),
-    board_volume: Annotated[
-        float,
-        typer.Option(
-            metavar="S",
-            help="move the board through S times the layout's volume (about its centre): "
-            "e.g. 2.5 on the ring brings it near the cameras and over more of each image "
-            "(docs/synthetic.md).",
-        ),
-    ] = 1.0,
-    closeups: Annotated[
-        int,
-        typer.Option(
-            metavar="N",
-            help="N extra frame sets per camera with the board near it, reaching its image's "
-            "corners and edges in turn, as a user records to calibrate a lens "
-            "(docs/synthetic.md).",
-        ),
-    ] = 0,
-    bump: Annotated[
-        list[str] | None,
-        typer.Option(
-            metavar="NAME:MM:DEG",
-            help="camera NAME knocked after the calibration: shifted MM and turned DEG in a "
-            "seeded direction (repeat for more cameras); render the same seed without it to "
-            "calibrate, with it to test `check` and `refine --fix-others`.",
-            rich_help_panel="Imperfections (docs/synthetic.md)",
-        ),
-    ] = None,
+    rig_distortion: Annotated[str, RIG_DISTORTION_OPTION] = "zeros",
+    intrinsics_error: Annotated[tuple[float, float], INTRINSICS_ERROR_OPTION] = (0.0, 0.0),
+    glue: Annotated[tuple[float, float, float], GLUE_OPTION] = (0.0, 0.0, 0.0),
+    thickness_error: Annotated[float, THICKNESS_ERROR_OPTION] = 0.0,
+    print_scale: Annotated[float, PRINT_SCALE_OPTION] = 1.0,
+    face_error: Annotated[tuple[float, float], FACE_ERROR_OPTION] = (0.0, 0.0),
+    board_volume: Annotated[float, BOARD_VOLUME_OPTION] = 1.0,
+    closeups: Annotated[int, CLOSEUPS_OPTION] = 0,
+    bump: Annotated[list[str] | None, BUMP_OPTION] = None,
 ) -> None:
     """Render a synthetic RGB-D rig with ground truth (dataset folder + ground_truth.yaml).
 
     By default the cameras are ideal and rig.yaml is exact; the imperfection options render
     real-world errors and record their truth in ground_truth.yaml (docs/synthetic.md)."""
-    from ..model.board import load_board, thesis_board
+    from ..model.board import thesis_board
+    from ..model.board_file import load_board
     from ..synth.render import SynthParams, synthesize
 
-    _check_output_folder(out, "the output dataset folder")
-    _workers_ignore_ctrl_c()
+    check_output_folder(out, "the output dataset folder")
+    workers_ignore_ctrl_c()
     params = SynthParams(
-        resolution=_parse_resolution(resolution),
+        resolution=parse_resolution(resolution),
         blur_sigma_px=blur,
         color_noise_dn=noise,
         depth_bias=depth_bias,
@@ -477,10 +323,11 @@ def calibrate(
     """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports."""
     from ..core.config import load_config
     from ..core.parallel import check_scheduler
-    from ..model.board import load_board, thesis_board
+    from ..model.board import thesis_board
+    from ..model.board_file import load_board
     from ..model.results import load_extrinsics
 
-    _check_output_folder(out)
+    check_output_folder(out)
     cfg = load_config(config, method=method, workers=workers, refine=refine,
                       scheduler=scheduler,
                       **{"bundle.intrinsics": intrinsics, "bundle.board": board_model})
@@ -493,9 +340,9 @@ def calibrate(
         _check_fixed(prior, ds.rig, fix)
         fixed = {n: c.T_ref_cam for n, c in prior.cameras.items() if n in ds.rig.cameras}
     ds.check_images()
-    _workers_ignore_ctrl_c()
+    workers_ignore_ctrl_c()
     result = _calibrate_and_write(ds, b, cfg, out, fixed)
-    _print_summary(result, out)
+    print_summary(result, out)
 
 
 def _check_fixed(prior, rig, path: Path) -> None:
@@ -524,92 +371,8 @@ def _calibrate_and_write(ds, board, cfg, out: Path, fixed=None):
         result = run_calibration(
             ds, board, cfg, cache_dir=out / "cache", fixed_cameras=fixed, progress=progress
         )
-        write_outputs(result, ds.rig, out, progress=progress, warn=_warn_line)
+        write_outputs(result, ds.rig, out, progress=progress, warn=warn_line)
     return result
-
-
-def _fixed(value: float, digits: int) -> str:
-    """``value`` with ``digits`` decimals, never ``-0.000`` (a rounding, not a sign)."""
-    return f"{round(float(value), digits) + 0.0:.{digits}f}"
-
-
-def _print_summary(result, out: Path, verdict: bool = True) -> None:
-    """The extrinsics table and notes, then (``verdict``) the verdict, the warnings and where
-    the results are."""
-    from rich.table import Table
-
-    from ..outputs.report.build import board_refined_entry
-    from ..outputs.report.findings import (
-        board_scale_sentence,
-        common_depth_scale,
-        confirming_pairs,
-        glue_sentence,
-    )
-
-    table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
-    for col, unit in (
-        ("camera", ""),
-        ("views", ""),
-        ("x", "m"),
-        ("y", "m"),
-        ("z", "m"),
-        ("sigma rot", "deg"),
-        ("sigma trans", "mm"),
-    ):
-        table.add_column(f"{col} ({unit})" if unit else col, justify="right")
-    views = {}
-    for o in result.observations:
-        views[o.camera] = views.get(o.camera, 0) + 1
-    for name, cam in result.extrinsics.cameras.items():
-        t = cam.T_ref_cam[:3, 3]
-        table.add_row(
-            name,
-            str(views.get(name, 0)),
-            _fixed(t[0], 4),
-            _fixed(t[1], 4),
-            _fixed(t[2], 4),
-            _fixed(cam.sigma_rotation_deg, 4),
-            _fixed(cam.sigma_translation_mm, 3),
-        )
-    Console().print(table)
-    for name, why in result.extrinsics.unconnected.items():
-        console.print(f"[yellow]not calibrated[/]: {name}: {why}")
-    ladder = result.self_calibration
-    if ladder is not None and ladder.chosen.name != "nominal":
-        chosen = next((f for f in ladder.fits if f.level == ladder.chosen), None)
-        why = f": {chosen.reason}" if chosen is not None else ""
-        console.print(f"self-calibration: refined {ladder.chosen.name}{why}"
-                      + ("; markers detected again with the refined lens"
-                         if ladder.redetected else ""))
-    board = board_refined_entry(result).get("refined")
-    if board and board["held"]:
-        console.print(f"[yellow]board not refined[/]: {board['held']}")
-    elif board:
-        s = board["sigmas"]
-        console.print(
-            f"board: {glue_sentence(board)}; sigma {s['offset_mm'][0]:.2f} / "
-            f"{s['offset_mm'][1]:.2f} mm, {s['rotation_deg']:.3f} deg, "
-            f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
-        )
-    pairs = result.depth.pairs if result.depth is not None else []
-    agree = len(confirming_pairs(pairs))
-    if result.depth is not None and result.depth.fallback is not None and agree:
-        console.print(f"depth registration: {agree} of {len(pairs)} camera pairs "
-                      "agree with the board result within their own uncertainty; nothing to "
-                      "correct, the extrinsics are the board result")
-    elif result.depth is not None and result.depth.fallback is not None:
-        console.print(f"[yellow]depth refinement not used[/]: {result.depth.fallback}; "
-                      "the extrinsics are the board result")
-    elif result.depth is not None and result.depth.note is not None:
-        console.print(f"depth registration: {result.depth.note}")
-    scales = result.depth.depth_scale_dict() if result.depth is not None else {}
-    ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
-    if ratio is not None:
-        marker, square = (result.board.printed_lengths if result.board is not None
-                          else (None, None))
-        console.print(f"[red]board scale[/]: {board_scale_sentence(ratio, marker, square)}")
-    if verdict:
-        print_verdict(out)
 
 
 def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms,
@@ -620,10 +383,10 @@ def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_m
     ``extrinsics`` and the depth scales of the report.json beside them:
     ``(dataset, extrinsics, scales)``."""
     from ..core.parallel import check_scheduler
+    from ..model.calib_folder import load_depth_scales, with_refined_intrinsics
     from ..model.results import load_extrinsics
-    from ..pipelines.refine import load_depth_scales, with_refined_intrinsics
 
-    _check_output_folder(out)
+    check_output_folder(out)
     check_scheduler(scheduler)
     ds = _open_dataset(sources, out, names, sync_tolerance_ms)
     ds.check_images()
@@ -675,11 +438,13 @@ def refine(
     """Depth-only refinement of existing extrinsics (no board needed in view)."""
     import math
 
-    from ..model.board import load_board, thesis_board
+    from ..model.board import thesis_board
+    from ..model.board_file import load_board
+    from ..model.calib_folder import load_board_views
     from ..outputs.writer import DepthOnlyRun, write_refine_outputs
-    from ..pipelines.refine import load_board_views, refine_extrinsics, refine_verdict
+    from ..pipelines.refine import refine_extrinsics, refine_verdict
 
-    _check_method(method)
+    check_method(method)
     depth_config = _depth_config(config)
     ds, init_ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, init)
     T_ref_board, board_cameras = load_board_views(init.parent / "report.json")
@@ -702,7 +467,7 @@ def refine(
     run = DepthOnlyRun(ds, init, method, verdict, depth.pairs, sources, scales,
                        depth.status_dict(), depth.depth_scale_dict(), depth.timings_s)
     write_refine_outputs(ext, depth, out, method, init, verdict=verdict, run=run,
-                         warn=_warn_line)
+                         warn=warn_line)
     for p in depth.pairs:
         state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
         before, final = p["rmse_before_mm"], p["rmse_final_mm"]
@@ -714,10 +479,6 @@ def refine(
     console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}")
     console.print(f"results in {out}/ (extrinsics.yaml, report.html, report.json, "
                   "refine_report.json, fused.ply)")
-
-
-def _warn_line(message: str) -> None:
-    console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
 
 
 DEPTH_CONFIG_OPTION = typer.Option(
@@ -739,34 +500,10 @@ TOLERANCE_MM_OPTION = typer.Option(
 TOLERANCE_DEG_OPTION = typer.Option("--tolerance-deg", help="Same, turn (deg).")
 
 
-def _check_table(result, title: str) -> None:
-    """Per camera: status, move and its sigma, pairs."""
-    from rich.table import Table
-
-    table = Table(title=title)
-    for col in ("camera", "status", "moved mm", "moved deg", "chi2", "pairs"):
-        table.add_column(col, justify="left" if col in ("camera", "status") else "right")
-    style = {"in_place": "green", "moved": "bold red", "unknown": "yellow"}
-    for c, r in result.cameras.items():
-        if r.status == "unknown" or not math.isfinite(r.moved_mm):
-            table.add_row(c, f"[{style[r.status]}]{r.status}[/]", "-", "-", "-", str(r.n_pairs))
-            continue
-        table.add_row(c, f"[{style[r.status]}]{r.status}[/]",
-                      f"{r.moved_mm:.2f} ± {r.sigma_mm:.2f}",
-                      f"{r.moved_deg:.3f} ± {r.sigma_deg:.3f}", f"{r.chi2:.1f}", str(r.n_pairs))
-    console.print(table)
-    for c in result.unknown:
-        console.print(f"[yellow]not checked[/]: {c}: {result.cameras[c].reason}",
-                      highlight=False, soft_wrap=True)
-    for c in result.moved:
-        if result.cameras[c].reason:
-            console.print(f"[yellow]{c}[/] {result.cameras[c].reason}", highlight=False,
-                          soft_wrap=True)
-
-
 def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler=None,
                depth_config=None):
-    from ..pipelines.check import Tolerance, check_dataset
+    from ..pipelines.check import check_dataset
+    from ..solve.moved import Tolerance
 
     with stage_progress() as progress:
         return check_dataset(ds, calib, scales, method, depth_config,
@@ -784,7 +521,7 @@ def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolera
 
     run = _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler,
                      depth_config)
-    _check_table(run.result, f"{ds.path} against {init}")
+    print_check_table(run.result, f"{ds.path} against {init}")
     unknown = {c for c, k in run.scale_source.items() if k == "unknown"}
     with stage_progress() as progress:
         tick = start(progress, "re-registering the moved cameras", 1)
@@ -802,7 +539,7 @@ def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolera
     depth_only = DepthOnlyRun(ds, init, method, verdict, pairs, run.scale_source, scales,
                               status, timings_s=run.result.timings_s, moved=moved)
     write_fix_outputs(fixed, run, pairs, out, method, init, verdict, depth_only=depth_only,
-                      warn=_warn_line)
+                      warn=warn_line)
     colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
     console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}", highlight=False,
                   soft_wrap=True)
@@ -838,7 +575,7 @@ def check(
     from ..core.errors import ConfigError
     from ..outputs.writer import write_check_outputs
 
-    _check_method(method)
+    check_method(method)
     if tolerance_mm < 0 or tolerance_deg < 0:
         raise ConfigError("--tolerance-mm / --tolerance-deg must be >= 0")
     path = calib / "extrinsics.yaml" if calib.is_dir() else calib
@@ -849,7 +586,7 @@ def check(
     ds, ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, path)
     run = _run_check(ds, ext, scales, method, tolerance_mm, tolerance_deg, scheduler,
                      depth_config)
-    _check_table(run.result, f"{ds.path} against {path}")
+    print_check_table(run.result, f"{ds.path} against {path}")
     if unknown := [c for c, k in run.scale_source.items() if k == "unknown"]:
         console.print(f"depth scale unknown (no report.json with depth_scale_factor next to "
                       f"{path.name}): {', '.join(unknown)}", highlight=False, soft_wrap=True)
@@ -904,7 +641,7 @@ def posegraph(
         cfg = PoseGraphConfig(kernel=kernel, optimizer=optimizer)
     except ValidationError as exc:
         raise ConfigError(f"options: {exc.errors()[0]['msg']}") from None
-    _check_output_folder(out)
+    check_output_folder(out)
     run = run_posegraph(nodes, edges, cfg)
     write_posegraph_outputs(run, out)
     console.print(
@@ -932,13 +669,12 @@ def demo(
 ) -> None:
     """Render a small synthetic rig, calibrate it and compare with its ground truth (a re-run
     with the same options reuses the render and the detections)."""
-    from ..core.geometry import transform_error
     from ..model.board import thesis_board
     from ..model.dataset import FolderDataset
     from ..synth.render import SynthParams, load_ground_truth, synthesize_cached
 
-    _check_output_folder(out)
-    _workers_ignore_ctrl_c()
+    check_output_folder(out)
+    workers_ignore_ctrl_c()
     b = thesis_board()
     with stage_progress() as progress:
         dataset, reused = synthesize_cached(out / "dataset", layout, frames, seed, b,
@@ -947,36 +683,12 @@ def demo(
         console.print(f"reusing the rendered rig in {dataset}/ (same options)", highlight=False)
     ds = FolderDataset(dataset)
     result = _calibrate_and_write(ds, b, None, out / "calibration")
-    _print_summary(result, out / "calibration", verdict=False)
+    print_summary(result, out / "calibration", verdict=False)
     gt = load_ground_truth(dataset)
-    from rich.table import Table
-
-    table = Table(
-        title="error against the synthetic ground truth",
-        caption=f"good: under {DEMO_GOOD_MM} mm and {DEMO_GOOD_DEG} deg, and within 3 sigma "
-        "(the sigmas above are honest when the errors are about their size)",
-    )
-    table.add_column("camera")
-    table.add_column("rotation (deg)", justify="right")
-    table.add_column("translation (mm)", justify="right")
-    table.add_column("error / sigma", justify="right")
-    table.add_column("good", justify="right")
-    for name, cam in result.extrinsics.cameras.items():
-        deg, mm = transform_error(cam.T_ref_cam, gt.T_ref_cam[name])
-        if name == result.extrinsics.reference:
-            table.add_row(name, f"{deg:.4f}", f"{mm:.3f}", "-", "reference")
-            continue
-        ratio = max(mm / cam.sigma_translation_mm, deg / cam.sigma_rotation_deg)
-        good = mm < DEMO_GOOD_MM and deg < DEMO_GOOD_DEG and ratio <= 3.0
-        table.add_row(name, f"{deg:.4f}", f"{mm:.3f}", f"{ratio:.1f}", "yes" if good else "no")
-    Console().print(table)
+    print_demo_errors(result, gt)
     console.print(f"dataset: {dataset}/", highlight=False)
     print_verdict(out / "calibration")
 
-
-# what the demo's error table calls good on its small synthetic rig (16 frames, 848x480)
-DEMO_GOOD_MM = 1.0
-DEMO_GOOD_DEG = 0.05
 
 
 @command()
@@ -1025,7 +737,7 @@ def convert(
     scratch)."""
     from ..sources import is_video
 
-    _check_output_folder(out)
+    check_output_folder(out)
     videos = [is_video(s) for s in sources]
     if any(videos):
         from .console import cli_convert_videos
@@ -1034,7 +746,7 @@ def convert(
             raise ConfigError("convert: give either video files or recordings, not both")
         board = None
         if board_file is not None:
-            from ..model.board import load_board
+            from ..model.board_file import load_board
 
             board = load_board(board_file)
         cli_convert_videos(sources, out, _name_list(names), timestamps, board, step, still_px_s)
@@ -1064,11 +776,12 @@ def record(
     ] = None,
 ) -> None:
     """Record colour + aligned depth from connected D435i cameras (Ctrl-C stops)."""
-    from ..model.board import load_board, thesis_board
+    from ..model.board import thesis_board
+    from ..model.board_file import load_board
     from .console import cli_record
 
-    _check_output_folder(out)
-    w, h = _parse_resolution(resolution)
+    check_output_folder(out)
+    w, h = parse_resolution(resolution)
     b = load_board(board_file) if board_file else thesis_board()
     cli_record(out, sets, (w, h, fps), hardware_sync, b, _name_list(names))
 

@@ -1,13 +1,15 @@
 """The command line's output: rich progress bars, live displays and tables.
 
-The library reports through :mod:`rgbd_calib.core.progress` and typed results and never imports
-rich; this module turns those into terminal output for :mod:`rgbd_calib.cli.commands`. Bars draw only
-on a terminal (stderr); tables and notes are printed either way.
+The library reports through :mod:`rgbd_calib.core.progress` and typed results and never
+imports rich; this module turns those into terminal output for :mod:`rgbd_calib.cli.commands`:
+progress bars (drawn only on a terminal, stderr), the summary of a calibration, the check's
+and the demo's tables, the verdict (tables and notes are printed either way).
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import re
 import sys
 from collections.abc import Iterator, Sequence
@@ -159,6 +161,153 @@ def print_verdict(out: Path) -> None:
     console.print(f"report: {Path(out) / 'report.html'}", highlight=False, soft_wrap=True)
 
 
+# --------------------------------------------------------------------------- results
+def warn_line(message: str) -> None:
+    console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
+
+
+def _fixed(value: float, digits: int) -> str:
+    """``value`` with ``digits`` decimals, never ``-0.000`` (a rounding, not a sign)."""
+    return f"{round(float(value), digits) + 0.0:.{digits}f}"
+
+
+def print_summary(result, out: Path, verdict: bool = True) -> None:
+    """The extrinsics table and notes, then (``verdict``) the verdict, the warnings and where
+    the results are."""
+    from rich.table import Table
+
+    from ..outputs.report.build import board_refined_entry
+    from ..outputs.report.findings import (
+        board_scale_sentence,
+        common_depth_scale,
+        confirming_pairs,
+        glue_sentence,
+    )
+
+    table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
+    for col, unit in (
+        ("camera", ""),
+        ("views", ""),
+        ("x", "m"),
+        ("y", "m"),
+        ("z", "m"),
+        ("sigma rot", "deg"),
+        ("sigma trans", "mm"),
+    ):
+        table.add_column(f"{col} ({unit})" if unit else col, justify="right")
+    views = {}
+    for o in result.observations:
+        views[o.camera] = views.get(o.camera, 0) + 1
+    for name, cam in result.extrinsics.cameras.items():
+        t = cam.T_ref_cam[:3, 3]
+        table.add_row(
+            name,
+            str(views.get(name, 0)),
+            _fixed(t[0], 4),
+            _fixed(t[1], 4),
+            _fixed(t[2], 4),
+            _fixed(cam.sigma_rotation_deg, 4),
+            _fixed(cam.sigma_translation_mm, 3),
+        )
+    Console().print(table)
+    for name, why in result.extrinsics.unconnected.items():
+        console.print(f"[yellow]not calibrated[/]: {name}: {why}")
+    ladder = result.self_calibration
+    if ladder is not None and ladder.chosen.name != "nominal":
+        chosen = next((f for f in ladder.fits if f.level == ladder.chosen), None)
+        why = f": {chosen.reason}" if chosen is not None else ""
+        console.print(f"self-calibration: refined {ladder.chosen.name}{why}"
+                      + ("; markers detected again with the refined lens"
+                         if ladder.redetected else ""))
+    board = board_refined_entry(result).get("refined")
+    if board and board["held"]:
+        console.print(f"[yellow]board not refined[/]: {board['held']}")
+    elif board:
+        s = board["sigmas"]
+        console.print(
+            f"board: {glue_sentence(board)}; sigma {s['offset_mm'][0]:.2f} / "
+            f"{s['offset_mm'][1]:.2f} mm, {s['rotation_deg']:.3f} deg, "
+            f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
+        )
+    pairs = result.depth.pairs if result.depth is not None else []
+    agree = len(confirming_pairs(pairs))
+    if result.depth is not None and result.depth.fallback is not None and agree:
+        console.print(f"depth registration: {agree} of {len(pairs)} camera pairs "
+                      "agree with the board result within their own uncertainty; nothing to "
+                      "correct, the extrinsics are the board result")
+    elif result.depth is not None and result.depth.fallback is not None:
+        console.print(f"[yellow]depth refinement not used[/]: {result.depth.fallback}; "
+                      "the extrinsics are the board result")
+    elif result.depth is not None and result.depth.note is not None:
+        console.print(f"depth registration: {result.depth.note}")
+    scales = result.depth.depth_scale_dict() if result.depth is not None else {}
+    ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
+    if ratio is not None:
+        marker, square = (result.board.printed_lengths if result.board is not None
+                          else (None, None))
+        console.print(f"[red]board scale[/]: {board_scale_sentence(ratio, marker, square)}")
+    if verdict:
+        print_verdict(out)
+
+
+def print_check_table(result, title: str) -> None:
+    """Per camera: status, move and its sigma, pairs."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for col in ("camera", "status", "moved mm", "moved deg", "chi2", "pairs"):
+        table.add_column(col, justify="left" if col in ("camera", "status") else "right")
+    style = {"in_place": "green", "moved": "bold red", "unknown": "yellow"}
+    for c, r in result.cameras.items():
+        if r.status == "unknown" or not math.isfinite(r.moved_mm):
+            table.add_row(c, f"[{style[r.status]}]{r.status}[/]", "-", "-", "-", str(r.n_pairs))
+            continue
+        table.add_row(c, f"[{style[r.status]}]{r.status}[/]",
+                      f"{r.moved_mm:.2f} ± {r.sigma_mm:.2f}",
+                      f"{r.moved_deg:.3f} ± {r.sigma_deg:.3f}", f"{r.chi2:.1f}", str(r.n_pairs))
+    console.print(table)
+    for c in result.unknown:
+        console.print(f"[yellow]not checked[/]: {c}: {result.cameras[c].reason}",
+                      highlight=False, soft_wrap=True)
+    for c in result.moved:
+        if result.cameras[c].reason:
+            console.print(f"[yellow]{c}[/] {result.cameras[c].reason}", highlight=False,
+                          soft_wrap=True)
+
+
+# what the demo's error table calls good on its small synthetic rig (16 frames, 848x480)
+DEMO_GOOD_MM = 1.0
+DEMO_GOOD_DEG = 0.05
+
+
+def print_demo_errors(result, gt) -> None:
+    """The demo's table: each camera's error against the synthetic ground truth ``gt`` and
+    whether it is good (:data:`DEMO_GOOD_MM`, :data:`DEMO_GOOD_DEG`, within 3 sigma)."""
+    from rich.table import Table
+
+    from ..core.geometry import transform_error
+
+    table = Table(
+        title="error against the synthetic ground truth",
+        caption=f"good: under {DEMO_GOOD_MM} mm and {DEMO_GOOD_DEG} deg, and within 3 sigma "
+        "(the sigmas above are honest when the errors are about their size)",
+    )
+    table.add_column("camera")
+    table.add_column("rotation (deg)", justify="right")
+    table.add_column("translation (mm)", justify="right")
+    table.add_column("error / sigma", justify="right")
+    table.add_column("good", justify="right")
+    for name, cam in result.extrinsics.cameras.items():
+        deg, mm = transform_error(cam.T_ref_cam, gt.T_ref_cam[name])
+        if name == result.extrinsics.reference:
+            table.add_row(name, f"{deg:.4f}", f"{mm:.3f}", "-", "reference")
+            continue
+        ratio = max(mm / cam.sigma_translation_mm, deg / cam.sigma_rotation_deg)
+        good = mm < DEMO_GOOD_MM and deg < DEMO_GOOD_DEG and ratio <= 3.0
+        table.add_row(name, f"{deg:.4f}", f"{mm:.3f}", f"{ratio:.1f}", "yes" if good else "no")
+    Console().print(table)
+
+
 # --------------------------------------------------------------------------- convert
 def print_conversion_report(report) -> None:
     """The per-camera counts of a :class:`~rgbd_calib.sources.ConversionReport` as a table,
@@ -228,7 +377,8 @@ def cli_record(
     names: Sequence[str] | None = None,
     device_source=None,
 ):
-    """Run :func:`~rgbd_calib.sources.record.record` with a live table of board markers per camera."""
+    """Run :func:`~rgbd_calib.sources.record.record` with a live table of board markers per
+    camera."""
     from rich.live import Live
     from rich.table import Table
 

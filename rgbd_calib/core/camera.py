@@ -46,7 +46,7 @@ DISTORTION_NAMES = (
     "tau_y",
 )
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
-# depth noise models of rig.yaml ``depth_noise`` (rgbd_calib.depth.registration.depth_noise): active stereo
+# depth noise models of rig.yaml ``depth_noise`` (rgbd_calib.depth.noise.depth_noise): active stereo
 # (RealSense D435, the default) or structured light (Kinect v1 / PrimeSense)
 DEPTH_NOISE_MODELS = ("d435", "kinect-v1")
 

@@ -12,7 +12,7 @@ receives one) must not load cv2, gtsam, open3d or kiss_icp (tests/test_config.py
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 import yaml
 from pydantic import (
@@ -29,6 +29,10 @@ from .errors import ConfigError
 from .yamlio import read_yaml_mapping, to_builtin
 
 Refinement = Literal["edges", "subpix", "none", "contour"]
+# how a pair of depth clouds is registered: Open3D's colored ICP (Park et al. 2017) or kiss-icp's
+# geometric ICP; the one definition of the names (config, CLI and the depth stage check them)
+RegistrationMethod = Literal["colored-icp", "geometric"]
+REGISTRATION_METHODS: tuple[str, ...] = get_args(RegistrationMethod)
 
 # sqrt(chi2_6.ppf(0.99)): 99% of inlier 6-dof whitened residual norms lie below this.
 DEFAULT_KERNEL_THRESHOLD = 4.1
@@ -256,13 +260,14 @@ class PoseConfig(BaseModel, extra="forbid"):
         "shared by all corners of a view (a common 2-D affine map of its corners: offset, "
         "scale, stretch, shear; intrinsics or distortion slightly off, a marker bias, a "
         "rolling shutter), propagated through the PnP and added to the pose covariance "
-        "(rgbd_calib/pose.py::model_error_covariance). The corner-noise estimate cannot see "
+        "(rgbd_calib/solve/pose.py::model_error_covariance). The corner-noise estimate cannot "
+        "see "
         "it (the pose absorbs it), so without it the pose graph judges real-camera views by "
         "covariances far too small. 'auto' (the default) estimates it from the data: 0 "
         "unless the typical view disagrees with the rig by more than its corner noise "
         "allows, then the floor that makes the typical view consistent "
-        "(rgbd_calib/graph.py::_estimate_view_floor; docs/accuracy.md 'Per-view model-error "
-        "floor'). A number fixes it (0 turns it off; 0.5 is what the real webcams of "
+        "(rgbd_calib/solve/posegraph.py::_estimate_view_floor; docs/accuracy.md 'Per-view "
+        "model-error floor'). A number fixes it (0 turns it off; 0.5 is what the real webcams of "
         "docs/accuracy.md need).",
     )
     @field_validator("model_error_px", mode="before")
@@ -806,7 +811,7 @@ class CalibrationConfig(BaseModel):
     graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
     bundle: BundleConfig = Field(default_factory=BundleConfig)
     depth: DepthConfig = Field(default_factory=DepthConfig)
-    refine: Literal["auto", "colored-icp", "geometric", "none"] = Field(
+    refine: Literal["auto", RegistrationMethod, "none"] = Field(
         "auto",
         description="depth refinement after the board solve: colored ICP, kiss-icp's "
         "geometric ICP, or none; auto = colored-icp when the dataset has depth (bundle method "

@@ -57,7 +57,7 @@ def check_entry_point() -> None:
 # tasks (detection, rendering, depth pairs). Without it every worker of every pool
 # imported them itself (cv2, open3d, gtsam): ~1.5 s per pool of 2 on a 2-core machine, paid
 # by each calibrate, refine and synth stage
-PRELOAD = ("rgbd_calib.pipelines.calibrate", "rgbd_calib.pipelines.refine", "rgbd_calib.synth.render")
+PRELOAD = ("rgbd_calib.pipelines.calibrate", "rgbd_calib.depth.stage", "rgbd_calib.synth.render")
 
 
 def process_context() -> BaseContext:

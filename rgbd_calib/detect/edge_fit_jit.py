@@ -1,6 +1,6 @@
 """The edge model's Levenberg-Marquardt fit compiled with numba: one marker at a time.
 
-The numpy reference (:func:`rgbd_calib.detect.markers._fit_edge_models`) evaluates every marker of
+The numpy reference (:func:`rgbd_calib.detect.edge_fit._fit_edge_models`) evaluates every marker of
 an image at once with whole-array operations: ~25 temporaries of the band's size per model
 evaluation and the normal equations through a 0/1 scatter matrix, so the fit costs ~10 ms per
 1280x720 image, more than OpenCV's marker detection. Here the same maths runs as loops over one
@@ -8,7 +8,7 @@ marker's pixels (no temporaries, the normal equations summed in place, the small
 solved by Gaussian elimination), and a marker stops as soon as its step is below ``tol`` (the
 numpy version runs every marker for ``iterations``, the slowest marker's count).
 
-Pure maths on flat arrays (the layout of ``detection._EdgeSamples``); compiled on first use
+Pure maths on flat arrays (the layout of ``edge_fit._EdgeSamples``); compiled on first use
 and cached on disk (``cache=True``), so worker processes load the machine code instead of
 compiling it again. Results equal the reference to ~1e-9 px (summation order, ``erfc`` vs
 scipy's ``ndtr``, the linear solver; tests/test_detection.py checks 1e-6 px).
@@ -21,7 +21,7 @@ import math
 import numpy as np
 from numba import njit
 
-_FAR = 8.5  # |x| beyond which ndtr(x) is 0 or 1 to double precision (as in detection._FAR)
+_FAR = 8.5  # |x| beyond which ndtr(x) is 0 or 1 to double precision (as in edge_fit._FAR)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _SQRT1_2 = math.sqrt(0.5)
 
@@ -86,7 +86,7 @@ def _model(
     basis, d_dist, d_width,
 ):  # fmt: skip
     """The blurred marker image (0 on the ink, 1 on the quiet zone) and its derivatives by d
-    and by w at one marker's pixels (see ``detection._edge_model``); ``local`` ``(4,3)`` rho,
+    and by w at one marker's pixels (see ``edge_fit._edge_model``); ``local`` ``(4,3)`` rho,
     theta, kappa of its edges, ``e0`` ``(5,)`` the pixel offsets of its four edges."""
     wd = width
     for k in range(4):
@@ -121,7 +121,7 @@ def _model(
 @njit(cache=True)
 def _solve_linear(p0, p1, values, basis, wt, width, w0, w_sigma, resid):
     """Closed-form weighted least squares values = D + C * basis over pixels ``p0:p1``:
-    returns (cost with the blur prior, C) and fills ``resid`` (see ``detection._edge_solve``)."""
+    returns (cost with the blur prior, C) and fills ``resid`` (see ``edge_fit._edge_solve``)."""
     sw = s1 = s2 = sv = svb = 0.0
     for i in range(p0, p1):
         w, b, v = wt[i], basis[i], values[i]
@@ -181,7 +181,7 @@ def _lm_step(
     e0, tn, tn2, basis, d_dist, d_width, resid, wt, contrast, width, lam, w0, w_sigma, n_loc
 ):  # fmt: skip
     """One damped Gauss-Newton step of one marker: ``n_loc`` parameters per edge, then D, C
-    and the blur width (see ``detection._lm_step``)."""
+    and the blur width (see ``edge_fit._lm_step``)."""
     n_par = n_loc + 3
     n_big = 4 * n_loc + 3
     jtj = np.zeros((n_big, n_big))
@@ -227,7 +227,7 @@ def _lm_step(
 
 @njit(cache=True)
 def _upper_median(v):
-    """Element ``len // 2`` of the sorted ``v`` (0 when empty), as ``detection._edge_medians``;
+    """Element ``len // 2`` of the sorted ``v`` (0 when empty), as ``edge_fit._edge_medians``;
     by quickselect on ``v`` (reordered in place): O(n), and much quicker to compile than
     ``np.sort``."""
     n = v.size
@@ -261,7 +261,7 @@ def fit_edge_models(
     edge_ptr, d0, tn, tn2, values, m_pix, pair_ptr, pair_s, pair_step, band, w0, w_sigma,
     iterations, curved, tol,
 ):  # fmt: skip
-    """Levenberg-Marquardt of the edge model per marker (see ``detection._fit_edge_models``).
+    """Levenberg-Marquardt of the edge model per marker (see ``edge_fit._fit_edge_models``).
 
     ``edge_ptr`` ``(4M+1,)``: pixel offsets of the edges (pixels ordered by edge);
     ``pair_ptr`` ``(P+1,)``: offsets of each pixel's (pixel, cell boundary) pairs; ``band``
@@ -351,7 +351,7 @@ def edge_band_samples(
     r_max, height, width, m_at0, m_slope, tau_scale, bound, step_at,
 ):  # fmt: skip
     """The band pixels of every edge and their (pixel, cell boundary) pairs, as flat arrays
-    ordered by edge (see ``detection._band_pixels`` and ``detection._edge_samples``, whose
+    ordered by edge (see ``edge_fit._band_pixels`` and ``edge_fit._edge_samples``, whose
     arithmetic this repeats operation by operation, so the same pixels are selected).
 
     Per edge ``(4M,)``: the major image axis (0: x), the first column ``c_lo`` and column

@@ -12,6 +12,7 @@ renamed into place whole.
 
 from __future__ import annotations
 
+import copy
 import os
 import shutil
 import struct
@@ -116,6 +117,13 @@ class FolderDataset:
     @property
     def cameras(self) -> list[str]:
         return self.rig.names
+
+    def with_rig(self, rig: Rig) -> FolderDataset:
+        """The same frames with another rig (e.g. refined intrinsics), without scanning the
+        folder again; ``rig`` must name the same cameras."""
+        out = copy.copy(self)
+        out.rig = rig
+        return out
 
     def has_depth(self, camera: str) -> bool:
         return bool(self._depth[camera])

@@ -29,7 +29,7 @@ class PoseEdge:
     it, its outlier test and its solve with it. ``model_error_unit`` is that floor's
     covariance for a 1 px model error, not included in ``covariance``: with
     ``pose.model_error_px: auto`` the pose graph estimates the floor from the views'
-    disagreement and adds it (``graph._estimate_view_floor``)."""
+    disagreement and adds it (``solve.posegraph._estimate_view_floor``)."""
 
     camera: str
     view: str

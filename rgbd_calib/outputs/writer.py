@@ -5,7 +5,7 @@ into place, ``extrinsics.yaml`` last: an interrupted or failed run leaves any ea
 untouched, and never a half-written file.
 
 ``report.json`` (schema: docs/report_schema.md) holds every number the human report shows, so
-``rgbd-calib report DIR`` (:func:`rgbd_calib.outputs.report.rebuild_report`) rebuilds ``report.html``
+``rgbd-calib report DIR`` (:func:`.report.rebuild_report`) rebuilds ``report.html``
 from the saved folder alone.
 """
 
@@ -26,15 +26,19 @@ from ..core.interrupts import mark_committed, sigint_deferred
 from ..core.ply import write_fused_ply
 from ..core.progress import Progress
 from ..core.yamlio import to_builtin, write_yaml
-from ..depth.registration import fuse_clouds
-from ..model.board import refined_board, refined_multiface, save_board
+from ..depth.clouds import fuse_clouds
+from ..depth.stage import DepthRefinement
+from ..model.board import refined_board, refined_multiface
+from ..model.board_file import save_board
 from ..model.dataset import FolderDataset
 from ..model.results import Extrinsics, PoseEdge, write_extrinsics
 from ..model.rig import Rig, save_rig
-from ..pipelines.calibrate import CalibrationResult, pose_edges, refined_rig
+from ..pipelines.calibrate import CalibrationResult
 from ..pipelines.check import CheckRun
 from ..pipelines.posegraph import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
-from ..pipelines.refine import DepthRefinement, refine_summary
+from ..pipelines.refine import refine_summary
+from ..solve.ladder import refined_rig
+from ..solve.pose import pose_edges
 from .exports import write_exports
 from .report import (
     depth_only_report_dict,

@@ -1,458 +1,37 @@
-"""Depth refinement stage: the RGB-D frames tighten the extrinsics.
+"""The ``refine`` command: depth-only refinement of an existing calibration (no board in
+view), and its verdict.
 
-Steps (issue 4's design, one joint graph with the board):
-
-1. depth-scale bias per camera from the board face, against the calibrated board poses;
-2. a static cloud per camera (temporal median, board and moving things masked, scale
-   applied);
-3. overlapping camera pairs under the current extrinsics;
-4. pairwise registration (colored ICP, Park et al. ICCV 2017, or kiss-icp's geometric ICP)
-   with an information matrix; weak pairs rejected with a reason;
-5. the accepted pairs become relative-pose factors in the bundle adjustment (done by the
-   caller, :func:`rgbd_calib.pipelines.calibrate.calibrate`, or :func:`refine_extrinsics` without a board).
+:func:`refine_extrinsics` runs the depth stage (:func:`rgbd_calib.depth.stage.measure_depth`)
+from the initial extrinsics and solves a pose graph of the accepted pairs with a prior per
+camera at its initial pose
+(:func:`~rgbd_calib.solve.variance_components.solve_variance_components`);
+:func:`refine_verdict` / :func:`fix_verdict` say in one line what came of it,
+:func:`refine_summary` writes it for report.json. The earlier calibration is read with
+:mod:`rgbd_calib.model.calib_folder`.
 """
 
 from __future__ import annotations
 
-import json
-import os
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from ..core.camera import CameraIntrinsics
-from ..core.config import BundleConfig, DepthConfig
-from ..core.errors import CalibrationError, DatasetError
-from ..core.geometry import adjoint, invert_transform, transform_error
-from ..core.parallel import executor
-from ..core.progress import Progress, Tick, start, timed
-from ..depth.registration import (
-    CameraCloud,
-    DepthScaleEstimate,
-    PairRegistration,
-    estimate_depth_scale,
-    failed_registration,
-    find_overlapping_pairs,
-    fuse_clouds,
-    limit_registration_threads,
-    one_line_error,
-    pair_rmse_mm,
-    register_pair,
-    static_cloud,
-    tangent_error,
-)
+from ..core.config import DepthConfig, RegistrationMethod
+from ..core.errors import CalibrationError
+from ..core.geometry import invert_transform, transform_error
+from ..depth.stage import DepthRefinement, finish_pairs, measure_depth, moved_beyond_board
 from ..model.board import Board
 from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics, cameras_from_solve
-from ..model.rig import Rig, load_rig
-from ..solve.posegraph import RelativePose, bundle_adjust, relative_pose_redundancy
-
-RefineMethod = Literal["colored-icp", "geometric", "none"]
+from ..solve.bundle import RelativePose
+from ..solve.variance_components import solve_variance_components
 
 
-@dataclass(frozen=True)
-class DepthRefinement:
-    """What the depth stage measured; ``pairs`` are report-ready dicts (see report schema)."""
-
-    method: str
-    depth_scales: dict[str, DepthScaleEstimate]
-    clouds: dict[str, CameraCloud]
-    pairs: list[dict[str, Any]]
-    relative_poses: list[RelativePose]
-    T_ref_cam_initial: dict[str, np.ndarray]  # extrinsics the pairs were registered from
-    timings_s: dict[str, float] = field(default_factory=dict)
-    skipped_cameras: dict[str, str] = field(default_factory=dict)  # camera -> why no cloud
-    fallback: str | None = None  # why the result is the board's alone (no usable pair), if so
-    note: str | None = None  # why registration was not needed (strong board data), if so
-    weak_cameras: dict[str, str] | None = None  # cameras depth was run for (None: all)
-    scale_source: dict[str, str] = field(default_factory=dict)  # board / given / unknown
-    # refine: the pairs' variance factor of the joint solve (solve_variance_components)
-    pair_variance_factor: float | None = None
-
-    def status_dict(self) -> dict[str, Any]:
-        """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason`` and
-        the cameras the board constrained weakly (those depth was registered for)."""
-        status = ("fallback" if self.fallback else "skipped" if self.note
-                  else "used" if self.relative_poses else "none")
-        return {"status": status, "reason": self.fallback or self.note,
-                "weak_cameras": dict(self.weak_cameras or {})}
-
-    @property
-    def used(self) -> bool:
-        """Whether any pair went into the solve."""
-        return bool(self.relative_poses) and self.fallback is None
-
-    def with_fallback(self, reason: str) -> DepthRefinement:
-        """This measurement with every pair unused: the solve keeps the board result."""
-        pairs = [p if not p.get("accepted") else
-                 {**p, "accepted": False, "reason": f"not used: {reason}"} for p in self.pairs]
-        return replace(self, pairs=pairs, relative_poses=[], fallback=reason)
-
-    def depth_scale_dict(self) -> dict[str, dict[str, float]]:
-        return {c: {"factor": e.factor, "sigma": e.sigma} for c, e in self.depth_scales.items()}
-
-    def fused(self, T_ref_cam: dict[str, np.ndarray], voxel_m: float):
-        """``(points_ref, colors, camera_index, camera_names)`` at the given extrinsics."""
-        names = [c for c in self.clouds if c in T_ref_cam]
-        pts, cols, idx = fuse_clouds({c: self.clouds[c] for c in names},
-                                     {c: T_ref_cam[c] for c in names}, voxel_m)
-        return pts, cols, idx, names
-
-
-def weak_cameras(covariance: dict[str, np.ndarray | None], config: DepthConfig,
-                 ) -> dict[str, str]:
-    """Cameras the board constrains weakly, with why: the worst direction of the marginal
-    covariance (6x6, [rot rad, trans m]) above ``board_weak_sigma_deg`` in rotation or
-    ``board_weak_sigma_mm`` in translation. A camera without a covariance counts as weak."""
-    out: dict[str, str] = {}
-    for cam, cov in covariance.items():
-        if cov is None or not np.all(np.isfinite(cov)):
-            out[cam] = "no board covariance"
-            continue
-        worst_deg = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0))))
-        worst_mm = float(1000.0 * np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
-        if worst_mm > config.board_weak_sigma_mm or worst_deg > config.board_weak_sigma_deg:
-            out[cam] = f"board sigma {worst_mm:.3f} mm / {worst_deg:.4f} deg in its worst direction"
-    return out
-
-
-def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[str, np.ndarray],
-                  board_views: dict[str, dict[str, np.ndarray]] | None, T_ref_board:
-                  dict[str, np.ndarray] | None, method: RefineMethod,
-                  config: DepthConfig | None = None,
-                  progress: Progress | None = None,
-                  board_covariance: dict[str, np.ndarray | None] | None = None,
-                  workers: int | None = None,
-                  depth_scales: dict[str, float] | None = None,
-                  scheduler: str | None = None,
-                  ) -> DepthRefinement:
-    """Run steps 1-4 for every calibrated camera that has depth.
-
-    ``board_views`` maps camera -> {frame: T_cam_board} of the views it saw (for the depth
-    scale); ``T_ref_board`` maps frame -> board pose (for masking the board). Both may be
-    None (refinement of an existing calibration without a board in view).
-
-    With ``board_covariance`` (camera -> 6x6 marginal of the board solve) only pairs with a
-    camera the board constrains weakly (:func:`weak_cameras`) are registered, and nothing but
-    the depth scale is measured when the board constrains every camera well: depth adds no
-    information there. Pairs run in ``workers`` processes (default: all cores) or on the Dask
-    cluster of ``scheduler``.
-
-    ``depth_scales`` (camera -> factor, e.g. from the report.json of the calibration being
-    refined) are used for cameras the board gives no factor for. A camera with neither has an
-    unknown depth scale: its pairs' information leaves out the directions a depth-scale error
-    would explain (:func:`rgbd_calib.depth.registration.whitened_rows`, ``free_scale``). Intrinsics the
-    rig marks as estimated (``dataset.rig.sigmas``) carry their uncertainty into each pair
-    (:func:`rgbd_calib.depth.registration.static_cloud`)."""
-    config = config or DepthConfig()
-    cams = [c for c in dataset.cameras if c in T_ref_cam and dataset.has_depth(c)]
-    weak: dict[str, str] | None = None
-    if board_covariance is not None:
-        weak = weak_cameras({c: board_covariance.get(c) for c in cams
-                             if c != dataset.rig.reference}, config)
-    timings: dict[str, float] = {}
-    scales: dict[str, DepthScaleEstimate] = {}
-    with timed(timings, "depth_scale"):
-        if board is not None and board_views:
-            tick = start(progress, "depth scale per camera", len(cams))
-            for c in cams:
-                views = board_views.get(c, {})
-                if views:
-                    try:
-                        scales[c] = estimate_depth_scale(dataset, c, views, board, config)
-                    except (CalibrationError, DatasetError):
-                        pass  # too few board pixels with depth: the factor stays 1 (reported)
-                tick(1)
-
-    no_pair = method != "none" and weak is not None and not weak
-    with timed(timings, "clouds"):
-        jobs = [(c, T_ref_cam[c], scales[c].factor if c in scales
-                 else (depth_scales or {}).get(c, 1.0)) for c in cams]
-        # no registration: the clouds are for fused.ply and the cloud checks only
-        cloud_config = (config.model_copy(update={"max_frames": min(
-            config.max_frames, config.skipped_max_frames)}) if no_pair else config)
-        clouds, skipped = static_clouds(dataset, jobs, T_ref_board or {}, board, cloud_config,
-                                        workers, start(progress, "static clouds", len(cams)),
-                                        scheduler)
-
-    if no_pair:
-        # the clouds are still built: fused.ply and the report's cloud checks use them
-        return DepthRefinement(
-            method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
-            note=(f"the board constrains every camera within {config.board_weak_sigma_mm} mm "
-                  f"/ {config.board_weak_sigma_deg} deg: depth registration would add no "
-                  "information and was skipped"), weak_cameras={})
-
-    pairs: list[dict[str, Any]] = []
-    relative: list[RelativePose] = []
-    if method != "none" and len(clouds) >= 2:
-        with timed(timings, "registration"):
-            intrinsics = {c: dataset.rig.cameras[c] for c in clouds}
-            overlaps = find_overlapping_pairs(clouds, T_ref_cam, intrinsics, config)
-            if weak is not None:
-                overlaps = [ov for ov in overlaps if ov.cam_a in weak or ov.cam_b in weak]
-            tick = start(progress, f"registering pairs ({method})", len(overlaps))
-            # In calibrate (``board_covariance`` given) the factors were measured against the
-            # board poses of this same, weak, board solve: their error is its board-pose error
-            # over the board distance (1-3e-4 on a 6-frame race rig, 2-5x the factor's sigma,
-            # which counts depth noise only), i.e. 0.3-1 mm on surfaces 2-3 m away, as large
-            # as the board error the pairs are to correct. So there every pair leaves the
-            # directions a scale error explains to the board (docs/depth.md, "Weak board
-            # data"). refine keeps given factors as known (issue 14, item 3).
-            known = (set() if board_covariance is not None
-                     else set(scales) | set(depth_scales or {}))
-            jobs = [(ov.cam_a, ov.cam_b, T_ref_cam[ov.cam_a], T_ref_cam[ov.cam_b],
-                     (ov.cam_a not in known, ov.cam_b not in known)) for ov in overlaps]
-            for ov, reg in zip(overlaps, register_pairs(clouds, jobs, method, config, workers,
-                                                         tick, scheduler=scheduler)):
-                if reg.accepted and board_covariance is not None:
-                    reg = consistent_with_board(reg, board_covariance, T_ref_cam, config)
-                pairs.append({**ov.to_dict(), **reg.to_dict()})
-                if reg.accepted:
-                    relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
-    depth = DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings,
-                            skipped, weak_cameras=weak,
-                            scale_source={c: "board" if c in scales else "given"
-                                          if c in (depth_scales or {}) else "unknown"
-                                          for c in clouds})
-    if method != "none" and not relative:
-        depth = depth.with_fallback(no_pair_reason(depth))
-    return depth
-
-
-_POOL_CLOUDS: dict[str, CameraCloud] = {}
-_POOL_ARGS: tuple[str, DepthConfig, bool] | None = None
-
-
-def _pool_init(clouds: dict[str, CameraCloud], method: str, config: DepthConfig,
-               robust: bool = False) -> None:
-    """Worker initializer (local pool or Dask worker): the clouds and settings of this run
-    (replacing an earlier run's on a long-lived Dask worker), one thread per registration."""
-    global _POOL_ARGS
-    limit_registration_threads(1)
-    _POOL_CLOUDS.clear()
-    _POOL_CLOUDS.update(clouds)
-    _POOL_ARGS = (method, config, robust)
-
-
-Job = tuple[str, str, np.ndarray, np.ndarray, tuple[bool, bool]]
-
-
-def _pool_job(job: Job) -> PairRegistration:
-    assert _POOL_ARGS is not None
-    a, b, T_ref_a, T_ref_b, free_scale = job
-    method, config, robust = _POOL_ARGS
-    return _register_safely(_POOL_CLOUDS[a], _POOL_CLOUDS[b], T_ref_a, T_ref_b, method,
-                            config, free_scale, robust)
-
-
-def register_pairs(clouds: dict[str, CameraCloud],
-                   jobs: list[Job], method: RefineMethod,
-                   config: DepthConfig, workers: int | None = None, tick=None,
-                   robust: bool = False, scheduler: str | None = None,
-                   ) -> list[PairRegistration]:
-    """Register every ``(cam_a, cam_b, T_ref_a, T_ref_b, free_scale)`` of ``jobs`` (in order), in a
-    process pool of ``workers`` (default: all cores; 1 or a single job runs here), or on the
-    Dask cluster of ``scheduler`` (:func:`rgbd_calib.core.parallel.executor`). Each worker receives
-    the clouds once; a failing pair is rejected, never raised. ``robust``:
-    :func:`rgbd_calib.pipelines.check.register_robust` (a global alignment when ICP from the given
-    extrinsics does not fit: a knocked camera)."""
-    n = min(workers or os.cpu_count() or 1, len(jobs))
-    if n <= 1 and not (scheduler and len(jobs) > 1):
-        out = []
-        for a, b, T_ref_a, T_ref_b, free_scale in jobs:
-            out.append(_register_safely(clouds[a], clouds[b], T_ref_a, T_ref_b, method, config,
-                                        free_scale, robust))
-            if tick:
-                tick(1)
-        return out
-    used = {c for a, b, *_ in jobs for c in (a, b)}
-    init_args = ({c: clouds[c] for c in used}, method, config, robust)
-    with executor(n, scheduler, initializer=_pool_init, initargs=init_args) as pool:
-        futures = [pool.submit(_pool_job, job) for job in jobs]
-        out = []
-        for (a, b, T_ref_a, T_ref_b, _), future in zip(jobs, futures):
-            try:
-                out.append(future.result())
-            except Exception as exc:  # noqa: BLE001 - a worker that died takes one pair
-                T_b_a0 = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
-                out.append(failed_registration(a, b, method, T_b_a0, "registration process "
-                                               f"failed: {type(exc).__name__}: {exc}"))
-            if tick:
-                tick(1)
-        return out
-
-
-def _cloud_job(dataset: FolderDataset, camera: str, T_ref_board: dict[str, np.ndarray],
-               T_ref_cam: np.ndarray, board: Board | None, config: DepthConfig,
-               factor: float) -> tuple[CameraCloud | None, str | None]:
-    """One camera's :func:`~rgbd_calib.depth.registration.static_cloud`, or why it has none (a failure
-    here costs this camera only)."""
-    try:
-        return static_cloud(dataset, camera, T_ref_board, T_ref_cam, board, config,
-                            depth_scale_factor=factor), None
-    except (DatasetError, ValueError, MemoryError) as exc:
-        return None, one_line_error(exc)
-
-
-def static_clouds(dataset: FolderDataset, jobs: list[tuple[str, np.ndarray, float]],
-                  T_ref_board: dict[str, np.ndarray], board: Board | None,
-                  config: DepthConfig, workers: int | None = None, tick: Tick | None = None,
-                  scheduler: str | None = None,
-                  ) -> tuple[dict[str, CameraCloud], dict[str, str]]:
-    """The static cloud of every ``(camera, T_ref_cam, depth-scale factor)`` of ``jobs``, one
-    camera per task: in ``workers`` threads of this process (default: all cores) or on the
-    Dask cluster of ``scheduler`` (:func:`rgbd_calib.core.parallel.executor`; a Dask worker reads
-    the depth frames itself and must see the dataset at the same path): ``(clouds,
-    skipped)``, skipped = camera -> why it has no cloud.
-
-    Threads, not the process pool: a cloud is numpy and OpenCV work on whole frames (they
-    release the GIL), its arrays stay where they are made instead of being pickled back, and
-    threads start at once. Measured on race16 (16 cameras, 848x480, 2 cores): 5 frames per
-    camera 1.6 s in 2 threads, 2.6 s in one, 5.0-5.5 s in a pool of 2 processes; 15 frames
-    4.4 s against 7.3 s; and the pool's two workers added ~1 GB of summed RSS to the run's
-    peak (docs/benchmarks.md)."""
-    n = min(workers or os.cpu_count() or 1, len(jobs))
-    args = [(dataset, c, T_ref_board, T, board, config, f) for c, T, f in jobs]
-    if scheduler and len(jobs) > 1:
-        pool = executor(n, scheduler)
-    elif n > 1:
-        pool = ThreadPoolExecutor(n, thread_name_prefix="static-cloud")
-    else:
-        pool = None
-    results = []
-    with pool or nullcontext():
-        try:
-            # map: in order, and a dead Dask worker explained
-            mapped = (pool.map(_cloud_job, *zip(*args)) if pool is not None
-                      else (_cloud_job(*a) for a in args))
-            for result in mapped:
-                results.append(result)
-                if tick:
-                    tick(1)
-        except BaseException:  # Ctrl-C: the cameras not started are dropped, not waited for
-            if isinstance(pool, ThreadPoolExecutor):  # (a Dask executor's exit cancels them)
-                pool.shutdown(wait=False, cancel_futures=True)
-            raise
-    clouds = {c: cloud for (c, _, _), (cloud, _) in zip(jobs, results) if cloud is not None}
-    skipped = {c: why for (c, _, _), (_, why) in zip(jobs, results) if why is not None}
-    return clouds, skipped
-
-
-def consistent_with_board(reg: PairRegistration, board_covariance: dict[str, np.ndarray | None],
-                          T_ref_cam: dict[str, np.ndarray], config: DepthConfig,
-                          ) -> PairRegistration:
-    """``reg``, rejected when ICP's move from the board's ``T_b_a`` is beyond what the board
-    and the pair allow together: ``xi^T (C_rel + C_pair)^-1 xi > config.max_board_chi2`` with
-    ``C_rel = C_a + Ad(T_a_b) C_b Ad(T_a_b)^T`` the board marginals of the two cameras
-    carried to the right perturbation of ``T_b_a`` (``T_b_a Exp(xi_a - Ad(T_a_b) xi_b)``;
-    their correlation is left out, which widens the gate) and ``C_pair`` the pair's own
-    covariance. Such a move is a wrong local minimum or a depth error, not a correction."""
-    a, b = reg.cam_a, reg.cam_b
-    covs = [board_covariance.get(c) for c in (a, b)]
-    if any(c is None or not np.all(np.isfinite(c)) for c in covs):
-        return reg
-    Ad = adjoint(invert_transform(T_ref_cam[a]) @ T_ref_cam[b])
-    total = covs[0] + Ad @ covs[1] @ Ad.T + reg.covariance
-    xi = tangent_error(reg.T_b_a_initial, reg.T_b_a)
-    try:
-        chi2 = float(xi @ np.linalg.solve(total, xi))
-    except np.linalg.LinAlgError:
-        return reg
-    if chi2 <= config.max_board_chi2:
-        return reg
-    return replace(reg, accepted=False, reason=(
-        f"ICP moved {reg.correction_mm:.2f} mm / {reg.correction_deg:.3f} deg from the board's "
-        f"extrinsics, beyond their uncertainty and the pair's (chi2 {chi2:.0f} > "
-        f"{config.max_board_chi2}, 6 dof): a wrong local minimum or a depth error"))
-
-
-BEYOND_BOARD_CHI2 = 16.81  # chi-square, 6 dof, 1 %
-
-
-def moved_beyond_board(board_only: dict[str, Any], joint: dict[str, Any]) -> dict[str, str]:
-    """Cameras the joint solve with the depth pairs moved further from the board-only result
-    than the board's own uncertainty allows (camera -> why): the move ``xi`` (right
-    perturbation, [rot, trans]) weighed by the board marginal, ``xi^T Cov^-1 xi``, above
-    :data:`BEYOND_BOARD_CHI2`. Both arguments map camera -> :class:`CameraExtrinsics`."""
-    out = {}
-    for c, b in board_only.items():
-        if c not in joint or b.covariance is None or not np.all(np.isfinite(b.covariance)):
-            continue
-        xi = tangent_error(b.T_ref_cam, joint[c].T_ref_cam)
-        try:
-            chi2 = float(xi @ np.linalg.solve(b.covariance, xi))
-        except np.linalg.LinAlgError:
-            continue
-        if chi2 > BEYOND_BOARD_CHI2:
-            deg, mm = transform_error(joint[c].T_ref_cam, b.T_ref_cam)
-            out[c] = (f"{c} moved {mm:.2f} mm / {deg:.3f} deg from the board result "
-                      f"(chi2 {chi2:.0f} > {BEYOND_BOARD_CHI2} under its board covariance)")
-    return out
-
-
-def _register_safely(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.ndarray,
-                     T_ref_b: np.ndarray, method: RefineMethod, config: DepthConfig,
-                     free_scale: tuple[bool, bool] = (False, False), robust: bool = False,
-                     ) -> PairRegistration:
-    """:func:`register_pair` (or with ``robust`` :func:`rgbd_calib.pipelines.check.register_robust`),
-    with any failure of this one pair turned into its rejection (both already catch the ICP
-    libraries' own errors; this is the last net, so that one pair never ends a run)."""
-    from .check import register_robust
-
-    try:
-        if robust:
-            return register_robust(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config,
-                                   free_scale)
-        return register_pair(cloud_a, cloud_b, T_ref_a, T_ref_b, method, config, free_scale)
-    except Exception as exc:  # noqa: BLE001 - deliberately any error of this pair
-        T_b_a0 = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
-        return failed_registration(cloud_a.camera, cloud_b.camera, method, T_b_a0,
-                                   f"registration failed: {type(exc).__name__}: "
-                                   f"{one_line_error(exc)}")
-
-
-def no_pair_reason(depth: DepthRefinement) -> str:
-    """One line: why no pair could be used (for the fallback warning)."""
-    if len(depth.clouds) < 2:
-        why = "; ".join(f"{c}: {r}" for c, r in depth.skipped_cameras.items())
-        return f"fewer than 2 cameras have a static cloud{f' ({why})' if why else ''}"
-    if not depth.pairs:
-        return "no camera pair overlaps under the current extrinsics"
-    agree = sum(bool(p.get("agrees")) for p in depth.pairs)
-    return (f"all {len(depth.pairs)} camera pairs were rejected"
-            + (f" ({agree} of them agree with the current extrinsics within their own "
-               "uncertainty: nothing to correct)" if agree else ""))
-
-
-def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
-                 config: DepthConfig | None = None, tick: Tick | None = None) -> DepthRefinement:
-    """Add each pair's point-to-plane RMSE at the final extrinsics (``rmse_final_mm``), on
-    the same points and metric as its ``rmse_before_mm`` / ``rmse_after_mm`` (which it equals,
-    without recomputing, when neither camera moved: a fallback or a skipped pair's cameras);
-    ``tick(1)`` after each pair."""
-    pairs = []
-    for p in depth.pairs:
-        a, b = p["cam_a"], p["cam_b"]
-        final = None
-        if a in T_ref_cam and b in T_ref_cam and all(
-                np.array_equal(T_ref_cam[c], depth.T_ref_cam_initial[c]) for c in (a, b)):
-            final = p.get("rmse_before_mm")
-        elif a in T_ref_cam and b in T_ref_cam:
-            final = pair_rmse_mm(depth.clouds[a], depth.clouds[b], depth.T_ref_cam_initial[a],
-                                 depth.T_ref_cam_initial[b], T_ref_cam[a], T_ref_cam[b], config)
-        pairs.append({**p, "rmse_final_mm": final})
-        if tick is not None:
-            tick(1)
-    return replace(depth, pairs=pairs)
-
-
-def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMethod =
-                      "colored-icp", config: DepthConfig | None = None,
+def refine_extrinsics(dataset: FolderDataset, init: Extrinsics,
+                      method: RegistrationMethod | Literal["none"] = "colored-icp",
+                      config: DepthConfig | None = None,
                       progress=None, depth_scales: dict[str, float] | None = None,
                       workers: int | None = None, board: Board | None = None,
                       T_ref_board: dict[str, np.ndarray] | None = None,
@@ -468,8 +47,9 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
     residuals (:func:`solve_variance_components`; ``depth.pair_variance_factor``). Cameras in
     no accepted pair keep their initial pose (and sigma).
 
-    ``depth_scales`` (camera -> factor; :func:`load_depth_scales`) are the depth-scale factors
-    of the calibration ``init`` came from; a camera without one has an unknown depth scale and
+    ``depth_scales`` (camera -> factor;
+    :func:`rgbd_calib.model.calib_folder.load_depth_scales`) are the depth-scale factors of the
+    calibration ``init`` came from; a camera without one has an unknown depth scale and
     its pairs do not move it along the directions a scale error explains. With ``board``,
     ``T_ref_board`` (frame -> board pose of the starting calibration, e.g. its report.json
     ``board_views``) and ``board_cameras`` (frame -> cameras that saw it), the board is masked
@@ -521,50 +101,6 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics, method: RefineMe
     return out, finish_pairs(depth, {c: e.T_ref_cam for c, e in cams.items()}, config)
 
 
-MIN_GROUP_REDUNDANCY = 1.0  # of a variance component: below it, its factor is not estimated
-
-
-def solve_variance_components(K: dict[str, np.ndarray], reference: str,
-                              T_init: dict[str, np.ndarray],
-                              groups: dict[str, list[RelativePose]], max_iterations: int = 20,
-                              tolerance: float = 1e-3):
-    """The pose graph of ``groups`` of relative poses (e.g. ``initial``: the priors holding
-    each camera to its start, ``pairs``: the depth pairs) with ``reference`` held, each group's
-    covariance scaled by a variance factor estimated from its own residuals: ``(result,
-    factors)`` with ``result`` the :class:`BundleResult` at the final factors (its marginals
-    include them) and ``factors`` group -> factor.
-
-    Variance-component estimation (Helmert; Foerstner 1979): at the solution, a group's factor
-    is multiplied by ``sum_g e^T W e / r_g``, its chi-square over its redundancy ``r_g = n_g -
-    tr(A_g (A^T A)^-1 A_g^T)`` (:func:`rgbd_calib.solve.posegraph.relative_pose_redundancy`), and the
-    graph is solved again, until every factor changes by less than ``tolerance`` (relative)
-    or after ``max_iterations`` solves (1: the plain solve). A factor is never below 1 (a
-    group is never trusted beyond its model) and is left as it is for a group carrying less
-    than :data:`MIN_GROUP_REDUNDANCY` of the redundancy (nothing to estimate it from).
-    A systematic error of the pairs (colored ICP's, docs/depth.md "refine (issue 14)") shows
-    as their disagreement with the priors and the other pairs, and weighs them down by it."""
-    factors = {g: 1.0 for g in groups}
-    n_solves = max(1, max_iterations)
-    for solve in range(n_solves):
-        scaled = {g: [replace(r, information=r.information / factors[g]) for r in rs]
-                  for g, rs in groups.items()}
-        flat = [r for rs in scaled.values() for r in rs]
-        res = bundle_adjust([], K, reference, T_init, {}, BundleConfig(), relative_poses=flat)
-        chi2_f, redundancy = relative_pose_redundancy(reference, res.T_ref_cam, flat)
-        new, start = {}, 0
-        for g, rs in scaled.items():
-            part = slice(start, start + len(rs))
-            start += len(rs)
-            r_g = float(np.sum(redundancy[part]))
-            new[g] = (max(1.0, factors[g] * float(np.sum(chi2_f[part])) / r_g)
-                      if r_g >= MIN_GROUP_REDUNDANCY else factors[g])
-        if solve == n_solves - 1 or all(abs(new[g] / factors[g] - 1.0) < tolerance
-                                         for g in groups):
-            break  # the result was solved with ``factors``
-        factors = new
-    return res, factors
-
-
 def initial_pose_priors(init: Extrinsics, T_init: dict[str, np.ndarray]) -> list[RelativePose]:
     """One prior per non-reference camera of ``init`` with finite sigmas, as a relative pose
     from the camera to the reference (``T_ref_cam`` itself) with a diagonal information from
@@ -581,70 +117,6 @@ def initial_pose_priors(init: Extrinsics, T_init: dict[str, np.ndarray]) -> list
         var = np.r_[np.full(3, np.radians(s_rot) ** 2), np.full(3, (s_mm / 1000.0) ** 2)]
         out.append(RelativePose(c, init.reference, T_init[c], np.diag(1.0 / var)))
     return out
-
-
-def load_depth_scales(report_json: Path) -> dict[str, float]:
-    """camera -> depth-scale factor from a calibrate ``report.json``
-    (``cameras.<camera>.depth_scale_factor``; cameras without one are left out); empty when
-    the file does not exist."""
-    return {c: float(v["depth_scale_factor"]) for c, v in report_cameras(report_json).items()
-            if isinstance(v, dict) and v.get("depth_scale_factor") is not None}
-
-
-def report_cameras(report_json: Path) -> dict[str, Any]:
-    """``cameras`` of a calibrate ``report.json``; empty when the file does not exist."""
-    if not report_json.is_file():
-        return {}
-    try:
-        return json.loads(report_json.read_text()).get("cameras", {})
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{report_json}: not a readable report.json ({exc}); remove it or "
-                           "repair it") from exc
-
-
-def with_refined_intrinsics(rig: Rig, calib_dir: Path) -> tuple[Rig, list[str]]:
-    """``rig`` with the intrinsics the calibration in ``calib_dir`` refined (its
-    ``rig_refined.yaml``), marked with their marginal sigmas from its report.json
-    (``cameras.<camera>.intrinsics_refined.<parameter>.sigma``; without them the refined
-    values are taken as exact), and the cameras that changed. A calibration without
-    rig_refined.yaml leaves ``rig`` as it is: depth back-projected with intrinsics other than
-    those the extrinsics were solved with is off by millimetres (0.5 % in fx: 5-16 mm between
-    cameras 2-3 m apart, docs/depth.md)."""
-    path = Path(calib_dir) / "rig_refined.yaml"
-    if not path.is_file():
-        return rig, []
-    cams = report_cameras(Path(calib_dir) / "report.json")
-    changed: dict[str, CameraIntrinsics] = {}
-    sigmas = dict(rig.sigmas)
-    for c, intr in load_rig(path).cameras.items():
-        if c not in rig.cameras or intr == rig.cameras[c]:
-            continue
-        now = rig.cameras[c]
-        if (intr.width, intr.height) != (now.width, now.height):
-            raise DatasetError(
-                f"{path}: camera {c} is {intr.width}x{intr.height}, the dataset's "
-                f"{now.width}x{now.height}; give the calibration of this "
-                "resolution, or remove rig_refined.yaml to use rig.yaml's intrinsics")
-        changed[c] = intr
-        entry = cams.get(c, {}).get("intrinsics_refined") or {}
-        sigmas[c] = {k: float(v["sigma"]) for k, v in entry.items()
-                     if isinstance(v, dict) and v.get("sigma") is not None}
-    return replace(rig.with_intrinsics(changed), sigmas=sigmas), list(changed)
-
-
-def load_board_views(report_json: Path) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
-    """frame -> ``T_ref_board`` (4x4) and frame -> cameras that saw it, from a calibrate
-    ``report.json`` (``board_views``); empty when the file does not exist."""
-    if not report_json.is_file():
-        return {}, {}
-    try:
-        views = json.loads(report_json.read_text()).get("board_views", [])
-        poses = {str(v["frame"]): np.asarray(v["T_ref_board"], dtype=float) for v in views}
-        cams = {str(v["frame"]): [str(c) for c in v["cameras"]] for v in views}
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise DatasetError(f"{report_json}: board_views unreadable ({exc}); remove or repair "
-                           "the report.json next to --init") from exc
-    return poses, cams
 
 
 def camera_moves(init: Extrinsics, result: Extrinsics) -> dict[str, dict[str, float]]:
@@ -734,15 +206,3 @@ def refine_verdict(init: Extrinsics, result: Extrinsics, depth: DepthRefinement,
     return {"verdict": verdict, "message": "; ".join(notes), "cameras": moves,
             "depth_scale_source": dict(depth.scale_source),
             "pair_variance_factor": depth.pair_variance_factor}
-
-
-def board_views_per_camera(observations, T_ref_cam: dict[str, np.ndarray],
-                           T_ref_board: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
-    """camera -> {frame: T_cam_board} from the calibrated poses, for the views each camera
-    used (the board pose is the joint estimate, not the single-view PnP)."""
-    out: dict[str, dict[str, np.ndarray]] = {}
-    for o in observations:
-        if o.camera in T_ref_cam and o.frame in T_ref_board:
-            out.setdefault(o.camera, {})[o.frame] = (invert_transform(T_ref_cam[o.camera])
-                                                     @ T_ref_board[o.frame])
-    return out

@@ -23,10 +23,12 @@ import cv2
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from ..core.config import PoseConfig
+from ..core.config import CalibrationConfig, PoseConfig
 from ..core.geometry import make_transform, rotation_angle_deg, rotvec_to_matrix, skew
 from ..detect.markers import MarkerDetections
 from ..model.board import CHARUCO_ID_BASE, Board
+from ..model.results import PoseEdge
+from ..model.rig import Rig
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,6 +89,25 @@ class BoardObservation:
             "sigma_px": float(self.sigma_px),
             "dropped": {k: [int(i) for i in v] for k, v in self.dropped.items()},
         }
+
+
+# what a user does about each reason a view gave no pose (RejectedView.reason): for the
+# console, the report and the error when no view is left
+DROP_ADVICE = {
+    "too_few_markers": "board too far, too oblique or half out of the image: bring it closer "
+    "and turn it towards the camera",
+    "reprojection_rms": "corners do not fit a pose: motion blur, wrong intrinsics or a bent "
+    "board; hold the board still and check rig.yaml",
+    "ambiguous": "planar flip ambiguity (small board seen face-on from far): tilt the board "
+    "20-40 deg or bring it closer",
+    "both_faces": "markers of both faces in one image: a wrong detection or a reflection",
+    "face_away": "the pose shows the seen face turned away (a mirror solution): tilt the board "
+    "more towards the camera",
+    "outlier_markers": "a stray detection carrying a board id: check the background for "
+    "printed markers",
+    "pnp_failed": "PnP found no pose: check the board definition (--board)",
+    "degenerate": "the markers seen constrain no pose (too few, in a line)",
+}
 
 
 @dataclass(frozen=True)
@@ -509,3 +530,33 @@ def estimate_board_pose(
         floor,
         None if fixed else unit,
     )
+
+
+def board_poses(
+    detections: dict[tuple[str, str], MarkerDetections],
+    board: Board,
+    rig: Rig,
+    config: PoseConfig,
+) -> tuple[list[BoardObservation], list[RejectedView]]:
+    """The board pose of every view with markers, in (frame, camera) order, and the views the
+    gates rejected."""
+    observations: list[BoardObservation] = []
+    rejected: list[RejectedView] = []
+    for (cam, frame), det in sorted(detections.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+        if len(det.ids) == 0:
+            continue
+        out = estimate_board_pose(det, board, rig.cameras[cam], config, cam, frame)
+        (observations if isinstance(out, BoardObservation) else rejected).append(out)
+    return observations, rejected
+
+
+def pose_edges(observations: list[BoardObservation], config: CalibrationConfig) -> list[PoseEdge]:
+    """The pose graph's edges, one ``T_cam_board`` per view in ``observations`` order (so a
+    residual's ``index`` names its edge), weighted by the PnP covariance unless
+    ``config.edge_covariance`` is off."""
+    return [
+        PoseEdge(o.camera, o.frame, o.T_cam_board, o.covariance, o.model_error_covariance,
+                 o.model_error_unit)
+        if config.edge_covariance else PoseEdge(o.camera, o.frame, o.T_cam_board)
+        for o in observations
+    ]

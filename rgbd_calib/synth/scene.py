@@ -1,6 +1,6 @@
 """A static textured 3D scene made of rectangles, ray-cast exactly (pure numpy).
 
-Used by the synthetic renderer (:mod:`rgbd_calib.synth.render`). Rays are given in a camera frame with
+Used by the synthetic renderer (:mod:`.images`). Rays are given in a camera frame with
 z = 1 (a pinhole's ``d = [(u - cx) / fx, (v - cy) / fy, 1]``, or a distorted lens's rays from
 :meth:`CameraIntrinsics.rays`), so the ray parameter ``t`` of a hit *is* the camera z-depth.
 Textures are procedural value noise, so neighbouring and facing cameras see the same surface

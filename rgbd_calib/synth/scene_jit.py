@@ -1,4 +1,4 @@
-"""The renderer's ray-rectangle intersection compiled with numba (:func:`rgbd_calib.synth.scene.cast`).
+"""The renderer's ray-rectangle intersection compiled with numba (:func:`.scene.cast`).
 
 The numpy version visits, per rectangle, the rays of its image bounding box with whole-array
 operations: a full-image static scene at 848x480 is ~14 rectangles x 0.4 M rays, a dozen

@@ -13,7 +13,8 @@ recorded in it, so :func:`rebuild_report` reproduces both files byte for byte (t
 timestamp).
 
 Modules: ``schema`` (the key tree, its checker, thresholds, JSON), ``numbers`` (statistics),
-``build`` (the report dict), ``findings`` (one rule per warning code), ``cloud`` (fused.ply or
+``build`` (the report dict), ``findings`` (one rule per warning code; the rules by subject
+in ``findings_*``), ``cloud`` (fused.ply or
 a preview cloud), ``layout`` (display frame, frusta), ``figures`` (matplotlib), ``viewer``
 (the inline 3D view), ``html`` (the page, one function per section), ``rebuild``
 (``rgbd-calib report DIR``).

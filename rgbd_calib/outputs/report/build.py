@@ -31,7 +31,8 @@ if TYPE_CHECKING:
     from ...model.results import Extrinsics
     from ...model.rig import Rig
     from ...pipelines.calibrate import CalibrationResult
-    from ...solve.posegraph import BundleResult, PoseGraphResult
+    from ...solve.bundle import BundleResult
+    from ...solve.posegraph import PoseGraphResult
 
 FACE_NAMES = {1: "front", -1: "back", 0: "both"}
 
@@ -190,7 +191,7 @@ def _final_marker_residuals(
     ``T_cam_board = inv(T_ref_cam) @ T_ref_board`` (the calibration's own prediction, lens
     distortion included), and whether the final estimate used it: the bundle adjustment's
     markers when there is one (with refined intrinsics it also solves views the pose graph
-    left out, see ``calibrate.unsolved_views``), else the pose graph's used views."""
+    left out, see ``solve.ladder.unsolved_views``), else the pose graph's used views."""
     boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
     cams = result.extrinsics.cameras
     edge_of = {(r.camera, r.view): r for r in result.posegraph.residuals}

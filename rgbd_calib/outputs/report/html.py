@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 
 from ...core.progress import Progress, Tick, start
+from ...solve.pose import DROP_ADVICE
 from .cloud import Cloud, load_cloud
 from .figures import palette, render_figures
 from .layout import display_frame
-from .schema import DROP_ADVICE
 from .viewer import VIEWER_JS, viewer_data
 
 _CSS = """

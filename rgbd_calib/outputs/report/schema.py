@@ -72,22 +72,6 @@ REGIONS = (
 )
 CORNER_REGIONS = ("top-left", "top-right", "bottom-left", "bottom-right")
 
-DROP_ADVICE = {
-    "too_few_markers": "board too far, too oblique or half out of the image: bring it closer "
-    "and turn it towards the camera",
-    "reprojection_rms": "corners do not fit a pose: motion blur, wrong intrinsics or a bent "
-    "board; hold the board still and check rig.yaml",
-    "ambiguous": "planar flip ambiguity (small board seen face-on from far): tilt the board "
-    "20-40 deg or bring it closer",
-    "both_faces": "markers of both faces in one image: a wrong detection or a reflection",
-    "face_away": "the pose shows the seen face turned away (a mirror solution): tilt the board "
-    "more towards the camera",
-    "outlier_markers": "a stray detection carrying a board id: check the background for "
-    "printed markers",
-    "pnp_failed": "PnP found no pose: check the board definition (--board)",
-    "degenerate": "the markers seen constrain no pose (too few, in a line)",
-}
-
 
 # ----------------------------------------------------------------------------- schema
 class Nullable:

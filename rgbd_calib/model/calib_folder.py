@@ -1,0 +1,79 @@
+"""An earlier calibration's output folder read back for the depth-only commands: the
+depth-scale factors, the board views and the ``cameras`` of its ``report.json``, and the
+intrinsics its ``rig_refined.yaml`` refined (docs/formats.md)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from ..core.errors import DatasetError
+from .rig import Rig, load_rig
+
+
+def load_depth_scales(report_json: Path) -> dict[str, float]:
+    """camera -> depth-scale factor from a calibrate ``report.json``
+    (``cameras.<camera>.depth_scale_factor``; cameras without one are left out); empty when
+    the file does not exist."""
+    return {c: float(v["depth_scale_factor"]) for c, v in report_cameras(report_json).items()
+            if isinstance(v, dict) and v.get("depth_scale_factor") is not None}
+
+
+def report_cameras(report_json: Path) -> dict[str, Any]:
+    """``cameras`` of a calibrate ``report.json``; empty when the file does not exist."""
+    if not report_json.is_file():
+        return {}
+    try:
+        return json.loads(report_json.read_text()).get("cameras", {})
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{report_json}: not a readable report.json ({exc}); remove it or "
+                           "repair it") from exc
+
+
+def with_refined_intrinsics(rig: Rig, calib_dir: Path) -> tuple[Rig, list[str]]:
+    """``rig`` with the intrinsics the calibration in ``calib_dir`` refined (its
+    ``rig_refined.yaml``), marked with their marginal sigmas from its report.json
+    (``cameras.<camera>.intrinsics_refined.<parameter>.sigma``; without them the refined
+    values are taken as exact), and the cameras that changed. A calibration without
+    rig_refined.yaml leaves ``rig`` as it is: depth back-projected with intrinsics other than
+    those the extrinsics were solved with is off by millimetres (measured: docs/depth.md)."""
+    path = Path(calib_dir) / "rig_refined.yaml"
+    if not path.is_file():
+        return rig, []
+    cams = report_cameras(Path(calib_dir) / "report.json")
+    changed: dict[str, CameraIntrinsics] = {}
+    sigmas = dict(rig.sigmas)
+    for c, intr in load_rig(path).cameras.items():
+        if c not in rig.cameras or intr == rig.cameras[c]:
+            continue
+        now = rig.cameras[c]
+        if (intr.width, intr.height) != (now.width, now.height):
+            raise DatasetError(
+                f"{path}: camera {c} is {intr.width}x{intr.height}, the dataset's "
+                f"{now.width}x{now.height}; give the calibration of this "
+                "resolution, or remove rig_refined.yaml to use rig.yaml's intrinsics")
+        changed[c] = intr
+        entry = cams.get(c, {}).get("intrinsics_refined") or {}
+        sigmas[c] = {k: float(v["sigma"]) for k, v in entry.items()
+                     if isinstance(v, dict) and v.get("sigma") is not None}
+    return replace(rig.with_intrinsics(changed), sigmas=sigmas), list(changed)
+
+
+def load_board_views(report_json: Path) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
+    """frame -> ``T_ref_board`` (4x4) and frame -> cameras that saw it, from a calibrate
+    ``report.json`` (``board_views``); empty when the file does not exist."""
+    if not report_json.is_file():
+        return {}, {}
+    try:
+        views = json.loads(report_json.read_text()).get("board_views", [])
+        poses = {str(v["frame"]): np.asarray(v["T_ref_board"], dtype=float) for v in views}
+        cams = {str(v["frame"]): [str(c) for c in v["cameras"]] for v in views}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(f"{report_json}: board_views unreadable ({exc}); remove or repair "
+                           "the report.json next to --init") from exc
+    return poses, cams

@@ -1,0 +1,245 @@
+"""Findings about where the board was held (coverage, distance, tilt), what the board views
+support of the refined intrinsics and lens, and the self-calibrated back sheet
+(:mod:`.findings` runs the rules)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .findings_base import Finding, cameras_of, finding
+from .numbers import fmt
+from .schema import (
+    CORNER_REGIONS,
+    COVERAGE_MIN,
+    DISTANCE_SPREAD_MIN,
+    GLUE_MIN_DEG,
+    GLUE_MIN_MM,
+    GLUE_SIGMAS,
+    INTRINSICS_SUPPORT_MAX,
+    TILT_SPREAD_MIN_DEG,
+)
+
+
+def _placement(report: dict[str, Any], earlier: list[Finding]) -> list[tuple[str, Any]]:
+    """The calibrated cameras not found inconsistent: those whose board placement counts."""
+    inconsistent = cameras_of(earlier, "inconsistent_camera")
+    return [
+        (n, c) for n, c in report["cameras"].items() if c["calibrated"] and n not in inconsistent
+    ]
+
+
+def board_coverage(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    low = [
+        (n, c["coverage"])
+        for n, c in _placement(report, earlier)
+        if c["coverage"]["image_fraction"] < COVERAGE_MIN and c["coverage"]["missing_regions"]
+    ]
+    if not low:
+        return []
+    regions: dict[str, int] = {}
+    for _, cov in low:
+        for r in cov["missing_regions"]:
+            regions[r] = regions.get(r, 0) + 1
+    common = sorted(regions, key=lambda r: -regions[r])[:3]
+    return [
+        finding(
+            "info",
+            "board_coverage",
+            [n for n, _ in low],
+            f"The board reached less than {COVERAGE_MIN:.0%} of the image of {len(low)} "
+            "camera(s): "
+            + ", ".join(f"{n} {cov['image_fraction']:.0%}" for n, cov in low)
+            + ". Corners near the image border constrain the pose best.",
+            "Next recording: also hold the board in the image regions it never reached "
+            f"(most often: {', '.join(common)}; per camera in 'Where to put the board next').",
+        )
+    ]
+
+
+def intrinsics_unsupported(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Refined intrinsics the data could not determine: the marginal sigma stays close to the
+    prior's, so the 'refined' value is mostly the rig.yaml one (and its error)."""
+    weak = {}
+    for name, cam in report["cameras"].items():
+        params = [
+            p for p, e in (cam.get("intrinsics_refined") or {}).items()
+            if e["sigma"] is not None and e["prior_sigma"]
+            and e["sigma"] > INTRINSICS_SUPPORT_MAX * e["prior_sigma"]
+        ]
+        if params:
+            weak[name] = params
+    if not weak:
+        return []
+    return [
+        finding(
+            "warning",
+            "intrinsics_unsupported",
+            list(weak),
+            "The board views hardly constrain some refined intrinsics (marginal sigma above "
+            f"{INTRINSICS_SUPPORT_MAX:.0%} of the prior's): "
+            + "; ".join(f"{n}: {' '.join(p)}" for n, p in weak.items())
+            + ". Their refined values are mostly the starting ones (rig.yaml's, or the first "
+            "estimate of a camera calibrated from scratch).",
+            "Record more views with the board at several distances and tilts, reaching the "
+            "image corners (distortion), or refine fewer parameters "
+            "(bundle.intrinsics_params, e.g. fx fy cx cy).",
+        )
+    ]
+
+
+def lens_coverage(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Refined lens distortion from views that covered little of the image, or never reached
+    one of its corners: the polynomial is fitted where the board went and extrapolated
+    elsewhere, most at the corners (measured: docs/report_schema.md, docs/accuracy.md)."""
+    thin = {}
+    for name, cam in report["cameras"].items():
+        if cam.get("intrinsics_initial"):
+            continue  # scratch_coverage says it for a camera calibrated from scratch
+        refined = cam.get("intrinsics_refined") or {}
+        cov = cam.get("coverage") or {}
+        if not any(p not in ("fx", "fy", "cx", "cy") for p in refined) \
+                or cov.get("image_fraction") is None:
+            continue
+        corners = [r for r in cov.get("missing_regions") or [] if r in CORNER_REGIONS]
+        if cov["image_fraction"] < COVERAGE_MIN or corners:
+            thin[name] = f"{cov['image_fraction']:.0%}" + (
+                f", never the {' / '.join(corners)} corner" if corners else "")
+    if not thin:
+        return []
+    return [
+        finding(
+            "warning",
+            "lens_coverage",
+            list(thin),
+            "The lens distortion was refined from views covering little of the image or "
+            "not reaching its corners (" + "; ".join(f"{n} {t}" for n, t in thin.items())
+            + f"; {COVERAGE_MIN:.0%} and every corner wanted): the refined model "
+            "(rig_refined.yaml) holds where the board went and is an extrapolation towards "
+            "the image corners.",
+            "Before using rig_refined.yaml's distortion for the whole image, record views with "
+            "the board close to each camera, reaching its image corners, and calibrate again.",
+        )
+    ]
+
+
+def scratch_coverage(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """A camera calibrated from scratch (rig.yaml gave only its size) whose board views
+    reached little of the image: its focal length, centre and distortion rest on that part."""
+    thin = {
+        name: cam["intrinsics_initial"]
+        for name, cam in report["cameras"].items()
+        if cam.get("intrinsics_initial")
+        and cam["intrinsics_initial"]["image_fraction"] < COVERAGE_MIN
+    }
+    if not thin:
+        return []
+    return [
+        finding(
+            "warning",
+            "scratch_coverage",
+            list(thin),
+            "Intrinsics calibrated from scratch from views whose corners reached little of the "
+            "image ("
+            + ", ".join(f"{n} {i['image_fraction']:.0%} in {i['views']} views"
+                        for n, i in thin.items())
+            + f", under {COVERAGE_MIN:.0%}): the lens model (rig_refined.yaml) is fitted there "
+            "and extrapolated elsewhere, and the focal length trades against the distances.",
+            "Record more views with these cameras, the board reaching every image region and "
+            "tilted, or give their intrinsics in rig.yaml.",
+        )
+    ]
+
+
+def board_glue(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The back sheet off its board-file place (``bundle.board: refine``): significant against
+    its sigma and large enough to matter; or held because it was unobservable."""
+    refined = report["board"].get("refined")
+    if not refined:
+        return []
+    if refined["held"]:
+        return [finding("info", "board_glue", [], f"Board not refined: {refined['held']}.",
+                        "To refine the back sheet, record views in which cameras on both "
+                        "sides see the board at the same time.")]
+    (dx, dy), rot = refined["offset_mm"], refined["rotation_deg"]
+    (sx, sy), srot = refined["sigmas"]["offset_mm"], refined["sigmas"]["rotation_deg"]
+    shifted = (abs(dx) > GLUE_SIGMAS * sx or abs(dy) > GLUE_SIGMAS * sy) and (
+        np.hypot(dx, dy) > GLUE_MIN_MM)
+    turned = abs(rot) > GLUE_SIGMAS * srot and abs(rot) > GLUE_MIN_DEG
+    if not (shifted or turned):
+        return []
+    return [finding(
+        "warning",
+        "board_glue",
+        [],
+        f"{glue_sentence(refined)} (sigma {fmt(sx, 2)} / {fmt(sy, 2)} mm, {fmt(srot, 3)} deg).",
+        "Use board_refined.yaml (--board) for the next calibrations with this board, or "
+        "re-glue the back sheet.",
+    )]
+
+
+def glue_sentence(refined: dict[str, Any]) -> str:
+    """'Back sheet is 1.50 mm right, 1.00 mm down, 0.30 deg counter-clockwise of where the
+    board file puts it (seen from the front); thickness 6.60 mm (+0.00)' from
+    ``report.board.refined``."""
+    (dx, dy), rot = refined["offset_mm"], refined["rotation_deg"]
+    return (
+        f"Back sheet is {abs(dx):.2f} mm {'right' if dx >= 0 else 'left'}, "
+        f"{abs(dy):.2f} mm {'up' if dy >= 0 else 'down'}, {abs(rot):.2f} deg "
+        f"{'counter-clockwise' if rot >= 0 else 'clockwise'} of where the board file puts it "
+        f"(seen from the front); thickness {refined['thickness_mm']:.2f} mm "
+        f"({refined['thickness_change_mm']:+.2f})"
+    )
+
+
+def board_distance(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    narrow = [
+        (n, c["coverage"]["distance_m"])
+        for n, c in _placement(report, earlier)
+        if c["coverage"]["distance_m"]
+        and c["views_used"] >= 3
+        and c["coverage"]["distance_m"]["max"]
+        < DISTANCE_SPREAD_MIN * c["coverage"]["distance_m"]["min"]
+    ]
+    if not narrow:
+        return []
+    return [
+        finding(
+            "info",
+            "board_distance",
+            [n for n, _ in narrow],
+            "The board was at one distance only for "
+            + ", ".join(f"{n} ({d['min']:.2f}-{d['max']:.2f} m)" for n, d in narrow)
+            + ".",
+            "Also show the board nearer to and further from "
+            + ", ".join(n for n, _ in narrow)
+            + ".",
+        )
+    ]
+
+
+def board_tilt(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    flat = [
+        (n, c["coverage"]["tilt_deg"])
+        for n, c in _placement(report, earlier)
+        if c["coverage"]["tilt_deg"]
+        and c["views_used"] >= 3
+        and c["coverage"]["tilt_deg"]["max"] - c["coverage"]["tilt_deg"]["min"]
+        < TILT_SPREAD_MIN_DEG
+    ]
+    if not flat:
+        return []
+    return [
+        finding(
+            "info",
+            "board_tilt",
+            [n for n, _ in flat],
+            "The board's tilt barely varied for "
+            + ", ".join(f"{n} ({t['min']:.0f}-{t['max']:.0f} deg)" for n, t in flat)
+            + ".",
+            "Tilt the board 20-50 deg in different directions in front of "
+            + ", ".join(n for n, _ in flat)
+            + ".",
+        )
+    ]

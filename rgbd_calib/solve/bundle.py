@@ -1,0 +1,789 @@
+"""Bundle adjustment of camera and board poses on the marker corners (GTSAM).
+
+:func:`bundle_adjust` solves a :class:`BundleProblem` (its inputs: measurements, camera models,
+initial poses, config; in the spirit of mrcal's ``optimization_inputs``): one view factor per
+camera view holding all its markers, robust per marker
+(:mod:`rgbd_calib.solve.bundle_factors`), the reference and any fixed cameras held by priors,
+optionally the intrinsics (a vector per camera under a prior at rig.yaml), the board's back
+sheet or a multi-face target's faces (board self-calibration) and camera-to-camera relative
+poses (depth registration) in the same graph. Steps: the factor layout, initial values, solve
+and drop outlier markers, the a-posteriori corner sigma, marginals. The pose graph that gives
+the initial poses is :mod:`rgbd_calib.solve.posegraph`; no file I/O here.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from ..core.config import BundleConfig
+from ..core.errors import CalibrationError
+from ..core.geometry import invert_transform, matrix_to_rotvec, move_rows, skew, transform_points
+from .bundle_factors import (
+    face_transform,
+    padded_distortion,
+    project_board,
+    project_board_full,
+    view_factor,
+    view_factor_intrinsics,
+    with_parameters,
+)
+from .posegraph import sigmas_from_covariance
+
+_BACK_SHEET_KEY = gtsam.symbol("f", 0)  # the back sheet's pose T_front_back (board refine)
+
+
+@dataclass(frozen=True)
+class MarkerMeasurement:
+    """One marker seen in one view: 4 pixels and their board points. The pixels are
+    undistorted pinhole pixels when the intrinsics are fixed, the raw detected pixels when the
+    bundle adjustment refines them (see :func:`bundle_adjust`)."""
+
+    camera: str
+    view: str
+    marker_id: int
+    corners_px: np.ndarray  # (4,2) pinhole pixels (fixed intrinsics) or raw pixels (refine)
+    object_points: np.ndarray  # (4,3) board frame, metres
+    face: int = 1  # +1 front, -1 back: a back marker moves with the back sheet (board refine);
+    #               a multi-face target's face label (its face's pose moves it)
+
+
+@dataclass(frozen=True)
+class RelativePose:
+    """A measured camera-to-camera pose ``T_b_a`` (maps camera a's points into camera b),
+    e.g. from registering their depth clouds, with its 6x6 information in GTSAM order
+    ``[rot, trans]`` for the right perturbation ``T_b_a @ Exp(xi)``."""
+
+    cam_a: str
+    cam_b: str
+    T_b_a: np.ndarray
+    information: np.ndarray
+
+    def factor(self, key: dict[str, int]) -> gtsam.BetweenFactorPose3:
+        """Its factor between the cameras' pose variables (camera -> ``key``):
+        ``BetweenFactorPose3(b, a)`` predicts ``T_ref_b^-1 T_ref_a = T_b_a``; its error is
+        ``Logmap(T_b_a_measured^-1 T_b_a)``, the right perturbation the information is for."""
+        return gtsam.BetweenFactorPose3(key[self.cam_b], key[self.cam_a], gtsam.Pose3(self.T_b_a),
+                                        gtsam.noiseModel.Gaussian.Information(self.information))
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    T_ref_cam: dict[str, np.ndarray]
+    T_ref_board: dict[str, np.ndarray]
+    covariance: dict[str, np.ndarray]  # camera -> 6x6 body-frame [rot, trans]
+    sigma_rotation_deg: dict[str, float]
+    sigma_translation_mm: dict[str, float]
+    residuals_px: list[tuple[str, str, int, float]]  # (camera, view, marker, rms px)
+    outliers: list[tuple[str, str, int, float]]
+    pixel_sigma_estimated: float
+    iterations: int
+    final_error: float
+    # refined intrinsics only (config.intrinsics == "refine"): camera -> the refined model,
+    # camera -> {parameter: marginal sigma} and {parameter: prior sigma}, both in the order
+    # of config.intrinsics_params
+    intrinsics: dict[str, CameraIntrinsics] = field(default_factory=dict)
+    intrinsics_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
+    intrinsics_prior_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
+    # board self-calibration (config.board == "refine"): the estimated back-sheet pose, its
+    # 6x6 marginal [rot, trans] (right perturbation) and why it was held, if it was
+    board: BoardModel | None = None
+    # ... of a multi-face target: each non-reference face's estimated pose (empty otherwise)
+    faces: tuple[FaceModel, ...] = ()
+
+
+@dataclass(frozen=True)
+class BoardModel:
+    """The back sheet's pose relative to the front sheet as the bundle adjustment estimated it.
+
+    ``T_front_back`` (4x4, metres, board frame) maps a back-face point of the board file to
+    where the back sheet really is (the convention of ``ground_truth.yaml``, docs/synthetic.md);
+    ``covariance`` is its 6x6 marginal ``[rot rad, trans m]`` for the right perturbation
+    ``T_front_back @ Exp(xi)``; ``centre`` the board-file centre of the back-marker grid (m),
+    about which the offset is reported. ``held`` names why it was not estimated (identity then).
+    """
+
+    T_front_back: np.ndarray
+    covariance: np.ndarray
+    centre: np.ndarray
+    thickness_m: float  # the board file's
+    held: str = ""
+
+    @property
+    def offset_mm(self) -> np.ndarray:
+        """Shift (dx, dy, dz) mm of the back-grid centre: ``T_front_back c - c``."""
+        c = self.centre
+        return (self.T_front_back[:3, :3] @ c + self.T_front_back[:3, 3] - c) * 1000.0
+
+    @property
+    def rotation_deg(self) -> float:
+        """Rotation of the back sheet about the board normal (+z, counter-clockwise seen from
+        the front), degrees."""
+        R = self.T_front_back[:3, :3]
+        return float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))
+
+    @property
+    def thickness_mm(self) -> float:
+        """The estimated thickness: the board file's minus the back sheet's z shift."""
+        return (self.thickness_m - float(self.offset_mm[2]) / 1000.0) * 1000.0
+
+    @property
+    def sigmas(self) -> dict[str, float]:
+        """Marginal 1-sigmas: offset x, y and thickness (mm) at the centre, rotation (deg).
+
+        d(T c) = R [-[c]x, I] xi for the right perturbation xi = [w, v]."""
+        R = self.T_front_back[:3, :3]
+        c = self.centre
+        J = np.zeros((4, 6))
+        J[:3, :3] = -R @ skew(c)
+        J[:3, 3:] = R
+        J[3, 2] = 1.0  # rotation about z (small tilts held)
+        s = np.sqrt(np.maximum(np.diag(J @ self.covariance @ J.T), 0.0))
+        return {"offset_x_mm": float(s[0] * 1000), "offset_y_mm": float(s[1] * 1000),
+                "thickness_mm": float(s[2] * 1000), "rotation_deg": float(np.degrees(s[3]))}
+
+
+@dataclass(frozen=True)
+class FaceModel:
+    """A multi-face target's face as the bundle adjustment estimated it (board
+    self-calibration): the face's true pose is ``T_board_face = T_nominal @ Delta``, ``Delta``
+    (4x4, metres, in the nominal face frame: x, y in the sheet, z its outward normal) the
+    correction, ``covariance`` its 6x6 marginal ``[rot rad, trans m]`` for the right
+    perturbation ``Delta @ Exp(xi)`` (face frame), ``centre`` the face-frame centre of its
+    markers, about which the shift is reported. ``held`` names why it was not estimated."""
+
+    label: int
+    T_nominal: np.ndarray
+    Delta: np.ndarray
+    covariance: np.ndarray
+    centre: np.ndarray
+    held: str = ""
+
+    @property
+    def T_board_face(self) -> np.ndarray:
+        return self.T_nominal @ self.Delta
+
+    @property
+    def offset_mm(self) -> np.ndarray:
+        """Shift (x, y along the sheet, z along the normal; mm) of the markers' centre."""
+        c = self.centre
+        return (self.Delta[:3, :3] @ c + self.Delta[:3, 3] - c) * 1000.0
+
+    @property
+    def rotation_deg(self) -> np.ndarray:
+        """Turn as a rotation vector (degrees; x, y tilts, z about the normal)."""
+        return np.degrees(matrix_to_rotvec(self.Delta[:3, :3]))
+
+    @property
+    def sigmas(self) -> dict[str, list[float]]:
+        """Marginal 1-sigmas of the centre's shift (mm, face x, y, z) and of the turn (deg,
+        about face x, y, z): d(Delta c) = R [-[c]x, I] xi."""
+        R, c = self.Delta[:3, :3], self.centre
+        J = np.zeros((6, 6))
+        J[:3, :3] = -R @ skew(c)
+        J[:3, 3:] = R
+        J[3:, :3] = np.eye(3)
+        s = np.sqrt(np.maximum(np.diag(J @ self.covariance @ J.T), 0.0))
+        return {"offset_mm": (s[:3] * 1000).tolist(), "rotation_deg": np.degrees(s[3:]).tolist()}
+
+    def to_dict(self) -> dict[str, Any]:
+        held = bool(self.held)
+        return {"face": int(self.label), "held": self.held or None,
+                "offset_mm": None if held else self.offset_mm.tolist(),
+                "rotation_deg": None if held else self.rotation_deg.tolist(),
+                "sigmas": None if held else self.sigmas,
+                "T_board_face": self.T_board_face.tolist()}
+
+
+@dataclass(frozen=True)
+class BundleProblem:
+    """The inputs of one bundle adjustment, whole (as mrcal's ``optimization_inputs``): a
+    caller re-solves it with one thing changed by ``dataclasses.replace(problem, config=...,
+    T_ref_cam=...)``. Poses are 4x4, metres; see :func:`bundle_adjust` for how each is used."""
+
+    measurements: Sequence[MarkerMeasurement]
+    K: dict[str, np.ndarray]  # camera -> 3x3 pinhole matrix (fixed intrinsics)
+    reference: str  # the camera held at the identity
+    T_ref_cam: dict[str, np.ndarray]  # initial camera poses
+    T_ref_board: dict[str, np.ndarray]  # initial board poses, per view
+    config: BundleConfig = field(default_factory=BundleConfig)
+    fixed_cameras: dict[str, np.ndarray] | None = None  # camera -> T_ref_cam held
+    relative_poses: Sequence[RelativePose] = ()  # depth registration's camera-to-camera poses
+    intrinsics: dict[str, CameraIntrinsics] | None = None  # rig.yaml models: refine's priors
+    back_centre: np.ndarray | None = None  # board-file centre of the back-marker grid (m)
+    face_frames: dict[int, np.ndarray] | None = None  # multi-face: label -> T_board_face
+
+
+def intrinsics_vector(base: CameraIntrinsics, names: tuple[str, ...]) -> np.ndarray:
+    """The values of the parameters ``names`` of ``base`` (missing coefficients are 0)."""
+    padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
+                              padded_distortion(base, names), base.depth_scale)
+    table = padded.parameters
+    return np.array([table[n] for n in names], dtype=float)
+
+
+def intrinsics_prior_sigmas(base: CameraIntrinsics, names: tuple[str, ...],
+                            config: BundleConfig) -> np.ndarray:
+    """Prior sigmas of the parameters ``names``: focal in percent of its value, centre in
+    pixels, p1/p2 tangential, every other coefficient with the distortion sigma."""
+    out = []
+    for n in names:
+        if n in ("fx", "fy"):
+            out.append(config.intrinsics_prior_focal_pct / 100.0 * getattr(base, n))
+        elif n in ("cx", "cy"):
+            out.append(config.intrinsics_prior_center_px)
+        elif n in ("p1", "p2"):
+            out.append(config.intrinsics_prior_tangential)
+        else:
+            out.append(config.intrinsics_prior_distortion)
+    return np.array(out, dtype=float)
+
+
+@dataclass(frozen=True)
+class _ViewGroup:
+    """The markers of one (camera, view): their indices in the active list and stacked data."""
+
+    camera: str
+    view: str
+    index: np.ndarray  # (n,) positions in the active measurement list
+    object_points: np.ndarray  # (n,4,3)
+    corners_px: np.ndarray  # (n,4,2)
+    face: np.ndarray  # (n,) face label of each marker (-1: the back face)
+
+
+def _group_views(active: list[MarkerMeasurement]) -> list[_ViewGroup]:
+    """Group the measurements by (camera, view), in order of first appearance."""
+    members: dict[tuple[str, str], list[int]] = defaultdict(list)
+    for i, m in enumerate(active):
+        members[(m.camera, m.view)].append(i)
+    return [_ViewGroup(c, v, np.array(idx),
+                       np.stack([active[i].object_points for i in idx]).astype(float),
+                       np.stack([active[i].corners_px for i in idx]).astype(float),
+                       np.array([active[i].face for i in idx], dtype=int))
+            for (c, v), idx in members.items()]
+
+
+def bundle_adjust(problem: BundleProblem) -> BundleResult:
+    """Joint bundle adjustment of camera poses ``T_ref_cam`` and board poses ``T_ref_board``
+    on the marker corners (one GTSAM CustomFactor per camera view holding all its markers,
+    robust per marker: :func:`~rgbd_calib.solve.bundle_factors.view_factor`), optionally joined
+    by camera-to-camera ``relative_poses`` (depth registration) as ``BetweenFactorPose3`` with
+    their own information: one joint graph, one set of marginals. ``problem`` holds the inputs
+    (:class:`BundleProblem`).
+
+    With ``config.intrinsics == "fixed"`` the intrinsics are held (``K`` per camera) and the
+    measurements are undistorted pinhole pixels. With ``"refine"`` each camera also gets a
+    vector variable of the parameters ``config.intrinsics_params`` under a Gaussian prior at
+    ``intrinsics`` (the rig.yaml models, required then; sigmas from
+    :func:`intrinsics_prior_sigmas`), and the measurements are the RAW detected pixels,
+    projected through the full model
+    (:func:`~rgbd_calib.solve.bundle_factors.view_factor_intrinsics`). The reference camera
+    (and any ``fixed_cameras``) carry a tight pose prior. Marginal covariances come from the
+    converged graph, scaled by the a-posteriori variance factor when ``config.estimate_sigma``
+    is on.
+
+    With ``config.board == "refine"`` the back sheet's pose ``T_front_back`` is one more
+    Pose3 variable (board self-calibration, :func:`~rgbd_calib.solve.bundle_factors.view_factor`
+    with ``moving``): it moves the board points of the back-face measurements
+    (``MarkerMeasurement.face == -1``), under a prior at the identity (the board file) with the
+    config's sigmas on the in-plane offset, the rotation about the normal and the thickness; the
+    tilts of a sheet glued flat on the panel are held by a tight prior. ``back_centre``
+    (board-file centre of the back-marker grid, m; default: of the back markers measured) is
+    where the offset is reported (:class:`BoardModel`). It is held at the board file, and
+    ``result.board.held`` says why, when no view has markers of both faces: then a back-sheet
+    shift is the same as a shift of those views' board poses.
+
+    A multi-face target (``face_frames``: label -> nominal ``T_board_face`` of each
+    non-reference face) gets, with ``config.board == "refine"``, one Pose3 correction
+    ``Delta`` per such face instead (its true pose ``T_board_face @ Delta``, :class:`FaceModel`)
+    under a prior at the identity with the ``board_prior_face_*`` sigmas on all 6 axes of the
+    face frame; a face that no view sees together with a face already tied to the reference
+    face is held (``result.faces[k].held``)."""
+    # the variables, their keys and priors; the measurements with initialised ends
+    layout, kept, board_model, face_models = _factor_layout(problem)
+    values = _initial_values(layout, problem.T_ref_cam, problem.T_ref_board)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(layout.config.max_iterations)
+    params.setRelativeErrorTol(layout.config.relative_error_tol)
+    # solve, drop the markers far off, re-solve
+    solution = _solve_dropping_outliers(layout, kept, values, params)
+    # the corner noise a posteriori (Foerstner's variance factor); with depth pairs, re-solve
+    # with the corners at it, so that board and depth measurements are weighted against each
+    # other by their real uncertainties
+    sigma_hat = solution.sigma_px(layout)
+    config = layout.config
+    sigma_marg = max(sigma_hat, 1e-3) if config.estimate_sigma else config.pixel_sigma
+    if layout.relative_poses and config.estimate_sigma:
+        solution = _solve_at_sigma(layout, solution, sigma_marg, params)
+    # marginals of the plain Gaussian graph at the solution
+    return _result(layout, solution, sigma_hat, sigma_marg, board_model, face_models)
+
+
+@dataclass(frozen=True)
+class _FactorLayout:
+    """What one bundle adjustment's factor graph is made of (see :func:`bundle_adjust`)."""
+
+    config: BundleConfig
+    K: dict[str, np.ndarray]
+    cam_key: dict[str, int]
+    view_key: dict[str, int]
+    intr_key: dict[str, int]  # refined intrinsics only
+    intrinsics: dict[str, CameraIntrinsics] | None
+    names: tuple[str, ...]
+    x0: dict[str, np.ndarray]
+    prior_intr: dict[str, Any]
+    fixed: dict[str, np.ndarray]  # the reference included
+    relative_poses: Sequence[RelativePose]
+    moving: tuple  # (key, face label, frame A or None) of every face pose solved
+    refine: bool  # intrinsics refined: the view factors project raw pixels through the model
+    reference: str
+    cams: list[str]
+    views: list[str]
+
+    def connected(self, values: gtsam.Values) -> set[str]:
+        """The cameras with a pose in ``values``."""
+        return {c for c in self.cams if values.exists(self.cam_key[c])}
+
+    def reference_part(self, active: list[MarkerMeasurement], values: gtsam.Values):
+        """:func:`_reference_component`, keeping the face poses (the back sheet's)."""
+        out, sub = _reference_component(active, values, self.cam_key, self.view_key,
+                                        set(self.fixed), self.relative_poses, self.reference,
+                                        self.intr_key)
+        for key, _, _ in self.moving:
+            sub.insert(key, values.atPose3(key))
+        return out, sub
+
+    def marker_rms(self, groups: list[_ViewGroup], n: int, values: gtsam.Values) -> np.ndarray:
+        """:func:`_marker_rms` through the current models and face poses of ``values``."""
+        return _marker_rms(groups, n, values, self.cam_key, self.view_key, self.K,
+                           _current_models(self, values),
+                           moves=[(label, face_transform(values.atPose3(key).matrix(), A))
+                                  for key, label, A in self.moving])
+
+
+def _factor_layout(problem: BundleProblem) -> tuple[_FactorLayout, list[MarkerMeasurement],
+                                                    BoardModel | None, tuple[FaceModel, ...]]:
+    """The keys, the priors and the face poses to solve; the measurements whose camera and view
+    have an initial pose (and, refining intrinsics, a camera model); the back-sheet and face
+    models to estimate (or why each is held)."""
+    config, intrinsics = problem.config, problem.intrinsics
+    refine = config.intrinsics == "refine"
+    if refine and intrinsics is None:
+        raise CalibrationError("refining intrinsics needs the rig's camera models")
+    names = tuple(config.intrinsics_params)
+    fixed = dict(problem.fixed_cameras or {})
+    fixed.setdefault(problem.reference, np.eye(4))
+    cams = sorted({m.camera for m in problem.measurements} | set(fixed)
+                  | {c for r in problem.relative_poses for c in (r.cam_a, r.cam_b)})
+    views = sorted({m.view for m in problem.measurements})
+    cam_key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
+    view_key = {v: gtsam.symbol("b", i) for i, v in enumerate(views)}
+    intr_key = ({c: gtsam.symbol("k", i) for i, c in enumerate(cams) if c in intrinsics}
+                if refine else {})
+    kept = [m for m in problem.measurements
+            if m.camera in problem.T_ref_cam and m.view in problem.T_ref_board]
+    board_model = (None if problem.face_frames is not None
+                   else _board_model_setup(kept, config, problem.back_centre))
+    solve_board = board_model is not None and not board_model.held
+    face_models = _face_models_setup(kept, config, problem.face_frames)
+    moving = [(_BACK_SHEET_KEY, -1, None)] if solve_board else []  # (key, face label, frame A)
+    moving += [(gtsam.symbol("f", m.label), m.label, m.T_nominal) for m in face_models
+               if not m.held]
+    x0, prior_intr = {}, {}
+    if refine:
+        kept = [m for m in kept if m.camera in intr_key]
+        x0 = {c: intrinsics_vector(intrinsics[c], names) for c in intr_key}
+        prior_intr = {c: gtsam.noiseModel.Diagonal.Sigmas(
+            intrinsics_prior_sigmas(intrinsics[c], names, config)) for c in intr_key}
+    layout = _FactorLayout(config, problem.K, cam_key, view_key, intr_key, intrinsics, names,
+                           x0, prior_intr, fixed, problem.relative_poses, tuple(moving), refine,
+                           problem.reference, cams, views)
+    return layout, kept, board_model, face_models
+
+
+@dataclass(frozen=True)
+class _Solution:
+    """A solve's state: the markers kept, their view groups, the cameras connected to the
+    reference, the values, each marker's RMS (px), the last graph and optimiser, the markers
+    dropped as outliers ``(camera, view, marker, rms px)``."""
+
+    active: list[MarkerMeasurement]
+    groups: list[_ViewGroup]
+    connected: set[str]
+    values: gtsam.Values
+    rms: np.ndarray
+    graph: gtsam.NonlinearFactorGraph
+    optimizer: gtsam.LevenbergMarquardtOptimizer
+    outliers: list[tuple[str, str, int, float]]
+
+    def sigma_px(self, layout: _FactorLayout) -> float:
+        """The a-posteriori corner sigma: sqrt(SSR / redundancy), 4 corners x (du^2 + dv^2)
+        per marker RMS."""
+        dof = _residual_dof(layout, len(self.active), self.values)
+        return float(np.sqrt(np.sum(4 * self.rms**2) / dof))
+
+
+def _solve_dropping_outliers(layout: _FactorLayout, kept: list[MarkerMeasurement],
+                             values: gtsam.Values,
+                             params: gtsam.LevenbergMarquardtParams) -> _Solution:
+    """Solve at ``config.pixel_sigma``; drop the markers whose RMS exceeds ``outlier_px`` and
+    re-solve, up to three solves. Removing outliers can cut a camera (or a view) off the
+    reference: that part is dropped too."""
+    config = layout.config
+    outliers: list[tuple[str, str, int, float]] = []
+    active, values = layout.reference_part(kept, values)
+    connected = layout.connected(values)
+    for _ in range(3):
+        groups = _group_views(active)
+        graph = _build_graph(layout, groups, config.pixel_sigma, connected)
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        values = optimizer.optimize()
+        rms = layout.marker_rms(groups, len(active), values)
+        bad = rms > config.outlier_px
+        if not np.any(bad):
+            break
+        outliers += [(m.camera, m.view, m.marker_id, float(r))
+                     for m, r, b in zip(active, rms, bad) if b]
+        active = [m for m, b in zip(active, bad) if not b]
+        active, values = layout.reference_part(active, values)
+        connected = layout.connected(values)
+        groups = _group_views(active)
+        rms = layout.marker_rms(groups, len(active), values)
+    return _Solution(active, groups, connected, values, rms, graph, optimizer, outliers)
+
+
+def _solve_at_sigma(layout: _FactorLayout, solution: _Solution, sigma: float,
+                    params: gtsam.LevenbergMarquardtParams) -> _Solution:
+    """``solution`` solved again with the corners at noise ``sigma`` (px)."""
+    graph = _build_graph(layout, solution.groups, sigma, solution.connected)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, solution.values, params)
+    values = optimizer.optimize()
+    rms = layout.marker_rms(solution.groups, len(solution.active), values)
+    return replace(solution, values=values, rms=rms, graph=graph, optimizer=optimizer)
+
+
+def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_marg: float,
+            board_model: BoardModel | None, face_models: tuple[FaceModel, ...]) -> BundleResult:
+    """The :class:`BundleResult` of ``solution``: marginals of the plain Gaussian graph at the
+    solution, corners weighted by ``sigma_marg`` so that the relative-pose factors keep their
+    own weight (inlier Huber weights are 1 and the outliers were removed)."""
+    values = solution.values
+    marg_graph = _build_graph(layout, solution.groups, sigma_marg, solution.connected,
+                              robust=False)
+    marginals = gtsam.Marginals(marg_graph, values)
+    out_cam, cov, s_rot, s_trans = _camera_marginals(layout.cams, values, layout.cam_key,
+                                                     layout.fixed, marginals)
+    boards = {v: values.atPose3(layout.view_key[v]).matrix() for v in layout.views
+              if values.exists(layout.view_key[v])}
+    residuals = [(m.camera, m.view, m.marker_id, r)
+                 for m, r in zip(solution.active, solution.rms.tolist())]
+    refined, sigma_intr, sigma_prior = _refined_intrinsics(layout, values, marginals)
+    if board_model is not None and not board_model.held:
+        board_model = replace(board_model, T_front_back=values.atPose3(_BACK_SHEET_KEY).matrix(),
+                              covariance=np.asarray(marginals.marginalCovariance(_BACK_SHEET_KEY)))
+    face_models = tuple(m if m.held else replace(
+        m, Delta=values.atPose3(gtsam.symbol("f", m.label)).matrix(),
+        covariance=np.asarray(marginals.marginalCovariance(gtsam.symbol("f", m.label))))
+        for m in face_models)
+    return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, solution.outliers,
+                        sigma_hat, solution.optimizer.iterations(),
+                        solution.graph.error(values), refined, sigma_intr, sigma_prior,
+                        board_model, face_models)
+
+
+def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
+                 connected: set[str], robust: bool = True) -> gtsam.NonlinearFactorGraph:
+    """The factor graph: one view factor per (camera, view) at corner noise ``sigma`` (px),
+    robust per marker unless ``robust`` is off, the priors (fixed cameras, intrinsics, back
+    sheet) and the relative poses between ``connected`` cameras."""
+    config = p.config
+    graph = gtsam.NonlinearFactorGraph()
+    kind = config.robust if robust else "none"
+    for g in groups:
+        seen = [(key, g.face == label, A) for key, label, A in p.moving
+                if np.any(g.face == label)]
+        extra = {"moving": seen} if seen else {}
+        if p.refine:
+            graph.add(view_factor_intrinsics(
+                p.cam_key[g.camera], p.view_key[g.view], p.intr_key[g.camera],
+                p.intrinsics[g.camera], p.names, g.object_points, g.corners_px, sigma, kind,
+                config.robust_k, **extra))
+        else:
+            graph.add(view_factor(p.cam_key[g.camera], p.view_key[g.view], p.K[g.camera],
+                                   g.object_points, g.corners_px, sigma, kind,
+                                   config.robust_k, **extra))
+    for key, _, A in p.moving:
+        graph.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(
+            _board_prior_sigmas(config) if A is None else _face_prior_sigmas(config))))
+    for c, k in p.intr_key.items():
+        if c in connected:
+            graph.add(gtsam.PriorFactorVector(k, p.x0[c], p.prior_intr[c]))
+    prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)
+    for c, T in p.fixed.items():
+        graph.add(gtsam.PriorFactorPose3(p.cam_key[c], gtsam.Pose3(T), prior))
+    for rel in p.relative_poses:
+        if rel.cam_a not in connected or rel.cam_b not in connected:
+            continue  # a pair cut off from the reference constrains nothing we solve
+        graph.add(rel.factor(p.cam_key))
+    return graph
+
+
+def _initial_values(p: _FactorLayout, init_T_ref_cam: dict[str, np.ndarray],
+                    init_T_ref_board: dict[str, np.ndarray]) -> gtsam.Values:
+    """Camera poses (fixed ones where they are held), board poses, the intrinsics' prior
+    values and the back sheet at the board file: the solve's starting point."""
+    values = gtsam.Values()
+    for c in p.cams:
+        T = p.fixed.get(c, init_T_ref_cam.get(c))
+        if T is not None:
+            values.insert(p.cam_key[c], gtsam.Pose3(T))
+    for v in p.views:
+        if v in init_T_ref_board:
+            values.insert(p.view_key[v], gtsam.Pose3(init_T_ref_board[v]))
+    for c, k in p.intr_key.items():
+        if values.exists(p.cam_key[c]):
+            values.insert(k, p.x0[c])
+    for key, _, _ in p.moving:
+        values.insert(key, gtsam.Pose3())
+    return values
+
+
+def _current_models(p: _FactorLayout, values: gtsam.Values) -> dict[str, CameraIntrinsics] | None:
+    """The current camera models (refined intrinsics), None when the intrinsics are fixed."""
+    if not p.refine:
+        return None
+    return {c: with_parameters(p.intrinsics[c], p.names, values.atVector(k))
+            for c, k in p.intr_key.items() if values.exists(k)}
+
+
+def _refined_intrinsics(p: _FactorLayout, values: gtsam.Values, marginals: gtsam.Marginals):
+    """The refined camera models, their marginal sigmas and their prior sigmas, by parameter
+    name (all empty when the intrinsics are fixed)."""
+    refined = _current_models(p, values) or {}
+    sigma = {c: dict(zip(p.names, np.sqrt(np.diag(
+        marginals.marginalCovariance(p.intr_key[c]))).tolist())) for c in refined}
+    prior = {c: dict(zip(p.names, p.prior_intr[c].sigmas().tolist())) for c in refined}
+    return refined, sigma, prior
+
+
+def _residual_dof(p: _FactorLayout, n_markers: int, values: gtsam.Values) -> int:
+    """Redundancy of the corner fit: 8 residuals per marker less the free parameters (6 per
+    unheld pose, the intrinsics vectors, 4 for the back sheet: its tilts are held; 6 for
+    each face of a multi-face target)."""
+    n_intr = sum(values.exists(k) for k in p.intr_key.values())
+    n_back = len(p.moving)
+    face_params = sum(4 if A is None else 6 for _, _, A in p.moving)
+    return max(8 * n_markers - 6 * (values.size() - n_intr - n_back - len(p.fixed))
+               - len(p.names) * n_intr - face_params, 1)
+
+
+def _camera_marginals(cams: list[str], values: gtsam.Values, cam_key: dict[str, int],
+                      fixed: dict[str, np.ndarray], marginals: gtsam.Marginals):
+    """Per solved camera: ``T_ref_cam``, its 6x6 marginal covariance (zeros when held) and
+    the rotation (deg) / translation (mm) sigmas."""
+    out_cam, cov, s_rot, s_trans = {}, {}, {}, {}
+    for c in cams:
+        if not values.exists(cam_key[c]):
+            continue
+        T = values.atPose3(cam_key[c]).matrix()
+        out_cam[c] = T
+        C = np.zeros((6, 6)) if c in fixed else marginals.marginalCovariance(cam_key[c])
+        cov[c] = C
+        s_rot[c], s_trans[c] = sigmas_from_covariance(T, C)
+    return out_cam, cov, s_rot, s_trans
+
+
+BOARD_TILT_SIGMA_RAD = 1e-6  # a sheet glued flat on the panel does not tilt: held
+
+
+def _board_prior_sigmas(config: BundleConfig) -> np.ndarray:
+    """Prior sigmas of ``T_front_back`` in GTSAM's order ``[rx, ry, rz, tx, ty, tz]``."""
+    return np.array([BOARD_TILT_SIGMA_RAD, BOARD_TILT_SIGMA_RAD,
+                     np.radians(config.board_prior_rotation_deg),
+                     config.board_prior_offset_mm / 1000.0, config.board_prior_offset_mm / 1000.0,
+                     config.board_prior_thickness_mm / 1000.0])
+
+
+def _face_prior_sigmas(config: BundleConfig) -> np.ndarray:
+    """Prior sigmas of a multi-face target's face correction ``Delta`` (face frame, GTSAM's
+    order ``[rx, ry, rz, tx, ty, tz]``)."""
+    r = np.radians(config.board_prior_face_rotation_deg)
+    t = config.board_prior_face_offset_mm / 1000.0
+    return np.array([r, r, r, t, t, t])
+
+
+def _union_find():
+    """``(find, union)`` of a disjoint-set forest over hashable items (path halving): the
+    connected parts of a graph given edge by edge."""
+    parent: dict = {}
+
+    def find(x):
+        parent.setdefault(x, x)
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    def union(a, b) -> None:
+        parent[find(a)] = find(b)
+
+    return find, union
+
+
+def _face_models_setup(measurements: list[MarkerMeasurement], config: BundleConfig,
+                       face_frames: dict[int, np.ndarray] | None) -> tuple[FaceModel, ...]:
+    """The faces of a multi-face target to estimate (``held`` empty) or why each is held;
+    empty for a double-sided board or with ``config.board`` fixed. A face's pose is
+    observable when it is tied to the reference face (the one not in ``face_frames``)
+    through views that see two faces at once."""
+    if config.board != "refine" or not face_frames:
+        return ()
+    find, union = _union_find()
+    faces_of: dict[str, set[int]] = defaultdict(set)
+    points: dict[int, list[np.ndarray]] = defaultdict(list)
+    for m in measurements:
+        faces_of[m.view].add(m.face)
+        points[m.face].append(m.object_points)
+    for seen in faces_of.values():
+        first, *rest = sorted(seen)
+        for f in rest:
+            union(f, first)
+    reference = [f for f in {m.face for m in measurements} if f not in face_frames]
+    ref_root = find(reference[0]) if reference else None
+    out = []
+    for label, T in sorted(face_frames.items()):
+        centre = np.zeros(3)
+        if points[label]:
+            P = transform_points(invert_transform(T), np.concatenate(points[label]).reshape(-1, 3))
+            centre = np.r_[(P[:, :2].min(axis=0) + P[:, :2].max(axis=0)) / 2, 0.0]
+        held = ""
+        if not points[label]:
+            held = f"face {label} was never seen: its pose is held at the board file"
+        elif ref_root is None or find(label) != ref_root:
+            held = (f"no view sees face {label} together with a face tied to the reference "
+                    "face: its pose is unobservable, held at the board file")
+        out.append(FaceModel(label, np.asarray(T, float), np.eye(4), np.zeros((6, 6)), centre,
+                             held))
+    return tuple(out)
+
+
+def _board_model_setup(measurements: list[MarkerMeasurement], config: BundleConfig,
+                       back_centre: np.ndarray | None) -> BoardModel | None:
+    """The back-sheet model to estimate (``held`` empty) or the reason it is held; None when
+    ``config.board`` is fixed."""
+    if config.board != "refine":
+        return None
+    back = [m.object_points for m in measurements if m.face < 0]
+    if not back:
+        return BoardModel(np.eye(4), np.zeros((6, 6)), np.zeros(3), 0.0,
+                          "the back face was never seen: the back sheet's pose is "
+                          "unobservable, held at the board file")
+    P = np.concatenate(back).reshape(-1, 3)
+    thickness_m = float(-np.mean(P[:, 2]))
+    if back_centre is None:
+        back_centre = np.r_[(P[:, :2].min(axis=0) + P[:, :2].max(axis=0)) / 2, -thickness_m]
+    faces_of: dict[str, set[int]] = defaultdict(set)
+    for m in measurements:
+        faces_of[m.view].add(m.face)
+    held = ""
+    if not any(len(f) == 2 for f in faces_of.values()):
+        held = ("no board view has both faces seen at once (by different cameras): the back "
+                "sheet's pose is unobservable, held at the board file")
+    return BoardModel(np.eye(4), np.zeros((6, 6)), np.asarray(back_centre, float),
+                      thickness_m, held)
+
+
+def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
+                         cam_key: dict, view_key: dict, fixed: set[str],
+                         relative_poses, reference: str, intr_key: dict | None = None):
+    """Keep the measurements and values connected to the reference camera (a camera or view
+    cut off from it has no determined pose: its marginals would be singular); ``intr_key``
+    (camera -> intrinsics vector key) keeps the intrinsics of the kept cameras."""
+    find, union = _union_find()
+    for camera, view in dict.fromkeys((m.camera, m.view) for m in active):
+        union("c:" + camera, "v:" + view)
+    for r in relative_poses:
+        union("c:" + r.cam_a, "c:" + r.cam_b)
+    for c in fixed:  # fixed cameras are tied to the reference frame by their priors
+        union("c:" + c, "c:" + reference)
+    root = find("c:" + reference)
+    cameras = {c for c in cam_key if find("c:" + c) == root}
+    kept = [m for m in active if m.camera in cameras]
+    sub = gtsam.Values()
+    for c, k in cam_key.items():
+        if values.exists(k) and find("c:" + c) == root:
+            sub.insert(k, values.atPose3(k))
+    for v, k in view_key.items():
+        if values.exists(k) and find("v:" + v) == root:
+            sub.insert(k, values.atPose3(k))
+    for c, k in (intr_key or {}).items():
+        if values.exists(k) and find("c:" + c) == root:
+            sub.insert(k, values.atVector(k))
+    return kept, sub
+
+
+def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,
+                view_key: dict, K: dict,
+                models: dict[str, CameraIntrinsics] | None = None, moves=()) -> np.ndarray:
+    """RMS corner residual (px) of each of the ``n`` active markers at ``values``:
+    sqrt(mean over the 4 corners of |uv - uv_meas|^2), vectorised per camera view; through
+    the full camera ``models`` when given (refined intrinsics), else the pinhole ``K``; each
+    face's markers moved by its board-frame move ``C`` of ``moves`` ``(label, C)`` (board
+    self-calibration)."""
+    out = np.empty(n)
+    for g in groups:
+        T_cam = values.atPose3(cam_key[g.camera]).matrix()
+        T_board = values.atPose3(view_key[g.view]).matrix()
+        P_b = g.object_points.reshape(-1, 3)
+        if moves:
+            P_b = move_rows(P_b, [(np.repeat(g.face == label, 4), C) for label, C in moves])
+        if models is not None:
+            uv = project_board_full(T_cam, T_board, models[g.camera], None, P_b, jacobians=False)[0]
+        else:
+            uv, _, _ = project_board(T_cam, T_board, K[g.camera], P_b, jacobians=False)
+        d2 = np.sum((uv.reshape(-1, 4, 2) - g.corners_px) ** 2, axis=2)
+        out[g.index] = np.sqrt(np.mean(d2, axis=1))
+    return out
+
+
+def relative_pose_redundancy(reference: str, T_ref_cam: dict[str, np.ndarray],
+                             relative_poses: list[RelativePose],
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Per relative pose of a pose graph with ``reference`` held, linearised at ``T_ref_cam``
+    (camera -> 4x4, m): its whitened chi-square ``e^T W e`` and its redundancy number
+    ``r = 6 - tr(A_f (A^T A)^+ A_f^T)`` (``A`` the whitened Jacobian of the graph without the
+    reference's columns, ``A_f`` the rows of that factor; Foerstner 1979), the share of the
+    graph's redundancy its residual carries. A pose with a camera not in ``T_ref_cam`` (cut
+    off from the reference: not in the solve) gets 0 for both. Arrays follow
+    ``relative_poses``."""
+    used = [i for i, r in enumerate(relative_poses)
+            if r.cam_a in T_ref_cam and r.cam_b in T_ref_cam]
+    chi2_f, redundancy = np.zeros(len(relative_poses)), np.zeros(len(relative_poses))
+    if not used:
+        return chi2_f, redundancy
+    cams = sorted({reference} | {c for i in used for c in (relative_poses[i].cam_a,
+                                                          relative_poses[i].cam_b)})
+    key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
+    graph = gtsam.NonlinearFactorGraph()
+    for i in used:
+        graph.add(relative_poses[i].factor(key))
+    values = gtsam.Values()
+    ordering = gtsam.Ordering()
+    for c in cams:
+        values.insert(key[c], gtsam.Pose3(T_ref_cam[c]))
+        ordering.push_back(key[c])
+    A, b = graph.linearize(values).jacobian(ordering)
+    k = cams.index(reference)  # held: its columns go
+    A = np.delete(A, np.s_[6 * k:6 * k + 6], axis=1)
+    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    U = U[:, s > s.max() * 1e-12] if s.size else U  # rank-revealing: a free direction adds 0
+    h = np.sum(U**2, axis=1)  # the hat matrix's diagonal
+    chi2_f[used] = np.sum(np.reshape(b, (len(used), 6)) ** 2, axis=1)
+    redundancy[used] = 6.0 - np.sum(np.reshape(h, (len(used), 6)), axis=1)
+    return chi2_f, redundancy

@@ -1,0 +1,55 @@
+"""Variance components of a pose graph of relative poses: each group of factors (the priors
+holding the cameras, the depth pairs) weighed by a variance factor from its own residuals."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..core.config import BundleConfig
+from .bundle import BundleProblem, RelativePose, bundle_adjust, relative_pose_redundancy
+
+MIN_GROUP_REDUNDANCY = 1.0  # of a variance component: below it, its factor is not estimated
+
+
+def solve_variance_components(K: dict[str, np.ndarray], reference: str,
+                              T_init: dict[str, np.ndarray],
+                              groups: dict[str, list[RelativePose]], max_iterations: int = 20,
+                              tolerance: float = 1e-3):
+    """The pose graph of ``groups`` of relative poses (e.g. ``initial``: the priors holding
+    each camera to its start, ``pairs``: the depth pairs) with ``reference`` held, each group's
+    covariance scaled by a variance factor estimated from its own residuals: ``(result,
+    factors)`` with ``result`` the :class:`BundleResult` at the final factors (its marginals
+    include them) and ``factors`` group -> factor.
+
+    Variance-component estimation (Helmert; Foerstner 1979): at the solution, a group's factor
+    is multiplied by ``sum_g e^T W e / r_g``, its chi-square over its redundancy ``r_g = n_g -
+    tr(A_g (A^T A)^-1 A_g^T)`` (:func:`rgbd_calib.solve.bundle.relative_pose_redundancy`),
+    and the graph is solved again, until every factor changes by less than ``tolerance`` (relative)
+    or after ``max_iterations`` solves (1: the plain solve). A factor is never below 1 (a
+    group is never trusted beyond its model) and is left as it is for a group carrying less
+    than :data:`MIN_GROUP_REDUNDANCY` of the redundancy (nothing to estimate it from).
+    A systematic error of the pairs (colored ICP's, docs/depth.md "refine (issue 14)") shows
+    as their disagreement with the priors and the other pairs, and weighs them down by it."""
+    factors = {g: 1.0 for g in groups}
+    n_solves = max(1, max_iterations)
+    for solve in range(n_solves):
+        scaled = {g: [replace(r, information=r.information / factors[g]) for r in rs]
+                  for g, rs in groups.items()}
+        flat = [r for rs in scaled.values() for r in rs]
+        res = bundle_adjust(BundleProblem([], K, reference, T_init, {}, BundleConfig(),
+                                          relative_poses=flat))
+        chi2_f, redundancy = relative_pose_redundancy(reference, res.T_ref_cam, flat)
+        new, start = {}, 0
+        for g, rs in scaled.items():
+            part = slice(start, start + len(rs))
+            start += len(rs)
+            r_g = float(np.sum(redundancy[part]))
+            new[g] = (max(1.0, factors[g] * float(np.sum(chi2_f[part])) / r_g)
+                      if r_g >= MIN_GROUP_REDUNDANCY else factors[g])
+        if solve == n_solves - 1 or all(abs(new[g] / factors[g] - 1.0) < tolerance
+                                         for g in groups):
+            break  # the result was solved with ``factors``
+        factors = new
+    return res, factors

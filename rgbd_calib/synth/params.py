@@ -1,0 +1,120 @@
+"""The settings of a synthetic render (:class:`SynthParams`, checked by :func:`check_params`)
+and the synthetic rig it renders (:class:`SynthRig` of :class:`SynthCamera`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.camera import DISTORTION_LENGTHS, CameraIntrinsics
+from ..core.errors import ConfigError
+from ..core.geometry import invert_transform
+from .scene import Rect
+
+RIG_DISTORTIONS = ("zeros", "truth")  # what rig.yaml lists under --distortion
+
+
+@dataclass(frozen=True)
+class SynthParams:
+    """Rendering and noise settings (units in the names)."""
+
+    resolution: tuple[int, int] | None = None  # (width, height); None: the layout's default
+    blur_sigma_px: float = 0.6
+    color_noise_dn: float = 2.0
+    depth_subpixel_px: float = 0.08  # D435 subpixel disparity error s
+    depth_baseline_m: float = 0.050  # D435 stereo baseline B
+    depth_bias: float = 0.0  # max |relative depth-scale error| per camera (uniform in +-)
+    depth_dropout: float = 0.02  # fraction of valid depth pixels set to 0
+    depth_min_m: float = 0.28
+    depth_max_m: float = 6.0
+    drop_rate: float = 0.0  # probability that a camera misses a frame entirely
+    supersample: int = 8
+    cameras: int | None = None  # camera count (ring only)
+    # real-world imperfections (docs/synthetic.md); the defaults render the ideal rig
+    distortion: tuple[float, ...] | None = None  # true OpenCV k1 k2 p1 p2 k3 of every camera
+    rig_distortion: str = "zeros"  # rig.yaml lists "zeros" (as a D435 reports) or the "truth"
+    intrinsics_error: tuple[float, float] = (0.0, 0.0)  # rig.yaml: max |focal error| %, max px
+    glue: tuple[float, float, float] = (0.0, 0.0, 0.0)  # back sheet: dx mm, dy mm, rot deg
+    thickness_error_mm: float = 0.0  # true panel thickness minus the board file's
+    print_scale: float = 1.0  # printed size / board file size, both faces
+    # multi-face target: every face but the reference one off its board-file pose by this
+    # shift (mm) and turn (deg), each in a seeded direction of its own (a hand-built cube)
+    face_error: tuple[float, float] = (0.0, 0.0)
+    # cameras knocked after the calibration: (name, mm, deg) each, moved in a seeded direction
+    bump: tuple[tuple[str, float, float], ...] = ()
+    # the volume the board is moved through: the layout's box scaled by this about its centre
+    board_volume: float = 1.0
+    # extra frame sets per camera with the board close to it, out to its image's corners and
+    # edges (as a user fills each camera's image to calibrate its lens): closeup_poses
+    closeups: int = 0
+
+
+def check_params(params: SynthParams) -> None:
+    """Reject imperfection settings that cannot be rendered, naming the option."""
+    if params.distortion is not None and len(params.distortion) not in DISTORTION_LENGTHS:
+        raise ConfigError(
+            f"--distortion: {len(params.distortion)} coefficients; give OpenCV's k1 k2 p1 p2 k3"
+        )
+    if params.rig_distortion not in RIG_DISTORTIONS:
+        raise ConfigError(
+            f"--rig-distortion {params.rig_distortion!r}: choose {' or '.join(RIG_DISTORTIONS)}"
+        )
+    f_pct, px = params.intrinsics_error
+    if not (0 <= f_pct < 50 and px >= 0):
+        raise ConfigError(
+            f"--intrinsics-error {f_pct} {px}: give a focal error 0 <= F% < 50 and pixels >= 0"
+        )
+    if not (0.5 < params.print_scale < 2.0):
+        raise ConfigError(f"--print-scale {params.print_scale}: expected a factor near 1")
+    if not (0.1 <= params.board_volume <= 5.0):
+        raise ConfigError(f"--board-volume {params.board_volume}: expected a factor in 0.1-5 "
+                          "of the layout's board volume")
+    if not (0 <= params.closeups <= 64):
+        raise ConfigError(f"--closeups {params.closeups}: expected 0-64 frame sets per camera")
+    mm, deg = params.face_error
+    if not (0 <= mm < 100 and 0 <= deg < 30):
+        raise ConfigError(f"--face-error {mm} {deg}: give a shift 0 <= mm < 100 and a turn "
+                          "0 <= deg < 30")
+    for name, mm, deg in params.bump:
+        if not (mm >= 0 and 0 <= deg < 90):
+            raise ConfigError(f"--bump {name} {mm} {deg}: give a shift >= 0 mm and a turn "
+                              "0 <= deg < 90")
+
+
+@dataclass(frozen=True)
+class SynthCamera:
+    """One camera: ``intrinsics`` is the truth the images are rendered with (lens distortion
+    included); ``listed_intrinsics`` what its ``rig.yaml`` says (None: the truth)."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    T_world_cam: np.ndarray
+    depth_scale_bias: float = 1.0
+    listed_intrinsics: CameraIntrinsics | None = None
+
+    @property
+    def rig_intrinsics(self) -> CameraIntrinsics:
+        """The intrinsics written to ``rig.yaml``."""
+        return self.intrinsics if self.listed_intrinsics is None else self.listed_intrinsics
+
+
+@dataclass(frozen=True)
+class SynthRig:
+    """Cameras, scene and the board's workspace in the world frame (z up, metres)."""
+
+    layout: str
+    cameras: list[SynthCamera]
+    scene: list[Rect]
+    workspace_lo: np.ndarray
+    workspace_hi: np.ndarray
+    facing: str = "camera"  # how board normals are chosen: towards a random camera
+    reference_index: int = 0  # the camera whose frame is the rig's reference
+
+    @property
+    def reference(self) -> str:
+        return self.cameras[self.reference_index].name
+
+    def T_ref_cam(self, cam: SynthCamera) -> np.ndarray:
+        T_world_ref = self.cameras[self.reference_index].T_world_cam
+        return invert_transform(T_world_ref) @ cam.T_world_cam
