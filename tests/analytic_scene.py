@@ -79,4 +79,5 @@ def nudge(T: np.ndarray, mm: float = 10.0, deg: float = 0.5) -> np.ndarray:
     return T @ make_transform(rotvec_to_matrix(np.radians(deg) * np.array([0.6, 0.0, 0.8])),
                               np.array([0.6, -0.8, 0.0]) * mm / 1000.0)
 
+
 RECTS = (FLOOR, WALL, SIDE, BOX, BOX_SIDE)

@@ -75,6 +75,7 @@ def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, cal
     print("RMS(error/sigma) all components:", float(np.sqrt(np.mean(zs**2))),
           "per component:", np.sqrt(np.mean(zs**2, axis=0)).round(2))
 
+
 if __name__ == "__main__":
     kw = dict(a.split("=") for a in sys.argv[4:])
     kw = {k: (v if k == "calibration" else float(v) if "." in v else int(v) if v.isdigit()

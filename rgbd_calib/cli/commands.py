@@ -690,7 +690,6 @@ def demo(
     print_verdict(out / "calibration")
 
 
-
 @command()
 @user_errors
 def convert(

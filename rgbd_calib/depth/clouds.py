@@ -26,6 +26,7 @@ from .noise import depth_noise, median_efficiency
 
 # --------------------------------------------------------------------------- results
 
+
 @dataclass(frozen=True)
 class CloudStats:
     """Pixel accounting of a static cloud (pixels of the image; a pixel counts once)."""
@@ -116,7 +117,7 @@ class DepthScaleEstimate:
 
 # --------------------------------------------------------------------------- static clouds
 def in_view(intr: CameraIntrinsics, points_cam: np.ndarray, margin_px: float,
-             min_z: float, max_z: float) -> np.ndarray:
+            min_z: float, max_z: float) -> np.ndarray:
     """Which camera-frame points lie in the image (grown by ``margin_px``) and depth range."""
     z = points_cam[:, 2]
     ok = (z > min_z) & (z < max_z)

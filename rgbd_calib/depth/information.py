@@ -42,7 +42,7 @@ class Matches:
 
 
 def nearest_matches(src: VoxelLevel, tgt: VoxelLevel, tree: cKDTree, T_b_a: np.ndarray,
-           max_distance: float) -> Matches:
+                    max_distance: float) -> Matches:
     p_b = transform_points(T_b_a, src.points)
     d, j = tree.query(p_b, distance_upper_bound=max_distance, workers=-1)
     ok = np.isfinite(d)

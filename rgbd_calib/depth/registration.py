@@ -50,6 +50,7 @@ from .information import (
 
 # --------------------------------------------------------------------------- results
 
+
 @dataclass(frozen=True)
 class PairOverlap:
     """Fraction of each camera's points that the other camera also sees (near its surface)."""

@@ -367,8 +367,8 @@ class _FactorLayout:
                                   for key, label, A in self.moving])
 
 
-def _factor_layout(problem: BundleProblem) -> tuple[_FactorLayout, list[MarkerMeasurement],
-                                                    BoardModel | None, tuple[FaceModel, ...]]:
+def _factor_layout(problem: BundleProblem) -> tuple[
+        _FactorLayout, list[MarkerMeasurement], BoardModel | None, tuple[FaceModel, ...]]:
     """The keys, the priors and the face poses to solve; the measurements whose camera and view
     have an initial pose (and, refining intrinsics, a camera model); the back-sheet and face
     models to estimate (or why each is held)."""

@@ -23,7 +23,7 @@ from ..core.geometry import adjoint, invert_transform, make_transform, move_rows
 
 
 def project_board(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
-             P_b: np.ndarray, jacobians: bool = True):
+                  P_b: np.ndarray, jacobians: bool = True):
     """Pinhole projection of board points ``P_b`` (N,3) through T_ref_cam and T_ref_board.
 
     p_cam = T_ref_cam^-1 T_ref_board p_board = R_cb P_b + t_cb, projected by the camera model
@@ -114,8 +114,8 @@ def _face_jacobian(J_board: np.ndarray, rows: np.ndarray, X: np.ndarray,
 
 
 def view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.ndarray,
-                 corners_px: np.ndarray, sigma: float, robust: str, robust_k: float,
-                 moving: list | None = None):
+                corners_px: np.ndarray, sigma: float, robust: str, robust_k: float,
+                moving: list | None = None):
     """All markers of one camera view in one factor, each marker with its own robust kernel.
 
     It reproduces, marker by marker, what a per-marker ``Robust(kernel, Isotropic(8, sigma))``
@@ -152,9 +152,8 @@ def view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.n
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), [key_cam, key_board], error)
 
 
-
 def with_parameters(base: CameraIntrinsics, names: tuple[str, ...],
-                     x: np.ndarray) -> CameraIntrinsics:
+                    x: np.ndarray) -> CameraIntrinsics:
     """``base`` with the parameters ``names`` set to ``x`` (distortion names index OpenCV's
     coefficient list; the list is padded with zeros to hold the last name)."""
     values = dict(zip(names, np.asarray(x, dtype=float).tolist()))
@@ -176,9 +175,8 @@ def padded_distortion(base: CameraIntrinsics, names: tuple[str, ...]) -> tuple[f
     return tuple(base.distortion) + (0.0,) * (length - len(base.distortion))
 
 
-
 def project_board_full(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, intr: CameraIntrinsics,
-                  columns: np.ndarray | None, P_b: np.ndarray, jacobians: bool = True):
+                       columns: np.ndarray | None, P_b: np.ndarray, jacobians: bool = True):
     """As :func:`project_board`, through the full camera model ``intr`` (distortion included):
     pixels (N,2) and, with ``jacobians``, d(u,v)/dxi (N,2,6) of the camera and of the board
     and d(u,v)/d(intrinsics) (N,2,len(columns)), ``columns`` indexing
@@ -204,9 +202,9 @@ def project_board_full(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, intr: Cam
 
 
 def view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
-                            base: CameraIntrinsics, names: tuple[str, ...],
-                            object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
-                            robust: str, robust_k: float, moving: list | None = None):
+                           base: CameraIntrinsics, names: tuple[str, ...],
+                           object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
+                           robust: str, robust_k: float, moving: list | None = None):
     """:func:`view_factor` with the camera's intrinsics as a third variable: a vector of the
     parameters ``names`` (the rest of ``base`` held), the board points projected through the
     full model (distortion included) onto the RAW detected pixels ``corners_px`` (n,4,2).

@@ -128,7 +128,7 @@ def _solve(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray],
 
 
 def try_solve(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray],
-               pairs: list[RelativePose], free: set[str]) -> _Solution | None:
+              pairs: list[RelativePose], free: set[str]) -> _Solution | None:
     """:func:`_solve`, or None when the pairs leave a free camera undetermined (GTSAM's
     indeterminate system: e.g. one pair whose information lacks the direction an unknown
     depth scale explains)."""

@@ -19,8 +19,6 @@ from ..model.results import PoseEdge
 REASON_NO_SHARED_VIEW = "shares no board view with any connected camera"
 
 
-
-
 def flag_stale_edges(edges: list[PoseEdge]) -> set[int]:
     """Indices of edges whose ``T_cam_board`` equals the same camera's previous edge exactly.
 

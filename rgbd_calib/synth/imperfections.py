@@ -72,7 +72,7 @@ def bump_transform(seed: int, index: int, mm: float, deg: float) -> np.ndarray:
 
 
 def bump_cameras(cameras: list[SynthCamera], seed: int,
-          bump: tuple[tuple[str, float, float], ...]) -> list[SynthCamera]:
+                 bump: tuple[tuple[str, float, float], ...]) -> list[SynthCamera]:
     """Cameras moved after the calibration (``--bump NAME MM DEG``): the same rig as the seed's
     without it, but the named cameras' poses knocked by :func:`bump_transform`."""
     names = [c.name for c in cameras]
