@@ -235,3 +235,124 @@ def test_write_exports_writes_everything_and_csvs_round_trip(tmp_path, calibrati
     vertices, g_edges, _ = read_g2o(paths["g2o"].read_text())
     assert len(vertices) == 4 + len(boards) and len(g_edges) == len(edges)
     compile(paths["ros2_launch"].read_text(), "launch.py", "exec")
+
+
+# ---------------------------------------------------------------------------------------------
+# Exports of a calibration whose views changed after the pose graph (issue 32, item 7): the
+# markers detected again with a refined lens give other views than the pose graph solved.
+
+
+@pytest.fixture(scope="module")
+def tiny_result(tiny_dataset):
+    """The library calibration of the tiny rig (4 cameras, 640x360, 4 frames), no depth."""
+    from rgbd_calib.core.config import load_config
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.pipelines.calibrate import calibrate
+
+    dataset = FolderDataset(tiny_dataset)
+    config = load_config(None, workers=1, refine="none")
+    return dataset, calibrate(dataset, thesis_board(), config)
+
+
+def _graph_views(result) -> dict[tuple[str, str], np.ndarray]:
+    """The pose graph's used views: (camera, frame) -> T_cam_board of the view it solved."""
+    pg = result.posegraph
+    return {(pg.edges[i].camera, pg.edges[i].view): pg.edges[i].T_cam_board
+            for i in pg.used_edges}
+
+
+def _assert_exports_pair_the_graphs_views(result, exports: Path) -> None:
+    """Edges.csv and the g2o file hold exactly the pose graph's used edges: each row's camera,
+    view and T_cam_board are those of the edge it came from."""
+    graph = _graph_views(result)
+    rows = read_edges_csv(exports / EXPORT_FILES["edges_csv"])
+    assert len(rows) == len(graph)
+    for row in rows:
+        assert (row.camera, row.view) in graph, (row.camera, row.view)
+        assert np.allclose(row.T_cam_board, graph[row.camera, row.view], atol=1e-12)
+    used = result.posegraph.used_pose_edges
+    _, g_edges, _ = read_g2o((exports / EXPORT_FILES["g2o"]).read_text())
+    assert len(g_edges) == len(used)
+    for (_, _, T, _), e in zip(g_edges, used, strict=True):
+        assert_transforms_close(T, e.T_cam_board, 1e-6, 1e-5)  # g2o text: 9 digits
+
+
+@pytest.mark.parametrize("change", ["fewer", "reordered"])
+def test_exports_after_the_views_changed_pair_the_pose_graphs_edges(tiny_result, tmp_path,
+                                                                    change):
+    """The result's views differ from the pose graph's, as after ``_redetect``: one view fewer
+    (before the fix: ``exports/ not written (IndexError)``) or the same count in another order
+    with moved poses (before the fix: Edges.csv silently paired other views). The exports are
+    written and pair the pose graph's own edges."""
+    from dataclasses import replace
+
+    from rgbd_calib.outputs.writer import write_outputs
+
+    dataset, result = tiny_result
+    views = list(result.observations)
+    assert len(views) == len(result.posegraph.edges)
+    nudge = make_transform(np.eye(3), [0.003, 0.0, 0.0])  # a redetected pose: 3 mm elsewhere
+    views = (views[1:] if change == "fewer" else
+             [replace(o, T_cam_board=o.T_cam_board @ nudge) for o in reversed(views)])
+    changed = replace(result, observations=views)
+    # the precondition: a list rebuilt from the new views does not pair like the graph's
+    rebuilt = [(o.camera, o.frame) for o in views]
+    assert any(i >= len(rebuilt) or rebuilt[i] != (e.camera, e.view)
+               for i, e in zip(result.posegraph.used_edges, result.posegraph.used_pose_edges,
+                               strict=True))
+    warned: list[str] = []
+    written = write_outputs(changed, dataset.rig, tmp_path / "out", warn=warned.append)
+    assert not [w for w in warned if "exports" in w], warned
+    assert tmp_path / "out" / "exports" / EXPORT_FILES["edges_csv"] in written
+    _assert_exports_pair_the_graphs_views(changed, tmp_path / "out" / "exports")
+
+
+def test_pose_graph_result_carries_the_edges_it_solved(tiny_result):
+    """The edges in the result are the list the graph was given (PnP covariances, no floor),
+    one per residual; a result whose edges do not match its residuals is refused."""
+    from dataclasses import replace
+
+    from rgbd_calib.core.errors import CalibrationError
+
+    _, result = tiny_result
+    pg = result.posegraph
+    assert len(pg.edges) == len(pg.residuals) > 0
+    for r, e, o in zip(pg.residuals, pg.edges, result.observations, strict=True):
+        assert (r.camera, r.view) == (e.camera, e.view) == (o.camera, o.frame)
+        assert e.T_cam_board is o.T_cam_board
+    with pytest.raises(CalibrationError, match="edges"):
+        replace(pg, edges=pg.edges[1:])
+    with pytest.raises(CalibrationError, match="edges it was solved on"):
+        _ = replace(pg, edges=()).used_pose_edges
+
+
+def test_exports_after_the_markers_were_detected_again(tmp_path_factory, tmp_path):
+    """End to end: a lens rig.yaml does not list (thesis-line, 640x360, 8 frames, seed 3,
+    the lens of test_distortion_pipeline) makes the self-calibration refine it and detect the
+    markers again; the exports are written and pair the pose graph's views."""
+    from dataclasses import replace
+
+    from conftest import shared_render
+
+    from rgbd_calib.core.config import load_config
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.outputs.writer import write_outputs
+    from rgbd_calib.pipelines.calibrate import calibrate
+    from rgbd_calib.synth.render import SynthParams
+
+    lens = (0.08, -0.15, 5e-4, -5e-4, 0.03)
+    params = SynthParams(resolution=(640, 360), distortion=lens, rig_distortion="truth")
+    path = shared_render(tmp_path_factory, "distorted_line", "thesis-line", 8, 3,
+                         params=params).path
+    truth = FolderDataset(path).rig
+    pinhole = Rig({c: replace(i, distortion=(0.0,) * 5) for c, i in truth.cameras.items()},
+                  truth.reference)
+    dataset = FolderDataset(path, pinhole)
+    result = calibrate(dataset, thesis_board(), load_config(None, workers=2, refine="none"))
+    assert result.self_calibration is not None and result.self_calibration.redetected
+    warned: list[str] = []
+    write_outputs(result, dataset.rig, tmp_path / "out", warn=warned.append)
+    assert not [w for w in warned if "exports" in w], warned
+    _assert_exports_pair_the_graphs_views(result, tmp_path / "out" / "exports")

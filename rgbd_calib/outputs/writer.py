@@ -38,7 +38,6 @@ from ..pipelines.check import CheckRun
 from ..pipelines.posegraph import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
 from ..pipelines.refine import refine_summary
 from ..solve.ladder import refined_rig
-from ..solve.pose import pose_edges
 from .exports import write_exports
 from .report import (
     depth_only_report_dict,
@@ -91,9 +90,10 @@ def _written(stage: Path, out_dir: Path) -> list[Path]:
 
 def used_edges(result: CalibrationResult) -> list[PoseEdge]:
     """The per-view ``T_cam_board`` edges the pose graph used (the exports' Edges.csv and g2o
-    edges), with their PnP covariances."""
-    edges = pose_edges(result.observations, result.config)
-    return [edges[i] for i in result.posegraph.used_edges]
+    edges), with their PnP covariances: taken from the edge list the pose graph was solved on
+    (``PoseGraphResult.edges``), not rebuilt from ``result.observations``, which are the views
+    detected again with a refined lens when the bundle adjustment refined it."""
+    return list(result.posegraph.used_pose_edges)
 
 
 RIG_REFINED = "rig_refined.yaml"
@@ -313,7 +313,7 @@ def write_posegraph_outputs(run: PosegraphRun, out_dir: Path) -> dict[str, Path]
     last, so an interrupted run never leaves a fresh-looking result beside stale side files."""
     out_dir = Path(out_dir)
     with staged(out_dir) as stage:
-        used = [run.edges[i] for i in run.result.used_edges]
+        used = list(run.result.used_pose_edges)
         paths = write_exports(
             run.extrinsics,
             stage,

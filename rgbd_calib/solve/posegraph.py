@@ -109,7 +109,13 @@ class CameraModelError:
 
 @dataclass(frozen=True)
 class PoseGraphResult:
-    """Solved pose graph: cameras with marginal uncertainty, board views, per-edge residuals."""
+    """Solved pose graph: cameras with marginal uncertainty, board views, per-edge residuals.
+
+    ``edges`` is the edge list the graph was solved on, as given to it (PnP covariances, no
+    model-error floor): ``residuals[i]`` and every index of ``used_edges`` /
+    ``stale_edges`` / ``outlier_edges`` point into it. Read the edges from here
+    (:attr:`used_pose_edges`), never from a list rebuilt from later views: after the markers
+    are detected again the views are not the ones this graph solved."""
 
     reference: str
     cameras: dict[str, CameraExtrinsics]
@@ -120,6 +126,13 @@ class PoseGraphResult:
     sigma_translation_mm_default: float = float("nan")
     stats: dict[str, Any] = field(default_factory=dict)
     model_error: dict[str, CameraModelError] = field(default_factory=dict)
+    edges: tuple[PoseEdge, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.edges and len(self.edges) != len(self.residuals):
+            raise CalibrationError(
+                f"a pose-graph result with {len(self.edges)} edges but {len(self.residuals)} "
+                "edge residuals: pass the edge list the graph was solved on")
 
     @property
     def T_ref_cam(self) -> dict[str, np.ndarray]:
@@ -143,6 +156,15 @@ class PoseGraphResult:
     @property
     def used_edges(self) -> tuple[int, ...]:
         return tuple(r.index for r in self.residuals if r.used)
+
+    @property
+    def used_pose_edges(self) -> tuple[PoseEdge, ...]:
+        """The edges of :attr:`used_edges`, from the edge list this graph was solved on."""
+        if len(self.edges) != len(self.residuals):
+            raise CalibrationError(
+                "this pose-graph result does not carry the edges it was solved on "
+                "(PoseGraphResult.edges); build it with solve_pose_graph or pass edges=")
+        return tuple(self.edges[i] for i in self.used_edges)
 
     def to_extrinsics(self) -> Extrinsics:
         return Extrinsics(self.reference, dict(self.cameras), dict(self.unconnected))
@@ -371,7 +393,8 @@ def solve_pose_graph(
     body-frame covariance ``[rot rad, trans m]`` and the worst-axis 1-sigmas, see
     :func:`sigmas_from_covariance`."""
     config = config or PoseGraphConfig()
-    edges = list(edges)
+    given = tuple(edges)  # as given: the floor below replaces edges in the working list
+    edges = list(given)
     fixed = {reference: np.eye(4)}
     for c, T in (fixed_cameras or {}).items():
         if c == reference and not np.allclose(T, np.eye(4), atol=1e-12):
@@ -450,6 +473,7 @@ def solve_pose_graph(
         noise.sigma_trans * 1000.0,
         stats,
         model_error,
+        edges=given,
     )
 
 
@@ -783,17 +807,7 @@ def calibrate_pose_graph(
     init_cam, init_board, unconnected = initialise_from_edges(edges, reference)
     result = solve_pose_graph(edges, reference, init_cam, init_board, config, fixed_cameras)
     merged = {**result.unconnected, **unconnected}
-    return PoseGraphResult(
-        result.reference,
-        result.cameras,
-        result.T_ref_board,
-        result.residuals,
-        merged,
-        result.sigma_rotation_deg_default,
-        result.sigma_translation_mm_default,
-        result.stats,
-        result.model_error,
-    )
+    return replace(result, unconnected=merged)
 
 
 def refit_board_nodes(
