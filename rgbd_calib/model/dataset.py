@@ -34,6 +34,8 @@ from ..core.progress import Tick
 from .rig import CAMERA_NAME, Rig, load_rig, save_rig
 
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
+TIMESTAMPS_FILE = "timestamps.csv"  # <dataset>/<camera>/timestamps.csv, optional
+TIMESTAMPS_HEADER = "frame,t_ms"
 
 
 @dataclass(frozen=True)
@@ -113,6 +115,7 @@ class FolderDataset:
                 f"{self.path}: no colour images found under <camera>/color/; "
                 "is this the dataset folder?"
             )
+        self._times: dict[str, dict[str, float] | None] = {}  # read on first ask
 
     @property
     def cameras(self) -> list[str]:
@@ -143,6 +146,23 @@ class FolderDataset:
 
     def depth_path(self, camera: str, frame: str) -> Path | None:
         return self._depth[camera].get(frame)
+
+    def timestamps_ms(self, camera: str) -> dict[str, float] | None:
+        """Capture time (ms, on the recording's clock) of each colour frame of ``camera`` from
+        its optional ``<camera>/timestamps.csv`` (docs/formats.md), read on first use; None
+        when the camera has no such file. Rows of frames the camera has no colour image of
+        are left out (images may be deleted by hand); a frame without a row has no time.
+        Raises :class:`DatasetError` naming the file and line of a malformed row."""
+        if camera not in self._color:
+            raise DatasetError(f"{self.path}: no camera {camera!r}; the cameras are "
+                               f"{', '.join(self.cameras)}")
+        if camera not in self._times:
+            path = self.path / camera / TIMESTAMPS_FILE
+            table = read_timestamps_csv(path) if path.is_file() else None
+            self._times[camera] = None if table is None else {
+                f: t for f, t in table.items() if f in self._color[camera]}
+        times = self._times[camera]
+        return None if times is None else dict(times)
 
     def frame_sets(self) -> Iterator[FrameSet]:
         """Synchronised frame sets in frame order (paths only; nothing is decoded)."""
@@ -196,6 +216,51 @@ class FolderDataset:
             return None
         intr = self.rig.cameras[camera]
         return read_depth_image(path, intr.width, intr.height)
+
+
+def read_timestamps_csv(path: Path) -> dict[str, float]:
+    """``frame -> t_ms`` of a ``timestamps.csv`` (header ``frame,t_ms``, one row per colour
+    frame: its stem and capture time in milliseconds). Raises :class:`DatasetError` with the
+    file, the line and the fix for a missing header, a row that is not ``stem,number``, a
+    time that is not a finite number or a frame listed twice."""
+    path = Path(path)
+    fix = f"write one '<frame stem>,<time in ms>' row per colour frame under '{TIMESTAMPS_HEADER}'"
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: unreadable ({type(exc).__name__}); {fix}, or delete the "
+                           "file (it is optional)") from None
+    if not lines or lines[0].strip().replace(" ", "") != TIMESTAMPS_HEADER:
+        raise DatasetError(f"{path}: line 1: the header must be '{TIMESTAMPS_HEADER}'; {fix}, "
+                           "or delete the file (it is optional)")
+    out: dict[str, float] = {}
+    for n, line in enumerate(lines[1:], start=2):
+        if not line.strip():
+            continue
+        fields = [f.strip() for f in line.split(",")]
+        if len(fields) != 2 or not fields[0]:
+            raise DatasetError(f"{path}: line {n}: expected 'frame,t_ms', got {line.strip()!r}; "
+                               f"{fix}")
+        frame, value = fields
+        try:
+            t_ms = float(value)
+        except ValueError:
+            t_ms = float("nan")
+        if not np.isfinite(t_ms):
+            raise DatasetError(f"{path}: line {n}: time {value!r} of frame {frame!r} is not a "
+                               f"finite number of milliseconds; {fix}")
+        if frame in out:
+            raise DatasetError(f"{path}: line {n}: frame {frame!r} is listed twice; keep one "
+                               "row per frame")
+        out[frame] = t_ms
+    return out
+
+
+def timestamps_csv_text(times_ms: dict[str, float]) -> str:
+    """The ``timestamps.csv`` text of ``frame -> t_ms``, in frame order; times written with
+    ``repr`` precision (they read back exactly)."""
+    rows = [TIMESTAMPS_HEADER] + [f"{f},{float(times_ms[f])!r}" for f in sorted(times_ms)]
+    return "\n".join(rows) + "\n"
 
 
 def _index_images(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
@@ -497,11 +562,13 @@ def staged_folder(out: Path) -> Iterator[Path]:
 
 class FolderWriter:
     """Writes the folder form: ``rig.yaml`` at once, then ``<camera>/color/<frame>.png`` and
-    ``<camera>/depth/<frame>.png`` (8-bit colour, 16-bit depth counts aligned to colour).
+    ``<camera>/depth/<frame>.png`` (8-bit colour, 16-bit depth counts aligned to colour) and,
+    where the source has them, ``<camera>/timestamps.csv`` (each colour frame's capture time).
 
     ``depth_cameras`` get a ``depth/`` folder (default: every camera). :meth:`write` puts one
-    image in place, for a folder that is published whole (:func:`staged_folder`);
-    :meth:`write_set` puts a whole set in place at once, for a folder read while it grows."""
+    image in place and :meth:`write_timestamps` a camera's times, for a folder that is
+    published whole (:func:`staged_folder`); :meth:`write_set` puts a whole set (with its
+    times) in place at once, for a folder read while it grows."""
 
     def __init__(self, root: Path, rig: Rig, depth_cameras: Iterable[str] | None = None):
         self.root = Path(root)
@@ -512,6 +579,7 @@ class FolderWriter:
                 (self.root / name / "depth").mkdir(parents=True, exist_ok=True)
         save_rig(rig, self.root / "rig.yaml")
         self.sets_written = 0  # by write_set
+        self._times: dict[str, dict[str, float]] = {}  # camera -> frame -> t_ms written
 
     def path(self, camera: str, kind: str, frame: str) -> Path:
         """Where frame ``frame`` of ``camera`` goes; ``kind`` is "color" or "depth"."""
@@ -520,13 +588,31 @@ class FolderWriter:
     def write(self, camera: str, kind: str, frame: str, image: np.ndarray) -> None:
         write_png(self.path(camera, kind, frame), image)
 
+    def write_timestamps(self, camera: str, times_ms: dict[str, float]) -> None:
+        """``<camera>/timestamps.csv`` with ``frame -> t_ms`` added to the times already
+        written for ``camera`` (the file is replaced whole, never half written)."""
+        tmp, final = self._stage_timestamps(camera, times_ms)
+        os.replace(tmp, final)
+
+    def _stage_timestamps(self, camera: str, times_ms: dict[str, float]) -> tuple[Path, Path]:
+        table = {**self._times.get(camera, {}), **{f: float(t) for f, t in times_ms.items()}}
+        final = self.root / camera / TIMESTAMPS_FILE
+        tmp = final.with_name(f".{TIMESTAMPS_FILE}.tmp")
+        tmp.write_text(timestamps_csv_text(table))
+        self._times[camera] = table
+        return tmp, final
+
     def write_set(
-        self, frame: str, colors: dict[str, np.ndarray], depths: dict[str, np.ndarray]
+        self, frame: str, colors: dict[str, np.ndarray], depths: dict[str, np.ndarray],
+        times_ms: dict[str, float] | None = None,
     ) -> None:
         """One synchronised set, all of it or none: every file is written under a temporary
         name first, then all are renamed with Ctrl-C held back (a Ctrl-C meanwhile is raised
-        once the set is complete and counted in :attr:`sets_written`)."""
+        once the set is complete and counted in :attr:`sets_written`). ``times_ms`` (camera
+        -> capture time of its colour frame, ms) adds the set's row to those cameras'
+        ``timestamps.csv``, renamed with the images."""
         staged: list[tuple[Path, Path]] = []
+        before, committed = {c: dict(t) for c, t in self._times.items()}, False
         try:
             for camera, color in colors.items():
                 parts = [("color", color)] + (
@@ -537,10 +623,18 @@ class FolderWriter:
                     tmp = final.with_name(f".{frame}.png.tmp")  # not a .png: readers skip it
                     staged.append((tmp, final))
                     tmp.write_bytes(encode_png(image, final))
+            for camera, t_ms in (times_ms or {}).items():
+                if camera in colors:
+                    staged.append(self._stage_timestamps(camera, {frame: t_ms}))
             with sigint_deferred():
                 for tmp, final in staged:
                     os.replace(tmp, final)
                 self.sets_written += 1
+                committed = True
+        except BaseException:
+            if not committed:  # the set is not written: nor are its times
+                self._times = before
+            raise
         finally:
             for tmp, _ in staged:
                 tmp.unlink(missing_ok=True)

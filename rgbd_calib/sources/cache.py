@@ -20,6 +20,7 @@ from .conversion import ConversionReport, check_source, convert, is_recording
 from .staging import sanitize_name
 
 CACHE_MARKER = ".rgbd-calib-source.json"
+CACHE_FORM = 2  # the folder form a conversion in the cache has (2: timestamps.csv)
 
 
 def _source_stamp(sources: Sequence[Path], names, sync_tolerance_ms) -> dict[str, Any]:
@@ -34,7 +35,9 @@ def _source_stamp(sources: Sequence[Path], names, sync_tolerance_ms) -> dict[str
                 "mtime_ns": max((s.st_mtime_ns for s in stats), default=0),
             }
         )
-    return {"sources": entries, "names": list(names or []), "sync_tolerance_ms": sync_tolerance_ms}
+    # form 2: with <camera>/timestamps.csv (an older conversion is made again, once)
+    return {"sources": entries, "names": list(names or []), "sync_tolerance_ms": sync_tolerance_ms,
+            "form": CACHE_FORM}
 
 
 def convert_to_cache(

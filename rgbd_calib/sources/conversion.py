@@ -2,8 +2,10 @@
 
 Every colour frame is decoded once and staged on disk; when all sources are read, colour is
 paired with the nearest depth frame of the same camera, cameras are matched by timestamp, and
-the staged files are renamed into ``<camera>/{color,depth}/<frame>.png``. Everything happens in
-a temporary sibling folder that is renamed into place at the end.
+the staged files are renamed into ``<camera>/{color,depth}/<frame>.png``, each camera's colour
+frame times into ``<camera>/timestamps.csv`` (:func:`shared_clock`: when the cameras' times
+share a clock). Everything happens in a temporary sibling folder that is renamed into place
+at the end.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from .align import align_depth_to_color
 from .realsense import read_sdk
 from .ros import read_ros
 from .staging import StagedCamera, Stager
-from .sync import clock_notes, match_cameras, pair_depth
+from .sync import clock_notes, match_cameras, pair_depth, shared_clock
 
 RECORDING_SUFFIXES = (".bag", ".db3", ".mcap")
 
@@ -237,7 +239,10 @@ def _write_sets(
     # rig.yaml: the first camera found is the calibration's reference
     rig = Rig({c.name: _with_scale(c) for c in cams}, cams[0].name)
     writer = FolderWriter(root, rig, depth_cameras=[c.name for c in cams if c.depths])
-    matched, without_depth = _move_frames(cams, sets, writer, progress)
+    matched, without_depth, times = _move_frames(cams, sets, writer, progress)
+    if shared_clock(cams):  # else the times of different cameras cannot be compared
+        for name, table in times.items():
+            writer.write_timestamps(name, table)
     counts = {
         c.name: CameraCounts(
             frames_read=len(c.colors),
@@ -266,13 +271,15 @@ def _move_frames(
     sets: list[dict[str, int]],
     writer: FolderWriter,
     progress: Progress | None,
-) -> tuple[dict[str, int], dict[str, int]]:
+) -> tuple[dict[str, int], dict[str, int], dict[str, dict[str, float]]]:
     """Move each set's staged colour frames into place, each with its paired depth frame
-    (aligned here when raw). Per camera: colour frames written, and those without depth."""
+    (aligned here when raw). Per camera: colour frames written, those without depth, and
+    each written frame's capture time (stem -> the colour frame's timestamp, ms)."""
     by_name = {c.name: c for c in cams}
     depth_of = {c.name: pair_depth(c) for c in cams}
     matched = {c.name: 0 for c in cams}
     without_depth = {c.name: 0 for c in cams}
+    times: dict[str, dict[str, float]] = {c.name: {} for c in cams}
     tick = start(progress, "writing frame sets", len(sets))
     for k, group in enumerate(sets):
         stem = f"{k:06d}"
@@ -280,6 +287,7 @@ def _move_frames(
             cam = by_name[name]
             _check_color_size(cam, cam.colors[i].path)
             os.replace(cam.colors[i].path, writer.path(name, "color", stem))
+            times[name][stem] = cam.colors[i].t_ms
             matched[name] += 1
             depth = depth_of[name].get(i)
             if depth is None:
@@ -289,7 +297,7 @@ def _move_frames(
             else:  # copied, not moved: a depth frame may serve two colour frames
                 shutil.copyfile(depth.path, writer.path(name, "depth", stem))
         tick(1)
-    return matched, without_depth
+    return matched, without_depth, times
 
 
 def _check_color_size(cam: StagedCamera, path: Path) -> None:

@@ -2,7 +2,8 @@
 
 Each set is one colour + depth (aligned to colour) frame per camera, written in the folder
 form of docs/formats.md as it is captured. ``rig.yaml`` is written first, from the devices'
-factory intrinsics; each set is then put in place whole (:meth:`FolderWriter.write_set`), so
+factory intrinsics; each set is then put in place whole (:meth:`FolderWriter.write_set`), with
+its row of each camera's ``timestamps.csv`` (the colour frames' librealsense timestamps), so
 an interrupt never leaves half a set.
 
 The device boundary is :class:`DeviceSource` (``serials()`` and ``open()``); the real one
@@ -36,11 +37,14 @@ MAX_RESYNC_WAITS = 4  # extra waits per set to bring free-running cameras togeth
 @dataclass(frozen=True)
 class CapturedFrame:
     """One camera's frame: colour BGR ``(H,W,3)`` uint8, depth counts ``(H,W)`` uint16
-    aligned to colour (or None), device timestamp in milliseconds."""
+    aligned to colour (or None), the colour frame's timestamp in milliseconds and its clock
+    (librealsense's timestamp domain: ``global_time``, the host clock the device's is mapped
+    to, librealsense's default; ``system_time``; or ``hardware_clock``, the camera's own)."""
 
     color: np.ndarray
     depth: np.ndarray | None
     timestamp_ms: float
+    timestamp_domain: str = "global_time"
 
 
 class CameraStream(Protocol):
@@ -138,6 +142,7 @@ class _RealSenseStream:
             np.asanyarray(color.get_data()).copy(),
             np.asanyarray(depth.get_data()).copy() if depth else None,
             float(color.get_timestamp()),
+            str(color.get_frame_timestamp_domain()).split(".")[-1],
         )
 
     def stop(self) -> None:
@@ -336,6 +341,9 @@ def _write_set(writer: FolderWriter, rig: Rig, frames: dict[str, CapturedFrame])
                 f"{intr.width}x{intr.height}"
             )
     stem = f"{writer.sets_written:06d}"
+    # each camera's timestamps.csv gets the set's row, when the cameras' clocks are one
+    shared = len(frames) <= 1 or all(f.timestamp_domain != "hardware_clock"
+                                     for f in frames.values())
     writer.write_set(
         stem,
         {n: f.color for n, f in frames.items()},
@@ -344,6 +352,7 @@ def _write_set(writer: FolderWriter, rig: Rig, frames: dict[str, CapturedFrame])
             for n, f in frames.items()
             if f.depth is not None
         },
+        {n: f.timestamp_ms for n, f in frames.items()} if shared else None,
     )
     return stem
 

@@ -108,13 +108,20 @@ def match_cameras(
     return reference.name, tolerance_ms, sets
 
 
+def shared_clock(cams: list[StagedCamera]) -> bool:
+    """Whether the cameras' frame times are on one clock as far as the sources tell: a
+    single camera, or no RealSense recording on its camera's own hardware clock (global and
+    system time are the host's clock; ROS header stamps the ROS clock)."""
+    return len(cams) <= 1 or all(c.timestamp_domain != "hardware_clock" for c in cams)
+
+
 def clock_notes(cams: list[StagedCamera]) -> list[str]:
-    """A warning when cameras' timestamps may share no clock (so matching may be wrong)."""
-    domains = {c.timestamp_domain for c in cams}
-    if len(cams) > 1 and "hardware_clock" in domains:
+    """A warning when cameras' timestamps may share no clock (so matching may be wrong, and
+    no ``timestamps.csv`` is written)."""
+    if not shared_clock(cams):
         return [
             "some recordings use the camera's hardware clock: timestamps of different "
-            "cameras share no common clock, so their matching may be wrong; enable "
-            "global time when recording"
+            "cameras share no common clock, so their matching may be wrong and no "
+            "timestamps.csv was written; enable global time when recording"
         ]
     return []

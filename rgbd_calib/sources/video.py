@@ -4,7 +4,10 @@ Each camera's video is read with ``cv2.VideoCapture``. Frames are grouped into s
 optional timestamps CSV (``sync_index,cam_id,frame_index,frame_time``, as Caliscope writes:
 frames of one ``sync_index`` form a set; a camera's rows sorted by ``frame_index`` are its
 video's frames in order; ``cam_id`` is the trailing number of the video's name, e.g.
-``cam_2.mp4``) or, without it, by position (frame k of every video is set k).
+``cam_2.mp4``) or, without it, by position (frame k of every video is set k). With the CSV,
+each written frame's ``frame_time`` (seconds, Caliscope's one recording clock) goes into
+``<camera>/timestamps.csv`` in milliseconds; without it there is none (a video's own frame
+times start at 0 in each file and share no clock).
 
 With a board, only the frames where it was seen and still are kept: the board's markers are
 detected in every frame and a camera's view is kept when its corners moved at most
@@ -202,6 +205,7 @@ def convert_videos(
                               "pass --names")
     table = read_timestamps(timestamps) if timestamps else None
     cams = []
+    frame_time_s: dict[str, list[float]] = {}  # camera -> video frame position -> time (s)
     for i, (v, n) in enumerate(zip(videos, cam_names)):
         rows = None
         if table is not None:
@@ -211,6 +215,7 @@ def convert_videos(
                 raise DatasetError(f"{timestamps}: no row for {v.name} (cam_id {cam_id}); "
                                    "name the videos by cam_id (cam_0.mp4, ...)")
             rows = table[cam_id]
+            frame_time_s[n] = [r[2] for r in rows]
         cams.append(probe(v, n, rows))
     keep, notes = select_views(cams, board, step, still_px_s, progress)
     for c in cams:
@@ -224,12 +229,17 @@ def convert_videos(
         writer = FolderWriter(tmp, rig, depth_cameras=[])
         for cam in cams:
             tick = start(progress, f"writing {cam.name}", cam.frames)
+            times_ms: dict[str, float] = {}
             for k, image in enumerate(frames_of(cam.path)):
                 s = cam.set_of_frame.get(k)
                 if s is not None and cam.name in keep.get(s, ()):
                     writer.write(cam.name, "color", f"{s:06d}", image)
                     written[cam.name] += 1
+                    if cam.name in frame_time_s:  # the timestamps CSV's frame_time
+                        times_ms[f"{s:06d}"] = 1000.0 * frame_time_s[cam.name][k]
                 tick(1)
+            if times_ms:
+                writer.write_timestamps(cam.name, times_ms)
     spread = _spread_ms(table, keep) if table else 0.0
     if table:
         notes.append(f"cameras of a kept set up to {spread:.1f} ms apart (timestamps CSV)")
