@@ -64,7 +64,7 @@ def _robust_weight_loss(kind: str, k: float, d: np.ndarray) -> tuple[np.ndarray,
     return w, rho
 
 
-def _robust_rows(r: np.ndarray, blocks, H: list[np.ndarray] | None, robust: str,
+def robust_rows(r: np.ndarray, blocks, H: list[np.ndarray] | None, robust: str,
                  robust_k: float) -> np.ndarray:
     """The per-marker robust kernel of a view factor (see :func:`view_factor`).
 
@@ -146,8 +146,8 @@ def view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.n
         uv, J_cam, J_board = project_board(values.atPose3(key_cam).matrix(),
                                       values.atPose3(key_board).matrix(), K, P_b, H is not None)
         r = ((uv - measured) * inv_sigma).reshape(n, 8)
-        return _robust_rows(r, lambda: (J_cam.reshape(-1, 6) * inv_sigma,
-                                        J_board.reshape(-1, 6) * inv_sigma), H, robust, robust_k)
+        return robust_rows(r, lambda: (J_cam.reshape(-1, 6) * inv_sigma,
+                                       J_board.reshape(-1, 6) * inv_sigma), H, robust, robust_k)
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), [key_cam, key_board], error)
 
@@ -227,10 +227,10 @@ def view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
             values.atPose3(key_cam).matrix(), values.atPose3(key_board).matrix(), intr,
             columns, P_b, H is not None)
         r = ((uv - measured) * inv_sigma).reshape(n, 8)
-        return _robust_rows(r, lambda: (J_cam.reshape(-1, 6) * inv_sigma,
-                                        J_board.reshape(-1, 6) * inv_sigma,
-                                        J_intr.reshape(-1, len(names)) * inv_sigma),
-                            H, robust, robust_k)
+        return robust_rows(r, lambda: (J_cam.reshape(-1, 6) * inv_sigma,
+                                       J_board.reshape(-1, 6) * inv_sigma,
+                                       J_intr.reshape(-1, len(names)) * inv_sigma),
+                           H, robust, robust_k)
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n),
                               [key_cam, key_board, key_intr], error)
@@ -282,7 +282,7 @@ def _view_factor_faces(key_cam: int, key_board: int, moving: list,
                     for (_, rows, A), x in zip(faces, X)]
             return out
 
-        return _robust_rows(r, blocks, H, robust, robust_k)
+        return robust_rows(r, blocks, H, robust, robust_k)
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), keys, error)
 
