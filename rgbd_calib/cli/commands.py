@@ -103,6 +103,25 @@ FACE_ERROR_OPTION = typer.Option(
     "(a hand-built target); the board file stays nominal.",
     rich_help_panel=IMPERFECTIONS_PANEL,
 )
+MOTION_OPTION = typer.Option(
+    metavar="SPEED_MPS RATE_DPS",
+    help="the board moves during each frame set, as a hand waves it: SPEED_MPS m/s along "
+    "and RATE_DPS deg/s about a seeded direction per set (e.g. 0.3 30); needs "
+    "--sync-offset-ms or --rolling-shutter-ms to show in the images.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+SYNC_OFFSET_OPTION = typer.Option(
+    metavar="MS",
+    help="cameras not in sync: each one's clock off the reference camera's by a seeded "
+    "offset within +-MS ms (e.g. 16: half a frame at 30 fps).",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+ROLLING_SHUTTER_OPTION = typer.Option(
+    metavar="MS",
+    help="rolling-shutter colour sensors: rows exposed one after another over MS ms, top "
+    "to bottom, each rendered at its own time (e.g. 25); depth stays a global shutter.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
 BOARD_VOLUME_OPTION = typer.Option(
     metavar="S",
     help="move the board through S times the layout's volume (about its centre): "
@@ -164,6 +183,9 @@ def synth(
     board_volume: Annotated[float, BOARD_VOLUME_OPTION] = 1.0,
     closeups: Annotated[int, CLOSEUPS_OPTION] = 0,
     bump: Annotated[list[str] | None, BUMP_OPTION] = None,
+    motion: Annotated[tuple[float, float], MOTION_OPTION] = (0.0, 0.0),
+    sync_offset_ms: Annotated[float, SYNC_OFFSET_OPTION] = 0.0,
+    rolling_shutter_ms: Annotated[float, ROLLING_SHUTTER_OPTION] = 0.0,
 ) -> None:
     """Render a synthetic RGB-D rig with ground truth (dataset folder + ground_truth.yaml).
 
@@ -193,6 +215,9 @@ def synth(
         board_volume=board_volume,
         closeups=closeups,
         bump=tuple(_parse_bump(text) for text in bump or ()),
+        motion=motion,
+        sync_offset_ms=sync_offset_ms,
+        rolling_shutter_ms=rolling_shutter_ms,
     )
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:

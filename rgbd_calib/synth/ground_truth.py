@@ -15,6 +15,9 @@ from ..core.yamlio import write_yaml
 from ..model.board import Board
 from .imperfections import BoardPrint
 from .params import SynthParams, SynthRig
+from .timing import SynthTiming, board_pose_at
+
+TIME_PARAMS = ("motion", "sync_offset_ms", "rolling_shutter_ms")  # listed only when on
 
 
 def write_ground_truth(
@@ -28,10 +31,13 @@ def write_ground_truth(
     params: SynthParams,
     closeups: list[tuple[str, np.ndarray]],
     n_frames: int,
+    timing: SynthTiming | None = None,
 ) -> None:
     """``ground_truth.yaml`` of a render: the true rig, board poses (``T_ref_board`` per frame
     set, close-ups after the ``n_frames`` regular ones), depth biases, the physical board
-    (``printed``) beside the nominal board file, the true intrinsics and the settings."""
+    (``printed``) beside the nominal board file, the true intrinsics and the settings; with
+    ``timing`` (any time setting on) its ``time:`` section, and only then are the time
+    settings listed under ``params`` (a still render's file is as before they existed)."""
     T_world_ref = rig.cameras[rig.reference_index].T_world_cam
     T_ref_world = invert_transform(T_world_ref)
     write_yaml(
@@ -55,12 +61,27 @@ def write_ground_truth(
             "intrinsics": {c.name: c.intrinsics.to_dict() for c in rig.cameras},
             "params": {
                 k: _plain(v) for k, v in params.__dict__.items()
+                if timing is not None or k not in TIME_PARAMS
             },
             "bumped": {name: {"mm": mm, "deg": deg} for name, mm, deg in params.bump},
             "closeups": {f"{n_frames + i:06d}": name
                          for i, (name, _) in enumerate(closeups)},
+            **({} if timing is None else {"time": _time_section(rig, timing)}),
         },
     )
+
+
+def _time_section(rig: SynthRig, timing: SynthTiming) -> dict:
+    """``time:``: per camera its clock offset and colour readout (ms), per frame set the
+    board's twist in the reference frame (m/s, rad/s); the convention is :mod:`.timing`'s."""
+    return {
+        "offset_ms": {c.name: 1000.0 * t for c, t in zip(rig.cameras, timing.offset_s)},
+        "readout_ms": {c.name: 1000.0 * t for c, t in zip(rig.cameras, timing.readout_s)},
+        "board_twist": {
+            f"{i:06d}": {"v_mps": [float(x) for x in v], "w_radps": [float(x) for x in w]}
+            for i, (v, w) in enumerate(zip(timing.v_mps, timing.w_radps))
+        },
+    }
 
 
 def _plain(value):
@@ -76,7 +97,13 @@ class GroundTruth:
     written before they were recorded: its ``rig.yaml`` is then exact). ``T_front_back``,
     ``print_scale`` and ``thickness_m`` (None: the board file's) describe the physical board
     (:class:`BoardPrint`); absent, the board is exactly its board file. ``closeups`` names
-    the camera each close-up frame set was posed for (``--closeups``; empty without)."""
+    the camera each close-up frame set was posed for (``--closeups``; empty without).
+
+    Time (``--motion``, ``--sync-offset-ms``, ``--rolling-shutter-ms``; 0 for every camera and
+    frame set when the file has no ``time:`` section): ``offset_ms`` and ``readout_ms`` per
+    camera, the board's twist per frame set in the reference frame, ``board_v_mps`` and
+    ``board_w_radps`` (3-vectors), under the convention of :mod:`rgbd_calib.synth.timing`
+    (:meth:`T_ref_board_at`, :meth:`exposure_tau_s`)."""
 
     reference: str
     T_ref_cam: dict[str, np.ndarray]
@@ -88,6 +115,25 @@ class GroundTruth:
     thickness_m: float | None = None
     closeups: dict[str, str] = field(default_factory=dict)  # frame -> camera (--closeups)
     T_board_face: dict[int, np.ndarray] = field(default_factory=dict)  # multi-face: true poses
+    offset_ms: dict[str, float] = field(default_factory=dict)  # camera -> clock offset
+    readout_ms: dict[str, float] = field(default_factory=dict)  # camera -> colour readout
+    board_v_mps: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> v (ref frame)
+    board_w_radps: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> w (ref)
+
+    def T_ref_board_at(self, frame: str, tau_s: float) -> np.ndarray:
+        """The board pose (4x4, metres, reference frame) ``tau_s`` seconds after frame set
+        ``frame``'s nominal time: ``[Exp_SO3(w tau) R | p + v tau]``."""
+        zero = np.zeros(3)
+        return board_pose_at(self.T_ref_board[frame], self.board_v_mps.get(frame, zero),
+                             self.board_w_radps.get(frame, zero), tau_s)
+
+    def exposure_tau_s(self, camera: str, v_px: float | np.ndarray, height: int):
+        """When ``camera``'s colour pixel row ``v_px`` (0 = top) of an image ``height`` rows
+        high is exposed, seconds after the frame set's nominal time."""
+        from .timing import row_time_s
+
+        return row_time_s(v_px, height, self.offset_ms.get(camera, 0.0) / 1000.0,
+                          self.readout_ms.get(camera, 0.0) / 1000.0)
 
     def board_print(self, board: Board) -> BoardPrint:
         """The physical board of this set, for the board file ``board`` it was rendered with."""
@@ -106,6 +152,19 @@ def load_ground_truth(path: Path) -> GroundTruth:
     data = read_yaml_mapping(path, "ground truth")
     board = data.get("board") or {}
     thickness = board.get("thickness_m")
+    time = data.get("time") or {}
+    twist = time.get("board_twist") or {}
+    cameras, frames = [str(k) for k in data["T_ref_cam"]], [str(k) for k in data["T_ref_board"]]
+
+    def per_camera(key: str) -> dict[str, float]:
+        values = {str(k): float(v) for k, v in (time.get(key) or {}).items()}
+        return {c: values.get(c, 0.0) for c in cameras}
+
+    def per_frame(key: str) -> dict[str, np.ndarray]:
+        values = {str(k): _vector3(v.get(key), f"{path}: time.board_twist.{k}.{key}")
+                  for k, v in twist.items()}
+        return {f: values.get(f, np.zeros(3)) for f in frames}
+
     return GroundTruth(
         str(data["reference"]),
         {k: matrix4(v, f"{path}: T_ref_cam.{k}") for k, v in data["T_ref_cam"].items()},
@@ -123,4 +182,17 @@ def load_ground_truth(path: Path) -> GroundTruth:
         {str(k): str(v) for k, v in (data.get("closeups") or {}).items()},
         {int(k): matrix4(v, f"{path}: board.T_board_face.{k}")
          for k, v in (board.get("T_board_face") or {}).items()},
+        per_camera("offset_ms"),
+        per_camera("readout_ms"),
+        per_frame("v_mps"),
+        per_frame("w_radps"),
     )
+
+
+def _vector3(value, where: str) -> np.ndarray:
+    from ..core.errors import ConfigError
+
+    out = np.asarray(value if value is not None else [], dtype=float).reshape(-1)
+    if out.shape != (3,):
+        raise ConfigError(f"{where}: expected 3 numbers [x, y, z]; write the render again")
+    return out

@@ -1,10 +1,12 @@
 """The images of one synthetic camera: the board as rectangles with its print
 (:class:`_BoardModel`), the static scene (:func:`render_background`), the board rendered into
-it with exact area coverage (:func:`render_board`), then lens blur and sensor noise
+it with exact area coverage (:func:`render_board`; a moving board row by row under a rolling
+shutter: :func:`render_board_moving`), then lens blur and sensor noise
 (:func:`finish_color`) and the D435 depth model (:func:`finish_depth`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -209,13 +211,15 @@ def render_background(scene: list[Rect], cam: SynthCamera, samples: int = 2) -> 
     return _Background(color / samples**2, depth, centre_rays)
 
 
-def _board_bbox(model: _BoardModel, K: CameraIntrinsics, T_cam_board: np.ndarray, rays=None):
+def _board_bbox(model: _BoardModel, K: CameraIntrinsics, T_cam_board: np.ndarray, rays=None,
+                first_row: int = 0):
     """Pixel box ``(u0, u1, v0, v1)`` that holds the board's image, or None.
 
     Pinhole: the box of the projected panel corners. Distorted lens (its pixel-centre
     ``rays``, HxWx3): straight edges image as curves, so it is the box of the pixels whose
     ray falls in the ray-space box of the corners, 2 pixels wider (pixel corners and sub-pixel
-    samples reach half a pixel beyond a centre)."""
+    samples reach half a pixel beyond a centre); ``rays`` may be the image's rows from
+    ``first_row`` on only."""
     x0, x1, y0, y1 = model.board.panel
     t = model.thickness
     pts = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (0.0, -t)])
@@ -237,6 +241,7 @@ def _board_bbox(model: _BoardModel, K: CameraIntrinsics, T_cam_board: np.ndarray
             & (rays[..., 1] <= hi[1])
         )
         rows, cols = np.nonzero(np.any(inside, axis=1))[0], np.nonzero(np.any(inside, axis=0))[0]
+        rows = rows + first_row
         if rows.size == 0:
             return None
         return (
@@ -270,22 +275,114 @@ def render_board(
     (:func:`camera_rays`), so a distorted lens is rendered exactly, anti-aliasing included."""
     color = bg.color.copy()
     depth = bg.depth.copy()
+    _paint_board(model, cam, bg, T_cam_board, supersample, color, depth)
+    return color, depth
+
+
+def render_board_moving(
+    model: _BoardModel,
+    cam: SynthCamera,
+    bg: _Background,
+    pose_at: Callable[[float], np.ndarray],
+    offset_s: float,
+    readout_s: float,
+    supersample: int = 8,
+    band_rows: int = 1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`render_board` of a board that moves: ``pose_at(tau)`` is ``T_cam_board`` at
+    ``tau`` seconds after the frame set's nominal time (:mod:`.timing`).
+
+    Depth is exposed as a whole at ``offset_s``. With a rolling shutter (``readout_s`` > 0)
+    colour is rendered, not warped, band by band of ``band_rows`` rows (1: every row at its
+    own time, the exact convention), each band with the board where it was at the time of its
+    middle row, ``offset_s + readout_s / (H - 1) * (y - (H - 1) / 2)``; every ray of a row
+    (pixel corners, centre, sub-pixel samples) sees that one board pose. The static scene does
+    not move. A board that leaves the image (or passes behind the camera) during the readout is
+    handled band by band as :func:`render_board` handles any view."""
+    color = bg.color.copy()
+    depth = bg.depth.copy()
+    rolling = readout_s > 0
+    _paint_board(model, cam, bg, pose_at(offset_s), supersample,
+                 None if rolling else color, depth)
+    if not rolling:
+        return color, depth
+    height = cam.intrinsics.height
+    line_delay_s = readout_s / (height - 1)
+    for r0 in range(0, height, band_rows):
+        r1 = min(r0 + band_rows, height) - 1
+        tau_s = offset_s + line_delay_s * ((r0 + r1) / 2 - (height - 1) / 2)
+        _paint_board(model, cam, bg, pose_at(tau_s), supersample, color, None, rows=(r0, r1))
+    return color, depth
+
+
+def _band_bbox(model: _BoardModel, K: CameraIntrinsics, T_cam_board: np.ndarray, rays,
+               rows: tuple[int, int] | None):
+    """:func:`_board_bbox` within the image rows ``rows`` (inclusive; None: all). A distorted
+    lens's ray box is searched only in those rows and two on each side (the box's margin)."""
+    if rows is None:
+        return _board_bbox(model, K, T_cam_board, rays)
+    r0, r1 = rows
+    first = 0
+    if rays is not None:
+        first = max(r0 - 2, 0)
+        rays = rays[first : min(r1 + 2, K.height - 1) + 1]
+    box_ = _board_bbox(model, K, T_cam_board, rays, first)
+    if box_ is None:
+        return None
+    u0, u1, v0, v1 = box_
+    v0, v1 = max(v0, r0), min(v1, r1)
+    return None if v0 > v1 else (u0, u1, v0, v1)
+
+
+def _paint_board(
+    model: _BoardModel,
+    cam: SynthCamera,
+    bg: _Background,
+    T_cam_board: np.ndarray,
+    supersample: int,
+    color: np.ndarray | None,
+    depth: np.ndarray | None,
+    rows: tuple[int, int] | None = None,
+) -> None:
+    """The board at ``T_cam_board`` painted over the static scene ``bg`` into ``color`` and
+    ``depth`` (either None: not painted), in image rows ``rows`` only (inclusive; None: all)."""
     K = cam.intrinsics
     if K.has_distortion and bg.rays is None:
         raise ValueError("render_board: a distorted camera needs render_background's rays")
-    box_ = _board_bbox(model, K, T_cam_board, bg.rays)
+    box_ = _band_bbox(model, K, T_cam_board, bg.rays, rows)
     if box_ is None:
-        return color, depth
+        return
+    u0, u1, v0, v1 = box_
+    region_depth_bg = bg.depth[v0 : v1 + 1, u0 : u1 + 1]
+    # pixel-centre depth decides occlusion between the board and the static scene
+    cvv, cuu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1].astype(float)
+    centre_rays = None if bg.rays is None else bg.rays[v0 : v1 + 1, u0 : u1 + 1].reshape(-1, 3)
+    if centre_rays is None:
+        centre_rays = camera_rays(K, cuu.ravel(), cvv.ravel())
+    hits_p = cast(model.rects, T_cam_board, centre_rays, grid=_grid(K, cuu.shape))
+    z_board = hits_p.depth.reshape(cvv.shape)
+    board_front = z_board < region_depth_bg
+    if depth is not None:
+        depth[v0 : v1 + 1, u0 : u1 + 1] = np.where(board_front, z_board, region_depth_bg)
+    if color is not None:
+        color[v0 : v1 + 1, u0 : u1 + 1] = _board_colors(
+            model, cam, bg, T_cam_board, supersample, (u0, u1, v0, v1), board_front)
+
+
+def _board_colors(model: _BoardModel, cam: SynthCamera, bg: _Background,
+                  T_cam_board: np.ndarray, supersample: int, box_: tuple[int, int, int, int],
+                  board_front: np.ndarray) -> np.ndarray:
+    """Colour of the pixel box ``box_`` (``u0, u1, v0, v1``, inclusive) with the board in front
+    of the static scene where ``board_front``: uniform pixels from their corner rays, the rest
+    averaged over ``supersample^2`` rays."""
+    K = cam.intrinsics
     u0, u1, v0, v1 = box_
     light = T_cam_board[:3, :3].T @ (invert_transform(cam.T_world_cam)[:3, :3] @ LIGHT_DIR_WORLD)
     face_shade = np.array([0.55 + 0.45 * abs(r.normal @ light) for r in model.rects])
 
-    def trace(us: np.ndarray, vs: np.ndarray, grid=None, shade: bool = True, rays=None):
-        if rays is None:
-            rays = camera_rays(K, us, vs)
-        hits = cast(model.rects, T_cam_board, rays, grid=None if grid is None else _grid(K, grid))
-        if not shade:
-            return hits, None
+    def trace(us: np.ndarray, vs: np.ndarray, grid=None):
+        hits = cast(model.rects, T_cam_board, camera_rays(K, us, vs),
+                    grid=None if grid is None else _grid(K, grid))
         refl = model.reflectance(hits.index, hits.a, hits.b)
         value = np.where(hits.index >= 0, refl * face_shade[np.maximum(hits.index, 0)], np.nan)
         return hits, value
@@ -300,14 +397,8 @@ def render_board(
         & (key[:-1, :-1] == key[:-1, 1:])
         & (key[:-1, :-1] == key[1:, 1:])
     )
-    region_bg = color[v0 : v1 + 1, u0 : u1 + 1]
+    region_bg = bg.color[v0 : v1 + 1, u0 : u1 + 1]
     region_depth_bg = bg.depth[v0 : v1 + 1, u0 : u1 + 1]
-    # pixel-centre depth decides occlusion between the board and the static scene
-    cvv, cuu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1].astype(float)
-    centre_rays = None if bg.rays is None else bg.rays[v0 : v1 + 1, u0 : u1 + 1].reshape(-1, 3)
-    hits_p, _ = trace(cuu.ravel(), cvv.ravel(), grid=cuu.shape, shade=False, rays=centre_rays)
-    z_board = hits_p.depth.reshape(cvv.shape)
-    board_front = z_board < region_depth_bg
     uniform_board = same & (key[:-1, :-1] >= 0) & board_front
     out = region_bg.copy()
     out[uniform_board] = val_c[:-1, :-1][uniform_board][:, None]
@@ -325,9 +416,7 @@ def render_board(
         bgc = np.repeat(region_bg[mv, mu], s * s, axis=0)
         samp = np.where(vis[:, None], val_s[:, None], bgc)
         out[mv, mu] = samp.reshape(-1, s * s, 3).mean(axis=1)
-    color[v0 : v1 + 1, u0 : u1 + 1] = out
-    depth[v0 : v1 + 1, u0 : u1 + 1] = np.where(board_front, z_board, region_depth_bg)
-    return color, depth
+    return out
 
 
 def finish_color(color: np.ndarray, params: SynthParams, rng: np.random.Generator) -> np.ndarray:

@@ -48,6 +48,17 @@ class SynthParams:
     # extra frame sets per camera with the board close to it, out to its image's corners and
     # edges (as a user fills each camera's image to calibrate its lens): closeup_poses
     closeups: int = 0
+    # time (docs/synthetic.md, "Time"): the board's speed (m/s) and turn rate (deg/s) during
+    # each frame set, each non-reference camera's clock offset within +-sync_offset_ms, and
+    # the rolling-shutter readout (first to last row, ms) of every colour camera
+    motion: tuple[float, float] = (0.0, 0.0)
+    sync_offset_ms: float = 0.0
+    rolling_shutter_ms: float = 0.0
+
+    @property
+    def timed(self) -> bool:
+        """Whether any of the time settings is on (the render then has a ``time:`` truth)."""
+        return any(x != 0 for x in (*self.motion, self.sync_offset_ms, self.rolling_shutter_ms))
 
 
 def check_params(params: SynthParams) -> None:
@@ -76,6 +87,16 @@ def check_params(params: SynthParams) -> None:
     if not (0 <= mm < 100 and 0 <= deg < 30):
         raise ConfigError(f"--face-error {mm} {deg}: give a shift 0 <= mm < 100 and a turn "
                           "0 <= deg < 30")
+    speed_mps, rate_dps = params.motion
+    if not (0 <= speed_mps <= 3 and 0 <= rate_dps <= 360):
+        raise ConfigError(f"--motion {speed_mps} {rate_dps}: give a board speed 0-3 m/s and a "
+                          "turn rate 0-360 deg/s")
+    if not (0 <= params.sync_offset_ms <= 100):
+        raise ConfigError(f"--sync-offset-ms {params.sync_offset_ms}: give a largest camera "
+                          "clock offset of 0-100 ms")
+    if not (0 <= params.rolling_shutter_ms <= 100):
+        raise ConfigError(f"--rolling-shutter-ms {params.rolling_shutter_ms}: give a colour "
+                          "readout time (first to last row) of 0-100 ms")
     for name, mm, deg in params.bump:
         if not (mm >= 0 and 0 <= deg < 90):
             raise ConfigError(f"--bump {name} {mm} {deg}: give a shift >= 0 mm and a turn "

@@ -21,8 +21,9 @@ Pure numpy rendering; cv2 only filters images. Written by
 This module writes a dataset folder (:func:`synthesize`, :func:`synthesize_cached`) and
 re-exports the parts: :mod:`.params` (the settings, the rig's types), :mod:`.layouts` (the
 named rigs), :mod:`.imperfections` (lens, listed intrinsics, knocks, the printed board),
-:mod:`.motion` (board poses), :mod:`.images` (one camera's colour and depth) and
-:mod:`.ground_truth` (``ground_truth.yaml``).
+:mod:`.motion` (board poses), :mod:`.timing` (the board's motion during a frame set, the
+cameras' clock offsets and rolling shutters), :mod:`.images` (one camera's colour and depth)
+and :mod:`.ground_truth` (``ground_truth.yaml``).
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ from .images import (
     finish_depth,
     render_background,
     render_board,
+    render_board_moving,
 )
 from .imperfections import BoardPrint, board_print, bump_transform, face_perturbation
 from .layouts import LAYOUTS, make_rig
@@ -64,6 +66,7 @@ from .motion import (
     sample_board_poses,
 )
 from .params import SynthCamera, SynthParams, SynthRig, check_params
+from .timing import SynthTiming, board_pose_at, draw_timing
 
 __all__ = [
     "CLOSEUP_TARGETS",
@@ -93,6 +96,7 @@ __all__ = [
     "marker_visibility",
     "render_background",
     "render_board",
+    "render_board_moving",
     "render_key",
     "sample_board_poses",
     "synthesize",
@@ -114,17 +118,35 @@ def _render_frame(job: tuple[int, np.ndarray]) -> None:
     rig: SynthRig = _WORKER["rig"]
     params: SynthParams = _WORKER["params"]
     writer: FolderWriter = _WORKER["writer"]
+    timing: SynthTiming | None = _WORKER["timing"]
     frame = f"{index:06d}"
     for ci, cam in enumerate(rig.cameras):
         rng = np.random.default_rng([_WORKER["seed"], index, ci])
         if params.drop_rate > 0 and rng.random() < params.drop_rate:
             continue
-        T_cam_board = invert_transform(cam.T_world_cam) @ T_world_board
-        color, depth = render_board(
-            _WORKER["model"], cam, _WORKER["backgrounds"][ci], T_cam_board, params.supersample
-        )
+        T_cam_world = invert_transform(cam.T_world_cam)
+        T_cam_board = T_cam_world @ T_world_board
+        if timing is None or not timing.moving(index):  # a still board: one pose for all
+            color, depth = render_board(_WORKER["model"], cam, _WORKER["backgrounds"][ci],
+                                        T_cam_board, params.supersample)
+        else:
+            color, depth = render_board_moving(
+                _WORKER["model"], cam, _WORKER["backgrounds"][ci],
+                _pose_at(rig, timing, index, T_cam_world, T_world_board),
+                timing.offset_s[ci], timing.readout_s[ci], params.supersample)
         writer.write(cam.name, "color", frame, finish_color(color, params, rng))
         writer.write(cam.name, "depth", frame, finish_depth(depth, cam, params, rng))
+
+
+def _pose_at(rig: SynthRig, timing: SynthTiming, index: int, T_cam_world: np.ndarray,
+             T_world_board: np.ndarray):
+    """``tau -> T_cam_board`` of frame set ``index``: the reference-frame convention of
+    :mod:`.timing`, ``T_ref_board(t_f + tau)``, seen from the camera."""
+    T_world_ref = rig.cameras[rig.reference_index].T_world_cam
+    T_ref_board = invert_transform(T_world_ref) @ T_world_board
+    T_cam_ref = T_cam_world @ T_world_ref
+    v, w = timing.v_mps[index], timing.w_radps[index]
+    return lambda tau_s: T_cam_ref @ board_pose_at(T_ref_board, v, w, tau_s)
 
 
 @dataclass(frozen=True)
@@ -165,6 +187,7 @@ def synthesize(
     closeups = closeup_poses(rig, board, params.closeups,
                              np.random.default_rng([seed, CLOSEUP_STREAM]))
     poses += [T for _, T in closeups]  # after the regular frames, which stay as without them
+    timing = draw_timing(rig, len(poses), seed, params) if params.timed else None
     with staged_folder(out) as tmp:
         writer = FolderWriter(
             tmp, Rig({c.name: c.rig_intrinsics for c in rig.cameras}, rig.reference)
@@ -185,6 +208,7 @@ def synthesize(
             "board": board,
             "printed": printed,
             "backgrounds": backgrounds,
+            "timing": timing,
         }
         jobs = list(enumerate(poses))
         tick = start(progress, "rendering frame sets", len(jobs))
@@ -198,7 +222,7 @@ def synthesize(
                 for _ in ex.map(_render_frame, jobs, chunksize=1):
                     tick(1)
         write_ground_truth(tmp / "ground_truth.yaml", rig, poses, layout, seed, board, printed,
-                           params, closeups, n_frames)
+                           params, closeups, n_frames, timing)
     return SynthDataset(out, rig, poses)
 
 
