@@ -285,3 +285,80 @@ def test_time_params_are_validated():
     with pytest.raises(ConfigError, match="--rolling-shutter-ms"):
         make_rig(LAYOUT, 0, SynthParams(rolling_shutter_ms=-1.0))
     assert replace(SynthParams(), sync_offset_ms=1.0).timed and not SynthParams().timed
+
+
+# timestamps.csv of a timed render: tiny renders, the board still (offsets only: one global
+# render per image), many frame sets so the offsets' estimate has a few samples per camera
+STAMP_RESOLUTION, STAMP_FRAMES, STAMP_JITTER_MS = (424, 240), 8, 2.0
+
+
+def _stamped(out, frames=STAMP_FRAMES, **params):
+    synthesize(out, LAYOUT, frames, SEED, thesis_board(),
+               SynthParams(resolution=STAMP_RESOLUTION, supersample=1, **params), workers=1)
+    return FolderDataset(out), load_ground_truth(out)
+
+
+def test_a_timed_render_stamps_each_colour_frame(tmp_path):
+    """``t_ms = f * 1000/30 + offset_c + jitter`` per camera and frame set (close-ups continue
+    the count, dropped frames have no row); the stamps' mean difference to the reference
+    camera's recovers the true offsets; the jitter is a stream of its own (another sigma
+    changes no image and no truth, only the stamps)."""
+    kw = dict(sync_offset_ms=16.0, drop_rate=0.15, closeups=1)
+    ds, gt = _stamped(tmp_path / "a", timestamp_jitter_ms=STAMP_JITTER_MS, **kw)
+    period_ms = 1000.0 / 30.0
+    residuals, dropped = [], 0
+    for camera in ds.cameras:
+        stamps = ds.timestamps_ms(camera)
+        colour = [f for f in ds.frames if ds.color_path(camera, f) is not None]
+        assert stamps is not None and sorted(stamps) == colour  # a row per colour frame
+        dropped += len(ds.frames) - len(colour)
+        rows = (tmp_path / "a" / camera / "timestamps.csv").read_text().splitlines()
+        assert rows[0] == "frame,t_ms" and len(rows) == len(colour) + 1
+        for frame, t_ms in stamps.items():
+            residuals.append(t_ms - (int(frame) * period_ms + gt.offset_ms[camera]))
+    assert len(ds.frames) == STAMP_FRAMES + len(ds.cameras) and dropped > 0
+    residuals = np.array(residuals)
+    assert np.max(np.abs(residuals)) < 5 * STAMP_JITTER_MS
+    assert 0.5 * STAMP_JITTER_MS < np.std(residuals) < 1.5 * STAMP_JITTER_MS  # jitter applied
+    ref = ds.timestamps_ms(gt.reference)
+    for camera in ds.cameras:
+        stamps = ds.timestamps_ms(camera)
+        common = sorted(set(stamps) & set(ref))
+        mean = np.mean([stamps[f] - ref[f] for f in common])
+        # the mean of n differences of two stamps has sigma sqrt(2) jitter / sqrt(n): 2.8 of it
+        assert abs(mean - gt.offset_ms[camera]) < 4 * STAMP_JITTER_MS / np.sqrt(len(common)), (
+            camera, mean, gt.offset_ms[camera])
+    assert sum(abs(v) > 4.0 for v in gt.offset_ms.values()) >= 2  # offsets worth recovering
+    raw = yaml.safe_load((tmp_path / "a" / "ground_truth.yaml").read_text())
+    assert raw["params"]["timestamp_jitter_ms"] == STAMP_JITTER_MS
+
+    ds_b, gt_b = _stamped(tmp_path / "b", timestamp_jitter_ms=0.0, **kw)
+    for f in sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*.png")):
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
+    assert gt_b.offset_ms == gt.offset_ms
+    for camera in ds.cameras:  # without jitter the stamps are the truth
+        stamps = ds_b.timestamps_ms(camera)
+        assert sorted(stamps) == sorted(ds.timestamps_ms(camera))
+        for frame, t_ms in stamps.items():
+            assert t_ms == pytest.approx(int(frame) * period_ms + gt.offset_ms[camera],
+                                         abs=1e-9)
+
+
+def test_a_still_render_has_no_timestamps(tmp_path):
+    ds, _ = _stamped(tmp_path / "s", frames=1, timestamp_jitter_ms=STAMP_JITTER_MS)
+    assert not list((tmp_path / "s").rglob("timestamps.csv"))
+    assert all(ds.timestamps_ms(c) is None for c in ds.cameras)
+    raw = yaml.safe_load((tmp_path / "s" / "ground_truth.yaml").read_text())
+    assert "timestamp_jitter_ms" not in raw["params"]  # the file as before
+
+
+@pytest.mark.parametrize("value", ["-0.1", "60", "nan"])
+def test_the_timestamp_jitter_option_is_checked(tmp_path, value):
+    result = CliRunner().invoke(app, ["synth", str(tmp_path / "s"), "--frames", "1",
+                                      "--sync-offset-ms", "5", "--timestamp-jitter-ms", value])
+    assert result.exit_code != 0
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--timestamp-jitter-ms" in lines[0], result.output
+    assert not (tmp_path / "s").exists()
+    with pytest.raises(ConfigError, match="--timestamp-jitter-ms"):
+        make_rig(LAYOUT, 0, SynthParams(timestamp_jitter_ms=float(value)))

@@ -122,6 +122,13 @@ ROLLING_SHUTTER_OPTION = typer.Option(
     "to bottom, each rendered at its own time (e.g. 25); depth stays a global shutter.",
     rich_help_panel=IMPERFECTIONS_PANEL,
 )
+TIMESTAMP_JITTER_OPTION = typer.Option(
+    metavar="MS",
+    help="with a time option on, each camera's timestamps.csv stamps its frames at "
+    "t_f + offset + a Gaussian error of sigma MS ms (frame sets 1000/30 ms apart); "
+    "ground_truth.yaml keeps the exact offsets.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
 BOARD_VOLUME_OPTION = typer.Option(
     metavar="S",
     help="move the board through S times the layout's volume (about its centre): "
@@ -186,6 +193,7 @@ def synth(
     motion: Annotated[tuple[float, float], MOTION_OPTION] = (0.0, 0.0),
     sync_offset_ms: Annotated[float, SYNC_OFFSET_OPTION] = 0.0,
     rolling_shutter_ms: Annotated[float, ROLLING_SHUTTER_OPTION] = 0.0,
+    timestamp_jitter_ms: Annotated[float, TIMESTAMP_JITTER_OPTION] = 0.5,
 ) -> None:
     """Render a synthetic RGB-D rig with ground truth (dataset folder + ground_truth.yaml).
 
@@ -218,6 +226,7 @@ def synth(
         motion=motion,
         sync_offset_ms=sync_offset_ms,
         rolling_shutter_ms=rolling_shutter_ms,
+        timestamp_jitter_ms=timestamp_jitter_ms,
     )
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:

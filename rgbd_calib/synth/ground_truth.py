@@ -17,7 +17,8 @@ from .imperfections import BoardPrint
 from .params import SynthParams, SynthRig
 from .timing import SynthTiming, board_pose_at
 
-TIME_PARAMS = ("motion", "sync_offset_ms", "rolling_shutter_ms")  # listed only when on
+# listed only when a time setting is on
+TIME_PARAMS = ("motion", "sync_offset_ms", "rolling_shutter_ms", "timestamp_jitter_ms")
 
 
 def write_ground_truth(

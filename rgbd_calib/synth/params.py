@@ -54,6 +54,9 @@ class SynthParams:
     motion: tuple[float, float] = (0.0, 0.0)
     sync_offset_ms: float = 0.0
     rolling_shutter_ms: float = 0.0
+    # a timed render's timestamps.csv: each stamp's error (Gaussian sigma, ms); the truth in
+    # ground_truth.yaml stays exact
+    timestamp_jitter_ms: float = 0.5
 
     @property
     def timed(self) -> bool:
@@ -97,6 +100,9 @@ def check_params(params: SynthParams) -> None:
     if not (0 <= params.rolling_shutter_ms <= 100):
         raise ConfigError(f"--rolling-shutter-ms {params.rolling_shutter_ms}: give a colour "
                           "readout time (first to last row) of 0-100 ms")
+    if not (0 <= params.timestamp_jitter_ms <= 50):
+        raise ConfigError(f"--timestamp-jitter-ms {params.timestamp_jitter_ms}: give a "
+                          "timestamp error (sigma) of 0-50 ms")
     for name, mm, deg in params.bump:
         if not (mm >= 0 and 0 <= deg < 90):
             raise ConfigError(f"--bump {name} {mm} {deg}: give a shift >= 0 mm and a turn "

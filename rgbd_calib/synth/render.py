@@ -66,7 +66,7 @@ from .motion import (
     sample_board_poses,
 )
 from .params import SynthCamera, SynthParams, SynthRig, check_params
-from .timing import SynthTiming, board_pose_at, draw_timing
+from .timing import SynthTiming, board_pose_at, draw_timestamps_ms, draw_timing
 
 __all__ = [
     "CLOSEUP_TARGETS",
@@ -113,13 +113,16 @@ def _init_worker(state: dict) -> None:
     _WORKER["model"] = _BoardModel(state["board"], state["printed"])
 
 
-def _render_frame(job: tuple[int, np.ndarray]) -> None:
+def _render_frame(job: tuple[int, np.ndarray]) -> list[int]:
+    """Render and write frame set ``job = (index, T_world_board)``; returns the indices (rig
+    order) of the cameras that have it (the others dropped it: ``drop_rate``)."""
     index, T_world_board = job
     rig: SynthRig = _WORKER["rig"]
     params: SynthParams = _WORKER["params"]
     writer: FolderWriter = _WORKER["writer"]
     timing: SynthTiming | None = _WORKER["timing"]
     frame = f"{index:06d}"
+    written = []
     for ci, cam in enumerate(rig.cameras):
         rng = np.random.default_rng([_WORKER["seed"], index, ci])
         if params.drop_rate > 0 and rng.random() < params.drop_rate:
@@ -136,6 +139,21 @@ def _render_frame(job: tuple[int, np.ndarray]) -> None:
                 timing.offset_s[ci], timing.readout_s[ci], params.supersample)
         writer.write(cam.name, "color", frame, finish_color(color, params, rng))
         writer.write(cam.name, "depth", frame, finish_depth(depth, cam, params, rng))
+        written.append(ci)
+    return written
+
+
+def _write_timestamps(writer: FolderWriter, rig: SynthRig, written: list[list[int]],
+                      stamps_ms: np.ndarray) -> None:
+    """Each camera's ``timestamps.csv``: a row per frame set it has (``written``), its time
+    from ``stamps_ms`` (``(F, C)``, :func:`.timing.draw_timestamps_ms`). Written once the
+    images are, inside the staged folder, so the render is published with them or not at
+    all."""
+    for ci, cam in enumerate(rig.cameras):
+        times = {f"{f:06d}": float(stamps_ms[f, ci]) for f, cams in enumerate(written)
+                 if ci in cams}
+        if times:
+            writer.write_timestamps(cam.name, times)
 
 
 def _pose_at(rig: SynthRig, timing: SynthTiming, index: int, T_cam_world: np.ndarray,
@@ -172,7 +190,8 @@ def synthesize(
     interrupted run never leaves a half-written dataset under ``out``. ``rig.yaml`` holds
     what each camera's :attr:`SynthCamera.rig_intrinsics` says, the images are rendered with
     the truth; ``board`` is the board file a user calibrates with, the physical board is its
-    :func:`board_print`."""
+    :func:`board_print`. A timed render (``params.timed``) also writes each camera's
+    ``timestamps.csv`` (:func:`.timing.draw_timestamps_ms`)."""
     out = Path(out)
     if n_frames < 1:
         raise ConfigError("--frames must be at least 1")
@@ -212,15 +231,19 @@ def synthesize(
         }
         jobs = list(enumerate(poses))
         tick = start(progress, "rendering frame sets", len(jobs))
+        written: list[list[int]] = []  # per frame set: the cameras that have it
         if workers <= 1:
             _init_worker(state)
             for job in jobs:
-                _render_frame(job)
+                written.append(_render_frame(job))
                 tick(1)
         else:
             with executor(workers, initializer=_init_worker, initargs=(state,)) as ex:
-                for _ in ex.map(_render_frame, jobs, chunksize=1):
+                for cams in ex.map(_render_frame, jobs, chunksize=1):
+                    written.append(cams)
                     tick(1)
+        if timing is not None:
+            _write_timestamps(writer, rig, written, draw_timestamps_ms(timing, seed, params))
         write_ground_truth(tmp / "ground_truth.yaml", rig, poses, layout, seed, board, printed,
                            params, closeups, n_frames, timing)
     return SynthDataset(out, rig, poses)

@@ -14,6 +14,12 @@ rolling-shutter colour image exposes pixel row ``y`` (0 = top) at
 so the middle of the image is at ``t_f + offset_c``; the (global-shutter) depth image is exposed
 as a whole at ``t_f + offset_c``.
 
+A timed render also writes each camera's ``timestamps.csv`` (docs/formats.md), as a recording
+has: camera ``c``'s colour frame of set ``f`` is stamped ``t_f + offset_c + jitter`` ms, the
+frame sets taken as consecutive captures at a nominal 30 fps (``t_f = f * 1000 / 30`` ms,
+close-up sets continuing the count) and the jitter Gaussian with sigma
+``params.timestamp_jitter_ms`` (:func:`draw_timestamps_ms`): the stamps' error, not the truth.
+
 Each draw comes from a seeded stream of its own, so switching time on changes no other draw of
 the render (rig, board poses, noise)."""
 
@@ -28,6 +34,8 @@ from .params import SynthParams, SynthRig
 
 MOTION_STREAM = 0x7157  # rng stream of the board twists (seed, stream)
 SYNC_STREAM = 0x5C0C  # rng stream of the cameras' clock offsets (seed, stream)
+STAMP_STREAM = 0x57A4  # rng stream of the timestamps' jitter (seed, stream)
+FRAME_PERIOD_MS = 1000.0 / 30.0  # frame set f is captured at t_f = f * FRAME_PERIOD_MS
 
 
 @dataclass(frozen=True)
@@ -67,6 +75,18 @@ def draw_timing(rig: SynthRig, n_sets: int, seed: int, params: SynthParams) -> S
         units[:, 0] * speed_mps,
         units[:, 1] * np.radians(rate_dps),
     )
+
+
+def draw_timestamps_ms(timing: SynthTiming, seed: int, params: SynthParams) -> np.ndarray:
+    """``(F, C)``: the ``timestamps.csv`` time (ms) of every camera's (rig order) colour frame
+    of every frame set, ``f * FRAME_PERIOD_MS + offset_c + jitter``; the jitter is Gaussian
+    with sigma ``params.timestamp_jitter_ms``, one draw per set and camera in that order from
+    stream :data:`STAMP_STREAM` (drawn for dropped frames too, so drops change no stamp)."""
+    n_sets = len(timing.v_mps)
+    t_f = np.arange(n_sets) * FRAME_PERIOD_MS
+    offsets_ms = 1000.0 * np.asarray(timing.offset_s)
+    unit = np.random.default_rng([seed, STAMP_STREAM]).normal(size=(n_sets, len(offsets_ms)))
+    return t_f[:, None] + offsets_ms[None, :] + params.timestamp_jitter_ms * unit
 
 
 def board_pose_at(T_a_board: np.ndarray, v_mps: np.ndarray, w_radps: np.ndarray,
