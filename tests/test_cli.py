@@ -147,3 +147,18 @@ def test_synth_and_board_commands(tmp_path):
     code, text = run("board", CONFIGS / "board_thesis.yaml", "--out", tmp_path / "b",
                      "--dpi", "50")
     assert code == 0 and (tmp_path / "b" / "board.pdf").exists()
+
+
+def test_python_m_runs_a_command_with_worker_processes(tmp_path):
+    """``python -m rgbd_calib.cli`` (tools/bench_caliscope.py calls it so) runs a command whose
+    pool workers re-import the main module: the module must not run the app on re-import."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "rig"
+    run = subprocess.run([sys.executable, "-m", "rgbd_calib.cli", "synth", str(out), "--layout",
+                          "thesis-line", "--frames", "1", "--seed", "3", "--resolution",
+                          "640x360", "--workers", "2"], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert load_ground_truth(out).T_ref_cam and (out / "rig.yaml").exists()

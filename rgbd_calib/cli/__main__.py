@@ -2,4 +2,5 @@
 
 from .commands import app
 
-app()
+if __name__ == "__main__":  # pool workers re-import the main module: run only in the parent
+    app()
