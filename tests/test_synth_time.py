@@ -22,6 +22,7 @@ from rgbd_calib.core.errors import ConfigError
 from rgbd_calib.core.geometry import (
     invert_transform,
     make_transform,
+    pose_after_twist,
     rotvec_to_matrix,
     transform_points,
 )
@@ -39,7 +40,7 @@ from rgbd_calib.synth.render import (
     render_board_moving,
     synthesize,
 )
-from rgbd_calib.synth.timing import board_pose_at, draw_timing
+from rgbd_calib.synth.timing import draw_timing
 
 LAYOUT, SEED, FRAMES, RESOLUTION = "thesis-line", 5, 2, (640, 360)
 # the board waved fast so that the rolling shutter's shear is several pixels wide
@@ -229,7 +230,7 @@ def test_a_board_that_leaves_the_view_during_the_readout():
     T0 = _facing(0.5)
     v_mps = np.array([0.0, 0.0, -40.0])  # in the camera frame: through the camera
     readout_s = 0.040  # rows -20 ms .. +20 ms: z from 1.3 m down to -0.3 m
-    pose_at = lambda tau: board_pose_at(T0, v_mps, np.zeros(3), tau)  # noqa: E731
+    pose_at = lambda tau: pose_after_twist(T0, v_mps, np.zeros(3), tau)  # noqa: E731
     color, depth = render_board_moving(model, cam, bg, pose_at, 0.0, readout_s)
     x0, x1, y0, y1 = model.board.panel
     panel = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1)

@@ -76,6 +76,20 @@ def rotvec_to_matrix(rotvec: ArrayLike) -> Array:
     return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
 
 
+def pose_after_twist(T_a_b: ArrayLike, v_mps: ArrayLike, w_radps: ArrayLike,
+                     tau_s: float) -> Array:
+    """``T_a_b`` (4x4, metres) ``tau_s`` seconds later under the constant twist ``v_mps``,
+    ``w_radps`` (both in frame ``a``; rotation about ``b``'s origin):
+    ``[Exp_SO3(w tau) R | p + v tau]`` (docs/conventions.md, "Time"). With a zero ``tau_s``
+    or twist, ``T_a_b`` itself."""
+    v, w = np.asarray(v_mps, float), np.asarray(w_radps, float)
+    if tau_s == 0 or (not np.any(v) and not np.any(w)):
+        return T_a_b
+    T_a_b = np.asarray(T_a_b, dtype=float)
+    R = rotvec_to_matrix(w * tau_s) @ T_a_b[:3, :3]
+    return make_transform(R, T_a_b[:3, 3] + v * tau_s)
+
+
 def matrix_to_rotvec(R: ArrayLike) -> Array:
     """Inverse of :func:`rotvec_to_matrix`, stable near 0 and pi (via the quaternion)."""
     q = matrix_to_quaternion_xyzw(R)

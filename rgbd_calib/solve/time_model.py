@@ -84,18 +84,6 @@ def _so3_exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]
             eye + b[:, None, None] * S + c[:, None, None] * S2)
 
 
-def board_at(T_ref_board: np.ndarray, twist: np.ndarray, tau_s: float) -> np.ndarray:
-    """The board pose ``T_ref_board(t_f + tau)`` (4x4, m) of the shared convention: the pose at
-    ``t_f`` moved by ``twist = [w (rad/s), v (m/s)]`` (reference frame, rotation about the board
-    origin) for ``tau_s`` seconds: ``[Exp(w tau) R_f | p_f + v tau]``."""
-    twist = np.asarray(twist, dtype=float)
-    E, _ = _so3_exp_and_left_jacobian((twist[:3] * tau_s)[None])
-    T = np.eye(4)
-    T[:3, :3] = E[0] @ T_ref_board[:3, :3]
-    T[:3, 3] = T_ref_board[:3, 3] + twist[3:] * tau_s
-    return T
-
-
 def row_fraction(v_px: np.ndarray, height_px: int) -> np.ndarray:
     """``s = (v - (H - 1) / 2) / (H - 1)``: a row's exposure time relative to the image middle,
     in units of the readout (first to last row); -0.5 on the top row, +0.5 on the bottom one."""
@@ -109,7 +97,8 @@ def project_timed(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, twist: np.ndar
 
     Point i is seen at ``tau_i = 1e-3 (offset_ms + readout_ms s_i)`` (``time_ms = [offset_ms,
     readout_ms]``, ``s_row`` the row fractions, :func:`row_fraction`) after ``t_f``, on the
-    board at ``T_ref_board(t_f + tau_i)`` (:func:`board_at`, ``twist = [w, v]``):
+    board at ``T_ref_board(t_f + tau_i)`` (``twist = [w, v]``,
+    :func:`rgbd_calib.core.geometry.pose_after_twist`):
     ``P_ref = E q + p_f + v tau`` with ``E = Exp(w tau)``, ``q = R_f P_b``; ``p_cam =
     R_rc^T (P_ref - t_rc)``. With ``jacobians``, d(u,v)/d of (N,2,k): camera (right
     perturbation, :func:`~rgbd_calib.core.camera.pinhole_pose_jacobian`), board at ``t_f``

@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from ..core.geometry import invert_transform
+from ..core.geometry import invert_transform, pose_after_twist
 from ..core.yamlio import write_yaml
 from ..model.board import Board
 from .imperfections import BoardPrint
 from .params import SynthParams, SynthRig
-from .timing import SynthTiming, board_pose_at
+from .timing import SynthTiming, row_time_s
 
 # listed only when a time setting is on
 TIME_PARAMS = ("motion", "sync_offset_ms", "rolling_shutter_ms", "timestamp_jitter_ms")
@@ -125,14 +125,12 @@ class GroundTruth:
         """The board pose (4x4, metres, reference frame) ``tau_s`` seconds after frame set
         ``frame``'s nominal time: ``[Exp_SO3(w tau) R | p + v tau]``."""
         zero = np.zeros(3)
-        return board_pose_at(self.T_ref_board[frame], self.board_v_mps.get(frame, zero),
+        return pose_after_twist(self.T_ref_board[frame], self.board_v_mps.get(frame, zero),
                              self.board_w_radps.get(frame, zero), tau_s)
 
     def exposure_tau_s(self, camera: str, v_px: float | np.ndarray, height: int):
         """When ``camera``'s colour pixel row ``v_px`` (0 = top) of an image ``height`` rows
         high is exposed, seconds after the frame set's nominal time."""
-        from .timing import row_time_s
-
         return row_time_s(v_px, height, self.offset_ms.get(camera, 0.0) / 1000.0,
                           self.readout_ms.get(camera, 0.0) / 1000.0)
 

@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from ..core.errors import ConfigError
-from ..core.geometry import invert_transform
+from ..core.geometry import invert_transform, pose_after_twist
 from ..core.parallel import executor
 from ..core.progress import Progress, start
 from ..model.board import Board
@@ -66,7 +66,7 @@ from .motion import (
     sample_board_poses,
 )
 from .params import SynthCamera, SynthParams, SynthRig, check_params
-from .timing import SynthTiming, board_pose_at, draw_timestamps_ms, draw_timing
+from .timing import SynthTiming, draw_timestamps_ms, draw_timing
 
 __all__ = [
     "CLOSEUP_TARGETS",
@@ -164,7 +164,7 @@ def _pose_at(rig: SynthRig, timing: SynthTiming, index: int, T_cam_world: np.nda
     T_ref_board = invert_transform(T_world_ref) @ T_world_board
     T_cam_ref = T_cam_world @ T_world_ref
     v, w = timing.v_mps[index], timing.w_radps[index]
-    return lambda tau_s: T_cam_ref @ board_pose_at(T_ref_board, v, w, tau_s)
+    return lambda tau_s: T_cam_ref @ pose_after_twist(T_ref_board, v, w, tau_s)
 
 
 @dataclass(frozen=True)

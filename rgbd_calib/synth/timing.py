@@ -29,7 +29,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.geometry import make_transform, rotvec_to_matrix
 from .params import SynthParams, SynthRig
 
 MOTION_STREAM = 0x7157  # rng stream of the board twists (seed, stream)
@@ -87,18 +86,6 @@ def draw_timestamps_ms(timing: SynthTiming, seed: int, params: SynthParams) -> n
     offsets_ms = 1000.0 * np.asarray(timing.offset_s)
     unit = np.random.default_rng([seed, STAMP_STREAM]).normal(size=(n_sets, len(offsets_ms)))
     return t_f[:, None] + offsets_ms[None, :] + params.timestamp_jitter_ms * unit
-
-
-def board_pose_at(T_a_board: np.ndarray, v_mps: np.ndarray, w_radps: np.ndarray,
-                  tau_s: float) -> np.ndarray:
-    """The board pose ``tau_s`` seconds after ``T_a_board`` (4x4, metres) under the constant
-    twist ``v_mps``, ``w_radps`` (both in frame ``a``; rotation about the board origin):
-    ``[Exp_SO3(w tau) R | p + v tau]``. With a zero ``tau_s`` or twist, ``T_a_board`` itself."""
-    v, w = np.asarray(v_mps, float), np.asarray(w_radps, float)
-    if tau_s == 0 or (not np.any(v) and not np.any(w)):
-        return T_a_board
-    R = rotvec_to_matrix(w * tau_s) @ T_a_board[:3, :3]
-    return make_transform(R, T_a_board[:3, 3] + v * tau_s)
 
 
 def row_time_s(v_px: float | np.ndarray, height: int, offset_s: float, readout_s: float):
