@@ -26,6 +26,7 @@ from ..core.errors import ConfigError, DatasetError
 from ..model.dataset import FolderWriter
 from ..model.rig import CAMERA_NAME, Rig
 from .align import distortion_from_realsense
+from .sync import one_clock
 
 DEFAULT_MODE = (1280, 720, 30)  # width, height, fps: a D435i depth and colour mode
 HW_SYNC_MASTER, HW_SYNC_SLAVE = 1, 2  # rs.option.inter_cam_sync_mode values (D400)
@@ -342,8 +343,7 @@ def _write_set(writer: FolderWriter, rig: Rig, frames: dict[str, CapturedFrame])
             )
     stem = f"{writer.sets_written:06d}"
     # each camera's timestamps.csv gets the set's row, when the cameras' clocks are one
-    shared = len(frames) <= 1 or all(f.timestamp_domain != "hardware_clock"
-                                     for f in frames.values())
+    shared = one_clock([f.timestamp_domain for f in frames.values()])
     writer.write_set(
         stem,
         {n: f.color for n, f in frames.items()},

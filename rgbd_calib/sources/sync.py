@@ -108,11 +108,18 @@ def match_cameras(
     return reference.name, tolerance_ms, sets
 
 
+def one_clock(domains: list[str]) -> bool:
+    """Whether frame times in these timestamp domains (one per camera) are on one clock: a
+    single camera, or none on its camera's own ``hardware_clock`` (librealsense's
+    ``global_time`` and ``system_time`` are the host's clock; ROS header stamps the ROS
+    clock)."""
+    return len(domains) <= 1 or all(d != "hardware_clock" for d in domains)
+
+
 def shared_clock(cams: list[StagedCamera]) -> bool:
-    """Whether the cameras' frame times are on one clock as far as the sources tell: a
-    single camera, or no RealSense recording on its camera's own hardware clock (global and
-    system time are the host's clock; ROS header stamps the ROS clock)."""
-    return len(cams) <= 1 or all(c.timestamp_domain != "hardware_clock" for c in cams)
+    """Whether the cameras' frame times are on one clock as far as the sources tell
+    (:func:`one_clock`)."""
+    return one_clock([c.timestamp_domain for c in cams])
 
 
 def clock_notes(cams: list[StagedCamera]) -> list[str]:
