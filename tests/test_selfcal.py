@@ -46,25 +46,46 @@ def test_compare_uses_common_markers_and_caps_outliers():
 
 
 def test_candidate_groups_follow_the_config():
-    auto = BundleConfig(board="auto", intrinsics="auto")
+    auto = BundleConfig(board="auto", intrinsics="auto", time="fixed")
     groups = selfcal.candidate_groups(auto, double_sided=True, model_error=True)
-    assert groups[0] == [(True, ())]
-    assert groups[1][0] == (False, ("fx", "fy", "cx", "cy"))
+    assert groups[0] == [(True, (), False)]
+    assert groups[1][0] == (False, ("fx", "fy", "cx", "cy"), False)
     assert groups[1][1][1] == tuple(auto.intrinsics_params)
     # no model error: the intrinsics are not tried; one-sided board: no back sheet
     assert selfcal.candidate_groups(auto, double_sided=False, model_error=False) == []
-    fixed = BundleConfig(board="fixed", intrinsics="fixed")
+    fixed = BundleConfig(board="fixed", intrinsics="fixed", time="fixed")
     assert selfcal.candidate_groups(fixed, True, True) == []
     assert not selfcal.is_auto(fixed) and selfcal.is_auto(auto)
     # explicit refine is part of every level
     base = selfcal.base_level(BundleConfig(board="refine", intrinsics="auto"))
-    assert base.board and base.intrinsics_params == ()
-    level = selfcal.extend(base, (False, ("fx", "fy")))
+    assert base.board and base.intrinsics_params == () and not base.time
+    level = selfcal.extend(base, (False, ("fx", "fy"), False))
     assert level.name == "board + fx fy"
     cfg = level.bundle_config(BundleConfig())
-    assert cfg.board == "refine" and cfg.intrinsics == "refine"
+    assert cfg.board == "refine" and cfg.intrinsics == "refine" and cfg.time == "fixed"
     assert cfg.intrinsics_params == ["fx", "fy"] and not level.distortion
-    assert selfcal.extend(level, (False, ("fx", "k1"))).distortion
+    assert selfcal.extend(level, (False, ("fx", "k1"), False)).distortion
+
+
+def test_time_is_an_alternative_to_the_board_and_only_with_a_model_error():
+    """Time and the back sheet compete in one group (neither may absorb the other's error),
+    then each is tried on top of the other; the lens comes after. Without views that disagree
+    (no model error: a still board, synchronised cameras) time is never tried."""
+    auto = BundleConfig()  # board, intrinsics and time all auto
+    groups = selfcal.candidate_groups(auto, double_sided=True, model_error=True)
+    assert groups[0] == [(False, (), True), (True, (), False)]
+    assert groups[1] == [(False, (), True)] and groups[2] == [(True, (), False)]
+    assert all(not step[2] for step in groups[3])  # the lens alternatives
+    assert selfcal.candidate_groups(auto, True, model_error=False) == [[(True, (), False)]]
+    one_sided = selfcal.candidate_groups(auto, double_sided=False, model_error=True)
+    assert one_sided[0] == [(False, (), True)]
+    timed = selfcal.extend(selfcal.base_level(auto), groups[0][0])
+    assert timed.name == "time" and timed.bundle_config(auto).time == "refine"
+    both = selfcal.extend(timed, groups[2][0])
+    assert both.name == "time + board" and both.board and both.time
+    assert selfcal.extend(both, groups[1][0]) == both  # skipped by the ladder: nothing new
+    assert selfcal.time_parameters(cameras=8, views=30) == 2 * 8 - 1 + 6 * 30
+    assert selfcal.base_level(BundleConfig(time="refine")).time
 
 
 def test_better_prefers_cameras_then_bic():

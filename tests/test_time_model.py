@@ -1,4 +1,5 @@
-"""The time model's view factor (rgbd_calib.solve.time_model) on exact synthetic corners.
+"""The time model (rgbd_calib.solve.time_model) on exact synthetic corners: its view factor,
+and the bundle adjustment solving it (``bundle.time: refine``).
 
 No renderer: a few cameras look at a board grid; each frame set's board moves with a twist,
 each camera has a clock offset and a rolling-shutter readout (the shared convention of issue
@@ -13,6 +14,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.config import BundleConfig
 from rgbd_calib.core.geometry import (
     invert_transform,
     look_at,
@@ -20,13 +23,13 @@ from rgbd_calib.core.geometry import (
     rotvec_to_matrix,
     transform_error,
 )
-from rgbd_calib.solve.bundle import MarkerMeasurement
+from rgbd_calib.solve.bundle import BundleProblem, MarkerMeasurement, bundle_adjust
 from rgbd_calib.solve.bundle_factors import project_board, view_factor
 from rgbd_calib.solve.time_model import (
+    HELD_SIGMA,
     TimePrior,
     TwistPrior,
     project_timed,
-    solve_timed,
     time_prior,
     timed_view_factor,
     twist_prior,
@@ -134,10 +137,45 @@ def perturbed(T: np.ndarray, rng: np.random.Generator, rot_rad: float = 0.01,
                               rng.normal(0, trans_m, 3))
 
 
-def solve_scene(scene: Scene, seed: int, pixel_sigma: float, **kwargs):
+@dataclass(frozen=True)
+class Solved:
+    """What a test reads of a timed bundle adjustment (BundleResult and its TimeModel)."""
+
+    T_ref_cam: dict
+    T_ref_board: dict
+    twist: dict
+    offset_ms: dict
+    readout_ms: dict
+    sigma_offset_ms: dict
+    sigma_readout_ms: dict
+    sigma_twist: dict
+    residual_rms_px: float
+
+
+def solve_timed(measurements, cams, init_cam, init_board, *, pixel_sigma: float,
+                time_priors=None, twist_sigma: TwistPrior = TwistPrior(),
+                max_iterations: int = 100) -> Solved:
+    """The bundle adjustment with ``bundle.time: refine``: board and intrinsics held, no
+    robust kernel, marginals at the given corner sigma (as the tests' noise is known)."""
+    config = BundleConfig(time="refine", board="fixed", intrinsics="fixed", robust="none",
+                          estimate_sigma=False, pixel_sigma=pixel_sigma,
+                          max_iterations=max_iterations, relative_error_tol=1e-12,
+                          time_twist_sigma_mps=twist_sigma.sigma_mps,
+                          time_twist_sigma_dps=twist_sigma.sigma_dps)
+    model = CameraIntrinsics(WIDTH, HEIGHT, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    r = bundle_adjust(BundleProblem(measurements, dict.fromkeys(cams, K), "cam0", init_cam,
+                                    init_board, config, intrinsics=dict.fromkeys(cams, model),
+                                    time_priors=time_priors))
+    t = r.time
+    rms = np.array([x[3] for x in r.residuals_px])
+    return Solved(r.T_ref_cam, r.T_ref_board, t.twist, t.offset_ms, t.readout_ms,
+                  t.sigma_offset_ms, t.sigma_readout_ms, t.sigma_twist,
+                  float(np.sqrt(np.mean(rms**2))))
+
+
+def solve_scene(scene: Scene, seed: int, pixel_sigma: float, **kwargs) -> Solved:
     rng = np.random.default_rng(seed + 1000)
-    return solve_timed(scene.measurements, dict.fromkeys(scene.T_ref_cam, K),
-                       dict.fromkeys(scene.T_ref_cam, HEIGHT), "cam0",
+    return solve_timed(scene.measurements, list(scene.T_ref_cam),
                        {c: perturbed(T, rng) for c, T in scene.T_ref_cam.items()},
                        {v: perturbed(T, rng) for v, T in scene.T_ref_board.items()},
                        pixel_sigma=pixel_sigma, **kwargs)
@@ -201,7 +239,7 @@ def test_no_time_projects_as_the_timeless_factor(rng):
     P_b = board_points().reshape(-1, 3)
     T_cam, T_board = values.atPose3(1).matrix(), values.atPose3(2).matrix()
     uv0, J_cam0, J_board0 = project_board(T_cam, T_board, K, P_b)
-    uv, (J_cam, J_board, _, J_time) = project_timed(T_cam, T_board, np.zeros(6),
+    uv, (J_cam, J_board, _, J_time, _) = project_timed(T_cam, T_board, np.zeros(6),
                                                    np.array([12.0, 30.0]), K, P_b,
                                                    rng.uniform(-0.5, 0.5, len(P_b)))
     np.testing.assert_allclose(uv, uv0, atol=1e-12)
@@ -319,11 +357,12 @@ def test_still_board_global_shutter_keeps_the_timeless_solution():
     init_cam = {c: perturbed(T, rng) for c, T in scene.T_ref_cam.items()}
     init_board = {v: perturbed(T, rng) for v, T in scene.T_ref_board.items()}
     cams = list(scene.T_ref_cam)
-    sol = solve_timed(scene.measurements, dict.fromkeys(cams, K), dict.fromkeys(cams, HEIGHT),
-                      "cam0", init_cam, init_board, rolling_shutter=(), pixel_sigma=0.1)
+    held = dict.fromkeys(cams, TimePrior(readout_sigma_ms=HELD_SIGMA))  # global shutters
+    sol = solve_timed(scene.measurements, cams, init_cam, init_board, pixel_sigma=0.1,
+                      time_priors=held)
     prior = TimePrior()
     for c in cams[1:]:
-        assert sol.offset_ms[c] == 0.0 and sol.readout_ms[c] == 0.0
+        assert sol.offset_ms[c] == 0.0 and abs(sol.readout_ms[c]) < 1e-8
         assert abs(sol.sigma_offset_ms[c] / prior.offset_sigma_ms - 1) < 1e-6
     for v in scene.T_ref_board:
         np.testing.assert_allclose(sol.twist[v], 0.0, atol=0.0)
@@ -364,3 +403,56 @@ def test_prior_factors_hold_the_gauge():
     assert np.allclose(glob.noiseModel().sigmas(), [20.0, 1e-9])
     tw = twist_prior(3, TwistPrior(sigma_mps=2.0, sigma_dps=180.0)).noiseModel().sigmas()
     np.testing.assert_allclose(tw, [np.pi] * 3 + [2.0] * 3)
+
+
+def test_jacobians_with_a_refined_lens_a_moving_face_and_timestamps(rng):
+    """The timed factor with everything else the bundle adjustment may free at once: the
+    intrinsics (raw pixels through k1 k2 p1 p2), a back sheet whose pose moves the back-face
+    markers, and a view's timestamp offset added to the camera's clock: every block (camera,
+    board, intrinsics, sheet, twist, time) equals central differences; the timestamp offset
+    acts as the same shift of the camera's offset."""
+    values = _factor_values(rng)
+    base = CameraIntrinsics(WIDTH, HEIGHT, 500.0, 505.0, 318.0, 181.0, (0.05, -0.02, 1e-3, -5e-4))
+    names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+    values.insert(5, np.array([502.0, 503.0, 320.0, 180.0, 0.04, -0.01, 5e-4, -2e-4]))
+    values.insert(6, gtsam.Pose3(make_transform(rotvec_to_matrix([0, 0, 0.01]),
+                                                [0.002, -0.001, 0.0005])))
+    obj = board_points()
+    back = np.arange(12) >= 6  # the last six markers on the back sheet
+    obj[back, :, 2] = -0.006
+    px = project_timed(values.atPose3(1).matrix(), values.atPose3(2).matrix(),
+                       values.atVector(3), values.atVector(4), base, obj.reshape(-1, 3),
+                       np.zeros(48), False)[0].reshape(-1, 4, 2) + rng.normal(0, 2.0, (12, 4, 2))
+    factor = timed_view_factor(1, 2, 3, 4, None, HEIGHT, obj, px, 0.5, "none", 3.0,
+                               intr=(5, base), names=names, moving=[(6, back, None)],
+                               known_ms=-4.0)
+    A, _ = factor.linearize(values).jacobian()
+    col = 0
+    for key, dim, pose in ((1, 6, True), (2, 6, True), (5, 8, False), (6, 6, True),
+                           (3, 6, False), (4, 2, False)):
+        numeric = np.empty((A.shape[0], dim))
+        for j in range(dim):
+            h = 1e-6 * (1.0 if pose or key != 5 else max(abs(values.atVector(5)[j]), 1e-3))
+            plus, minus = gtsam.Values(values), gtsam.Values(values)
+            delta = np.zeros(dim)
+            delta[j] = h
+            if pose:
+                plus.update(key, values.atPose3(key).retract(delta))
+                minus.update(key, values.atPose3(key).retract(-delta))
+            else:
+                plus.update(key, values.atVector(key) + delta)
+                minus.update(key, values.atVector(key) - delta)
+            numeric[:, j] = (factor.unwhitenedError(plus) - factor.unwhitenedError(minus)) / (2 * h)
+        block = A[:, col:col + dim]
+        scale = np.abs(numeric).max()
+        assert scale > 1e-3, f"key {key}: the data do not depend on it"
+        np.testing.assert_allclose(block, numeric, rtol=1e-5, atol=1e-5 * scale,
+                                   err_msg=f"key {key}")
+        col += dim
+    # the timestamp offset is a shift of the camera's clock
+    shifted = gtsam.Values(values)
+    shifted.update(4, values.atVector(4) + [-4.0, 0.0])
+    plain = timed_view_factor(1, 2, 3, 4, None, HEIGHT, obj, px, 0.5, "none", 3.0,
+                              intr=(5, base), names=names, moving=[(6, back, None)])
+    np.testing.assert_allclose(plain.unwhitenedError(shifted), factor.unwhitenedError(values),
+                               atol=1e-12)

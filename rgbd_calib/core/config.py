@@ -479,6 +479,31 @@ class BundleConfig(BaseModel):
         1.0, gt=0, description="multi-face target: prior sigma of each non-reference face's "
         "turn from its board-file pose (deg, per axis of the face frame)"
     )
+    time: Literal["fixed", "refine", "auto"] = Field(
+        "auto",
+        description="fixed: every camera sees the board at the frame set's instant, each "
+        "image exposed at once (the timeless model); refine: per camera a clock offset and a "
+        "rolling-shutter readout (ms), per frame set the board's twist (linear and angular "
+        "velocity), each corner predicted at its own row's time (rgbd_calib/solve/"
+        "time_model.py; docs/conventions.md 'Time'); the offsets' priors come from the "
+        "cameras' timestamps.csv when the dataset has them (they fix the time scale, which the "
+        "images alone do not). auto: tried, as an alternative to the board's back sheet, "
+        "when the pose graph finds views that disagree beyond their noise, and kept only when "
+        "it fits the corners better than its parameters cost (BIC) and better than the "
+        "board; a still board or synchronised cameras keep the timeless model",
+    )
+    time_offset_sigma_ms: float = Field(
+        1.0, gt=0, description="sigma of each camera's clock offset about what its "
+        "timestamps.csv says (ms): the timestamps' jitter and the host's latency"
+    )
+    time_twist_sigma_mps: float = Field(
+        0.5, gt=0, description="prior sigma of the board's speed during a frame set (m/s, "
+        "per axis): a board held or waved by hand"
+    )
+    time_twist_sigma_dps: float = Field(
+        60.0, gt=0, description="prior sigma of the board's turn rate during a frame set "
+        "(deg/s, per axis)"
+    )
 
     @model_validator(mode="after")
     def _known_intrinsics(self) -> BundleConfig:

@@ -52,6 +52,7 @@ from ..solve.ladder import (
 from ..solve.pose import DROP_ADVICE, BoardObservation, RejectedView, board_poses, pose_edges
 from ..solve.posegraph import PoseGraphResult, calibrate_pose_graph
 from ..solve.selfcal import SelfCalibration
+from ..solve.time_model import capture_offsets
 
 # detections with the refined lens: at most this many passes, another one while some
 # camera's lens moved by more than LENS_SETTLED_PX at its detected corners (see lens_moved)
@@ -201,7 +202,8 @@ def _bundle(run: _Run, pg: PoseGraphResult, views: _Views) -> _Solved:
     with timed(run.timings, "bundle"):
         bundle, problem, ladder = self_calibrated_bundle(
             views.observations, pg, run.rig, run.board, config.bundle, run.fixed_cameras,
-            run.progress)
+            run.progress, capture_offsets(
+                {c: run.dataset.timestamps_ms(c) for c in run.rig.names}, run.rig.reference))
     solved = _Solved(views, {}, {}, bundle, problem, ladder)
     lens_refined = (ladder.chosen.distortion if ladder is not None
                     else _refines_distortion(config.bundle))

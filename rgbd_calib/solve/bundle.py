@@ -35,6 +35,17 @@ from .bundle_factors import (
     with_parameters,
 )
 from .posegraph import sigmas_from_covariance
+from .time_model import (
+    READOUT_INIT_MS,
+    TimeModel,
+    TimePrior,
+    TwistPrior,
+    project_timed,
+    row_fraction,
+    time_prior,
+    timed_view_factor,
+    twist_prior,
+)
 
 _BACK_SHEET_KEY = gtsam.symbol("f", 0)  # the back sheet's pose T_front_back (board refine)
 
@@ -96,6 +107,8 @@ class BundleResult:
     board: BoardModel | None = None
     # ... of a multi-face target: each non-reference face's estimated pose (empty otherwise)
     faces: tuple[FaceModel, ...] = ()
+    # the time model (config.time == "refine"): clocks, readouts and the board's motion
+    time: TimeModel | None = None
 
 
 @dataclass(frozen=True)
@@ -218,6 +231,10 @@ class BundleProblem:
     intrinsics: dict[str, CameraIntrinsics] | None = None  # rig.yaml models: refine's priors
     back_centre: np.ndarray | None = None  # board-file centre of the back-marker grid (m)
     face_frames: dict[int, np.ndarray] | None = None  # multi-face: label -> T_board_face
+    # the time model: (camera, view) -> capture time after the set's (ms, from timestamps) and
+    # the priors of the cameras' [offset, readout] (default: weak, TimePrior())
+    capture_ms: dict[tuple[str, str], float] | None = None
+    time_priors: dict[str, TimePrior] | None = None
 
 
 def intrinsics_vector(base: CameraIntrinsics, names: tuple[str, ...]) -> np.ndarray:
@@ -304,7 +321,14 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
     ``Delta`` per such face instead (its true pose ``T_board_face @ Delta``, :class:`FaceModel`)
     under a prior at the identity with the ``board_prior_face_*`` sigmas on all 6 axes of the
     face frame; a face that no view sees together with a face already tied to the reference
-    face is held (``result.faces[k].held``)."""
+    face is held (``result.faces[k].held``).
+
+    With ``config.time == "refine"`` (the rig's ``intrinsics`` required: their image heights)
+    every view factor predicts each corner at its own time
+    (:func:`~rgbd_calib.solve.time_model.timed_view_factor`): per camera a Vector 2
+    ``[offset_ms, readout_ms]`` under ``time_priors`` (the reference's offset held at 0),
+    per view a twist under the ``time_twist_sigma_*`` prior, each view's ``capture_ms`` (its
+    timestamps' offset) added to its camera's offset; ``result.time`` holds the estimates."""
     # the variables, their keys and priors; the measurements with initialised ends
     layout, kept, board_model, face_models = _factor_layout(problem)
     values = _initial_values(layout, problem.T_ref_cam, problem.T_ref_board)
@@ -345,6 +369,15 @@ class _FactorLayout:
     reference: str
     cams: list[str]
     views: list[str]
+    time_key: dict[str, int] = field(default_factory=dict)  # time model only
+    twist_key: dict[str, int] = field(default_factory=dict)
+    time_priors: dict[str, TimePrior] = field(default_factory=dict)
+    capture_ms: dict[tuple[str, str], float] = field(default_factory=dict)
+    heights: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def timed(self) -> bool:
+        return bool(self.time_key)
 
     def connected(self, values: gtsam.Values) -> set[str]:
         """The cameras with a pose in ``values``."""
@@ -357,14 +390,26 @@ class _FactorLayout:
                                         self.intr_key)
         for key, _, _ in self.moving:
             sub.insert(key, values.atPose3(key))
+        for owner_keys, pose_keys in ((self.time_key, self.cam_key),
+                                      (self.twist_key, self.view_key)):
+            for owner, k in owner_keys.items():
+                if sub.exists(pose_keys[owner]) and values.exists(k):
+                    sub.insert(k, values.atVector(k))
         return out, sub
 
     def marker_rms(self, groups: list[_ViewGroup], n: int, values: gtsam.Values) -> np.ndarray:
         """:func:`_marker_rms` through the current models and face poses of ``values``."""
+        timing = None
+        if self.timed:
+            timing = (self.heights, self.capture_ms,
+                      {c: values.atVector(k) for c, k in self.time_key.items()
+                       if values.exists(k)},
+                      {v: values.atVector(k) for v, k in self.twist_key.items()
+                       if values.exists(k)})
         return _marker_rms(groups, n, values, self.cam_key, self.view_key, self.K,
                            _current_models(self, values),
                            moves=[(label, face_transform(values.atPose3(key).matrix(), A))
-                                  for key, label, A in self.moving])
+                                  for key, label, A in self.moving], timing=timing)
 
 
 def _factor_layout(problem: BundleProblem) -> tuple[
@@ -401,9 +446,20 @@ def _factor_layout(problem: BundleProblem) -> tuple[
         x0 = {c: intrinsics_vector(intrinsics[c], names) for c in intr_key}
         prior_intr = {c: gtsam.noiseModel.Diagonal.Sigmas(
             intrinsics_prior_sigmas(intrinsics[c], names, config)) for c in intr_key}
+    timing = {}
+    if config.time == "refine":
+        if intrinsics is None:
+            raise CalibrationError("the time model needs the rig's camera models")
+        timing = {"time_key": {c: gtsam.symbol("t", i) for i, c in enumerate(cams)},
+                  "twist_key": {v: gtsam.symbol("w", i) for i, v in enumerate(views)},
+                  "time_priors": {c: (problem.time_priors or {}).get(c, TimePrior())
+                                  for c in cams},
+                  "capture_ms": dict(problem.capture_ms or {}),
+                  "heights": {c: intrinsics[c].height for c in cams if c in intrinsics}}
+        kept = [m for m in kept if m.camera in intrinsics]
     layout = _FactorLayout(config, problem.K, cam_key, view_key, intr_key, intrinsics, names,
                            x0, prior_intr, fixed, problem.relative_poses, tuple(moving), refine,
-                           problem.reference, cams, views)
+                           problem.reference, cams, views, **timing)
     return layout, kept, board_model, face_models
 
 
@@ -494,7 +550,7 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
     return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, solution.outliers,
                         sigma_hat, solution.optimizer.iterations(),
                         solution.graph.error(values), refined, sigma_intr, sigma_prior,
-                        board_model, face_models)
+                        board_model, face_models, _time_model(layout, values, marginals))
 
 
 def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
@@ -509,7 +565,14 @@ def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
         seen = [(key, g.face == label, A) for key, label, A in p.moving
                 if np.any(g.face == label)]
         extra = {"moving": seen} if seen else {}
-        if p.refine:
+        if p.timed:
+            intr = (p.intr_key[g.camera], p.intrinsics[g.camera]) if p.refine else None
+            graph.add(timed_view_factor(
+                p.cam_key[g.camera], p.view_key[g.view], p.twist_key[g.view],
+                p.time_key[g.camera], p.K.get(g.camera), p.heights[g.camera], g.object_points,
+                g.corners_px, sigma, kind, config.robust_k, intr, p.names, **extra,
+                known_ms=p.capture_ms.get((g.camera, g.view), 0.0)))
+        elif p.refine:
             graph.add(view_factor_intrinsics(
                 p.cam_key[g.camera], p.view_key[g.view], p.intr_key[g.camera],
                 p.intrinsics[g.camera], p.names, g.object_points, g.corners_px, sigma, kind,
@@ -531,6 +594,12 @@ def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
         if rel.cam_a not in connected or rel.cam_b not in connected:
             continue  # a pair cut off from the reference constrains nothing we solve
         graph.add(rel.factor(p.cam_key))
+    if p.timed:
+        for c in connected:
+            graph.add(time_prior(p.time_key[c], p.time_priors[c], c == p.reference))
+        twist_sigma = TwistPrior(config.time_twist_sigma_mps, config.time_twist_sigma_dps)
+        for v in dict.fromkeys(g.view for g in groups):
+            graph.add(twist_prior(p.twist_key[v], twist_sigma))
     return graph
 
 
@@ -551,7 +620,36 @@ def _initial_values(p: _FactorLayout, init_T_ref_cam: dict[str, np.ndarray],
             values.insert(k, p.x0[c])
     for key, _, _ in p.moving:
         values.insert(key, gtsam.Pose3())
+    for c, k in p.time_key.items():  # a nonzero readout breaks the standstill saddle
+        if values.exists(p.cam_key[c]):
+            prior = p.time_priors[c]
+            free = prior.readout_sigma_ms > READOUT_INIT_MS  # not a known or held readout
+            readout = prior.readout_ms or (READOUT_INIT_MS if free else 0.0)
+            values.insert(k, np.array([0.0 if c == p.reference else prior.offset_ms, readout]))
+    for v, k in p.twist_key.items():
+        if values.exists(p.view_key[v]):
+            values.insert(k, np.zeros(6))
     return values
+
+
+def _time_model(p: _FactorLayout, values: gtsam.Values,
+                marginals: gtsam.Marginals) -> TimeModel | None:
+    """The time model's estimates and marginal sigmas (None without it)."""
+    if not p.timed:
+        return None
+    times = {c: values.atVector(k) for c, k in p.time_key.items() if values.exists(k)}
+    t_sig = {c: np.sqrt(np.diag(marginals.marginalCovariance(p.time_key[c]))) for c in times}
+    twists = {v: values.atVector(k) for v, k in p.twist_key.items() if values.exists(k)}
+    return TimeModel(
+        offset_ms={c: float(t[0]) for c, t in times.items()},
+        sigma_offset_ms={c: 0.0 if c == p.reference else float(t_sig[c][0]) for c in times},
+        readout_ms={c: float(t[1]) for c, t in times.items()},
+        sigma_readout_ms={c: float(t_sig[c][1]) for c in times},
+        twist=twists,
+        sigma_twist={v: np.sqrt(np.diag(marginals.marginalCovariance(p.twist_key[v])))
+                     for v in twists},
+        anchored=tuple(sorted({c for c, _ in p.capture_ms} & set(times))),
+        capture_ms=dict(p.capture_ms))
 
 
 def _current_models(p: _FactorLayout, values: gtsam.Values) -> dict[str, CameraIntrinsics] | None:
@@ -579,8 +677,12 @@ def _residual_dof(p: _FactorLayout, n_markers: int, values: gtsam.Values) -> int
     n_intr = sum(values.exists(k) for k in p.intr_key.values())
     n_back = len(p.moving)
     face_params = sum(4 if A is None else 6 for _, _, A in p.moving)
-    return max(8 * n_markers - 6 * (values.size() - n_intr - n_back - len(p.fixed))
-               - len(p.names) * n_intr - face_params, 1)
+    n_time = sum(values.exists(k) for k in p.time_key.values())
+    n_twist = sum(values.exists(k) for k in p.twist_key.values())
+    time_params = 2 * n_time - (1 if n_time else 0) + 6 * n_twist  # the reference's offset held
+    return max(8 * n_markers - 6 * (values.size() - n_intr - n_back - len(p.fixed)
+                                    - n_time - n_twist)
+               - len(p.names) * n_intr - face_params - time_params, 1)
 
 
 def _camera_marginals(cams: list[str], values: gtsam.Values, cam_key: dict[str, int],
@@ -730,12 +832,14 @@ def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
 
 def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,
                 view_key: dict, K: dict,
-                models: dict[str, CameraIntrinsics] | None = None, moves=()) -> np.ndarray:
+                models: dict[str, CameraIntrinsics] | None = None, moves=(),
+                timing=None) -> np.ndarray:
     """RMS corner residual (px) of each of the ``n`` active markers at ``values``:
     sqrt(mean over the 4 corners of |uv - uv_meas|^2), vectorised per camera view; through
     the full camera ``models`` when given (refined intrinsics), else the pinhole ``K``; each
     face's markers moved by its board-frame move ``C`` of ``moves`` ``(label, C)`` (board
-    self-calibration)."""
+    self-calibration); each corner at its own time with ``timing`` ``(heights, capture_ms,
+    time per camera, twist per view)`` (the time model)."""
     out = np.empty(n)
     for g in groups:
         T_cam = values.atPose3(cam_key[g.camera]).matrix()
@@ -743,7 +847,14 @@ def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key:
         P_b = g.object_points.reshape(-1, 3)
         if moves:
             P_b = move_rows(P_b, [(np.repeat(g.face == label, 4), C) for label, C in moves])
-        if models is not None:
+        if timing is not None:
+            heights, capture, times, twists = timing
+            known = capture.get((g.camera, g.view), 0.0)
+            uv = project_timed(T_cam, T_board, twists[g.view], times[g.camera] + [known, 0.0],
+                               K[g.camera] if models is None else models[g.camera], P_b,
+                               row_fraction(g.corners_px.reshape(-1, 2)[:, 1], heights[g.camera]),
+                               False)[0]
+        elif models is not None:
             uv = project_board_full(T_cam, T_board, models[g.camera], None, P_b, jacobians=False)[0]
         else:
             uv, _, _ = project_board(T_cam, T_board, K[g.camera], P_b, jacobians=False)

@@ -29,6 +29,7 @@ from .bundle import BundleProblem, BundleResult, MarkerMeasurement, bundle_adjus
 from .pose import BoardObservation
 from .posegraph import PoseGraphResult
 from .posegraph_init import robust_mean_pose
+from .time_model import anchored_priors
 
 # a refined lens that images the detected corners' rays within this of the lens they were
 # detected with has settled: no other detection (see lens_moved)
@@ -67,13 +68,21 @@ def back_centre(board: Board) -> np.ndarray | None:
 def bundle_problem(measurements: list[MarkerMeasurement], rig: Rig, board: Board,
                    T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, np.ndarray],
                    config: BundleConfig,
-                   fixed_cameras: dict[str, np.ndarray] | None = None) -> BundleProblem:
+                   fixed_cameras: dict[str, np.ndarray] | None = None,
+                   capture_ms: dict[tuple[str, str], float] | None = None) -> BundleProblem:
     """The bundle adjustment of ``measurements`` with ``rig``'s cameras (their pinhole
-    matrices, and their models as the priors of refined intrinsics) and ``board``'s back sheet
-    or faces, started at ``T_ref_cam`` / ``T_ref_board`` (4x4, m)."""
+    matrices, and their models as the priors of refined intrinsics and their image heights for
+    the time model) and ``board``'s back sheet or faces, started at ``T_ref_cam`` /
+    ``T_ref_board`` (4x4, m); ``capture_ms`` the views' capture times from the cameras'
+    timestamps (:func:`~rgbd_calib.solve.time_model.capture_offsets`), which anchor the time
+    model's offsets (``config.time_offset_sigma_ms``)."""
+    capture_ms = capture_ms or {}
     return BundleProblem(measurements, camera_matrices(rig), rig.reference, T_ref_cam,
                          T_ref_board, config, fixed_cameras, intrinsics=rig.cameras,
-                         back_centre=back_centre(board), face_frames=face_frames(board))
+                         back_centre=back_centre(board), face_frames=face_frames(board),
+                         capture_ms=capture_ms,
+                         time_priors=anchored_priors(rig.names, capture_ms,
+                                                     config.time_offset_sigma_ms))
 
 
 def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:
@@ -183,16 +192,16 @@ def bundle_sound_first(problem: BundleProblem, model_error: Collection[str]) -> 
     and board poses seen by it keep its values. Otherwise (no model error, or every camera has
     one) one joint solve.
 
-    With the intrinsics or the back sheet refined (``bundle.intrinsics`` / ``bundle.board``
-    ``"refine"``) the model error the pose graph saw is what the solve estimates: one joint
-    solve. Solving the few sound cameras first and holding them would fix their poses (and
-    lens) from a fraction of the views, several times worse than the joint solve at claimed
-    sigmas far too small (measured: docs/accuracy.md, 'Measurements behind the solver's
-    design')."""
+    With the intrinsics, the back sheet or time refined (``bundle.intrinsics`` /
+    ``bundle.board`` / ``bundle.time`` ``"refine"``) the model error the pose graph saw is
+    what the solve estimates: one joint solve. Solving the few sound cameras first and
+    holding them would fix their poses (and lens) from a fraction of the views, several times
+    worse than the joint solve at claimed sigmas far too small (measured: docs/accuracy.md,
+    'Measurements behind the solver's design')."""
     reference, fixed = problem.reference, dict(problem.fixed_cameras or {})
     cams = {m.camera for m in problem.measurements}
     sound = {c for c in cams if c not in model_error} | {reference} | set(fixed)
-    freed = "refine" in (problem.config.intrinsics, problem.config.board)
+    freed = "refine" in (problem.config.intrinsics, problem.config.board, problem.config.time)
     joint = (freed or not model_error or not (cams - sound)
              or len(sound - {reference} - set(fixed)) < 1)
     if joint:
@@ -231,6 +240,7 @@ class _Ladder:
     board: Board
     fixed_cameras: dict[str, np.ndarray] | None
     tick: Tick
+    capture_ms: dict[tuple[str, str], float] | None = None
 
     def solve(self, level: BundleConfig, init_cam: dict[str, np.ndarray],
               init_board: dict[str, np.ndarray],
@@ -247,7 +257,7 @@ class _Ladder:
                                    keep_outlier_views=freed,
                                    boards=init_board if refined else None)
         problem = bundle_problem(meas, self.rig, self.board, init_cam, init_board, level,
-                                 self.fixed_cameras)
+                                 self.fixed_cameras, self.capture_ms)
         return bundle_sound_first(problem, self.pg.model_error), problem
 
 
@@ -270,6 +280,7 @@ def self_calibrated_bundle(
     config: BundleConfig,
     fixed_cameras: dict[str, np.ndarray] | None = None,
     progress: Progress | None = None,
+    capture_ms: dict[tuple[str, str], float] | None = None,
 ) -> tuple[BundleResult, BundleProblem, selfcal.SelfCalibration | None]:
     """The bundle adjustment with ``config``'s board and intrinsics models.
 
@@ -278,16 +289,17 @@ def self_calibrated_bundle(
     from the last accepted solve, kept only when it calibrates more cameras or fits the common
     markers better than its extra parameters cost (BIC). Returns the chosen solve, its problem
     (measurements and the explicit config it was solved with, for the later solves) and the
-    ladder (None for explicit modes)."""
+    ladder (None for explicit modes). ``capture_ms``: the views' capture times from the
+    cameras' timestamps, for the time model (:func:`bundle_problem`)."""
     ladder = _Ladder(observations, pg, rig, board, fixed_cameras,
-                     start(progress, "bundle adjustment (models solved)", None))
+                     start(progress, "bundle adjustment (models solved)", None), capture_ms)
     if not selfcal.is_auto(config):
         result, problem = ladder.solve(config, pg.T_ref_cam, pg.T_ref_board,
-                                       config.board == "refine")
+                                       "refine" in (config.board, config.time))
         return result, problem, None
     level = selfcal.base_level(config)
     result, problem = ladder.solve(level.bundle_config(config), pg.T_ref_cam, pg.T_ref_board,
-                                   level.board)
+                                   level.board or level.time)
     terms = selfcal.marker_terms(result.residuals_px, result.outliers, config.outlier_px)
     start_fit = selfcal.LevelFit(level, len(result.T_ref_cam), len(result.residuals_px),
                                  selfcal.rms_px(terms), reason="the starting model")
@@ -343,11 +355,15 @@ def _try_level(ladder: _Ladder, config: BundleConfig, trial_level: selfcal.Model
                                       True)
     except _SOLVE_ERRORS as exc:
         return _Step(selfcal.LevelFit(trial_level, 0, 0, float("nan"), accepted=False,
-                                      reason=f"the solve failed: {exc}"), None, None, {})
+                                      reason=f"the solve failed: {_first_line(exc)}"),
+                     None, None, {})
     n_cams = len({m.camera for m in problem.measurements} - set(ladder.fixed_cameras or {}))
     added = (selfcal.board_parameters(ladder.board) if trial_level.board and not level.board
              else 0) + (
         len(trial_level.intrinsics_params) - len(level.intrinsics_params)) * n_cams
+    if trial_level.time and not level.time:
+        added += selfcal.time_parameters(len({m.camera for m in problem.measurements}),
+                                         len({m.view for m in problem.measurements}))
     terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, config.outlier_px)
     ok, gain, reason = selfcal.compare(current.terms, len(accepted.T_ref_cam), terms,
                                        len(trial.T_ref_cam), added)
@@ -371,10 +387,16 @@ def _try_level(ladder: _Ladder, config: BundleConfig, trial_level: selfcal.Model
             reason += (f"; {name} of {cam} came {z:.1f} prior sigmas from rig.yaml: "
                        f"priors loosened {selfcal.LOOSEN:.0f}x")
         except _SOLVE_ERRORS as exc:
-            reason += f"; loosening the contradicted prior failed: {exc}"
+            reason += f"; loosening the contradicted prior failed: {_first_line(exc)}"
     fit = selfcal.LevelFit(trial_level, len(trial.T_ref_cam), len(trial.residuals_px),
                            selfcal.rms_px(terms), added, gain, ok, reason)
     return _Step(fit, trial, problem, terms)
+
+
+def _first_line(exc: Exception) -> str:
+    """An exception's first non-empty line (GTSAM's run over several)."""
+    return next((line.strip() for line in str(exc).splitlines() if line.strip()),
+                type(exc).__name__)
 
 
 # ----------------------------------------------------------------------------- honest sigmas
@@ -404,10 +426,11 @@ def model_error_sigmas(
         return out, factors
     sigma_px = (max(bundle.pixel_sigma_estimated, 1e-3) if config.estimate_sigma
                 else config.pixel_sigma)
-    if config.board == "refine" or config.intrinsics == "refine":
-        # the pose graph judged the views with the nominal board and rig.yaml intrinsics; the
-        # bundle freed that model. When every flagged camera's corners now fit like the rest
-        # of the rig, the freed model explained the error: nothing is left to inflate.
+    if "refine" in (config.board, config.intrinsics, config.time):
+        # the pose graph judged the views with the nominal board, rig.yaml intrinsics and
+        # every camera at the set's instant; the bundle freed that model. When every flagged
+        # camera's corners now fit like the rest of the rig, the freed model explained the
+        # error: nothing is left to inflate.
         own = {c: _corner_variance_factor(bundle, c, sigma_px) for c in pg.model_error}
         if all(f <= MODEL_ERROR_EXPLAINED for f in own.values()):
             return out, dict.fromkeys(pg.model_error, 1.0)

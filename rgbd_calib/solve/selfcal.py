@@ -8,8 +8,14 @@ on a clean rig, refining the focal lengths trades them against the camera distan
 the extrinsic error of the fixed model on a short set). ``auto`` therefore climbs a ladder of
 models, each the last accepted one plus one group of parameters:
 
-1. the nominal model (board file and rig.yaml as given);
-2. + the back sheet's pose (4 parameters for the rig; only for a double-sided board);
+1. the nominal model (board file and rig.yaml as given, every camera exposing at the frame
+   set's instant);
+2. + time (per camera a clock offset and a rolling-shutter readout, per frame set the board's
+   twist: :mod:`rgbd_calib.solve.time_model`), or + the back sheet's pose (4 parameters for the
+   rig; only for a double-sided board): alternatives, the better by BIC kept, so that a board
+   model does not absorb a timing error nor the time model a misglued sheet; then the other
+   one on top of it. Time is tried only when the pose graph found views that disagree beyond
+   their noise (a still board or synchronised cameras never pay for it);
 3. + focal lengths and principal points (``fx fy cx cy`` of ``bundle.intrinsics_params``,
    per camera), or those and the lens distortion coefficients of
    ``bundle.intrinsics_params``: two alternatives, tried only when the pose graph found a
@@ -56,10 +62,13 @@ class ModelLevel:
     name: str
     board: bool
     intrinsics_params: tuple[str, ...] = ()
+    time: bool = False
 
     def bundle_config(self, base: BundleConfig) -> BundleConfig:
-        """``base`` with this level's board and intrinsics modes (explicit, never ``auto``)."""
-        update: dict[str, Any] = {"board": "refine" if self.board else "fixed"}
+        """``base`` with this level's board, intrinsics and time modes (explicit, never
+        ``auto``)."""
+        update: dict[str, Any] = {"board": "refine" if self.board else "fixed",
+                                  "time": "refine" if self.time else "fixed"}
         if self.intrinsics_params:
             update |= {"intrinsics": "refine",
                        "intrinsics_params": list(self.intrinsics_params)}
@@ -90,6 +99,7 @@ class LevelFit:
         return {
             "level": self.level.name,
             "board": self.level.board,
+            "time": self.level.time,
             "intrinsics_params": list(self.level.intrinsics_params),
             "cameras": self.cameras,
             "markers": self.markers,
@@ -114,6 +124,7 @@ class SelfCalibration:
         return {
             "chosen": self.chosen.name,
             "board": self.chosen.board,
+            "time": self.chosen.time,
             "intrinsics_params": list(self.chosen.intrinsics_params),
             "redetected": self.redetected,
             "levels": [f.to_dict() for f in self.fits],
@@ -121,31 +132,40 @@ class SelfCalibration:
 
 
 def is_auto(config: BundleConfig) -> bool:
-    return config.board == "auto" or config.intrinsics == "auto"
+    return "auto" in (config.board, config.intrinsics, config.time)
 
 
 def base_level(config: BundleConfig) -> ModelLevel:
     """The model every level includes: what the config sets explicitly to ``refine``."""
-    board = config.board == "refine"
+    board, time = config.board == "refine", config.time == "refine"
     params = tuple(config.intrinsics_params) if config.intrinsics == "refine" else ()
-    return ModelLevel(_name(board, params), board, params)
+    return ModelLevel(_name(board, params, time), board, params, time)
+
+
+Step = tuple[bool, tuple[str, ...], bool]  # (board, intrinsics parameters, time) a level adds
 
 
 def candidate_groups(config: BundleConfig, double_sided: bool,
-                     model_error: bool) -> list[list[tuple[bool, tuple[str, ...]]]]:
-    """What ``auto`` may add, as groups of alternatives ``(board, intrinsics parameters)``
-    tried on the model accepted so far; the best of a group by BIC is kept. First the back
-    sheet (board ``auto``, double-sided board); then, when the intrinsics are ``auto`` and the
-    pose graph found a camera-level model error, fx fy cx cy, or those and the distortion
-    coefficients of ``bundle.intrinsics_params`` (alternatives, not a chain: a lens error
-    makes the focal step alone fit worse, not better)."""
-    groups: list[list[tuple[bool, tuple[str, ...]]]] = []
-    if config.board == "auto" and double_sided:
-        groups.append([(True, ())])
+                     model_error: bool) -> list[list[Step]]:
+    """What ``auto`` may add, as groups of alternatives ``(board, intrinsics parameters,
+    time)`` tried on the model accepted so far; the best of a group by BIC is kept. First time
+    (``time: auto``, when the pose graph found a camera-level model error: views that disagree
+    beyond their noise) and the back sheet (board ``auto``, double-sided board) as
+    alternatives, then each alone (skipped when the accepted model has it already); then,
+    when the intrinsics are ``auto`` and the pose graph found a camera-level model error,
+    fx fy cx cy, or those and the distortion coefficients of ``bundle.intrinsics_params``
+    (alternatives, not a chain: a lens error makes the focal step alone fit worse, not
+    better)."""
+    groups: list[list[Step]] = []
+    time = [(False, (), True)] if config.time == "auto" and model_error else []
+    board = [(True, (), False)] if config.board == "auto" and double_sided else []
+    if time and board:
+        groups.append(time + board)
+    groups += [g for g in (time, board) if g]
     if config.intrinsics == "auto" and model_error:
         focal = tuple(p for p in config.intrinsics_params if p in FOCAL_CENTRE)
         every = tuple(config.intrinsics_params)
-        groups.append([(False, g) for g in dict.fromkeys((focal, every)) if g])
+        groups.append([(False, g, False) for g in dict.fromkeys((focal, every)) if g])
     return groups
 
 
@@ -159,15 +179,22 @@ def better(a: LevelFit, b: LevelFit) -> bool:
     return a.rms_px < b.rms_px
 
 
-def extend(level: ModelLevel, step: tuple[bool, tuple[str, ...]]) -> ModelLevel:
-    board = level.board or step[0]
+def extend(level: ModelLevel, step: Step) -> ModelLevel:
+    board, time = level.board or step[0], level.time or step[2]
     params = level.intrinsics_params + tuple(
         p for p in step[1] if p not in level.intrinsics_params)
-    return ModelLevel(_name(board, params), board, params)
+    return ModelLevel(_name(board, params, time), board, params, time)
 
 
-def _name(board: bool, params: tuple[str, ...]) -> str:
-    parts = (["board"] if board else []) + ([" ".join(params)] if params else [])
+def time_parameters(cameras: int, views: int) -> int:
+    """The parameters the time model adds: an offset and a readout per camera (the
+    reference's offset held), a twist (6) per frame set."""
+    return 2 * cameras - 1 + 6 * views
+
+
+def _name(board: bool, params: tuple[str, ...], time: bool = False) -> str:
+    parts = (["time"] if time else []) + (["board"] if board else []) + (
+        [" ".join(params)] if params else [])
     return " + ".join(parts) if parts else "nominal"
 
 

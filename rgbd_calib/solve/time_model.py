@@ -36,20 +36,25 @@ All Jacobians are analytic (checked against central differences in tests/test_ti
 
 from __future__ import annotations
 
-from collections import defaultdict
-from collections.abc import Collection, Sequence
+from collections.abc import Collection
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
 
-from ..core.camera import pinhole_point_jacobian, pinhole_pose_jacobian, project_pinhole
-from .bundle_factors import robust_rows
-from .posegraph import sigmas_from_covariance
-
-if TYPE_CHECKING:
-    from .bundle import MarkerMeasurement
+from ..core.camera import (
+    CameraIntrinsics,
+    pinhole_point_jacobian,
+    pinhole_pose_jacobian,
+    project_pinhole,
+)
+from ..core.geometry import move_rows
+from .bundle_factors import (
+    face_transform,
+    padded_distortion,
+    robust_rows,
+    with_parameters,
+)
 
 MS = 1e-3  # seconds per millisecond: the time parameters are in ms
 HELD_SIGMA = 1e-9  # sigma of a held value (the reference's pose and offset, a global shutter)
@@ -91,21 +96,24 @@ def row_fraction(v_px: np.ndarray, height_px: int) -> np.ndarray:
 
 
 def project_timed(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, twist: np.ndarray,
-                  time_ms: np.ndarray, K: np.ndarray, P_b: np.ndarray, s_row: np.ndarray,
-                  jacobians: bool = True):
-    """Pinhole pixels (N,2) of board points ``P_b`` (N,3, m) each seen at its own time.
+                  time_ms: np.ndarray, K, P_b: np.ndarray, s_row: np.ndarray,
+                  jacobians: bool = True, columns: np.ndarray | None = None):
+    """Pixels (N,2) of board points ``P_b`` (N,3, m) each seen at its own time.
 
     Point i is seen at ``tau_i = 1e-3 (offset_ms + readout_ms s_i)`` (``time_ms = [offset_ms,
     readout_ms]``, ``s_row`` the row fractions, :func:`row_fraction`) after ``t_f``, on the
     board at ``T_ref_board(t_f + tau_i)`` (``twist = [w, v]``,
     :func:`rgbd_calib.core.geometry.pose_after_twist`):
     ``P_ref = E q + p_f + v tau`` with ``E = Exp(w tau)``, ``q = R_f P_b``; ``p_cam =
-    R_rc^T (P_ref - t_rc)``. With ``jacobians``, d(u,v)/d of (N,2,k): camera (right
-    perturbation, :func:`~rgbd_calib.core.camera.pinhole_pose_jacobian`), board at ``t_f``
-    (right perturbation ``R_f Exp(dw), p_f + R_f dv``: dP_ref = [-E R_f [P_b]x, R_f]), twist
-    (dP_ref/dw = -[E q]x J_l(w tau) tau, dP_ref/dv = tau I) and time (dP_ref/dtau =
-    w x E q + v, dtau/d[offset_ms, readout_ms] = 1e-3 [1, s]), each chained through
-    d(u,v)/dp_cam R_rc^T."""
+    R_rc^T (P_ref - t_rc)``, projected by ``K`` (a 3x3 pinhole matrix: undistorted pixels) or a
+    :class:`~rgbd_calib.core.camera.CameraIntrinsics` (the full model: raw pixels). With
+    ``jacobians``, d(u,v)/d of (N,2,k): camera (right perturbation, d(u,v)/dp_cam ``[[p]x,
+    -I]``), board at ``t_f`` (right perturbation ``R_f Exp(dw), p_f + R_f dv``: dP_ref =
+    [-E R_f [P_b]x, R_f]), twist (dP_ref/dw = -[E q]x J_l(w tau) tau, dP_ref/dv = tau I) and
+    time (dP_ref/dtau = w x E q + v, dtau/d[offset_ms, readout_ms] = 1e-3 [1, s]), each chained
+    through d(u,v)/dp_cam R_rc^T; then d(u,v)/dP_b (N,2,3) (= d(u,v)/dP_ref E R_f, what a
+    face's pose moves); with a full model and ``columns``, also d(u,v)/d of those columns of
+    :meth:`~rgbd_calib.core.camera.CameraIntrinsics.intrinsics_jacobian` (last)."""
     w, v = np.asarray(twist[:3], dtype=float), np.asarray(twist[3:], dtype=float)
     tau = MS * (time_ms[0] + time_ms[1] * s_row)  # (N,) seconds
     E, J_l = _so3_exp_and_left_jacobian(tau[:, None] * w)
@@ -114,12 +122,19 @@ def project_timed(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, twist: np.ndar
     Eq = np.einsum("nij,nj->ni", E, P_b @ R_rb.T)
     P_ref = Eq + p_rb + tau[:, None] * v
     p = (P_ref - t_rc) @ R_rc  # R_rc^T (P_ref - t_rc), (N,3)
-    fx, fy = K[0, 0], K[1, 1]
-    uv = project_pinhole(p, fx, fy, K[0, 2], K[1, 2])
+    full = not isinstance(K, np.ndarray)
     if not jacobians:
-        return uv, None
-    A = pinhole_point_jacobian(p, fx, fy) @ R_rc.T  # d(u,v)/dP_ref (N,2,3)
-    J_cam = pinhole_pose_jacobian(p, fx, fy)
+        return (K.project(p) if full else project_pinhole(p, K[0, 0], K[1, 1], K[0, 2],
+                                                          K[1, 2])), None
+    if full:
+        uv, J_point = K.project_jacobian(p)
+        J_cam = J_point @ _point_pose_jacobian(p)
+    else:
+        fx, fy = K[0, 0], K[1, 1]
+        uv = project_pinhole(p, fx, fy, K[0, 2], K[1, 2])
+        J_point = pinhole_point_jacobian(p, fx, fy)
+        J_cam = pinhole_pose_jacobian(p, fx, fy)
+    A = J_point @ R_rc.T  # d(u,v)/dP_ref (N,2,3)
     ER = E @ R_rb
     J_board = np.concatenate([A @ (-ER @ _skew_stack(P_b)), A @ R_rb], axis=2)
     J_w = A @ (-_skew_stack(Eq) @ J_l) * tau[:, None, None]
@@ -127,38 +142,98 @@ def project_timed(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, twist: np.ndar
     dP_dtau = np.cross(w, Eq) + v  # (N,3)
     dtau = MS * np.stack([np.ones_like(s_row), s_row], axis=1)  # (N,2)
     J_time = np.einsum("nij,nj->ni", A, dP_dtau)[:, :, None] * dtau[:, None, :]
-    return uv, (J_cam, J_board, np.concatenate([J_w, J_v], axis=2), J_time)
+    out = (J_cam, J_board, np.concatenate([J_w, J_v], axis=2), J_time, A @ ER)
+    if full and columns is not None:
+        out += (K.intrinsics_jacobian(p)[:, :, columns],)
+    return uv, out
+
+
+def _point_pose_jacobian(p: np.ndarray) -> np.ndarray:
+    """dp_cam/dxi (N,3,6) of camera-frame points for a right perturbation of the camera's pose:
+    ``[[p]x, -I]``."""
+    J = np.zeros((len(p), 3, 6))
+    J[:, :, :3] = _skew_stack(p)
+    J[:, :, 3:] = -np.eye(3)
+    return J
+
+
+def _moved_point_jacobian(J_point_board: np.ndarray, rows: np.ndarray, P_b: np.ndarray,
+                          M: np.ndarray) -> np.ndarray:
+    """d(u,v)/dxi (N,2,6) of a face correction ``X`` (``X <- X Exp(xi)``, expressed in frame
+    ``A``) from d(u,v)/dP_b: the face's rows of the moved board points ``P_b = M Q`` (``M = A X``,
+    or ``X`` for the back sheet) move by ``M_R [-[Q]x, I] xi``; 0 on the other rows. (Without
+    time this equals the board's Jacobian times ``Ad(M)``; with time the board moves through
+    ``E R_f`` but its ``t_f`` perturbation does not, so the two differ.)"""
+    J = np.zeros(J_point_board.shape[:2] + (6,))
+    R = M[:3, :3]
+    Q = (P_b[rows] - M[:3, 3]) @ R  # M^-1 P_b
+    dP = np.concatenate([-R @ _skew_stack(Q), np.broadcast_to(R, (len(Q), 3, 3))], axis=2)
+    J[rows] = J_point_board[rows] @ dP
+    return J
 
 
 def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: int,
-                      K: np.ndarray, height_px: int, object_points: np.ndarray,
-                      corners_px: np.ndarray, sigma: float, robust: str, robust_k: float):
+                      K: np.ndarray | None, height_px: int, object_points: np.ndarray,
+                      corners_px: np.ndarray, sigma: float, robust: str, robust_k: float,
+                      intr: tuple | None = None, names: tuple[str, ...] = (),
+                      moving: list | None = None, known_ms: float = 0.0):
     """All markers of one camera view in one factor, each corner predicted at its own time.
 
     As :func:`~rgbd_calib.solve.bundle_factors.view_factor` (pinhole ``K``, undistorted pixels
     ``corners_px`` (n,4,2), board points ``object_points`` (n,4,3) m, corner noise ``sigma``
     px, the same per-marker robust kernel through
     :func:`~rgbd_calib.solve.bundle_factors.robust_rows`), with keys: camera Pose3
-    ``T_ref_cam``, board Pose3 ``T_ref_board`` at ``t_f``, the set's twist Vector 6
-    ``[w (rad/s), v (m/s)]`` and the camera's time Vector 2 ``[offset_ms, readout_ms]``. Each
-    corner's time uses its measured row (the module's docstring; image height ``height_px``).
-    """
+    ``T_ref_cam``, board Pose3 ``T_ref_board`` at ``t_f``, [the camera's intrinsics vector,]
+    [the face poses,] the set's twist Vector 6 ``[w (rad/s), v (m/s)]`` and the camera's time
+    Vector 2 ``[offset_ms, readout_ms]``. Each corner's time uses its measured row (the
+    module's docstring; image height ``height_px``).
+
+    ``intr = (key_intr, base)`` refines the parameters ``names`` of the camera model ``base``
+    (raw pixels, as :func:`~rgbd_calib.solve.bundle_factors.view_factor_intrinsics`);
+    ``moving`` lists ``(key, flags, A)`` per face pose that moves the flagged markers (board
+    self-calibration, as :func:`~rgbd_calib.solve.bundle_factors.view_factor`)
+    (:func:`_moved_point_jacobian`).
+    ``known_ms`` is the view's capture time after the set's nominal time as the cameras'
+    timestamps say (ms; :func:`capture_offsets`), added to the camera's offset."""
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
-    P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
+    P_file = np.asarray(object_points, dtype=float).reshape(-1, 3)
     s_row = row_fraction(measured[:, 1], height_px)
     inv_sigma = 1.0 / sigma
+    faces = [(key, np.repeat(np.asarray(flags, dtype=bool), 4), A)
+             for key, flags, A in (moving or [])]
+    keys = [key_cam, key_board]
+    columns = None
+    if intr:
+        key_intr, base = intr
+        padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
+                                  padded_distortion(base, names), base.depth_scale)
+        columns = np.array([padded.parameter_names.index(nm) for nm in names])
+        keys.append(key_intr)
+    keys += [key for key, _, _ in faces] + [key_twist, key_time]
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
-        uv, J = project_timed(values.atPose3(key_cam).matrix(), values.atPose3(key_board).matrix(),
-                              values.atVector(key_twist), values.atVector(key_time), K, P_b,
-                              s_row, H is not None)
+        X = [values.atPose3(key).matrix() for key, _, _ in faces]
+        P_b = move_rows(P_file, [(rows, face_transform(x, A))
+                                 for (_, rows, A), x in zip(faces, X)]) if faces else P_file
+        model = with_parameters(padded, names, values.atVector(key_intr)) if intr else K
+        uv, J = project_timed(values.atPose3(key_cam).matrix(),
+                              values.atPose3(key_board).matrix(), values.atVector(key_twist),
+                              values.atVector(key_time) + [known_ms, 0.0], model, P_b, s_row,
+                              H is not None, columns)
         r = ((uv - measured) * inv_sigma).reshape(n, 8)
-        return robust_rows(r, lambda: tuple(j.reshape(8 * n, -1) * inv_sigma for j in J),
-                           H, robust, robust_k)
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n),
-                              [key_cam, key_board, key_twist, key_time], error)
+        def blocks():
+            J_cam, J_board, J_twist, J_time, J_pb = J[:5]
+            out = [J_cam, J_board] + ([J[5]] if intr else [])
+            out += [_moved_point_jacobian(J_pb, rows, P_b, x if A is None else A @ x)
+                    for (_, rows, A), x in zip(faces, X)]
+            out += [J_twist, J_time]
+            return tuple(j.reshape(8 * n, -1) * inv_sigma for j in out)
+
+        return robust_rows(r, blocks, H, robust, robust_k)
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), keys, error)
 
 
 @dataclass(frozen=True)
@@ -203,140 +278,118 @@ def time_prior(key_time: int, prior: TimePrior = TimePrior(), reference: bool = 
     return gtsam.PriorFactorVector(key_time, mean, gtsam.noiseModel.Diagonal.Sigmas(sigmas))
 
 
+READOUT_INIT_MS = 10.0  # every readout starts here: a nonzero time breaks the standstill saddle
+
+
+STEADY_CLOCK_MS = 2.0  # timestamp differences spread less than this: one offset per camera
+_SMOOTHING = 5  # frame sets in the running median of drifting differences
+
+
+def capture_offsets(timestamps: dict[str, dict[str, float] | None],
+                    reference: str) -> dict[tuple[str, str], float]:
+    """Each view's capture time after its frame set's nominal time (the reference camera's
+    capture), from the cameras' timestamps (camera -> frame -> ms, None without a
+    ``timestamps.csv``): ``(camera, frame) -> ms`` for every frame both have a time for.
+
+    The raw differences ``t_camera - t_reference`` carry both timestamps' jitter. Where a
+    camera's differences hold steady (robust spread under :data:`STEADY_CLOCK_MS`: cameras
+    sharing a clock, or a recording too short to drift) each of its views gets their median,
+    which averages the jitter out; where they do not (free-running cameras drift against each
+    other, and the pairing of nearest frames slips by a frame period), each view gets the
+    running median of :data:`_SMOOTHING` neighbouring sets in capture order, which keeps the
+    drift and the slips. Empty when the reference has no timestamps."""
+    ref = timestamps.get(reference)
+    if not ref:
+        return {}
+    out: dict[tuple[str, str], float] = {}
+    for c, times in timestamps.items():
+        frames = sorted((f for f in (times or {}) if f in ref), key=lambda f: ref[f])
+        if not frames:
+            continue
+        d = np.array([times[f] - ref[f] for f in frames])
+        centre = float(np.median(d))
+        if 1.4826 * float(np.median(np.abs(d - centre))) < STEADY_CLOCK_MS:
+            out |= {(c, f): centre for f in frames}
+            continue
+        half = _SMOOTHING // 2
+        out |= {(c, f): float(np.median(d[max(i - half, 0):i + half + 1]))
+                for i, f in enumerate(frames)}
+    return out
+
+
+def anchored_priors(cameras: Collection[str], capture_ms: dict[tuple[str, str], float],
+                    offset_sigma_ms: float) -> dict[str, TimePrior]:
+    """The time priors of cameras whose views have timestamped capture times: their offset
+    is then the latency beyond what the timestamps say, 0 +- ``offset_sigma_ms``; the other
+    cameras keep the weak default (:class:`TimePrior`)."""
+    stamped = {c for c, _ in capture_ms}
+    return {c: TimePrior(offset_sigma_ms=offset_sigma_ms) if c in stamped else TimePrior()
+            for c in cameras}
+
+
 @dataclass(frozen=True)
-class TimedSolution:
-    """The poses, the board's motion and the cameras' clocks of :func:`solve_timed`.
+class TimeModel:
+    """The bundle adjustment's time estimates (``bundle.time: refine``).
 
-    ``T_ref_cam`` (camera -> 4x4, m), ``T_ref_board`` (view -> 4x4, m, the board at ``t_f``),
-    ``twist`` (view -> ``[w (rad/s), v (m/s)]``, reference frame), ``offset_ms`` and
-    ``readout_ms`` per camera; the marginal 1-sigmas of each (GTSAM Marginals of the plain
-    Gaussian graph at the solution, corner noise ``pixel_sigma``), the cameras' 6x6 pose
-    covariances (``[rot, trans]``, right perturbation) and their worst-axis sigmas;
-    ``residual_rms_px`` the RMS of the corners' 2-D reprojection errors."""
+    Per camera: ``offset_ms`` (its clock's offset from the reference beyond what its
+    timestamps say; the whole offset without timestamps) and ``readout_ms`` (first to last
+    row), with marginal 1-sigmas. Per frame set: the board's ``twist`` ``[w (rad/s), v (m/s)]``
+    (reference frame) and its sigmas. ``anchored``: the cameras whose offsets are anchored by
+    timestamps; with none, the time scale is a gauge (docs/conventions.md 'Time') and the
+    offsets, readouts and speeds are known only up to a common factor (the poses are not
+    affected). ``capture_ms``: the timestamps' per-view offsets used."""
 
-    T_ref_cam: dict[str, np.ndarray]
-    T_ref_board: dict[str, np.ndarray]
-    twist: dict[str, np.ndarray]
     offset_ms: dict[str, float]
-    readout_ms: dict[str, float]
-    sigma_twist: dict[str, np.ndarray]  # view -> 6 sigmas [rad/s x3, m/s x3]
     sigma_offset_ms: dict[str, float]
+    readout_ms: dict[str, float]
     sigma_readout_ms: dict[str, float]
-    covariance: dict[str, np.ndarray]
-    sigma_rotation_deg: dict[str, float]
-    sigma_translation_mm: dict[str, float]
-    residual_rms_px: float
-    iterations: int
-    final_error: float
+    twist: dict[str, np.ndarray]
+    sigma_twist: dict[str, np.ndarray]
+    anchored: tuple[str, ...] = ()
+    capture_ms: dict[tuple[str, str], float] | None = None
 
+    @property
+    def speed_mps(self) -> dict[str, float]:
+        """The board's speed in each frame set (m/s, at the board origin)."""
+        return {v: float(np.linalg.norm(t[3:])) for v, t in self.twist.items()}
 
-def _view_groups(measurements: Sequence[MarkerMeasurement]):
-    """``(camera, view, object_points (n,4,3), corners_px (n,4,2))`` per camera view."""
-    members: dict[tuple[str, str], list] = defaultdict(list)
-    for m in measurements:
-        members[(m.camera, m.view)].append(m)
-    return [(c, v, np.stack([m.object_points for m in ms]).astype(float),
-             np.stack([m.corners_px for m in ms]).astype(float))
-            for (c, v), ms in members.items()]
+    @property
+    def rate_dps(self) -> dict[str, float]:
+        """The board's turn rate in each frame set (deg/s)."""
+        return {v: float(np.degrees(np.linalg.norm(t[:3]))) for v, t in self.twist.items()}
 
+    def project(self, camera: str, view: str, T_ref_cam: np.ndarray, T_ref_board: np.ndarray,
+                model: CameraIntrinsics, P_b: np.ndarray, rows_px: np.ndarray) -> np.ndarray:
+        """Pixels (N,2) of board points ``P_b`` (N,3, m) seen by ``camera`` in ``view``, each
+        at the time of its image row ``rows_px`` (N,): :func:`project_timed` through the
+        camera ``model`` with this model's clock and twist; at the set's instant when the
+        camera or view was not in the solve."""
+        if camera not in self.offset_ms or view not in self.twist:
+            time_ms, twist = np.zeros(2), np.zeros(6)
+        else:
+            known = (self.capture_ms or {}).get((camera, view), 0.0)
+            time_ms = np.array([self.offset_ms[camera] + known, self.readout_ms[camera]])
+            twist = self.twist[view]
+        return project_timed(T_ref_cam, T_ref_board, twist, time_ms, model, P_b,
+                             row_fraction(rows_px, model.height), False)[0]
 
-def solve_timed(measurements: Sequence[MarkerMeasurement], K: dict[str, np.ndarray],
-                height_px: dict[str, int], reference: str, T_ref_cam: dict[str, np.ndarray],
-                T_ref_board: dict[str, np.ndarray], *,
-                rolling_shutter: Collection[str] | None = None,
-                time_priors: dict[str, TimePrior] | None = None,
-                twist_sigma: TwistPrior = TwistPrior(), pixel_sigma: float = 0.25,
-                robust: str = "none", robust_k: float = 3.0,
-                max_iterations: int = 100) -> TimedSolution:
-    """Camera poses, board poses, each set's twist and each camera's clock, jointly on the
-    marker corners (undistorted pinhole pixels; measurements shaped as
-    :class:`rgbd_calib.solve.bundle.MarkerMeasurement`, their ``view`` the frame set).
+    def total_offset_ms(self, camera: str) -> float:
+        """The camera's median capture time after the reference's: its timestamps' median
+        offset plus the estimated one."""
+        known = [t for (c, _), t in (self.capture_ms or {}).items() if c == camera]
+        return self.offset_ms[camera] + (float(np.median(known)) if known else 0.0)
 
-    One :func:`timed_view_factor` per camera view; the reference camera's pose held at the
-    identity and its offset at 0; ``rolling_shutter`` names the cameras whose readout is free
-    (default: every camera), the others' is held at 0; :func:`time_prior` per camera from
-    ``time_priors`` (default :class:`TimePrior`) and :func:`twist_prior` per set. Initial
-    values: the given poses (e.g. the timeless bundle adjustment's), every twist 0, the time
-    parameters at their priors' means (the product ``w tau`` has no gradient where both are
-    0: with every mean 0 the time model stays at the timeless solution). Levenberg-Marquardt;
-    marginals without the robust kernel."""
-    cams = sorted({m.camera for m in measurements} | {reference})
-    views = sorted({m.view for m in measurements})
-    cam_key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
-    time_key = {c: gtsam.symbol("t", i) for i, c in enumerate(cams)}
-    view_key = {v: gtsam.symbol("b", i) for i, v in enumerate(views)}
-    twist_key = {v: gtsam.symbol("w", i) for i, v in enumerate(views)}
-    rolling = set(cams if rolling_shutter is None else rolling_shutter)
-    priors = {c: (time_priors or {}).get(c, TimePrior()) for c in cams}
-    groups = _view_groups(measurements)
-
-    def graph_at(kind: str) -> gtsam.NonlinearFactorGraph:
-        graph = gtsam.NonlinearFactorGraph()
-        for c, v, obj, px in groups:
-            graph.add(timed_view_factor(cam_key[c], view_key[v], twist_key[v], time_key[c],
-                                        K[c], height_px[c], obj, px, pixel_sigma, kind,
-                                        robust_k))
-        graph.add(gtsam.PriorFactorPose3(cam_key[reference], gtsam.Pose3(np.eye(4)),
-                                         gtsam.noiseModel.Isotropic.Sigma(6, HELD_SIGMA)))
-        for c in cams:
-            graph.add(time_prior(time_key[c], priors[c], c == reference, c in rolling))
-        for v in views:
-            graph.add(twist_prior(twist_key[v], twist_sigma))
-        return graph
-
-    values = gtsam.Values()
-    for c in cams:
-        values.insert(cam_key[c], gtsam.Pose3(np.eye(4) if c == reference else T_ref_cam[c]))
-        p = priors[c]
-        values.insert(time_key[c], np.array([0.0 if c == reference else p.offset_ms,
-                                             p.readout_ms if c in rolling else 0.0]))
-    for v in views:
-        values.insert(view_key[v], gtsam.Pose3(T_ref_board[v]))
-        values.insert(twist_key[v], np.zeros(6))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(max_iterations)
-    params.setRelativeErrorTol(1e-12)
-    params.setAbsoluteErrorTol(1e-15)
-    graph = graph_at(robust)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    result = optimizer.optimize()
-    marginals = gtsam.Marginals(graph_at("none"), result)
-    return _timed_solution(result, marginals, cams, views, cam_key, time_key, view_key,
-                           twist_key, reference, groups, K, height_px, optimizer,
-                           graph.error(result))
-
-
-def _timed_solution(values: gtsam.Values, marginals: gtsam.Marginals, cams, views, cam_key,
-                    time_key, view_key, twist_key, reference, groups, K, height_px,
-                    optimizer, final_error: float) -> TimedSolution:
-    """Read the solution and its marginals out of GTSAM's values."""
-    T_cam = {c: values.atPose3(cam_key[c]).matrix() for c in cams}
-    cov = {c: (np.zeros((6, 6)) if c == reference
-               else np.asarray(marginals.marginalCovariance(cam_key[c]))) for c in cams}
-    sig = {c: sigmas_from_covariance(T_cam[c], cov[c]) for c in cams}
-    times = {c: values.atVector(time_key[c]) for c in cams}
-    time_sigma = {c: np.sqrt(np.diag(marginals.marginalCovariance(time_key[c]))) for c in cams}
-    twist = {v: values.atVector(twist_key[v]) for v in views}
-    sq, count = 0.0, 0
-    for c, v, obj, px in groups:
-        uv, _ = project_timed(T_cam[c], values.atPose3(view_key[v]).matrix(), twist[v],
-                              times[c], K[c], obj.reshape(-1, 3),
-                              row_fraction(px.reshape(-1, 2)[:, 1], height_px[c]), False)
-        sq += float(np.sum((uv - px.reshape(-1, 2)) ** 2))
-        count += len(uv)
-    return TimedSolution(
-        T_ref_cam=T_cam,
-        T_ref_board={v: values.atPose3(view_key[v]).matrix() for v in views},
-        twist=twist,
-        offset_ms={c: float(times[c][0]) for c in cams},
-        readout_ms={c: float(times[c][1]) for c in cams},
-        sigma_twist={v: np.sqrt(np.diag(marginals.marginalCovariance(twist_key[v])))
-                     for v in views},
-        sigma_offset_ms={c: float(time_sigma[c][0]) for c in cams},
-        sigma_readout_ms={c: float(time_sigma[c][1]) for c in cams},
-        covariance=cov,
-        sigma_rotation_deg={c: sig[c][0] for c in cams},
-        sigma_translation_mm={c: sig[c][1] for c in cams},
-        residual_rms_px=float(np.sqrt(sq / max(count, 1))),
-        iterations=optimizer.iterations(),
-        final_error=float(final_error))
+    def to_dict(self) -> dict:
+        speed = np.array(list(self.speed_mps.values()) or [0.0])
+        rate = np.array(list(self.rate_dps.values()) or [0.0])
+        return {
+            "anchored_by_timestamps": sorted(self.anchored),
+            "cameras": {c: {"offset_ms": self.total_offset_ms(c),
+                            "offset_beyond_timestamps_ms": self.offset_ms[c],
+                            "offset_sigma_ms": self.sigma_offset_ms[c],
+                            "readout_ms": self.readout_ms[c],
+                            "readout_sigma_ms": self.sigma_readout_ms[c]}
+                        for c in sorted(self.offset_ms)},
+            "board_speed_mps": {"median": float(np.median(speed)), "max": float(speed.max())},
+            "board_rate_dps": {"median": float(np.median(rate)), "max": float(rate.max())},
+        }
