@@ -1,115 +1,128 @@
-"""The time model (issue 32) on a rendered rig, before it is wired into ``calibrate``.
+"""Time (issue 32): the timeless model, the time model and the thesis method against board speed.
 
-    rgbd-calib synth DATA --layout race --frames 30 --seed 5 --motion 0.3 30 \
-        --sync-offset-ms 16 --rolling-shutter-ms 25
-    python tools/bench_time.py DATA [--offset-sigma-ms 1] [--twist-prior 0.5 60]
+    python tools/bench_time.py WORKDIR [--layout race] [--frames 20] [--seed 31]
+        [--speeds 0 0.1 0.3 0.5] [--offset-ms 16] [--readout-ms 25] [--no-timestamps]
 
-Runs the default calibration (``refine: none``: the timeless pose graph and bundle
-adjustment), then :func:`rgbd_calib.solve.time_model.solve_timed` on the same detections
-(every marker of every view the pose graph kept, outlier views too: a timing error makes
-views disagree) from the bundle's poses, and prints each camera's error against
-``ground_truth.yaml`` for both, with the clock offsets and readouts recovered.
-
-The offsets' priors are what the cameras' timestamps give (``<camera>/timestamps.csv``: the
-median over the frame sets of the camera's time minus the reference camera's), with
-``--offset-sigma-ms``; without timestamps the truth plus Gaussian noise of
-``--jitter-ms`` stands in for them (say so in any figure quoted). They anchor the time scale,
-which the images alone do not fix (docs/conventions.md, "Time"). Every camera's readout is
-free (a weak prior at 0 +- 50 ms) when the truth has a rolling shutter, else held at 0.
+Renders (once, into WORKDIR; reused by later runs) the rig with the board moving at each speed
+(turning at 100 deg/s per m/s), cameras' clocks drawn in +-``--offset-ms`` and, in a second
+render per speed, a rolling-shutter readout of ``--readout-ms``; synth's defaults otherwise
+(timestamps.csv with 0.5 ms jitter, colour noise 2 DN, blur 0.6 px). On each it runs
+``calibrate --refine none`` three ways: the timeless model (``bundle.time: fixed``, the rest
+auto), the default (``bundle.time: auto``: the evidence ladder decides) and the thesis method
+(tools/peers.py), and prints one markdown table row per render and method: worst camera error
+against ground_truth.yaml, RMS of error/sigma over the non-reference cameras, the model the
+ladder chose, the worst clock-offset and readout errors, and the bundle stage's time.
+``--no-timestamps`` calibrates a copy of each render without its timestamps.csv.
 """
 
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
-from rgbd_calib import CalibrationConfig, FolderDataset, calibrate, load_ground_truth
+from rgbd_calib import CalibrationConfig, FolderDataset, calibrate
+from rgbd_calib.core.config import BundleConfig
 from rgbd_calib.core.geometry import transform_error
-from rgbd_calib.detect.run import detect_dataset
 from rgbd_calib.model.board import thesis_board
-from rgbd_calib.solve.ladder import camera_matrices, marker_measurements
-from rgbd_calib.solve.pose import board_poses
-from rgbd_calib.solve.time_model import TimePrior, TwistPrior, solve_timed
+from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize
+
+sys.path.insert(0, str(Path(__file__).parent))
+from peers import thesis_method  # noqa: E402
+
+DPS_PER_MPS = 100.0  # the board turns at this rate per unit of speed (a hand's wave)
 
 
-def offset_priors(dataset: FolderDataset, gt, sigma_ms: float, jitter_ms: float,
-                  seed: int) -> tuple[dict[str, TimePrior], str]:
-    """Each camera's offset prior from its timestamps, else from the truth plus noise."""
-    rig = dataset.rig
-    ref = dataset.timestamps_ms(rig.reference)
-    priors, source = {}, "timestamps.csv"
-    rng = np.random.default_rng(seed)
-    for c in rig.names:
-        times = dataset.timestamps_ms(c)
-        if ref is not None and times is not None:
-            diffs = [times[f] - ref[f] for f in times if f in ref]
-            mean = float(np.median(diffs)) if diffs else 0.0
-        else:
-            source = f"the truth + N(0, {jitter_ms} ms) (no timestamps.csv)"
-            mean = gt.offset_ms.get(c, 0.0) + (0.0 if c == rig.reference
-                                                else rng.normal(0.0, jitter_ms))
-        priors[c] = TimePrior(offset_ms=mean, offset_sigma_ms=sigma_ms)
-    return priors, source
+def render(workdir: Path, layout: str, frames: int, seed: int, speed: float, offset_ms: float,
+           readout_ms: float, timestamps: bool) -> Path:
+    name = f"{layout}_s{speed:g}_rs{readout_ms:g}_f{frames}_seed{seed}"
+    out = workdir / name
+    if not (out / "ground_truth.yaml").exists():
+        shutil.rmtree(out, ignore_errors=True)
+        params = SynthParams(motion=(speed, DPS_PER_MPS * speed), sync_offset_ms=offset_ms,
+                             rolling_shutter_ms=readout_ms)
+        synthesize(out, layout, frames, seed, thesis_board(), params)
+    if timestamps:
+        return out
+    bare = workdir / (name + "_no_timestamps")
+    if not bare.exists():
+        shutil.copytree(out, bare)
+        for f in bare.glob("*/timestamps.csv"):
+            f.unlink()
+    return bare
+
+
+def row(data: Path, method: str, result, seconds: float) -> str:
+    gt = load_ground_truth(data)
+    ref = result.extrinsics.reference
+    worst_mm = worst_deg = 0.0
+    z = []
+    for c, cam in result.extrinsics.cameras.items():
+        deg, mm = transform_error(cam.T_ref_cam, gt.T_ref_cam[c])
+        worst_mm, worst_deg = max(worst_mm, mm), max(worst_deg, deg)
+        if c != ref and cam.sigma_translation_mm > 0:
+            z.append(mm / cam.sigma_translation_mm)
+    n = len(gt.T_ref_cam)
+    missing = n - len(result.extrinsics.cameras)
+    ladder = result.self_calibration
+    chosen = ladder.chosen.name if ladder is not None else "-"
+    clock = result.bundle.time if result.bundle is not None else None
+    off = ro = "-"
+    if clock is not None:
+        off = f"{max(abs(clock.total_offset_ms(c) - gt.offset_ms.get(c, 0.0)) for c in clock.offset_ms):.2f}"
+        ro = f"{max(abs(clock.readout_ms[c] - gt.readout_ms.get(c, 0.0)) for c in clock.readout_ms):.2f}"
+    bundle_s = result.timings_s.get("bundle", float("nan"))
+    return (f"| {method} | {worst_mm:.3f} / {worst_deg:.4f}"
+            + (f" ({missing} of {n} not calibrated)" if missing else "")
+            + f" | {np.sqrt(np.mean(np.square(z))) if z else float('nan'):.2f} | {chosen} | "
+            f"{off} | {ro} | {bundle_s:.1f} | {seconds:.0f} |")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("data", type=Path, help="a rendered dataset folder (rgbd-calib synth)")
-    ap.add_argument("--offset-sigma-ms", type=float, default=1.0)
-    ap.add_argument("--jitter-ms", type=float, default=0.5)
-    ap.add_argument("--twist-prior", type=float, nargs=2, default=(0.5, 60.0),
-                    metavar=("MPS", "DPS"), help="1-sigma of each set's board twist")
-    ap.add_argument("--pixel-sigma", type=float, default=0.05, help="corner noise (px)")
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("workdir", type=Path)
+    ap.add_argument("--layout", default="race")
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=31)
+    ap.add_argument("--speeds", type=float, nargs="+", default=[0.0, 0.1, 0.3, 0.5])
+    ap.add_argument("--offset-ms", type=float, default=16.0)
+    ap.add_argument("--readout-ms", type=float, default=25.0)
+    ap.add_argument("--no-timestamps", action="store_true")
+    ap.add_argument("--no-thesis", action="store_true")
     args = ap.parse_args()
-
-    dataset, board = FolderDataset(args.data), thesis_board()
-    gt, rig = load_ground_truth(args.data), dataset.rig
-    cache = args.data.parent / f"{args.data.name}_bench_time_cache"
-    config = CalibrationConfig(refine="none")
-    timeless = calibrate(dataset, board, config, cache_dir=cache)
-    detections = detect_dataset(dataset, board, config.detection,
-                                cache / "detections.json", config.workers)
-    observations, _ = board_poses(detections, board, rig, config.pose)
-    measurements = marker_measurements(observations, timeless.posegraph, rig, False, board,
-                                       keep_outlier_views=True)
-    priors, source = offset_priors(dataset, gt, args.offset_sigma_ms, args.jitter_ms,
-                                   args.seed)
-    rolling = [c for c in rig.names if gt.readout_ms.get(c, 0.0) > 0.0]
-    bundle = timeless.bundle
-    solved = solve_timed(
-        measurements, camera_matrices(rig), {c: rig.cameras[c].height for c in rig.names},
-        rig.reference, {**timeless.posegraph.T_ref_cam, **bundle.T_ref_cam},
-        {**timeless.posegraph.T_ref_board, **bundle.T_ref_board}, rolling_shutter=rolling,
-        time_priors=priors, twist_sigma=TwistPrior(*args.twist_prior),
-        pixel_sigma=args.pixel_sigma, robust="huber", robust_k=3.0)
-
-    print(f"{args.data}: offsets' priors from {source}, sigma {args.offset_sigma_ms} ms; "
-          f"twist prior {args.twist_prior[0]} m/s, {args.twist_prior[1]} deg/s; readout "
-          f"{'free' if rolling else 'held at 0'}")
-    print("camera   timeless mm  deg    | time model mm  deg     sigma mm | offset ms est/true"
-          "        | readout ms est/true")
-    worst = {"timeless": 0.0, "time": 0.0}
-    z = []
-    for c in rig.names:
-        e0 = transform_error(timeless.extrinsics.cameras[c].T_ref_cam, gt.T_ref_cam[c])
-        e1 = transform_error(solved.T_ref_cam[c], gt.T_ref_cam[c])
-        worst["timeless"] = max(worst["timeless"], e0[1])
-        worst["time"] = max(worst["time"], e1[1])
-        s = solved.sigma_translation_mm[c]
-        if c != rig.reference:
-            z.append(e1[1] / s)
-        print(f"{c:8s} {e0[1]:9.3f} {e0[0]:7.4f} | {e1[1]:10.3f} {e1[0]:7.4f} {s:9.3f} | "
-              f"{solved.offset_ms[c]:+7.2f}/{gt.offset_ms.get(c, 0.0):+7.2f} "
-              f"+-{solved.sigma_offset_ms[c]:.2f} | {solved.readout_ms[c]:6.2f}/"
-              f"{gt.readout_ms.get(c, 0.0):6.2f} +-{solved.sigma_readout_ms[c]:.2f}")
-    print(f"worst: timeless {worst['timeless']:.3f} mm, time model {worst['time']:.3f} mm; "
-          f"RMS error/sigma {np.sqrt(np.mean(np.square(z))):.2f}; corner RMS "
-          f"{solved.residual_rms_px:.3f} px, {solved.iterations} iterations")
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    board = thesis_board()
+    print(f"{args.layout}, {args.frames} frame sets, seed {args.seed}, offsets in "
+          f"+-{args.offset_ms:g} ms, timestamps {'removed' if args.no_timestamps else 'kept'}")
+    print("| speed, shutter | method | worst mm / deg | RMS err/sigma | model chosen | "
+          "offset err ms | readout err ms | bundle s | total s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for speed in args.speeds:
+        for readout in (0.0, args.readout_ms):
+            data = render(args.workdir, args.layout, args.frames, args.seed, speed,
+                          args.offset_ms, readout, not args.no_timestamps)
+            label = f"{speed:g} m/s, " + (f"{readout:g} ms rolling" if readout else "global")
+            cache = data.parent / (data.name + "_cache")
+            runs = [("timeless", lambda: calibrate(
+                        FolderDataset(data), board,
+                        CalibrationConfig(refine="none", bundle=BundleConfig(time="fixed")),
+                        cache_dir=cache)),
+                    ("default (time auto)", lambda: calibrate(
+                        FolderDataset(data), board, CalibrationConfig(refine="none"),
+                        cache_dir=cache))]
+            if not args.no_thesis:
+                runs.append(("thesis", lambda: thesis_method(FolderDataset(data), board,
+                                                             cache_dir=cache)))
+            for method, run in runs:
+                t0 = time.perf_counter()
+                result = run()
+                print(f"| {label} " + row(data, method, result, time.perf_counter() - t0),
+                      flush=True)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -343,6 +343,18 @@ def calibrate(
             "always estimate it.",
         ),
     ] = None,
+    time: Annotated[
+        str | None,
+        typer.Option(
+            "--time",
+            help="auto (default): when the views disagree, also try each camera's clock "
+            "offset and rolling-shutter readout and each frame set's board motion, kept when "
+            "the corners fit better for it (cameras without a sync cable, a board waved by "
+            "hand); fixed: every camera captured at the frame set's instant; refine: always "
+            "estimate them. The cameras' timestamps.csv, when the dataset has them, fix the "
+            "clocks' scale.",
+        ),
+    ] = None,
     fix: Annotated[
         Path | None,
         typer.Option(
@@ -364,7 +376,8 @@ def calibrate(
     check_output_folder(out)
     cfg = load_config(config, method=method, workers=workers, refine=refine,
                       scheduler=scheduler,
-                      **{"bundle.intrinsics": intrinsics, "bundle.board": board_model})
+                      **{"bundle.intrinsics": intrinsics, "bundle.board": board_model,
+                         "bundle.time": time})
     check_scheduler(cfg.scheduler)
     b = load_board(board_file) if board_file else thesis_board()
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)

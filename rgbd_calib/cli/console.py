@@ -182,6 +182,7 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
         common_depth_scale,
         confirming_pairs,
         glue_sentence,
+        time_sentence,
     )
 
     table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
@@ -219,6 +220,12 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
         console.print(f"self-calibration: refined {ladder.chosen.name}{why}"
                       + ("; markers detected again with the refined lens"
                          if ladder.redetected else ""))
+    clock = result.bundle.time if result.bundle is not None else None
+    if clock is not None:
+        console.print(f"time: {time_sentence(clock.to_dict(), result.extrinsics.reference)}"
+                      + ("" if clock.anchored else
+                         " (no timestamps: known up to a common scale factor)"),
+                      highlight=False, soft_wrap=True)
     board = board_refined_entry(result).get("refined")
     if board and board["held"]:
         console.print(f"[yellow]board not refined[/]: {board['held']}")

@@ -225,8 +225,14 @@ def _final_marker_residuals(
                 rows4 = np.repeat(board.faces_of(o.ids), 4)
                 moves += [(rows4 == label, C) for label, C in face_moves.items()]
             P_b = move_rows(P_b, moves)
-            pts = transform_points(T_cam_board, P_b)
-            uv = _final_model(result, rig, o.camera).project(pts).reshape(-1, 4, 2)
+            clock = result.bundle.time if result.bundle else None
+            if clock is not None:  # each corner where the board was at its row's time
+                uv = clock.project(o.camera, o.frame, cams[o.camera].T_ref_cam, boards[o.frame],
+                                   _final_model(result, rig, o.camera), P_b,
+                                   o.corners_px.reshape(-1, 2)[:, 1]).reshape(-1, 4, 2)
+            else:
+                pts = transform_points(T_cam_board, P_b)
+                uv = _final_model(result, rig, o.camera).project(pts).reshape(-1, 4, 2)
             row["rms"] = np.sqrt(np.mean(np.sum((uv - o.corners_px) ** 2, axis=-1), axis=-1))
             row["used_markers"] = np.array(
                 [status == "used" if in_bundle is None else (o.camera, o.frame, int(m)) in in_bundle
@@ -549,7 +555,7 @@ def _marker_entries(rows: list[dict[str, Any]], board=None) -> list[dict[str, An
 
 
 def _bundle_entry(bundle: BundleResult) -> dict[str, Any]:
-    return {
+    entry = {
         "pixel_sigma_estimated": bundle.pixel_sigma_estimated,
         "iterations": bundle.iterations,
         "markers": len(bundle.residuals_px),
@@ -557,6 +563,9 @@ def _bundle_entry(bundle: BundleResult) -> dict[str, Any]:
             {"camera": c, "view": v, "marker": m, "rms_px": r} for c, v, m, r in bundle.outliers
         ],
     }
+    if bundle.time is not None:
+        entry["time"] = bundle.time.to_dict()
+    return entry
 
 
 def pair_entry(pair: dict[str, Any]) -> dict[str, Any]:

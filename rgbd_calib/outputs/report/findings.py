@@ -8,7 +8,8 @@ inconsistent or weak is not flagged again for what follows from that) and return
 
 The rules live by subject: :mod:`.findings_cameras`, :mod:`.findings_board` (where the board
 was held, the refined lens and back sheet), :mod:`.findings_views` (views and markers),
-:mod:`.findings_depth` (the depth stage, a depth-only refinement); :mod:`.findings_base` holds
+:mod:`.findings_depth` (the depth stage, a depth-only refinement), :mod:`.findings_time`
+(cameras that did not capture at one instant); :mod:`.findings_base` holds
 what they share. This module orders them and re-exports every rule.
 """
 
@@ -61,6 +62,7 @@ from .findings_depth import (
     refine_moved,
     refit_failed,
 )
+from .findings_time import capture_time, time_sentence
 from .findings_views import (
     dropped_views,
     fitting_outlier_views,
@@ -85,6 +87,7 @@ __all__ = [
     "board_tilt",
     "camera_model_error",
     "cameras_of",
+    "capture_time",
     "common_depth_scale",
     "confirming_pairs",
     "depth_scale",
@@ -114,6 +117,7 @@ __all__ = [
     "refit_failed",
     "reprojection",
     "scratch_coverage",
+    "time_sentence",
     "view_model_error",
     "weak_camera",
     "weak_link",
@@ -124,6 +128,7 @@ RULES: tuple[Rule, ...] = (
     not_calibrated,
     inconsistent_camera,
     camera_model_error,
+    capture_time,
     weak_camera,
     each_sound_camera(few_views, weak_link),
     board_glue,

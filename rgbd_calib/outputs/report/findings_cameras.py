@@ -94,6 +94,8 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
     within 3 sigma of its rig.yaml prior: the listed model was as good as it claimed, and the
     finding is an info, one for all such cameras (with every lens off, the whole rig)."""
     out, fine = [], []
+    chosen = ((report.get("bundle") or {}).get("self_calibration") or {}).get("chosen")
+    model = f"the self-calibrated model ({chosen})" if chosen else "the refined board / intrinsics"
     for m in report["pose_graph"].get("model_error") or []:
         name = m["camera"]
         explained = m.get("sigma_factor") is not None and m["sigma_factor"] <= 1.0
@@ -114,7 +116,7 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
                     f"The camera is kept, its uncertainty scaled x{m['sigma_factor']:.1f} to "
                     "match."
                     if not explained
-                    else "The refined board / intrinsics explain it: its corners fit like the "
+                    else f"{model[0].upper()}{model[1:]} explains it: its corners fit like the "
                     "rest of the rig, and its uncertainty is not inflated; but "
                     + ", ".join(beyond) + " moved beyond 3 sigma of the rig.yaml prior."
                 ),
@@ -139,9 +141,9 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
             "camera_model_error",
             names,
             f"{whose} board views disagreed with the rest of the rig under the board file's "
-            f"and rig.yaml's model ({counts} beyond the outlier threshold); the refined "
-            "board / intrinsics explain it within their priors: the corners fit like the rest "
-            "of the rig, and the uncertainty is not inflated.",
+            f"and rig.yaml's model ({counts} beyond the outlier threshold); {model} explains "
+            "it within its priors: the corners fit like the rest of the rig, and the "
+            "uncertainty is not inflated.",
             "Nothing to do; rig_refined.yaml (and board_refined.yaml when the board was "
             "refined) hold the refined models.",
         ))

@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.10"
+REPORT_SCHEMA_VERSION = "1.11"
 
 
 class ReportError(RgbdCalibError):
@@ -283,13 +283,23 @@ REPORT_SCHEMA: dict[str, Any] = {
         "iterations": INT,
         "markers": INT,
         "outlier_markers": ListOf({"camera": S, "view": S, "marker": INT, "rms_px": N}),
+        "time?": {
+            "anchored_by_timestamps": ListOf(S),
+            "cameras": MapOf("<camera>", {"offset_ms": N, "offset_beyond_timestamps_ms": N,
+                                          "offset_sigma_ms": N, "readout_ms": N,
+                                          "readout_sigma_ms": N}),
+            "board_speed_mps": {"median": N, "max": N},
+            "board_rate_dps": {"median": N, "max": N},
+        },
         "self_calibration?": {
             "chosen": S,
             "board": B,
+            "time?": B,
             "intrinsics_params": ListOf(S),
             "redetected": B,
             "levels": ListOf({
-                "level": S, "board": B, "intrinsics_params": ListOf(S), "cameras": INT,
+                "level": S, "board": B, "time?": B, "intrinsics_params": ListOf(S),
+                "cameras": INT,
                 "markers": INT, "rms_px": Nullable(N), "added_parameters": INT,
                 "bic_gain": Nullable(N), "accepted": B, "reason": S,
             }),
