@@ -48,7 +48,7 @@ def test_compare_uses_common_markers_and_caps_outliers():
 def test_candidate_groups_follow_the_config():
     auto = BundleConfig(board="auto", intrinsics="auto", time="fixed")
     groups = selfcal.candidate_groups(auto, double_sided=True, model_error=True)
-    assert groups[0] == [(True, (), False)]
+    assert groups[0] == [(True, (), False)] and len(groups) == 2  # time fixed: not tried
     assert groups[1][0] == (False, ("fx", "fy", "cx", "cy"), False)
     assert groups[1][1][1] == tuple(auto.intrinsics_params)
     # no model error: the intrinsics are not tried; one-sided board: no back sheet
@@ -67,23 +67,24 @@ def test_candidate_groups_follow_the_config():
     assert selfcal.extend(level, (False, ("fx", "k1"), False)).distortion
 
 
-def test_time_is_an_alternative_to_the_board_and_only_with_a_model_error():
-    """Time and the back sheet compete in one group (neither may absorb the other's error),
-    then each is tried on top of the other; the lens comes after. Without views that disagree
-    (no model error: a still board, synchronised cameras) time is never tried."""
+def test_time_challenges_the_first_steps_and_only_with_a_model_error():
+    """Time must beat every other first step (the back sheet, the lens alternatives: neither
+    may absorb the other's error) to be taken first; it is tried again last on top of the
+    rest. Without views that disagree (no model error: a still board, synchronised cameras)
+    time is never tried."""
     auto = BundleConfig()  # board, intrinsics and time all auto
     groups = selfcal.candidate_groups(auto, double_sided=True, model_error=True)
-    assert groups[0] == [(False, (), True), (True, (), False)]
-    assert groups[1] == [(False, (), True)] and groups[2] == [(True, (), False)]
-    assert all(not step[2] for step in groups[3])  # the lens alternatives
+    assert groups[0] == [(True, (), False)] and groups[-1] == [selfcal.TIME_STEP]
+    assert all(not step[2] for step in groups[1])  # the lens alternatives
+    challengers = selfcal.time_challengers(groups)
+    assert challengers == [(True, (), False), *groups[1]]
     assert selfcal.candidate_groups(auto, True, model_error=False) == [[(True, (), False)]]
-    one_sided = selfcal.candidate_groups(auto, double_sided=False, model_error=True)
-    assert one_sided[0] == [(False, (), True)]
-    timed = selfcal.extend(selfcal.base_level(auto), groups[0][0])
+    assert selfcal.time_challengers([[(True, (), False)]]) == []
+    timed = selfcal.extend(selfcal.base_level(auto), selfcal.TIME_STEP)
     assert timed.name == "time" and timed.bundle_config(auto).time == "refine"
-    both = selfcal.extend(timed, groups[2][0])
+    both = selfcal.extend(timed, groups[0][0])
     assert both.name == "time + board" and both.board and both.time
-    assert selfcal.extend(both, groups[1][0]) == both  # skipped by the ladder: nothing new
+    assert selfcal.extend(both, selfcal.TIME_STEP) == both  # skipped by the ladder
     assert selfcal.time_parameters(cameras=8, views=30) == 2 * 8 - 1 + 6 * 30
     assert selfcal.base_level(BundleConfig(time="refine")).time
 

@@ -309,19 +309,29 @@ def self_calibrated_bundle(
 
 def _climb(ladder: _Ladder, config: BundleConfig,
            current: _Step) -> tuple[_Step, list[selfcal.LevelFit]]:
-    """Up the ladder from ``current``: each group of alternatives tried from the accepted
-    solve, the best accepted one (:func:`rgbd_calib.solve.selfcal.better`) taken. A group
-    that a wrong model elsewhere hid (the back sheet judged through an undistorted lens) is
-    tried once more after a later group was accepted. Returns the chosen step and every fit."""
+    """Up the ladder from ``current``: first the time challenge (:func:`_time_challenge`),
+    then each group of alternatives tried from the accepted solve, the best accepted one
+    (:func:`rgbd_calib.solve.selfcal.better`) taken. A group that a wrong model elsewhere hid
+    (the back sheet judged through an undistorted lens) is tried once more after a later
+    group was accepted. Returns the chosen step and every fit."""
     fits = [current.fit]
     board = ladder.board
     double_sided = bool(np.any(np.asarray(board.faces) < 0)) or len(board.face_labels) > 1
     queue = selfcal.candidate_groups(config, double_sided, bool(ladder.pg.model_error))
+    solved: dict[tuple[str, str], _Step] = {}  # (base, level) -> its step: solved once
+
+    def attempt(level: selfcal.ModelLevel, base: _Step) -> _Step:
+        key = (base.fit.level.name, level.name)
+        if key not in solved:
+            solved[key] = _try_level(ladder, config, level, base)
+        return solved[key]
+
+    current, fits = _time_challenge(selfcal.time_challengers(queue), attempt, current, fits)
     for _ in range(2):
         rejected, retry = [], False
         for group in queue:
             level = current.fit.level
-            tried = [_try_level(ladder, config, selfcal.extend(level, step), current)
+            tried = [attempt(selfcal.extend(level, step), current)
                      for step in group if selfcal.extend(level, step) != level]
             best = None
             for t in tried:
@@ -330,15 +340,42 @@ def _climb(ladder: _Ladder, config: BundleConfig,
             fits += [t.fit if best is None or t is best or not t.fit.accepted else
                      replace(t.fit, accepted=False,
                              reason=t.fit.reason + "; another model fits better")
-                     for t in tried]
+                     for t in tried if t.fit not in fits]  # a retry from the same base: once
             if best is None:
-                rejected.append(group)
+                if tried:
+                    rejected.append(group)
                 continue
             current, retry = best, retry or bool(rejected)
         if not retry:
             break
         queue = rejected
     return current, fits
+
+
+def _time_challenge(challengers: list, attempt, current: _Step,
+                    fits: list[selfcal.LevelFit]) -> tuple[_Step, list[selfcal.LevelFit]]:
+    """Time taken first only when it fits better than every other first step (the back
+    sheet, the lens alternatives): its per-set twists and per-camera clocks can mimic a
+    little of a misglued sheet or a wrong focal length, and those, a little of a timing error.
+    The challengers' solves are reused by the groups that follow; when time loses, it is
+    recorded as not kept (and tried again last, on top of what the others give)."""
+    if not challengers:
+        return current, fits
+    level = current.fit.level
+    timed = attempt(selfcal.extend(level, selfcal.TIME_STEP), current)
+    if not timed.fit.accepted:
+        return current, fits + [timed.fit]
+    rivals = [attempt(selfcal.extend(level, step), current) for step in challengers]
+    better = [r for r in rivals if r.fit.accepted and selfcal.better(r.fit, timed.fit)]
+    if not better:
+        return timed, fits + [timed.fit] + [replace(
+            r.fit, accepted=False, reason=r.fit.reason + "; the time model fits better")
+            for r in rivals if r.fit.accepted]
+    rival = better[0].fit
+    return current, fits + [replace(timed.fit, accepted=False, reason=(
+        f"{timed.fit.reason}; but + {rival.level.name} fits better (BIC gain "
+        f"{rival.bic_gain if rival.bic_gain is None else round(rival.bic_gain)}): tried "
+        "again after it"))]
 
 
 def _try_level(ladder: _Ladder, config: BundleConfig, trial_level: selfcal.ModelLevel,

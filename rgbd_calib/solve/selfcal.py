@@ -11,12 +11,14 @@ models, each the last accepted one plus one group of parameters:
 1. the nominal model (board file and rig.yaml as given, every camera exposing at the frame
    set's instant);
 2. + time (per camera a clock offset and a rolling-shutter readout, per frame set the board's
-   twist: :mod:`rgbd_calib.solve.time_model`), or + the back sheet's pose (4 parameters for the
-   rig; only for a double-sided board): alternatives, the better by BIC kept, so that a board
-   model does not absorb a timing error nor the time model a misglued sheet; then the other
-   one on top of it. Time is tried only when the pose graph found views that disagree beyond
-   their noise (a still board or synchronised cameras never pay for it);
-3. + focal lengths and principal points (``fx fy cx cy`` of ``bundle.intrinsics_params``,
+   twist: :mod:`rgbd_calib.solve.time_model`), first, only when it fits better than every
+   other first step (the back sheet, the lens alternatives below): a board or lens model must
+   not absorb a timing error, nor the time model (whose per-set twists can mimic a little of
+   anything) a misglued sheet or a wrong focal length. Tried only when the pose graph found
+   views that disagree beyond their noise (a still board or synchronised cameras never pay
+   for it); when it loses, it is tried again last, on top of the rest;
+3. + the back sheet's pose (4 parameters for the rig; only for a double-sided board);
+4. + focal lengths and principal points (``fx fy cx cy`` of ``bundle.intrinsics_params``,
    per camera), or those and the lens distortion coefficients of
    ``bundle.intrinsics_params``: two alternatives, tried only when the pose graph found a
    camera-level model error; the better one by BIC is kept.
@@ -145,28 +147,37 @@ def base_level(config: BundleConfig) -> ModelLevel:
 Step = tuple[bool, tuple[str, ...], bool]  # (board, intrinsics parameters, time) a level adds
 
 
+TIME_STEP: Step = (False, (), True)
+
+
 def candidate_groups(config: BundleConfig, double_sided: bool,
                      model_error: bool) -> list[list[Step]]:
-    """What ``auto`` may add, as groups of alternatives ``(board, intrinsics parameters,
-    time)`` tried on the model accepted so far; the best of a group by BIC is kept. First time
-    (``time: auto``, when the pose graph found a camera-level model error: views that disagree
-    beyond their noise) and the back sheet (board ``auto``, double-sided board) as
-    alternatives, then each alone (skipped when the accepted model has it already); then,
-    when the intrinsics are ``auto`` and the pose graph found a camera-level model error,
-    fx fy cx cy, or those and the distortion coefficients of ``bundle.intrinsics_params``
-    (alternatives, not a chain: a lens error makes the focal step alone fit worse, not
-    better)."""
+    """What ``auto`` may add after the time challenge (:func:`time_challengers`), as groups of
+    alternatives ``(board, intrinsics parameters, time)`` tried on the model accepted so far;
+    the best of a group by BIC is kept. First the back sheet (board ``auto``, double-sided
+    board); then, when the intrinsics are ``auto`` and the pose graph found a camera-level
+    model error, fx fy cx cy, or those and the distortion coefficients of
+    ``bundle.intrinsics_params`` (alternatives, not a chain: a lens error makes the focal step
+    alone fit worse, not better); last time (``time: auto`` with a model error), on top of
+    what was accepted (skipped when the time challenge already took it)."""
     groups: list[list[Step]] = []
-    time = [(False, (), True)] if config.time == "auto" and model_error else []
-    board = [(True, (), False)] if config.board == "auto" and double_sided else []
-    if time and board:
-        groups.append(time + board)
-    groups += [g for g in (time, board) if g]
+    if config.board == "auto" and double_sided:
+        groups.append([(True, (), False)])
     if config.intrinsics == "auto" and model_error:
         focal = tuple(p for p in config.intrinsics_params if p in FOCAL_CENTRE)
         every = tuple(config.intrinsics_params)
         groups.append([(False, g, False) for g in dict.fromkeys((focal, every)) if g])
+    if config.time == "auto" and model_error:
+        groups.append([TIME_STEP])
     return groups
+
+
+def time_challengers(groups: list[list[Step]]) -> list[Step]:
+    """The first steps time must beat to be taken before the others (every step of
+    :func:`candidate_groups` but time itself); empty when time is not a candidate."""
+    if [TIME_STEP] not in groups:
+        return []
+    return [step for g in groups for step in g if step != TIME_STEP]
 
 
 def better(a: LevelFit, b: LevelFit) -> bool:

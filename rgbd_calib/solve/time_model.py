@@ -57,7 +57,8 @@ from .bundle_factors import (
 )
 
 MS = 1e-3  # seconds per millisecond: the time parameters are in ms
-HELD_SIGMA = 1e-9  # sigma of a held value (the reference's pose and offset, a global shutter)
+HELD_SIGMA = 1e-6  # sigma (ms) of a held time (the reference's offset, a global shutter): tighter
+# makes the marginals' Cholesky fail beside the weak time priors (1e18 against 4e-4)
 
 
 def _skew_stack(a: np.ndarray) -> np.ndarray:
