@@ -145,7 +145,9 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
             "it within its priors: the corners fit like the rest of the rig, and the "
             "uncertainty is not inflated.",
             "Nothing to do; rig_refined.yaml (and board_refined.yaml when the board was "
-            "refined) hold the refined models.",
+            "refined) hold the refined models." if chosen not in (None, "time") else
+            "Nothing to do here (the capture_time finding says how the capture limits the "
+            "accuracy).",
         ))
     return out
 
