@@ -504,6 +504,13 @@ class BundleConfig(BaseModel):
         60.0, gt=0, description="prior sigma of the board's turn rate during a frame set "
         "(deg/s, per axis)"
     )
+    time_twist_prior_from_data: bool = Field(
+        True, description="re-estimate the twist prior's two sigmas from the frame sets' "
+        "twists (empirical Bayes, rgbd_calib/solve/bundle.py _twist_prior_from_data), starting "
+        "from time_twist_sigma_*: a slowly moved board otherwise keeps the wide prior's "
+        "spread, and the sigmas claim several times the error (race, 0.1 m/s, global "
+        "shutter: RMS error/sigma 0.15)"
+    )
 
     @model_validator(mode="after")
     def _known_intrinsics(self) -> BundleConfig:

@@ -338,7 +338,8 @@ class TimeModel:
     (reference frame) and its sigmas. ``anchored``: the cameras whose offsets are anchored by
     timestamps; with none, the time scale is a gauge (docs/conventions.md 'Time') and the
     offsets, readouts and speeds are known only up to a common factor (the poses are not
-    affected). ``capture_ms``: the timestamps' per-view offsets used."""
+    affected). ``capture_ms``: the timestamps' per-view offsets used; ``twist_prior`` the
+    twist prior's sigmas the final solve used (estimated from the data by default)."""
 
     offset_ms: dict[str, float]
     sigma_offset_ms: dict[str, float]
@@ -348,6 +349,7 @@ class TimeModel:
     sigma_twist: dict[str, np.ndarray]
     anchored: tuple[str, ...] = ()
     capture_ms: dict[tuple[str, str], float] | None = None
+    twist_prior: TwistPrior | None = None  # the twist prior's sigmas in the final solve
 
     @property
     def speed_mps(self) -> dict[str, float]:
