@@ -215,4 +215,6 @@ def test_cli_record_reports_what_it_wrote(board, rng, tmp_path, capsys):
         device_source=_fake_rig(board, rng),
     )
     assert report.sets_written == 2
-    assert "done: 2 set(s) of 2 camera(s)" in capsys.readouterr().err.replace("\n", " ")
+    err = capsys.readouterr().err.replace("\n", " ")
+    assert "done: 2 set(s) of 2 camera(s)" in err
+    assert "hold the board still" in err  # no --hardware-sync: the time advice

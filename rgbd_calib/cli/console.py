@@ -375,6 +375,14 @@ def cli_convert_videos(videos: Sequence[Path], out: Path, names: Sequence[str] |
 
 
 # --------------------------------------------------------------------------- record
+RECORD_TIME_TIP = (
+    "tip: without --hardware-sync the cameras capture up to half a frame apart (the table "
+    "shows how far): hold the board still for a moment at each pose. calibrate's time model "
+    "corrects a moving board from the timestamps this writes, but a still board is the most "
+    "accurate (docs/accuracy.md, 'Time')."
+)
+
+
 def cli_record(
     out: Path,
     n_sets: int | None = None,
@@ -400,6 +408,8 @@ def cli_record(
         t.caption = f"{status.sets_written} set(s) written; cameras {status.spread_ms:.1f} ms apart"
         return t
 
+    if not hardware_sync:
+        console.print(RECORD_TIME_TIP, highlight=False, soft_wrap=True)
     live: Live | None = None
 
     def show(status: RecordStatus) -> None:

@@ -249,14 +249,19 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
     sigma_hat = solution.sigma_px(layout)
     config = layout.config
     sigma_marg = max(sigma_hat, 1e-3) if config.estimate_sigma else config.pixel_sigma
+    clock = None
     if layout.timed and config.time_twist_prior_from_data:  # priors against the corners
+        # the clocks from the solve with the wide prior, which barely pulls their scale
+        clock = _time_model(layout, solution.values, gtsam.Marginals(_build_graph(
+            layout, solution.groups, sigma_marg, solution.connected, robust=False),
+            solution.values))
         layout, solution = _twist_prior_from_data(layout, solution, sigma_marg, params)
         sigma_hat = solution.sigma_px(layout)
         sigma_marg = max(sigma_hat, 1e-3) if config.estimate_sigma else config.pixel_sigma
     if layout.relative_poses and config.estimate_sigma:
         solution = _solve_at_sigma(layout, solution, sigma_marg, params)
     # marginals of the plain Gaussian graph at the solution
-    return _result(layout, solution, sigma_hat, sigma_marg, board_model, face_models)
+    return _result(layout, solution, sigma_hat, sigma_marg, board_model, face_models, clock)
 
 
 @dataclass(frozen=True)
@@ -451,7 +456,10 @@ def _twist_prior_from_data(layout: _FactorLayout, solution: _Solution, sigma: fl
     claim several times their error. Each step sets the prior's variance to the mean over
     sets and axes of ``twist^2 + its marginal variance`` (the EM update of a zero-mean
     Gaussian's variance; linear and angular parts apart, floored at :data:`TWIST_FLOOR`) and
-    solves again."""
+    solves again. The extrinsics and their sigmas come from that solve; the clocks do not
+    (:func:`bundle_adjust` keeps them from the solve before it): a prior as tight as the
+    twists pulls them towards 0 and with them the clocks' scale, the gauge the timestamps
+    anchor only weakly (measured: ring, +-16 ms, offsets 1.3x too large)."""
     for _ in range(TWIST_PRIOR_STEPS):
         graph = _build_graph(layout, solution.groups, sigma, solution.connected, robust=False)
         marginals = gtsam.Marginals(graph, solution.values)
@@ -467,7 +475,8 @@ def _twist_prior_from_data(layout: _FactorLayout, solution: _Solution, sigma: fl
 
 
 def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_marg: float,
-            board_model: BoardModel | None, face_models: tuple[FaceModel, ...]) -> BundleResult:
+            board_model: BoardModel | None, face_models: tuple[FaceModel, ...],
+            clock: TimeModel | None = None) -> BundleResult:
     """The :class:`BundleResult` of ``solution``: marginals of the plain Gaussian graph at the
     solution, corners weighted by ``sigma_marg`` so that the relative-pose factors keep their
     own weight (inlier Huber weights are 1 and the outliers were removed)."""
@@ -492,7 +501,9 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
     return BundleResult(out_cam, boards, cov, s_rot, s_trans, residuals, solution.outliers,
                         sigma_hat, solution.optimizer.iterations(),
                         solution.graph.error(values), refined, sigma_intr, sigma_prior,
-                        board_model, face_models, _time_model(layout, values, marginals))
+                        board_model, face_models,
+                        _with_prior(clock, layout) if clock is not None
+                        else _time_model(layout, values, marginals))
 
 
 def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
@@ -595,6 +606,11 @@ def _time_model(p: _FactorLayout, values: gtsam.Values,
         capture_ms=dict(p.capture_ms),
         twist_prior=p.twist_sigma or TwistPrior(p.config.time_twist_sigma_mps,
                                                 p.config.time_twist_sigma_dps))
+
+
+def _with_prior(clock: TimeModel, p: _FactorLayout) -> TimeModel:
+    """``clock`` with the twist prior the final solve used."""
+    return replace(clock, twist_prior=p.twist_sigma)
 
 
 def _current_models(p: _FactorLayout, values: gtsam.Values) -> dict[str, CameraIntrinsics] | None:
