@@ -73,8 +73,11 @@ def row(data: Path, method: str, result, seconds: float) -> str:
     clock = result.bundle.time if result.bundle is not None else None
     off = ro = "-"
     if clock is not None:
-        off = f"{max(abs(clock.total_offset_ms(c) - gt.offset_ms.get(c, 0.0)) for c in clock.offset_ms):.2f}"
-        ro = f"{max(abs(clock.readout_ms[c] - gt.readout_ms.get(c, 0.0)) for c in clock.readout_ms):.2f}"
+        off_ms = max(abs(clock.total_offset_ms(c) - gt.offset_ms.get(c, 0.0))
+                     for c in clock.offset_ms)
+        ro_ms = max(abs(clock.readout_ms[c] - gt.readout_ms.get(c, 0.0))
+                    for c in clock.readout_ms)
+        off, ro = f"{off_ms:.2f}", f"{ro_ms:.2f}"
     bundle_s = result.timings_s.get("bundle", float("nan"))
     return (f"| {method} | {worst_mm:.3f} / {worst_deg:.4f}"
             + (f" ({missing} of {n} not calibrated)" if missing else "")
@@ -107,19 +110,16 @@ def main() -> None:
                           args.offset_ms, readout, not args.no_timestamps)
             label = f"{speed:g} m/s, " + (f"{readout:g} ms rolling" if readout else "global")
             cache = data.parent / (data.name + "_cache")
-            runs = [("timeless", lambda: calibrate(
-                        FolderDataset(data), board,
-                        CalibrationConfig(refine="none", bundle=BundleConfig(time="fixed")),
-                        cache_dir=cache)),
-                    ("default (time auto)", lambda: calibrate(
-                        FolderDataset(data), board, CalibrationConfig(refine="none"),
-                        cache_dir=cache))]
+            runs = [("timeless", CalibrationConfig(refine="none",
+                                                   bundle=BundleConfig(time="fixed"))),
+                    ("default (time auto)", CalibrationConfig(refine="none"))]
             if not args.no_thesis:
-                runs.append(("thesis", lambda: thesis_method(FolderDataset(data), board,
-                                                             cache_dir=cache)))
-            for method, run in runs:
+                runs.append(("thesis", None))
+            for method, config in runs:
                 t0 = time.perf_counter()
-                result = run()
+                result = (thesis_method(FolderDataset(data), board, cache_dir=cache)
+                          if config is None else
+                          calibrate(FolderDataset(data), board, config, cache_dir=cache))
                 print(f"| {label} " + row(data, method, result, time.perf_counter() - t0),
                       flush=True)
 

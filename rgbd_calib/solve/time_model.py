@@ -31,7 +31,8 @@ across sets or covers different rows (the offset moves every corner of a view al
 readout in proportion to its row).
 
 All Jacobians are analytic (checked against central differences in tests/test_time_model.py).
-:func:`solve_timed` solves such a graph on its own; the bundle adjustment does not use it yet.
+The bundle adjustment (:mod:`rgbd_calib.solve.bundle`, ``bundle.time: refine``) builds its
+graph from these factors and priors; :class:`TimeModel` is what it estimated.
 """
 
 from __future__ import annotations
