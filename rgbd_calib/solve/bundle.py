@@ -440,7 +440,7 @@ def _solve_at_sigma(layout: _FactorLayout, solution: _Solution, sigma: float,
     return replace(solution, values=values, rms=rms, graph=graph, optimizer=optimizer)
 
 
-TWIST_PRIOR_STEPS = 3  # expectation-maximisation steps of the twist prior's scale
+TWIST_PRIOR_STEPS = 2  # expectation-maximisation steps of the twist prior's scale
 TWIST_FLOOR = TwistPrior(sigma_mps=0.005, sigma_dps=0.5)  # a board held still by hand
 
 

@@ -298,13 +298,40 @@ def self_calibrated_bundle(
                                        "refine" in (config.board, config.time))
         return result, problem, None
     level = selfcal.base_level(config)
-    result, problem = ladder.solve(level.bundle_config(config), pg.T_ref_cam, pg.T_ref_board,
+    result, problem = ladder.solve(_trial_config(level, config), pg.T_ref_cam, pg.T_ref_board,
                                    level.board or level.time)
     terms = selfcal.marker_terms(result.residuals_px, result.outliers, config.outlier_px)
     start_fit = selfcal.LevelFit(level, len(result.T_ref_cam), len(result.residuals_px),
                                  selfcal.rms_px(terms), reason="the starting model")
     chosen, fits = _climb(ladder, config, _Step(start_fit, result, problem, terms))
-    return chosen.result, chosen.problem, selfcal.SelfCalibration(chosen.fit.level, fits)
+    result, problem = chosen.result, chosen.problem
+    if chosen.fit.level.time:
+        # at the configured tolerance, with the twist prior from the data: once, on the model
+        # chosen (the prior's steps cost several solves; the comparisons do not need it)
+        problem = replace(problem, config=chosen.fit.level.bundle_config(config),
+                          T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
+                          T_ref_board={**problem.T_ref_board, **result.T_ref_board})
+        result = bundle_sound_first(problem, pg.model_error)
+    return result, problem, selfcal.SelfCalibration(chosen.fit.level, fits)
+
+
+# a timed level the ladder compares stops at this relative decrease of its error: along the
+# clocks' scale (a gauge only weak priors hold) and on a still board (time unobservable)
+# Levenberg-Marquardt creeps on for ~100 iterations (intrinsics-error race: 11 s instead of 1),
+# while BIC gains are thousands; the chosen model is solved again at the configured tolerance
+TIME_TRIAL_TOL = 1e-6
+TIME_TRIAL_ITERATIONS = 40  # ... and at most this many iterations (a moving board's: 6-38)
+
+
+def _trial_config(level: selfcal.ModelLevel, config: BundleConfig) -> BundleConfig:
+    """``level``'s config for a solve the ladder compares: the twist prior as configured (its
+    estimate from the data is for the model chosen, :func:`self_calibrated_bundle`), a timed
+    level to :data:`TIME_TRIAL_TOL` and :data:`TIME_TRIAL_ITERATIONS`."""
+    update: dict = {"time_twist_prior_from_data": False}
+    if level.time:
+        update["relative_error_tol"] = max(config.relative_error_tol, TIME_TRIAL_TOL)
+        update["max_iterations"] = min(config.max_iterations, TIME_TRIAL_ITERATIONS)
+    return level.bundle_config(config).model_copy(update=update)
 
 
 def _climb(ladder: _Ladder, config: BundleConfig,
@@ -388,7 +415,7 @@ def _try_level(ladder: _Ladder, config: BundleConfig, trial_level: selfcal.Model
     init_cam = {**ladder.pg.T_ref_cam, **accepted.T_ref_cam}
     init_board = {**ladder.pg.T_ref_board, **accepted.T_ref_board}
     try:
-        trial, problem = ladder.solve(trial_level.bundle_config(config), init_cam, init_board,
+        trial, problem = ladder.solve(_trial_config(trial_level, config), init_cam, init_board,
                                       True)
     except _SOLVE_ERRORS as exc:
         return _Step(selfcal.LevelFit(trial_level, 0, 0, float("nan"), accepted=False,
