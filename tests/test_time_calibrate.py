@@ -4,8 +4,8 @@ say what it found. Renders (about a minute each on 2 cores): slow.
 
 Race rig, 12 frame sets, seed 21 (not one the time model was developed on), board 0.3 m/s and
 30 deg/s, offsets drawn in +-16 ms, a 25 ms readout, timestamps with 0.5 ms jitter; colour
-noise 2 DN, blur 0.6 px (synth defaults). Measured: worst 0.42 mm / 0.018 deg (the timeless
-model: several mm), offsets within 0.2 ms, readouts within 0.9 ms, RMS error/sigma 0.82.
+noise 2 DN, blur 0.6 px (synth defaults). Measured: worst 0.24 mm (the timeless model: several
+mm), offsets within 0.2 ms, readouts within 0.9 ms, RMS error/sigma 0.56.
 """
 
 from __future__ import annotations
