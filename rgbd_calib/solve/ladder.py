@@ -307,11 +307,18 @@ def self_calibrated_bundle(
     result, problem = chosen.result, chosen.problem
     if chosen.fit.level.time:
         # at the configured tolerance, with the twist prior from the data: once, on the model
-        # chosen (the prior's steps cost several solves; the comparisons do not need it)
-        problem = replace(problem, config=chosen.fit.level.bundle_config(config),
-                          T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
-                          T_ref_board={**problem.T_ref_board, **result.T_ref_board})
-        result = bundle_sound_first(problem, pg.model_error)
+        # chosen (the prior's steps cost several solves; the comparisons do not need it); its
+        # config otherwise the trial's (priors a contradiction loosened stay loosened)
+        final = replace(problem, config=problem.config.model_copy(update={
+                            "time_twist_prior_from_data": config.time_twist_prior_from_data,
+                            "relative_error_tol": config.relative_error_tol,
+                            "max_iterations": config.max_iterations}),
+                        T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
+                        T_ref_board={**problem.T_ref_board, **result.T_ref_board})
+        try:
+            result, problem = bundle_sound_first(final, pg.model_error), final
+        except _SOLVE_ERRORS:
+            pass  # the trial's solve stands
     return result, problem, selfcal.SelfCalibration(chosen.fit.level, fits)
 
 
