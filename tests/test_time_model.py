@@ -198,6 +198,25 @@ def _factor_values(rng):
     return values
 
 
+def _central_differences(factor, values: gtsam.Values, key: int, dim: int, pose: bool,
+                         steps: np.ndarray) -> np.ndarray:
+    """d(error)/d(variable ``key``) of ``factor`` at ``values`` by central differences, step
+    ``steps[j]`` on coordinate j: a Pose3 moved by its retract (``pose``), a vector by adding."""
+    numeric = []
+    for j, h in enumerate(steps):
+        plus, minus = gtsam.Values(values), gtsam.Values(values)
+        delta = np.zeros(dim)
+        delta[j] = h
+        if pose:
+            plus.update(key, values.atPose3(key).retract(delta))
+            minus.update(key, values.atPose3(key).retract(-delta))
+        else:
+            plus.update(key, values.atVector(key) + delta)
+            minus.update(key, values.atVector(key) - delta)
+        numeric.append((factor.unwhitenedError(plus) - factor.unwhitenedError(minus)) / (2 * h))
+    return np.stack(numeric, axis=1)
+
+
 def test_jacobians_match_central_differences(rng):
     """Every Jacobian block of the timed view factor (camera, board at t_f, twist, time) equals
     central differences of its error (Pose3 retract, vector add) to rtol 1e-6 (atol 1e-6 of
@@ -210,22 +229,9 @@ def test_jacobians_match_central_differences(rng):
                        np.zeros(48), False)[0].reshape(-1, 4, 2) + rng.normal(0, 2.0, (12, 4, 2))
     factor = timed_view_factor(1, 2, 3, 4, K, HEIGHT, obj, px, 0.5, "none", 3.0)
     A, _ = factor.linearize(values).jacobian()
-    dims = [6, 6, 6, 2]
     col = 0
-    for key, dim in zip([1, 2, 3, 4], dims):
-        numeric = np.empty((A.shape[0], dim))
-        for j in range(dim):
-            h = 1e-6
-            plus, minus = gtsam.Values(values), gtsam.Values(values)
-            delta = np.zeros(dim)
-            delta[j] = h
-            if dim == 6 and key in (1, 2):
-                plus.update(key, values.atPose3(key).retract(delta))
-                minus.update(key, values.atPose3(key).retract(-delta))
-            else:
-                plus.update(key, values.atVector(key) + delta)
-                minus.update(key, values.atVector(key) - delta)
-            numeric[:, j] = (factor.unwhitenedError(plus) - factor.unwhitenedError(minus)) / (2 * h)
+    for key, dim, pose in ((1, 6, True), (2, 6, True), (3, 6, False), (4, 2, False)):
+        numeric = _central_differences(factor, values, key, dim, pose, np.full(dim, 1e-6))
         block = A[:, col:col + dim]
         scale = np.abs(numeric).max()
         assert scale > 1e-3, f"key {key}: the data do not depend on it"
@@ -432,19 +438,9 @@ def test_jacobians_with_a_refined_lens_a_moving_face_and_timestamps(rng):
     col = 0
     for key, dim, pose in ((1, 6, True), (2, 6, True), (5, 8, False), (6, 6, True),
                            (3, 6, False), (4, 2, False)):
-        numeric = np.empty((A.shape[0], dim))
-        for j in range(dim):
-            h = 1e-6 * (1.0 if pose or key != 5 else max(abs(values.atVector(5)[j]), 1e-3))
-            plus, minus = gtsam.Values(values), gtsam.Values(values)
-            delta = np.zeros(dim)
-            delta[j] = h
-            if pose:
-                plus.update(key, values.atPose3(key).retract(delta))
-                minus.update(key, values.atPose3(key).retract(-delta))
-            else:
-                plus.update(key, values.atVector(key) + delta)
-                minus.update(key, values.atVector(key) - delta)
-            numeric[:, j] = (factor.unwhitenedError(plus) - factor.unwhitenedError(minus)) / (2 * h)
+        steps = np.full(dim, 1e-6) if pose or key != 5 else (
+            1e-6 * np.maximum(np.abs(values.atVector(5)), 1e-3))  # relative for the lens
+        numeric = _central_differences(factor, values, key, dim, pose, steps)
         block = A[:, col:col + dim]
         scale = np.abs(numeric).max()
         assert scale > 1e-3, f"key {key}: the data do not depend on it"

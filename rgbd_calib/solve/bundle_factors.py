@@ -175,6 +175,17 @@ def padded_distortion(base: CameraIntrinsics, names: tuple[str, ...]) -> tuple[f
     return tuple(base.distortion) + (0.0,) * (length - len(base.distortion))
 
 
+def refined_model(base: CameraIntrinsics,
+                  names: tuple[str, ...]) -> tuple[CameraIntrinsics, np.ndarray]:
+    """``base`` with its distortion padded to hold every coefficient of ``names``
+    (:func:`padded_distortion`), and the columns of ``names`` in its
+    :meth:`~rgbd_calib.core.camera.CameraIntrinsics.intrinsics_jacobian`: what a view factor
+    that refines those parameters projects through."""
+    padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
+                              padded_distortion(base, names), base.depth_scale)
+    return padded, np.array([padded.parameter_names.index(nm) for nm in names])
+
+
 def project_board_full(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, intr: CameraIntrinsics,
                        columns: np.ndarray | None, P_b: np.ndarray, jacobians: bool = True):
     """As :func:`project_board`, through the full camera model ``intr`` (distortion included):
@@ -217,9 +228,7 @@ def view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
     inv_sigma = 1.0 / sigma
-    padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
-                              padded_distortion(base, names), base.depth_scale)
-    columns = np.array([padded.parameter_names.index(nm) for nm in names])
+    padded, columns = refined_model(base, names)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
         intr = with_parameters(padded, names, values.atVector(key_intr))
@@ -255,9 +264,7 @@ def _view_factor_faces(key_cam: int, key_board: int, moving: list,
     keys = [key_cam, key_board]
     if intr:
         key_intr, base = intr
-        padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
-                                  padded_distortion(base, names), base.depth_scale)
-        columns = np.array([padded.parameter_names.index(nm) for nm in names])
+        padded, columns = refined_model(base, names)
         keys.append(key_intr)
     keys += [key for key, _, _ in faces]
 

@@ -52,7 +52,7 @@ from ..core.camera import (
 from ..core.geometry import move_rows
 from .bundle_factors import (
     face_transform,
-    padded_distortion,
+    refined_model,
     robust_rows,
     with_parameters,
 )
@@ -208,9 +208,7 @@ def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: in
     columns = None
     if intr:
         key_intr, base = intr
-        padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
-                                  padded_distortion(base, names), base.depth_scale)
-        columns = np.array([padded.parameter_names.index(nm) for nm in names])
+        padded, columns = refined_model(base, names)
         keys.append(key_intr)
     keys += [key for key, _, _ in faces] + [key_twist, key_time]
 
