@@ -138,3 +138,16 @@ def test_lens_refined_from_thin_coverage_is_named():
     assert as_dict["code"] == "lens_coverage" and as_dict["cameras"] == ["thin", "cornerless"]
     assert "thin 13%" in as_dict["message"]
     assert "cornerless 40%, never the bottom-right corner" in as_dict["message"]
+
+
+def test_cli_time_option_refuses_a_bad_value(tmp_path):
+    """``calibrate --time`` takes auto, fixed or refine; anything else is one line naming the
+    setting, exit 2, before the dataset is read."""
+    from typer.testing import CliRunner
+
+    from rgbd_calib.cli.commands import app
+
+    bad = CliRunner().invoke(app, ["calibrate", str(tmp_path / "no_such_set"), "--out",
+                                   str(tmp_path / "x"), "--time", "sometimes"])
+    assert bad.exit_code == 2 and "bundle.time" in bad.output, bad.output
+    assert "Traceback" not in bad.output and not (tmp_path / "x").exists()
