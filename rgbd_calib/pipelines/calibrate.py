@@ -52,6 +52,7 @@ from ..solve.ladder import (
 from ..solve.pose import DROP_ADVICE, BoardObservation, RejectedView, board_poses, pose_edges
 from ..solve.posegraph import PoseGraphResult, calibrate_pose_graph
 from ..solve.selfcal import SelfCalibration
+from ..solve.stillness import SetMotion, board_motion
 from ..solve.time_model import capture_offsets
 
 # detections with the refined lens: at most this many passes, another one while some
@@ -83,6 +84,8 @@ class CalibrationResult:
     initial_intrinsics: dict[str, InitialIntrinsics] = field(default_factory=dict)
     # the rig the solve started from: the dataset's, with those first intrinsics filled in
     rig: Rig | None = None
+    # per frame set: where the cameras put the board, its speed, whether it moved
+    motion: list[SetMotion] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- pipeline
@@ -202,8 +205,7 @@ def _bundle(run: _Run, pg: PoseGraphResult, views: _Views) -> _Solved:
     with timed(run.timings, "bundle"):
         bundle, problem, ladder = self_calibrated_bundle(
             views.observations, pg, run.rig, run.board, config.bundle, run.fixed_cameras,
-            run.progress, capture_offsets(
-                {c: run.dataset.timestamps_ms(c) for c in run.rig.names}, run.rig.reference))
+            run.progress, _capture_ms(run))
     solved = _Solved(views, {}, {}, bundle, problem, ladder)
     lens_refined = (ladder.chosen.distortion if ladder is not None
                     else _refines_distortion(config.bundle))
@@ -325,7 +327,23 @@ def _result(run: _Run, pg: PoseGraphResult, solved: _Solved, unconnected: dict[s
                              run.dataset.summary().to_dict(), solved.depth, solved.board_only,
                              model_error_factor=solved.factors, board=run.board,
                              self_calibration=solved.ladder, initial_intrinsics=initial,
-                             rig=rig)
+                             rig=rig, motion=_motion(run, pg, solved.views, extrinsics))
+
+
+def _capture_ms(run: _Run) -> dict[tuple[str, str], float]:
+    """Each view's capture time after its set's reference view (ms; from timestamps.csv)."""
+    return capture_offsets({c: run.dataset.timestamps_ms(c) for c in run.rig.names},
+                           run.rig.reference)
+
+
+def _motion(run: _Run, pg: PoseGraphResult, views: _Views,
+            extrinsics: Extrinsics) -> list[SetMotion]:
+    """Per frame set: did the board move (:func:`~rgbd_calib.solve.stillness.board_motion`)?"""
+    x0, x1, y0, y1 = run.board.panel
+    outliers = {(pg.residuals[i].camera, pg.residuals[i].view) for i in pg.outlier_edges}
+    return board_motion(((o.camera, o.frame, o.T_cam_board) for o in views.observations),
+                        {c: e.T_ref_cam for c, e in extrinsics.cameras.items()}, outliers,
+                        np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0]), _capture_ms(run))
 
 
 def _with_scratch_intrinsics(config: CalibrationConfig) -> CalibrationConfig:

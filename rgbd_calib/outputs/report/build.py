@@ -93,6 +93,7 @@ def report_dict(
             }
             for r in result.rejected
         ],
+        "motion": [m.to_dict() for m in result.motion],
         "pairs": [pair_entry(p) for p in (pairs or [])],
         "timings_s": result.timings_s,
     }

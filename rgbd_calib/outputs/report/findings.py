@@ -62,7 +62,7 @@ from .findings_depth import (
     refine_moved,
     refit_failed,
 )
-from .findings_time import capture_time, time_sentence
+from .findings_time import capture_time, moving_board, time_sentence
 from .findings_views import (
     dropped_views,
     fitting_outlier_views,
@@ -108,6 +108,7 @@ __all__ = [
     "is_depth_only",
     "lens_coverage",
     "marker",
+    "moving_board",
     "not_calibrated",
     "outlier_views",
     "pair_disagrees",
@@ -129,6 +130,7 @@ RULES: tuple[Rule, ...] = (
     inconsistent_camera,
     camera_model_error,
     capture_time,
+    moving_board,
     weak_camera,
     each_sound_camera(few_views, weak_link),
     board_glue,

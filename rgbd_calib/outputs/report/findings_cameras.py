@@ -66,10 +66,12 @@ def inconsistent_camera(report: dict[str, Any], earlier: list[Finding]) -> list[
     out = []
     explained = explained_model_errors(report)
     fitting = fitting_outliers(report)
+    moved = moved_set_views(report)
     for name, cam in cams.items():
         views = [v for v in report["views"] if v["camera"] == name]
         rejected = [v for v in views if v["edge_status"] == "outlier"
-                    and (v["camera"], v["frame"]) not in fitting]
+                    and (v["camera"], v["frame"]) not in fitting
+                    and (v["camera"], v["frame"]) not in moved]
         parts = (_inconsistencies(cam, views, rejected, rig_p50, name in explained)
                  if views else [])
         if parts:
@@ -184,6 +186,14 @@ def explained_model_errors(report: dict[str, Any]) -> set[str]:
     were judged with the model the bundle adjustment replaced, and it used them."""
     return {m["camera"] for m in report["pose_graph"].get("model_error") or []
             if m.get("sigma_factor") is not None and m["sigma_factor"] <= 1.0}
+
+
+def moved_set_views(report: dict[str, Any]) -> set[tuple[str, str]]:
+    """The rejected views ``(camera, frame)`` of frame sets the board moved during
+    (``report.motion``, :mod:`rgbd_calib.solve.stillness`): the cameras saw it at different
+    poses because it moved, not because they are off."""
+    return {(c, m["frame"]) for m in report.get("motion") or [] if m["moved"]
+            for c in m["outliers"]}
 
 
 def fitting_outliers(report: dict[str, Any]) -> dict[tuple[str, str], bool]:

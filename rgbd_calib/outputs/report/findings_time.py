@@ -59,3 +59,36 @@ def capture_time(report: dict[str, Any], earlier: list[Finding]) -> list[Finding
         f"{time_sentence(time, report['reference'])}.{scale}",
         TIME_ADVICE,
     )]
+
+
+MOVED_SETS_WARNING = 0.25  # of the frame sets: more moved, and the finding is a warning
+
+
+def moving_board(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Frame sets the board moved during (``report.motion``, :mod:`rgbd_calib.solve.stillness`):
+    most of their cameras saw it at poses that disagree, so the pose graph left those views out
+    and the rest of the recording, held still, kept the timeless model. An info while few sets
+    moved; a warning when more than :data:`MOVED_SETS_WARNING` of them did (their views are
+    lost to the calibration)."""
+    motion = report.get("motion") or []
+    moved = [m for m in motion if m["moved"]]
+    if not moved:
+        return []
+    views = sum(len(m["outliers"]) for m in moved)
+    speeds = [m["speed_mps"] for m in moved if m["speed_mps"] is not None]
+    low, high = (f"{min(speeds):.2f}", f"{max(speeds):.2f}") if speeds else ("", "")
+    speed = (f"; the timestamps put the board at {low}{'' if low == high else '-' + high} m/s"
+             if speeds else "")
+    spread = sorted(m["spread_mm"] for m in moved)
+    frames = ", ".join(m["frame"] for m in moved[:8]) + (" ..." if len(moved) > 8 else "")
+    return [finding(
+        "warning" if len(moved) > MOVED_SETS_WARNING * len(motion) else "info",
+        "moving_board",
+        sorted({c for m in moved for c in m["outliers"]}),
+        f"The board moved during {len(moved)} of {len(motion)} frame sets ({frames}): their "
+        f"cameras saw it up to {spread[-1]:.1f} mm apart (median {spread[len(spread) // 2]:.1f} "
+        f"mm){speed}. Their {views} disagreeing views were left out (the other sets were held "
+        "still, so the timeless model was kept); the cameras themselves are not at fault.",
+        "Hold the board still for a moment at each pose (a sync cable lets it move: "
+        "D435i inter_cam_sync_mode); record more sets if these cameras lack views.",
+    )]

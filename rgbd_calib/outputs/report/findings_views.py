@@ -9,7 +9,7 @@ import numpy as np
 
 from ...solve.pose import DROP_ADVICE
 from .findings_base import Finding, cameras_of, finding
-from .findings_cameras import explained_model_errors, fitting_outliers
+from .findings_cameras import explained_model_errors, fitting_outliers, moved_set_views
 from .numbers import median_or_none
 from .schema import MARKER_FACTOR, MARKER_MIN_PX, REPROJECTION_FACTOR, RIG_REPROJECTION_MAX_PX
 
@@ -17,8 +17,10 @@ from .schema import MARKER_FACTOR, MARKER_MIN_PX, REPROJECTION_FACTOR, RIG_REPRO
 def outlier_views(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     skip = cameras_of(earlier, "inconsistent_camera") | explained_model_errors(report)
     fitting = fitting_outliers(report)
+    moved = moved_set_views(report)
     outliers = [o for o in report["pose_graph"]["outliers"]
-                if o["camera"] not in skip and (o["camera"], o["view"]) not in fitting]
+                if o["camera"] not in skip and (o["camera"], o["view"]) not in fitting
+                and (o["camera"], o["view"]) not in moved]
     if not outliers:
         return []
     listed = ", ".join(f"{o['camera']}/{o['view']}" for o in outliers[:8])
@@ -41,8 +43,9 @@ def fitting_outlier_views(report: dict[str, Any], earlier: list[Finding]) -> lis
     skip = cameras_of(earlier, "inconsistent_camera") | explained_model_errors(report)
     used: dict[str, int] = {}
     left: dict[str, int] = {}
-    for (cam, _), in_bundle in sorted(fitting_outliers(report).items()):
-        if cam not in skip:
+    moved = moved_set_views(report)
+    for (cam, frame), in_bundle in sorted(fitting_outliers(report).items()):
+        if cam not in skip and (cam, frame) not in moved:
             bucket = used if in_bundle else left
             bucket[cam] = bucket.get(cam, 0) + 1
     if not used and not left:

@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.11"
+REPORT_SCHEMA_VERSION = "1.12"
 
 
 class ReportError(RgbdCalibError):
@@ -263,6 +263,8 @@ REPORT_SCHEMA: dict[str, Any] = {
     "markers": ListOf({"id": INT, "face": S, "observations": INT, "rms_px": N, "max_px": N}),
     "reprojection_histogram_edges_px": ListOf(N),
     "dropped_views": ListOf({"camera": S, "frame": S, "reason": S, "markers": INT, "detail": S}),
+    "motion?": ListOf({"frame": S, "cameras": ListOf(S), "outliers": ListOf(S),
+                       "spread_mm": N, "speed_mps": Nullable(N), "moved": B}),
     "pairs": ListOf(PAIR_SCHEMA),
     "timings_s": MapOf("<stage>", N),
     "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S)},
