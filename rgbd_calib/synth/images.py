@@ -2,7 +2,8 @@
 (:class:`_BoardModel`), the static scene (:func:`render_background`), the board rendered into
 it with exact area coverage (:func:`render_board`; a moving board row by row under a rolling
 shutter: :func:`render_board_moving`), then lens blur and sensor noise
-(:func:`finish_color`) and the D435 depth model (:func:`finish_depth`)."""
+(:func:`finish_color`) and the D435 depth model with the camera's depth errors
+(:func:`finish_depth`)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.camera import CameraIntrinsics
+from ..core.depth_model import distort_depth_image
 from ..core.geometry import invert_transform
 from ..model.board import BACK, FRONT, Board, charuco_black_squares, printed_markers
 from .imperfections import BoardPrint
@@ -432,10 +434,23 @@ def finish_color(color: np.ndarray, params: SynthParams, rng: np.random.Generato
 def finish_depth(
     depth_m: np.ndarray, cam: SynthCamera, params: SynthParams, rng: np.random.Generator
 ) -> np.ndarray:
-    """D435 depth: noise sigma_z = z^2 s / (f B), scale bias, range limits, dropout, counts."""
+    """D435 depth of the true depth image ``depth_m`` (m, HxW; inf: no surface): the camera's
+    depth errors, noise, range limits, dropout and 16-bit counts.
+
+    The camera's :attr:`SynthCamera.depth_model` but its scale (pose error, disparity offset
+    field: :func:`distort_depth_image`) moves the true depth ``z`` to ``z'``; the noise
+    ``sigma_z = z^2 s / (f B)`` of the true ``z`` is added and the sum scaled by the model's
+    scale (``depth_scale_bias``), so a pixel reports ``measured_depth(z) + scale sigma_z n``
+    (the RMS error of Intel's D400 "Tuning depth cameras for best performance" white paper;
+    the errors: :mod:`rgbd_calib.core.depth_model`). Without depth errors beyond the scale the
+    image is the one of before they existed, bit for bit."""
     K = cam.intrinsics
     z = np.where(np.isfinite(depth_m), depth_m, 0.0)
     sigma = z**2 * params.depth_subpixel_px / (K.fx * params.depth_baseline_m)
+    model = cam.depth_model
+    if model is not None and not model.with_values({"scale": 1.0}).is_identity:
+        z = distort_depth_image(model.with_values({"scale": 1.0}), z, K)
+        sigma = np.where(z > 0, sigma, 0.0)  # no surface measured: no depth, not noise
     z = (z + rng.normal(0.0, 1.0, z.shape) * sigma) * cam.depth_scale_bias
     valid = (z >= params.depth_min_m) & (z <= params.depth_max_m)
     valid &= rng.random(z.shape) >= params.depth_dropout
