@@ -1,7 +1,7 @@
 """Real-world imperfections of a synthetic rig (docs/synthetic.md): the cameras' true lens
-distortion and the intrinsics ``rig.yaml`` lists instead of the truth, each camera's depth errors
-(:func:`true_depth_model`), cameras knocked after the
-calibration (``--bump``), and the physical board against its board file (:class:`BoardPrint`:
+distortion and the intrinsics ``rig.yaml`` lists instead of the truth, each camera's depth
+errors (:func:`true_depth_model`), cameras knocked after the calibration (``--bump``), and
+the physical board against its board file (:class:`BoardPrint`:
 a back sheet glued off its place, a thicker or thinner panel, a print at the wrong scale, the
 faces of a hand-built multi-face target off their poses). Each draws from its own seeded
 stream, so the rig, the board motion and the noise stay those of the same seed without it."""
