@@ -129,6 +129,24 @@ TIMESTAMP_JITTER_OPTION = typer.Option(
     "ground_truth.yaml keeps the exact offsets.",
     rich_help_panel=IMPERFECTIONS_PANEL,
 )
+DEPTH_OFFSET_OPTION = typer.Option(
+    "--depth-disparity-offset", metavar="PX",
+    help="each camera's depth off by a disparity offset d0 uniform in +-PX px (seeded): "
+    "a depth error of about z^2 d0 / (f B), e.g. 0.1.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+DEPTH_FIELD_OPTION = typer.Option(
+    "--depth-disparity-field", metavar="PX",
+    help="each camera's disparity offset varies over the image: dx x + dy y + dxx x^2 + "
+    "dxy x y + dyy y^2 (x = X/Z, y = Y/Z), each coefficient uniform in +-PX px.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+DEPTH_POSE_OPTION = typer.Option(
+    "--depth-pose-error", metavar="DEG MM",
+    help="each camera's depth-to-colour pose off: a rotation vector and a shift with each "
+    "component uniform in +-DEG deg and +-MM mm, e.g. 0.2 1.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
 BOARD_VOLUME_OPTION = typer.Option(
     metavar="S",
     help="move the board through S times the layout's volume (about its centre): "
@@ -172,6 +190,9 @@ def synth(
         float,
         typer.Option(help="Max |relative depth-scale error| per camera, e.g. 0.006 for +-0.6%."),
     ] = 0.0,
+    depth_disparity_offset: Annotated[float, DEPTH_OFFSET_OPTION] = 0.0,
+    depth_disparity_field: Annotated[float, DEPTH_FIELD_OPTION] = 0.0,
+    depth_pose_error: Annotated[tuple[float, float], DEPTH_POSE_OPTION] = (0.0, 0.0),
     blur: Annotated[float, typer.Option(help="Lens blur sigma (px).")] = 0.6,
     noise: Annotated[float, typer.Option(help="Colour noise sigma (8-bit DN).")] = 2.0,
     depth_dropout: Annotated[float, typer.Option(help="Fraction of depth pixels lost.")] = 0.02,
@@ -210,6 +231,9 @@ def synth(
         blur_sigma_px=blur,
         color_noise_dn=noise,
         depth_bias=depth_bias,
+        depth_disparity_offset_px=depth_disparity_offset,
+        depth_disparity_field_px=depth_disparity_field,
+        depth_pose_error=depth_pose_error,
         depth_dropout=depth_dropout,
         drop_rate=drop_rate,
         cameras=cameras,

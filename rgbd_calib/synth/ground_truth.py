@@ -10,15 +10,19 @@ from pathlib import Path
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.depth_model import DepthModel, identity_model
 from ..core.geometry import invert_transform, pose_after_twist
 from ..core.yamlio import write_yaml
 from ..model.board import Board
 from .imperfections import BoardPrint
-from .params import SynthParams, SynthRig
+from .params import SynthCamera, SynthParams, SynthRig
 from .timing import SynthTiming, row_time_s
 
 # listed only when a time setting is on
 TIME_PARAMS = ("motion", "sync_offset_ms", "rolling_shutter_ms", "timestamp_jitter_ms")
+# listed only when a depth error beyond depth_bias is on
+DEPTH_ERROR_PARAMS = ("depth_disparity_offset_px", "depth_disparity_field_px",
+                      "depth_pose_error")
 
 
 def write_ground_truth(
@@ -38,7 +42,9 @@ def write_ground_truth(
     set, close-ups after the ``n_frames`` regular ones), depth biases, the physical board
     (``printed``) beside the nominal board file, the true intrinsics and the settings; with
     ``timing`` (any time setting on) its ``time:`` section, and only then are the time
-    settings listed under ``params`` (a still render's file is as before they existed)."""
+    settings listed under ``params`` (a still render's file is as before they existed).
+    ``depth_model`` (each camera's true :class:`DepthModel`) is written when a camera's is
+    not the identity, the depth-error settings only when one of them is on."""
     T_world_ref = rig.cameras[rig.reference_index].T_world_cam
     T_ref_world = invert_transform(T_world_ref)
     write_yaml(
@@ -62,14 +68,32 @@ def write_ground_truth(
             "intrinsics": {c.name: c.intrinsics.to_dict() for c in rig.cameras},
             "params": {
                 k: _plain(v) for k, v in params.__dict__.items()
-                if timing is not None or k not in TIME_PARAMS
+                if (timing is not None or k not in TIME_PARAMS)
+                and (params.depth_errors or k not in DEPTH_ERROR_PARAMS)
             },
             "bumped": {name: {"mm": mm, "deg": deg} for name, mm, deg in params.bump},
             "closeups": {f"{n_frames + i:06d}": name
                          for i, (name, _) in enumerate(closeups)},
             **({} if timing is None else {"time": _time_section(rig, timing)}),
+            **_depth_model_section(rig),
         },
     )
+
+
+def _depth_model_section(rig: SynthRig) -> dict:
+    """``depth_model:`` per camera its true :class:`DepthModel` (``to_dict``), or nothing when
+    every camera's is the identity (the file of a render made before it was recorded)."""
+    models = {c.name: _true_model(c) for c in rig.cameras}
+    if all(m.is_identity for m in models.values()):
+        return {}
+    return {"depth_model": {name: m.to_dict() for name, m in models.items()}}
+
+
+def _true_model(cam: SynthCamera) -> DepthModel:
+    """A camera's true depth model; one without ``depth_model`` has its scale alone."""
+    if cam.depth_model is not None:
+        return cam.depth_model
+    return identity_model(cam.intrinsics).with_values({"scale": cam.depth_scale_bias})
 
 
 def _time_section(rig: SynthRig, timing: SynthTiming) -> dict:
@@ -104,7 +128,12 @@ class GroundTruth:
     frame set when the file has no ``time:`` section): ``offset_ms`` and ``readout_ms`` per
     camera, the board's twist per frame set in the reference frame, ``board_v_mps`` and
     ``board_w_radps`` (3-vectors), under the convention of :mod:`rgbd_calib.synth.timing`
-    (:meth:`T_ref_board_at`, :meth:`exposure_tau_s`)."""
+    (:meth:`T_ref_board_at`, :meth:`exposure_tau_s`).
+
+    ``depth_model`` holds each camera's true :class:`DepthModel`, the measured -> true depth
+    correction a calibration estimates (its ``true_depth`` inverts what the camera reported);
+    empty when the file has none: every camera's depth error is its ``depth_scale_bias``
+    alone."""
 
     reference: str
     T_ref_cam: dict[str, np.ndarray]
@@ -120,6 +149,7 @@ class GroundTruth:
     readout_ms: dict[str, float] = field(default_factory=dict)  # camera -> colour readout
     board_v_mps: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> v (ref frame)
     board_w_radps: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> w (ref)
+    depth_model: dict[str, DepthModel] = field(default_factory=dict)  # camera -> true model
 
     def T_ref_board_at(self, frame: str, tau_s: float) -> np.ndarray:
         """The board pose (4x4, metres, reference frame) ``tau_s`` seconds after frame set
@@ -185,6 +215,8 @@ def load_ground_truth(path: Path) -> GroundTruth:
         per_camera("readout_ms"),
         per_frame("v_mps"),
         per_frame("w_radps"),
+        {str(k): DepthModel.from_dict(v, f"{path}: depth_model.{k}")
+         for k, v in (data.get("depth_model") or {}).items()},
     )
 
 

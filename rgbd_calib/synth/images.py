@@ -2,7 +2,8 @@
 (:class:`_BoardModel`), the static scene (:func:`render_background`), the board rendered into
 it with exact area coverage (:func:`render_board`; a moving board row by row under a rolling
 shutter: :func:`render_board_moving`), then lens blur and sensor noise
-(:func:`finish_color`) and the D435 depth model (:func:`finish_depth`)."""
+(:func:`finish_color`) and the D435 depth model with the camera's depth errors
+(:func:`finish_depth`)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.camera import CameraIntrinsics
+from ..core.depth_model import DepthModel, distort_depth_image
 from ..core.geometry import invert_transform
 from ..model.board import BACK, FRONT, Board, charuco_black_squares, printed_markers
 from .imperfections import BoardPrint
@@ -432,12 +434,46 @@ def finish_color(color: np.ndarray, params: SynthParams, rng: np.random.Generato
 def finish_depth(
     depth_m: np.ndarray, cam: SynthCamera, params: SynthParams, rng: np.random.Generator
 ) -> np.ndarray:
-    """D435 depth: noise sigma_z = z^2 s / (f B), scale bias, range limits, dropout, counts."""
+    """D435 depth of the true depth image ``depth_m`` (m, HxW; inf: no surface): the camera's
+    depth errors, noise, range limits, dropout and 16-bit counts.
+
+    The camera's :attr:`SynthCamera.depth_model` but its scale moves the true depth ``z`` to
+    ``z'`` (:func:`_depth_errors`); the noise ``sigma_z = z^2 s / (f B)`` of the true ``z`` of
+    the surface each pixel sees is added and the sum scaled by the model's scale
+    (``depth_scale_bias``), so a pixel reports ``measured_depth(z) + scale sigma_z n`` (the RMS
+    error of Intel's D400 "Tuning depth cameras for best performance" white paper; the errors:
+    :mod:`rgbd_calib.core.depth_model`). Without depth errors beyond the scale the image is the
+    one of before they existed, bit for bit."""
     K = cam.intrinsics
     z = np.where(np.isfinite(depth_m), depth_m, 0.0)
-    sigma = z**2 * params.depth_subpixel_px / (K.fx * params.depth_baseline_m)
+    z, z_seen = _depth_errors(z, cam)
+    sigma = z_seen**2 * params.depth_subpixel_px / (K.fx * params.depth_baseline_m)
     z = (z + rng.normal(0.0, 1.0, z.shape) * sigma) * cam.depth_scale_bias
     valid = (z >= params.depth_min_m) & (z <= params.depth_max_m)
     valid &= rng.random(z.shape) >= params.depth_dropout
     counts = np.where(valid, np.rint(z / K.depth_scale), 0)
     return np.clip(counts, 0, 65535).astype(np.uint16)
+
+
+POSE_PARAMETERS = ("rx", "ry", "rz", "tx", "ty", "tz")
+
+
+def _depth_errors(z_m: np.ndarray, cam: SynthCamera) -> tuple[np.ndarray, np.ndarray]:
+    """``(z', z_seen)``: what the camera reports for the true depth image ``z_m`` (m, 0: no
+    surface) by its depth model without the scale (:func:`distort_depth_image`), and the true
+    depth of the surface each pixel sees (``z_m`` moved by the pose error alone, which the
+    noise follows). A camera without depth errors beyond the scale: ``(z_m, z_m)``, untouched.
+    """
+    model = cam.depth_model
+    if model is None or model.with_values({"scale": 1.0}).is_identity:
+        return z_m, z_m
+    values = {p: model.value(p) for p in model.values if p != "scale"}
+    pose = {p: v for p, v in values.items() if p in POSE_PARAMETERS}
+    disparity = {p: v for p, v in values.items() if p not in POSE_PARAMETERS}
+    bare = DepthModel(focal_baseline_px_m=model.focal_baseline_px_m)
+    K = cam.intrinsics
+    # the two calls compose exactly to distort_depth_image(model without scale): warp, then
+    # measured_depth of the warped image
+    z_seen = distort_depth_image(bare.with_values(pose), z_m, K) if pose else z_m
+    z = distort_depth_image(bare.with_values(disparity), z_seen, K) if disparity else z_seen
+    return z, np.where(z > 0, z_seen, 0.0)  # no depth reported: no noise either

@@ -1,6 +1,7 @@
 """Real-world imperfections of a synthetic rig (docs/synthetic.md): the cameras' true lens
-distortion and the intrinsics ``rig.yaml`` lists instead of the truth, cameras knocked after the
-calibration (``--bump``), and the physical board against its board file (:class:`BoardPrint`:
+distortion and the intrinsics ``rig.yaml`` lists instead of the truth, each camera's depth
+errors (:func:`true_depth_model`), cameras knocked after the calibration (``--bump``), and
+the physical board against its board file (:class:`BoardPrint`:
 a back sheet glued off its place, a thicker or thinner panel, a print at the wrong scale, the
 faces of a hand-built multi-face target off their poses). Each draws from its own seeded
 stream, so the rig, the board motion and the noise stay those of the same seed without it."""
@@ -12,6 +13,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.depth_model import PARAMETERS, TERMS, DepthModel
 from ..core.errors import ConfigError
 from ..core.geometry import invert_transform, make_transform, rotvec_to_matrix, transform_points
 from ..model.board import BACK, Board
@@ -19,6 +21,9 @@ from .params import SynthCamera, SynthParams, check_params
 
 IMPERFECTION_STREAM = 0x5EED1  # rng stream of the rig.yaml intrinsics errors (seed, stream)
 BUMP_STREAM = 0xB0A7  # rng stream of the knocks of --bump (seed, stream, camera index)
+DEPTH_MODEL_STREAM = 0xDE9E  # rng stream of the cameras' depth errors (seed, stream)
+# the depth-model parameters drawn per camera, in the columns of depth_error_draws
+DRAWN = tuple(p for p in PARAMETERS if p != "scale")
 
 
 def camera_imperfections(
@@ -58,6 +63,37 @@ def camera_imperfections(
             replace(cam, intrinsics=truth, listed_intrinsics=None if listed is truth else listed)
         )
     return out
+
+
+def depth_error_draws(seed: int, n_cameras: int) -> np.ndarray:
+    """Unit draws ``(n_cameras, 12)``, uniform in +-1, of the cameras' depth errors (columns:
+    :data:`DRAWN`, ``d0 .. tz``), from their own seeded stream: the rig, the board motion and
+    the noise stay those of the same seed without them, and a larger setting is the same
+    error scaled up."""
+    return np.random.default_rng([seed, DEPTH_MODEL_STREAM]).uniform(-1, 1, (n_cameras,
+                                                                          len(DRAWN)))
+
+
+def true_depth_model(intr: CameraIntrinsics, scale: float, unit: np.ndarray,
+                     params: SynthParams) -> DepthModel:
+    """A camera's true :class:`DepthModel`: ``scale`` (its ``depth_scale_bias``), ``d0`` and
+    ``dx .. dyy`` the unit draws ``unit`` (one row of :func:`depth_error_draws`) times
+    ``depth_disparity_offset_px`` and ``depth_disparity_field_px``, ``rx ry rz`` (deg) and
+    ``tx ty tz`` (mm) times ``depth_pose_error``; ``f B`` is the noise model's, ``fx`` times
+    ``depth_baseline_m``. ``terms`` lists the terms with a non-zero parameter."""
+    deg, mm = params.depth_pose_error
+    half_width = {"d0": params.depth_disparity_offset_px,
+                  **dict.fromkeys(("dx", "dy", "dxx", "dxy", "dyy"),
+                                  params.depth_disparity_field_px),
+                  **dict.fromkeys(("rx", "ry", "rz"), deg),
+                  **dict.fromkeys(("tx", "ty", "tz"), mm)}
+    values = {"scale": float(scale)}
+    values.update({p: float(u) * half_width[p] for p, u in zip(DRAWN, unit) if half_width[p]})
+    default = {p: 1.0 if p == "scale" else 0.0 for p in PARAMETERS}
+    terms = tuple(t for t, names in TERMS.items()
+                  if any(values.get(p, default[p]) != default[p] for p in names))
+    return DepthModel(focal_baseline_px_m=float(intr.fx) * params.depth_baseline_m,
+                      values=values, terms=terms)
 
 
 def bump_transform(seed: int, index: int, mm: float, deg: float) -> np.ndarray:

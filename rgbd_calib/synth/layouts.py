@@ -8,7 +8,12 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..core.errors import ConfigError
 from ..core.geometry import look_at
-from .imperfections import bump_cameras, camera_imperfections
+from .imperfections import (
+    bump_cameras,
+    camera_imperfections,
+    depth_error_draws,
+    true_depth_model,
+)
 from .params import SynthCamera, SynthParams, SynthRig
 from .scene import Rect, box, rect
 
@@ -68,7 +73,7 @@ def _race_rails(half_length: float) -> list[Rect]:
 
 
 def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
-    """Camera poses, intrinsics, depth biases and scene of a named layout."""
+    """Camera poses, intrinsics, depth biases and models, and scene of a named layout."""
     rng = np.random.default_rng(seed)
     scene = _room(rng)
     cams: list[tuple[str, np.ndarray]] = []
@@ -125,11 +130,14 @@ def make_rig(layout: str, seed: int, params: SynthParams) -> SynthRig:
         raise ConfigError(f"unknown layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
     width, height = params.resolution or default_res
     cameras = []
-    for name, T_world_cam in cams:
+    depth_units = depth_error_draws(seed, len(cams))  # a stream of their own
+    for (name, T_world_cam), unit in zip(cams, depth_units):
         bias = 1.0 + (
             rng.uniform(-params.depth_bias, params.depth_bias) if params.depth_bias > 0 else 0.0
         )
-        cameras.append(SynthCamera(name, _intrinsics(width, height, rng), T_world_cam, bias))
+        intr = _intrinsics(width, height, rng)
+        cameras.append(SynthCamera(name, intr, T_world_cam, bias,
+                                   depth_model=true_depth_model(intr, bias, unit, params)))
     cameras = camera_imperfections(cameras, seed, params)
     cameras = bump_cameras(cameras, seed, params.bump)
     # race16: a central lower-tier camera (most views) rather than one at the race's end

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.camera import DISTORTION_LENGTHS, CameraIntrinsics
+from ..core.depth_model import DepthModel
 from ..core.errors import ConfigError
 from ..core.geometry import invert_transform
 from .scene import Rect
@@ -25,6 +26,13 @@ class SynthParams:
     depth_subpixel_px: float = 0.08  # D435 subpixel disparity error s
     depth_baseline_m: float = 0.050  # D435 stereo baseline B
     depth_bias: float = 0.0  # max |relative depth-scale error| per camera (uniform in +-)
+    # each camera's depth errors (core.depth_model; docs/synthetic.md, "Depth errors"): the
+    # disparity offset d0 and each field coefficient dx .. dyy uniform in +-these (px), the
+    # depth-to-colour pose off by a rotation vector and a shift, each component uniform in
+    # +-(deg, mm)
+    depth_disparity_offset_px: float = 0.0
+    depth_disparity_field_px: float = 0.0
+    depth_pose_error: tuple[float, float] = (0.0, 0.0)
     depth_dropout: float = 0.02  # fraction of valid depth pixels set to 0
     depth_min_m: float = 0.28
     depth_max_m: float = 6.0
@@ -57,6 +65,13 @@ class SynthParams:
     # a timed render's timestamps.csv: each stamp's error (Gaussian sigma, ms); the truth in
     # ground_truth.yaml stays exact
     timestamp_jitter_ms: float = 0.5
+
+    @property
+    def depth_errors(self) -> bool:
+        """Whether any depth-error setting beyond ``depth_bias`` is on (the render then lists
+        them under ``params`` in ``ground_truth.yaml``)."""
+        return any(x != 0 for x in (self.depth_disparity_offset_px,
+                                    self.depth_disparity_field_px, *self.depth_pose_error))
 
     @property
     def timed(self) -> bool:
@@ -103,22 +118,55 @@ def check_params(params: SynthParams) -> None:
     if not (0 <= params.timestamp_jitter_ms <= 50):
         raise ConfigError(f"--timestamp-jitter-ms {params.timestamp_jitter_ms}: give a "
                           "timestamp error (sigma) of 0-50 ms")
+    _check_depth_errors(params)
     for name, mm, deg in params.bump:
         if not (mm >= 0 and 0 <= deg < 90):
             raise ConfigError(f"--bump {name} {mm} {deg}: give a shift >= 0 mm and a turn "
                               "0 <= deg < 90")
 
 
+# the largest depth errors rendered: a disparity offset of a few pixels already moves a
+# surface at 3 m by metres at 848x480 (f B ~ 21 px m); a pose error of degrees and centimetres
+MAX_DISPARITY_PX = 5.0
+MAX_POSE_ERROR = (5.0, 50.0)  # deg, mm
+
+
+def _check_depth_errors(params: SynthParams) -> None:
+    """The depth-error settings are non-negative half-widths below the limits above."""
+    for option, px in (("--depth-disparity-offset", params.depth_disparity_offset_px),
+                       ("--depth-disparity-field", params.depth_disparity_field_px)):
+        if not (0 <= px <= MAX_DISPARITY_PX):
+            raise ConfigError(f"{option} {px}: give a largest disparity error of "
+                              f"0-{MAX_DISPARITY_PX:g} px (e.g. 0.1)")
+    deg, mm = params.depth_pose_error
+    if not (0 <= deg <= MAX_POSE_ERROR[0] and 0 <= mm <= MAX_POSE_ERROR[1]):
+        raise ConfigError(f"--depth-pose-error {deg} {mm}: give a largest turn of "
+                          f"0-{MAX_POSE_ERROR[0]:g} deg and shift of 0-{MAX_POSE_ERROR[1]:g} mm "
+                          "(e.g. 0.2 1)")
+
+
 @dataclass(frozen=True)
 class SynthCamera:
     """One camera: ``intrinsics`` is the truth the images are rendered with (lens distortion
-    included); ``listed_intrinsics`` what its ``rig.yaml`` says (None: the truth)."""
+    included); ``listed_intrinsics`` what its ``rig.yaml`` says (None: the truth).
+
+    ``depth_model`` is the camera's true depth model (:class:`DepthModel`: the depth it
+    reports for a true depth is its ``measured_depth``, after its pose error); its ``scale``
+    is ``depth_scale_bias``. None: the depth errors are ``depth_scale_bias`` alone."""
 
     name: str
     intrinsics: CameraIntrinsics
     T_world_cam: np.ndarray
     depth_scale_bias: float = 1.0
     listed_intrinsics: CameraIntrinsics | None = None
+    depth_model: DepthModel | None = None
+
+    def __post_init__(self) -> None:
+        if self.depth_model is not None and self.depth_model.value("scale") != \
+                self.depth_scale_bias:
+            raise ValueError(f"camera {self.name}: depth_model.scale "
+                             f"{self.depth_model.value('scale')} is not depth_scale_bias "
+                             f"{self.depth_scale_bias}")
 
     @property
     def rig_intrinsics(self) -> CameraIntrinsics:
