@@ -20,6 +20,9 @@ The library API (names load on first use, so ``import rgbd_calib`` stays light):
 - ``load_extrinsics(path) -> Extrinsics``: read an ``extrinsics.yaml`` back.
 - ``synthesize(out, layout, n_frames, seed, board, params)``, ``SynthParams``,
   ``load_ground_truth(dataset)``: synthetic rigs with ground truth.
+- ``load_depth_models(calib_dir) -> dict[str, DepthModel]`` and ``correct_depth_image(model,
+  depth, intrinsics)``: each camera's depth model from ``depth_model.yaml``, applied to a depth
+  image aligned to colour (for live pipelines).
 - ``RgbdCalibError``: the base of every error a user can cause (one line: what, which file,
   what to do).
 """
@@ -51,6 +54,9 @@ _API = {
     "SynthParams": "synth.render",
     "load_ground_truth": "synth.render",
     "RgbdCalibError": "core.errors",
+    "DepthModel": "core.depth_model",
+    "correct_depth_image": "core.depth_model",
+    "load_depth_models": "model.depth_model_file",
 }
 
 __all__ = ["__version__", *_API]

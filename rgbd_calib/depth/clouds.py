@@ -18,6 +18,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..core.camera import CameraIntrinsics
 from ..core.config import DepthConfig
+from ..core.depth_model import DepthModel
 from ..core.errors import DatasetError
 from ..core.geometry import invert_transform, transform_points
 from ..model.board import Board
@@ -238,6 +239,7 @@ def static_cloud(
     board: Board,
     config: DepthConfig | None = None,
     depth_scale_factor: float = 1.0,
+    depth_model: DepthModel | None = None,
 ) -> CameraCloud:
     """The static scene of one camera: per-pixel temporal median of depth over up to
     ``config.max_frames`` frames sampled evenly (read one at a time).
@@ -248,7 +250,10 @@ def static_cloud(
     depth spreads over frames by more than ``motion_k`` sigma_z (:func:`depth_noise`) are
     moving and dropped; so are depth edges and depths out of range. Depth is divided by
     ``depth_scale_factor`` (the camera's :func:`estimate_depth_scale` factor) before anything
-    else. Points are back-projected with the rig intrinsics (depth_scale from the rig); the
+    else; or, with ``depth_model`` (the camera's
+    :class:`~rgbd_calib.core.depth_model.DepthModel`, its scale included), each median depth is
+    corrected by the model as it is back-projected (the factor is then ignored). Points are
+    back-projected with the rig intrinsics (depth_scale from the rig); the
     intrinsics the rig marks as estimated (``rig.sigmas``) give the cloud its
     ``intrinsics_variance``, their sigma times ``config.lens_sigma_factor``."""
     config = config or DepthConfig()
@@ -264,7 +269,9 @@ def static_cloud(
         )
     picked = _even_sample(frames, config.max_frames)
     n, H, W = len(picked), intr.height, intr.width
-    metres_per_count = intr.depth_scale / depth_scale_factor
+    if depth_model is not None:
+        depth_scale_factor = depth_model.value("scale")
+    metres_per_count = intr.depth_scale / (1.0 if depth_model is not None else depth_scale_factor)
     depth = np.full((n, H, W), np.nan, dtype=np.float32)
     color = np.zeros((n, H, W, 3), dtype=np.uint8)
     masked = np.zeros((H, W), dtype=np.int32)
@@ -317,9 +324,7 @@ def static_cloud(
         rgb += np.where(inlier[k, ..., None], color[k], 0).astype(np.float32)
     rgb /= 255.0 * n_in[..., None]
     # 5. back-projection
-    vs, us = np.nonzero(keep)
-    z = med[vs, us].astype(float)
-    points = intr.rays(us, vs) * z[:, None]
+    vs, us, points = _back_project(intr, keep, med, depth_model)
     sigma_z = sigma1[vs, us] * np.sqrt(median_efficiency(n_in[vs, us]) / n_in[vs, us])
     stats = CloudStats(
         n_frames=n,
@@ -345,6 +350,22 @@ def static_cloud(
         intrinsics_variance={name: (config.lens_sigma_factor * sigma) ** 2
                              for name, sigma in dataset.rig.sigmas.get(camera, {}).items()},
     )
+
+
+def _back_project(intr: CameraIntrinsics, keep: np.ndarray, med: np.ndarray,
+                  depth_model: DepthModel | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows, columns and camera-frame points (m) of the ``keep`` pixels of the median depth
+    ``med`` (m), corrected by ``depth_model`` (pixels it has no answer for are dropped, and
+    cleared in ``keep``)."""
+    vs, us = np.nonzero(keep)
+    rays = intr.rays(us, vs)
+    z = med[vs, us].astype(float)
+    if depth_model is None:
+        return vs, us, rays * z[:, None]
+    points = depth_model.correct_points(rays, z)
+    bad = ~np.isfinite(points[:, 0])
+    keep[vs[bad], us[bad]] = False
+    return vs[~bad], us[~bad], points[~bad]
 
 
 def with_normals(cloud: CameraCloud, radius_m: float = 0.03, max_nn: int = 30) -> CameraCloud:
@@ -378,6 +399,71 @@ def _fit_scale(z_meas: np.ndarray, z_true: np.ndarray, sigma: np.ndarray, k: flo
     return f, float(1.0 / np.sqrt(np.sum(w * z_true**2)))
 
 
+@dataclass(frozen=True)
+class BoardFacePixels:
+    """The depth pixels of one view on the board face towards the camera: pixel ``us``,
+    ``vs``, their measured depth (m), the depth of the face along each pixel's ray through the
+    colour solve's board pose (m), the face plane ``n . p = d`` in the camera (unit normal,
+    m)."""
+
+    us: np.ndarray
+    vs: np.ndarray
+    z_measured: np.ndarray
+    z_true: np.ndarray
+    normal: np.ndarray
+    distance_m: float
+
+
+def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.ndarray,
+                      board: Board, config: DepthConfig) -> BoardFacePixels | None:
+    """The pixels of depth image ``raw`` (counts) that see the board face towards the camera
+    inside its panel minus ``scale_face_margin_m``, when the face is in front of the camera,
+    seen within ``scale_max_view_angle_deg`` of its normal, with at least
+    ``scale_min_points`` such pixels (else None). ``T_cam_board``: the board pose in the camera
+    (4x4, m) from the calibration."""
+    mg = config.scale_face_margin_m
+    facing = _facing_face(board, T_cam_board)
+    if facing is None:
+        return None
+    T, (x0, x1, y0, y1), z_face = facing  # a multi-face target: in the face's frame
+    face = np.array([[x, y, z_face] for x, y in
+                     ((x0 + mg, y0 + mg), (x1 - mg, y0 + mg), (x1 - mg, y1 - mg),
+                      (x0 + mg, y1 - mg))])
+    face_c = transform_points(T, face)
+    if np.any(face_c[:, 2] <= 0.05):
+        return None
+    n_c = T[:3, 2]  # face normal (board z) in the camera
+    p0 = face_c[0]
+    to_face = face_c.mean(axis=0)
+    cos_max = math.cos(math.radians(config.scale_max_view_angle_deg))
+    if abs(n_c @ to_face) / np.linalg.norm(to_face) < cos_max:
+        return None
+    uv = intr.project(face_c)
+    u0 = max(int(np.floor(uv[:, 0].min())), 0)
+    u1 = min(int(np.ceil(uv[:, 0].max())), intr.width - 1)
+    v0 = max(int(np.floor(uv[:, 1].min())), 0)
+    v1 = min(int(np.ceil(uv[:, 1].max())), intr.height - 1)
+    if u0 > u1 or v0 > v1:
+        return None
+    sub = raw[v0 : v1 + 1, u0 : u1 + 1]
+    vs, us = np.nonzero(sub > 0)
+    us, vs = us + u0, vs + v0
+    rays = intr.rays(us, vs)
+    # ray-plane intersection: z_true = (n . p0) / (n . ray) is the camera z-depth
+    z_true = (n_c @ p0) / (rays @ n_c)
+    hit_b = transform_points(invert_transform(T), rays * z_true[:, None])
+    inside = (
+        (z_true > 0)
+        & (hit_b[:, 0] > x0 + mg) & (hit_b[:, 0] < x1 - mg)
+        & (hit_b[:, 1] > y0 + mg) & (hit_b[:, 1] < y1 - mg)
+    )
+    if np.count_nonzero(inside) < config.scale_min_points:
+        return None
+    us, vs = us[inside], vs[inside]
+    return BoardFacePixels(us, vs, raw[vs, us].astype(float) * intr.depth_scale,
+                           z_true[inside], n_c.copy(), float(n_c @ p0))
+
+
 def estimate_depth_scale(
     dataset: FolderDataset,
     camera: str,
@@ -399,52 +485,17 @@ def estimate_depth_scale(
     config = config or DepthConfig()
     intr = dataset.rig.cameras[camera]
     noise = depth_noise(intr, config)
-    mg = config.scale_face_margin_m
-    cos_max = math.cos(math.radians(config.scale_max_view_angle_deg))
     frames, factors, errors, n_points = [], [], [], 0
     for frame in _even_sample(sorted(T_cam_board), config.scale_max_frames):
-        T = np.asarray(T_cam_board[frame], dtype=float)
         raw = dataset.read_depth(camera, frame)
         if raw is None:
             continue
-        facing = _facing_face(board, T)
-        if facing is None:
+        face = board_face_pixels(raw, intr, np.asarray(T_cam_board[frame], dtype=float),
+                                 board, config)
+        if face is None:
             continue
-        T, (x0, x1, y0, y1), z_face = facing  # a multi-face target: in the face's frame
-        face = np.array([[x, y, z_face] for x, y in
-                         ((x0 + mg, y0 + mg), (x1 - mg, y0 + mg), (x1 - mg, y1 - mg),
-                          (x0 + mg, y1 - mg))])
-        face_c = transform_points(T, face)
-        if np.any(face_c[:, 2] <= 0.05):
-            continue
-        n_c = T[:3, 2]  # face normal (board z) in the camera
-        p0 = face_c[0]
-        to_face = face_c.mean(axis=0)
-        if abs(n_c @ to_face) / np.linalg.norm(to_face) < cos_max:
-            continue
-        uv = intr.project(face_c)
-        u0 = max(int(np.floor(uv[:, 0].min())), 0)
-        u1 = min(int(np.ceil(uv[:, 0].max())), intr.width - 1)
-        v0 = max(int(np.floor(uv[:, 1].min())), 0)
-        v1 = min(int(np.ceil(uv[:, 1].max())), intr.height - 1)
-        if u0 > u1 or v0 > v1:
-            continue
-        sub = raw[v0 : v1 + 1, u0 : u1 + 1]
-        vs, us = np.nonzero(sub > 0)
-        us, vs = us + u0, vs + v0
-        rays = intr.rays(us, vs)
-        # ray-plane intersection: z_true = (n . p0) / (n . ray) is the camera z-depth
-        z_true = (n_c @ p0) / (rays @ n_c)
-        hit_b = transform_points(invert_transform(T), rays * z_true[:, None])
-        inside = (
-            (z_true > 0)
-            & (hit_b[:, 0] > x0 + mg) & (hit_b[:, 0] < x1 - mg)
-            & (hit_b[:, 1] > y0 + mg) & (hit_b[:, 1] < y1 - mg)
-        )
-        if np.count_nonzero(inside) < config.scale_min_points:
-            continue
-        z_true = z_true[inside]
-        z_meas = raw[vs[inside], us[inside]].astype(float) * intr.depth_scale
+        z_true = face.z_true
+        z_meas = face.z_measured
         sigma = np.sqrt(noise.sigma_z(z_true) ** 2 + intr.depth_scale**2 / 12.0)
         f, err = _fit_scale(z_meas, z_true, sigma, config.scale_huber_k)
         frames.append(frame)

@@ -28,6 +28,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ..core.config import DepthConfig, RegistrationMethod
+from ..core.depth_model import DepthModel
 from ..core.errors import CalibrationError, DatasetError
 from ..core.geometry import adjoint, invert_transform, transform_error
 from ..core.parallel import executor
@@ -42,6 +43,7 @@ from .clouds import (
     fuse_clouds,
     static_cloud,
 )
+from .depth_model_fit import DepthModelFit, board_samples, fit_depth_model
 from .information import tangent_error
 from .registration import (
     PairRegistration,
@@ -73,6 +75,8 @@ class DepthRefinement:
     scale_source: dict[str, str] = field(default_factory=dict)  # board / given / unknown
     # refine: the pairs' variance factor of the joint solve (solve_variance_components)
     pair_variance_factor: float | None = None
+    # camera -> its depth model chosen by evidence from the board (the clouds are corrected)
+    depth_models: dict[str, DepthModelFit] = field(default_factory=dict)
 
     def status_dict(self) -> dict[str, Any]:
         """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason`` and
@@ -157,23 +161,13 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
         weak = weak_cameras({c: board_covariance.get(c) for c in cams
                              if c != dataset.rig.reference}, config)
     timings: dict[str, float] = {}
-    scales: dict[str, DepthScaleEstimate] = {}
     with timed(timings, "depth_scale"):
-        if board is not None and board_views:
-            tick = start(progress, "depth scale per camera", len(cams))
-            for c in cams:
-                views = board_views.get(c, {})
-                if views:
-                    try:
-                        scales[c] = estimate_depth_scale(dataset, c, views, board, config)
-                    except (CalibrationError, DatasetError):
-                        pass  # too few board pixels with depth: the factor stays 1 (reported)
-                tick(1)
+        scales, models = _board_depth(dataset, cams, board, board_views, config, progress)
 
     no_pair = method != "none" and weak is not None and not weak
     with timed(timings, "clouds"):
-        jobs = [(c, T_ref_cam[c], scales[c].factor if c in scales
-                 else (depth_scales or {}).get(c, 1.0)) for c in cams]
+        jobs = [(c, T_ref_cam[c], models[c].model if c in models else scales[c].factor
+                 if c in scales else (depth_scales or {}).get(c, 1.0)) for c in cams]
         # no registration: the clouds are for fused.ply and the cloud checks only
         cloud_config = (config.model_copy(update={"max_frames": min(
             config.max_frames, config.skipped_max_frames)}) if no_pair else config)
@@ -187,7 +181,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
             note=(f"the board constrains every camera within {config.board_weak_sigma_mm} mm "
                   f"/ {config.board_weak_sigma_deg} deg: depth registration would add no "
-                  "information and was skipped"), weak_cameras={})
+                  "information and was skipped"), weak_cameras={}, depth_models=models)
 
     pairs: list[dict[str, Any]] = []
     relative: list[RelativePose] = []
@@ -218,10 +212,44 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                             skipped, weak_cameras=weak,
                             scale_source={c: "board" if c in scales else "given"
                                           if c in (depth_scales or {}) else "unknown"
-                                          for c in clouds})
+                                          for c in clouds}, depth_models=models)
     if method != "none" and not relative:
         depth = depth.with_fallback(no_pair_reason(depth))
     return depth
+
+
+def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
+                 board_views: dict[str, dict[str, np.ndarray]] | None, config: DepthConfig,
+                 progress: Progress | None,
+                 ) -> tuple[dict[str, DepthScaleEstimate], dict[str, DepthModelFit]]:
+    """Per camera with board views: its depth scale (:func:`estimate_depth_scale`) and its
+    depth model chosen by evidence (:func:`fit_depth_model`). The model decides what is
+    applied: its scale replaces the factor (1 when the data do not support a scale, with the
+    estimate's sigma), so a clean camera is left as it was measured."""
+    scales: dict[str, DepthScaleEstimate] = {}
+    models: dict[str, DepthModelFit] = {}
+    if board is None or not board_views:
+        return scales, models
+    tick = start(progress, "depth model per camera", len(cams))
+    for c in cams:
+        views = board_views.get(c, {})
+        if views:
+            try:
+                scale = estimate_depth_scale(dataset, c, views, board, config)
+            except (CalibrationError, DatasetError):
+                tick(1)
+                continue  # too few board pixels with depth: the factor stays 1 (reported)
+            samples = board_samples(dataset, c, views, board, config)
+            if samples is not None:
+                fit = fit_depth_model(c, samples, dataset.rig.cameras[c], config)
+                models[c] = fit
+                chosen = "scale" in fit.model.terms
+                scale = replace(scale, factor=fit.model.value("scale"),
+                                sigma=fit.model.sigmas.get("scale", scale.sigma)
+                                if chosen else scale.sigma)
+            scales[c] = scale
+        tick(1)
+    return scales, models
 
 
 # --------------------------------------------------------------------------- pairs
@@ -312,24 +340,29 @@ def _register_safely(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a: np.nda
 # --------------------------------------------------------------------------- clouds
 def _cloud_job(dataset: FolderDataset, camera: str, T_ref_board: dict[str, np.ndarray],
                T_ref_cam: np.ndarray, board: Board | None, config: DepthConfig,
-               factor: float) -> tuple[CameraCloud | None, str | None]:
-    """One camera's :func:`static_cloud`, or why it has none (a failure here costs this camera
-    only)."""
+               factor: float | DepthModel) -> tuple[CameraCloud | None, str | None]:
+    """One camera's :func:`static_cloud` with its depth-scale factor or depth model, or why it
+    has none (a failure here costs this camera only)."""
     try:
+        if isinstance(factor, DepthModel):
+            return static_cloud(dataset, camera, T_ref_board, T_ref_cam, board, config,
+                                depth_model=factor), None
         return static_cloud(dataset, camera, T_ref_board, T_ref_cam, board, config,
                             depth_scale_factor=factor), None
     except (DatasetError, ValueError, MemoryError) as exc:
         return None, one_line_error(exc)
 
 
-def static_clouds(dataset: FolderDataset, jobs: list[tuple[str, np.ndarray, float]],
+def static_clouds(dataset: FolderDataset,
+                  jobs: list[tuple[str, np.ndarray, float | DepthModel]],
                   T_ref_board: dict[str, np.ndarray], board: Board | None,
                   config: DepthConfig, workers: int | None = None, tick: Tick | None = None,
                   scheduler: str | None = None,
                   ) -> tuple[dict[str, CameraCloud], dict[str, str]]:
-    """The static cloud of every ``(camera, T_ref_cam, depth-scale factor)`` of ``jobs``, one
-    camera per task: in ``workers`` threads of this process (default: all cores) or on the
-    Dask cluster of ``scheduler`` (:func:`rgbd_calib.core.parallel.executor`; a Dask worker reads
+    """The static cloud of every ``(camera, T_ref_cam, depth-scale factor or model)`` of
+    ``jobs``, one camera per task: in ``workers`` threads of this process (default: all
+    cores) or on the Dask cluster of ``scheduler``
+    (:func:`rgbd_calib.core.parallel.executor`; a Dask worker reads
     the depth frames itself and must see the dataset at the same path): ``(clouds,
     skipped)``, skipped = camera -> why it has no cloud.
 

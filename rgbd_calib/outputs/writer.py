@@ -31,6 +31,7 @@ from ..depth.stage import DepthRefinement
 from ..model.board import refined_board, refined_multiface
 from ..model.board_file import save_board
 from ..model.dataset import FolderDataset
+from ..model.depth_model_file import DEPTH_MODEL_FILE, save_depth_models
 from ..model.results import Extrinsics, PoseEdge, write_extrinsics
 from ..model.rig import Rig, save_rig
 from ..pipelines.calibrate import CalibrationResult
@@ -115,6 +116,7 @@ def write_outputs(
     into out_dir (and fused.ply, copied from ``fused_ply`` when the depth stage made one;
     rig_refined.yaml, rig.yaml's format, when the bundle adjustment refined the intrinsics or
     some were calibrated from scratch;
+    depth_model.yaml, each camera's depth model, when the depth stage fitted them;
     board_refined.yaml, the board file with the back sheet (a multi-face target: its faces)
     where the bundle adjustment found it, when it refined the board).
 
@@ -130,7 +132,7 @@ def write_outputs(
     warn = warn or _python_warning
     rig = result.rig or rig  # with the first intrinsics of cameras calibrated from scratch
     with staged(out_dir, replaces=("fused.ply", RIG_REFINED, BOARD_REFINED, VIEWS_FILE,
-                                   "report.html", "exports")) as stage:
+                                   DEPTH_MODEL_FILE, "report.html", "exports")) as stage:
         # the exports carry the intrinsics the extrinsics were solved with: the refined ones
         export_rig = rig
         if result.bundle is not None and result.bundle.intrinsics:
@@ -149,6 +151,13 @@ def write_outputs(
             pairs = pairs if pairs is not None else result.depth.pairs
             depth_scale = depth_scale if depth_scale is not None else (
                 result.depth.depth_scale_dict())
+            fits = result.depth.depth_models
+            if fits:
+                save_depth_models({c: f.model for c, f in fits.items()},
+                                  stage / DEPTH_MODEL_FILE,
+                                  {c: {"evidence": {k: v for k, v in f.to_dict().items()
+                                                    if k not in ("camera", "model")}}
+                                   for c, f in fits.items()})
             if fused_ply is None and result.depth.clouds:
                 T_ref_cam = {c: e.T_ref_cam for c, e in result.extrinsics.cameras.items()}
                 pts, cols, idx, names = result.depth.fused(

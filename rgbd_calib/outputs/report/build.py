@@ -103,7 +103,19 @@ def report_dict(
             report["bundle"]["self_calibration"] = result.self_calibration.to_dict()
     if getattr(result, "depth", None) is not None:
         report["depth"] = result.depth.status_dict()
+        if result.depth.depth_models:
+            report["depth_models"] = {c: _depth_model_entry(f)
+                                      for c, f in result.depth.depth_models.items()}
     return finalize_report(to_builtin(report))
+
+
+def _depth_model_entry(fit: Any) -> dict[str, Any]:
+    """report.json ``depth_models.<camera>``: the chosen terms, their parameters and sigmas, the
+    board-plane residuals by distance band before and after the model."""
+    d = fit.to_dict()
+    return {"terms": d["model"]["terms"],
+            "parameters": {p: d["model"]["parameters"][p] for p in d["model"]["sigmas"]},
+            "sigmas": d["model"]["sigmas"], "bands": d["bands"]}
 
 
 def depth_only_report_dict(

@@ -1,0 +1,317 @@
+"""Each camera's depth model estimated from the board (issue 33; the model:
+:mod:`rgbd_calib.core.depth_model`).
+
+The colour calibration puts the board in every view it saw, metric through the printed markers
+and independent of depth. So every depth pixel on the board face has a known true surface: the
+face plane ``n . p = d``. With the model's parameters ``theta`` each pixel has a predicted
+measurement, the depth the camera reports for that plane (:func:`predicted_depth_m`); the
+residual is measured minus predicted, its sigma the depth noise (the D435 model of
+:mod:`.noise`). Gauss-Newton with Huber weights (IRLS) solves for the free parameters. The
+report's board-plane residuals are the corrected points' signed distances to the plane
+(:func:`plane_residuals_m`).
+
+Which terms are free is chosen by evidence, as the self-calibration does for lens and board:
+forward selection in :data:`~rgbd_calib.core.depth_model.TERMS` (scale, disparity offset,
+its gradients, its curvature, the depth-to-colour pose), at each step adding the term whose
+Wald statistic ``theta_t^T C_t^-1 theta_t`` most exceeds its threshold
+``k F_{k, views - parameters}(1 - 1e-3)`` (never below ``k ln(views)``). ``C`` is the
+cluster-robust (sandwich) covariance with the views as clusters (never below the model-based
+one), so that what is common to one view (its board pose error, depth noise correlated over
+neighbouring pixels) counts once per view, not once per pixel; its sigmas are the model's.
+A clean camera keeps the identity."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.stats import f as f_dist
+
+from ..core.camera import CameraIntrinsics
+from ..core.config import DepthConfig
+from ..core.depth_model import PARAMETERS, TERMS, DepthModel, identity_model
+from ..model.board import Board
+from ..model.dataset import FolderDataset
+from .clouds import _even_sample, board_face_pixels
+from .noise import depth_noise
+
+P_FALSE_TERM = 1e-3  # chance that a term a clean camera does not need passes its test
+MAX_PIXELS_PER_VIEW = 1500  # board pixels sampled per view (evenly)
+GN_ITERATIONS = 8
+# central-difference steps per parameter, in the model's units (scale, px, deg, mm)
+STEP = {"scale": 1e-5, "d0": 1e-3, "dx": 1e-3, "dy": 1e-3, "dxx": 1e-3, "dxy": 1e-3,
+        "dyy": 1e-3, "rx": 1e-3, "ry": 1e-3, "rz": 1e-3, "tx": 1e-2, "ty": 1e-2, "tz": 1e-2}
+BANDS_M = (0.0, 1.0, 1.5, 2.0, 3.0, math.inf)  # distance bands of the board-plane residuals
+
+
+@dataclass(frozen=True)
+class BoardSamples:
+    """One camera's depth pixels on the board: rays ``(N,3)`` (z = 1), measured depth (m),
+    the face plane per pixel (unit normal ``(N,3)``, distance m), the depth noise sigma (m)
+    and the view each pixel came from (index into ``frames``)."""
+
+    rays: np.ndarray
+    z_measured: np.ndarray
+    normal: np.ndarray
+    distance_m: np.ndarray
+    sigma_z: np.ndarray
+    view: np.ndarray
+    frames: tuple[str, ...]
+    pixels: np.ndarray  # (N,2) u, v
+
+    @property
+    def sigma_m(self) -> np.ndarray:
+        """The noise of each residual (m): depth noise along the ray onto the normal."""
+        return self.sigma_z * np.abs(np.sum(self.normal * self.rays, axis=1))
+
+
+def board_samples(dataset: FolderDataset, camera: str, T_cam_board: dict[str, np.ndarray],
+                  board: Board, config: DepthConfig | None = None) -> BoardSamples | None:
+    """The depth pixels on the board face of up to ``scale_max_frames`` of ``camera``'s views
+    (``T_cam_board``: frame -> board pose in the camera, 4x4 m, from the colour solve), at
+    most :data:`MAX_PIXELS_PER_VIEW` per view; None when no view gives any."""
+    config = config or DepthConfig()
+    intr = dataset.rig.cameras[camera]
+    noise = depth_noise(intr, config)
+    parts, frames = [], []
+    for frame in _even_sample(sorted(T_cam_board), config.scale_max_frames):
+        raw = dataset.read_depth(camera, frame)
+        if raw is None:
+            continue
+        face = board_face_pixels(raw, intr, np.asarray(T_cam_board[frame], dtype=float),
+                                 board, config)
+        if face is None:
+            continue
+        pick = np.linspace(0, face.us.size - 1, min(face.us.size, MAX_PIXELS_PER_VIEW))
+        pick = np.unique(pick.astype(int))
+        us, vs = face.us[pick], face.vs[pick]
+        sigma = np.sqrt(noise.sigma_z(face.z_true[pick]) ** 2 + intr.depth_scale**2 / 12.0)
+        parts.append((intr.rays(us, vs), face.z_measured[pick],
+                      np.tile(face.normal, (pick.size, 1)), np.full(pick.size, face.distance_m),
+                      sigma, np.full(pick.size, len(frames)), np.column_stack([us, vs])))
+        frames.append(frame)
+    if not parts:
+        return None
+    cols = [np.concatenate([p[i] for p in parts]) for i in range(7)]
+    return BoardSamples(cols[0], cols[1], cols[2], cols[3], cols[4], cols[5].astype(int),
+                        tuple(frames), cols[6])
+
+
+def plane_residuals_m(model: DepthModel, s: BoardSamples) -> np.ndarray:
+    """Signed distance (m) of each corrected board pixel to its face plane (NaN: no depth)."""
+    p = model.correct_points(s.rays, s.z_measured)
+    return np.sum(s.normal * p, axis=1) - s.distance_m
+
+
+def predicted_depth_m(model: DepthModel, s: BoardSamples) -> np.ndarray:
+    """What each board pixel should have measured under ``model``: the true depth where the
+    pixel's ray, moved by the model's pose, meets the face plane (``z = (d - n.t) / (n.R ray)``),
+    through :meth:`DepthModel.measured_depth`. A function of the plane alone: fitting measured
+    minus predicted keeps the noise out of the regressors (no errors-in-variables bias, which
+    the corrected-point distance has: its Jacobian holds the noisy depth squared)."""
+    T = model.T_true_measured()
+    z = (s.distance_m - s.normal @ T[:3, 3]) / np.sum(s.normal * (s.rays @ T[:3, :3].T), axis=1)
+    return model.measured_depth(s.rays[:, 0], s.rays[:, 1], z)
+
+
+@dataclass(frozen=True)
+class TermTest:
+    """The evidence for one term when it was last tested: its Wald statistic, the threshold
+    it had to exceed, and whether it was kept."""
+
+    term: str
+    wald: float
+    threshold: float
+    kept: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"term": self.term, "wald": self.wald, "threshold": self.threshold,
+                "kept": self.kept}
+
+
+@dataclass(frozen=True)
+class DepthModelFit:
+    """A camera's chosen :class:`DepthModel` with the tests of its terms and the board-plane
+    residuals by distance band before (the identity) and after the model (mm): per band
+    ``[z_min, z_max, n, median_before, median_after, p90_before, p90_after, noise]``, where
+    p90 is of the absolute residual and ``noise`` the median 1-sigma depth noise there."""
+
+    camera: str
+    model: DepthModel
+    tests: tuple[TermTest, ...]
+    bands: tuple[tuple[float, ...], ...]
+    n_views: int
+    n_samples: int
+    sigma_factor: float  # sqrt(chi2 / dof) of the chosen fit: the noise model's accuracy
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "camera": self.camera,
+            "model": self.model.to_dict(),
+            "tests": [t.to_dict() for t in self.tests],
+            "bands": [dict(zip(("z_min_m", "z_max_m", "n", "median_before_mm",
+                                "median_after_mm", "p90_before_mm", "p90_after_mm",
+                                "noise_mm"), b)) for b in self.bands],
+            "n_views": self.n_views,
+            "n_samples": self.n_samples,
+            "sigma_factor": self.sigma_factor,
+        }
+
+
+def _huber(r: np.ndarray, k: float) -> np.ndarray:
+    a = np.abs(r)
+    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
+
+
+@dataclass(frozen=True)
+class _Solve:
+    model: DepthModel
+    names: tuple[str, ...]
+    cov: np.ndarray  # cluster-robust covariance of ``names`` (model units)
+    chi2: float
+    dof: int
+
+
+def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: float) -> _Solve:
+    """Gauss-Newton with Huber IRLS for the parameters ``names`` (the others held at ``base``),
+    and the covariance: the upper envelope of the sandwich ``H^-1 (sum_views g_v g_v^T) H^-1``
+    of the views' score vectors and the model-based ``H^-1 max(chi2/dof, 1)``."""
+    sigma = s.sigma_z
+
+    def residual(m: DepthModel) -> np.ndarray:
+        pred = predicted_depth_m(m, s)
+        return np.where(pred > 0, s.z_measured - pred, np.nan)
+
+    model = base
+    J = np.zeros((len(sigma), len(names)))
+    for _ in range(GN_ITERATIONS):
+        r = residual(model) / sigma
+        ok = np.isfinite(r)
+        w = np.where(ok, _huber(np.where(ok, r, 0.0), huber_k), 0.0)
+        r = np.where(ok, r, 0.0)
+        if not names:
+            break
+        for j, p in enumerate(names):
+            h = STEP[p]
+            up = residual(model.with_values({p: model.value(p) + h}))
+            dn = residual(model.with_values({p: model.value(p) - h}))
+            J[:, j] = np.where(ok, (up - dn) / (2 * h) / sigma, 0.0)
+        H = J.T @ (w[:, None] * J)
+        step = np.linalg.lstsq(H, -(J.T @ (w * r)), rcond=None)[0]
+        model = model.with_values({p: model.value(p) + d for p, d in zip(names, step)})
+        if np.all(np.abs(step) < 1e-3 * np.array([STEP[p] for p in names])):
+            break
+    r = residual(model) / sigma
+    ok = np.isfinite(r)
+    w = np.where(ok, _huber(np.where(ok, r, 0.0), huber_k), 0.0)
+    r = np.where(ok, r, 0.0)
+    dof = max(int(np.count_nonzero(ok)) - len(names), 1)
+    chi2 = float(np.sum(w * r * r))
+    if not names:
+        return _Solve(model, names, np.zeros((0, 0)), chi2, dof)
+    H = J.T @ (w[:, None] * J)
+    Hinv = np.linalg.pinv(H)
+    g = J * (w * r)[:, None]
+    G = np.zeros((len(s.frames), len(names)))
+    np.add.at(G, s.view, g)
+    n_v = len(s.frames)
+    sandwich = Hinv @ (G.T @ G) @ Hinv * (n_v / max(n_v - 1, 1))
+    model_based = Hinv * max(chi2 / dof, 1.0)
+    # the smallest covariance at or above both in every direction: the sandwich of a few views
+    # is singular in some directions, the model-based one blind to errors shared by a view
+    e, V = np.linalg.eigh(sandwich - model_based)
+    cov = model_based + (V * np.maximum(e, 0.0)) @ V.T
+    return _Solve(model, names, cov, chi2, dof)
+
+
+def _wald(solve: _Solve, term: str) -> float:
+    idx = [solve.names.index(p) for p in TERMS[term]]
+    theta = np.array([solve.model.value(p) - (1.0 if p == "scale" else 0.0)
+                      for p in TERMS[term]])
+    C = solve.cov[np.ix_(idx, idx)]
+    return float(theta @ np.linalg.pinv(C) @ theta)
+
+
+def _threshold(term: str, n_views: int, n_params: int) -> float:
+    """What the Wald statistic of ``term`` must exceed: ``k F_{k, V - p}(1 - P)`` with ``V``
+    views (the clusters) and ``p`` parameters in the trial (the small-sample law of a
+    cluster-robust Wald test; infinite when the views cannot test it), and never below the
+    BIC's ``k ln V``."""
+    k = len(TERMS[term])
+    dof = n_views - n_params
+    if dof < 1:
+        return math.inf
+    return max(k * float(f_dist.ppf(1.0 - P_FALSE_TERM, k, dof)), k * math.log(max(n_views, 2)))
+
+
+def _bands(before: np.ndarray, after: np.ndarray, z: np.ndarray,
+           noise: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    out = []
+    for lo, hi in zip(BANDS_M[:-1], BANDS_M[1:]):
+        m = (z >= lo) & (z < hi) & np.isfinite(before) & np.isfinite(after)
+        if np.count_nonzero(m) < 50:
+            continue
+        out.append((lo, hi, int(np.count_nonzero(m)),
+                    float(np.median(before[m]) * 1e3), float(np.median(after[m]) * 1e3),
+                    float(np.percentile(np.abs(before[m]), 90) * 1e3),
+                    float(np.percentile(np.abs(after[m]), 90) * 1e3),
+                    float(np.median(noise[m]) * 1e3)))
+    return tuple(out)
+
+
+def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
+                    config: DepthConfig | None = None) -> DepthModelFit:
+    """The camera's depth model chosen by evidence from its board ``samples`` (see the module
+    docstring), with its sigmas and the board-plane residuals before and after."""
+    config = config or DepthConfig()
+    base = identity_model(intr)
+    n_views = len(samples.frames)
+    chosen: list[str] = []
+    current = _solve(base, samples, (), config.scale_huber_k)
+    tests: dict[str, TermTest] = {}
+    while True:
+        best = None
+        for term in TERMS:
+            if term in chosen:
+                continue
+            names = tuple(p for t in [*chosen, term] for p in TERMS[t])
+            trial = _solve(current.model, samples, names, config.scale_huber_k)
+            wald, thr = _wald(trial, term), _threshold(term, n_views, len(names))
+            tests[term] = TermTest(term, wald, thr, False)
+            if wald > thr and (best is None or wald / thr > best[0]):
+                best = (wald / thr, term, trial)
+        if best is None:
+            break
+        chosen.append(best[1])
+        current = best[2]
+        tests[best[1]] = replace_kept(tests[best[1]])
+    sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
+    z = samples.z_measured
+    model = DepthModel(
+        base.focal_baseline_px_m, {p: current.model.value(p) for p in PARAMETERS
+                                   if p in current.names},
+        tuple(t for t in TERMS if t in chosen), dict(zip(current.names, map(float, sig))),
+        (float(np.percentile(z, 1)), float(np.percentile(z, 99))),
+        _image_coverage(samples.pixels, intr))
+    before = plane_residuals_m(base, samples)
+    after = plane_residuals_m(model, samples)
+    # banded by the board's depth along each ray, not the measured one (whose noise would
+    # select the pixels that read long into the far bands)
+    z = samples.distance_m / np.sum(samples.normal * samples.rays, axis=1)
+    return DepthModelFit(camera, model, tuple(tests[t] for t in TERMS if t in tests),
+                         _bands(before, after, z, samples.sigma_m), n_views, len(z),
+                         float(math.sqrt(current.chi2 / current.dof)))
+
+
+def replace_kept(test: TermTest) -> TermTest:
+    return TermTest(test.term, test.wald, test.threshold, True)
+
+
+def _image_coverage(pixels: np.ndarray, intr: CameraIntrinsics, cells: int = 8) -> float:
+    """Fraction of a ``cells`` x ``cells`` grid over the image that has board samples."""
+    cu = np.clip(pixels[:, 0] * cells // intr.width, 0, cells - 1)
+    cv = np.clip(pixels[:, 1] * cells // intr.height, 0, cells - 1)
+    return float(len(set(zip(cu.tolist(), cv.tolist()))) / cells**2)
