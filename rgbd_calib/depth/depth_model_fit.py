@@ -12,8 +12,9 @@ report's board-plane residuals are the corrected points' signed distances to the
 
 Which terms are free is chosen by evidence, as the self-calibration does for lens and board:
 forward selection in :data:`~rgbd_calib.core.depth_model.TERMS` (scale, disparity offset,
-its gradients, its curvature, the depth-to-colour pose), at each step adding the term whose
-Wald statistic ``theta_t^T C_t^-1 theta_t`` most exceeds its threshold
+its gradients, its curvature, the depth-to-colour pose), at each step adding the first term
+in that order (the simplest: over a narrow depth range a scale and an offset look alike) whose
+Wald statistic ``theta_t^T C_t^-1 theta_t`` exceeds its threshold
 ``k F_{k, views - parameters}(1 - 1e-3)`` (never below ``k ln(views)``). ``C`` is the
 cluster-robust (sandwich) covariance with the views as clusters (never below the model-based
 one), so that what is common to one view (its board pose error, depth noise correlated over
@@ -27,6 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 from scipy.stats import f as f_dist
 
 from ..core.camera import CameraIntrinsics
@@ -40,6 +42,7 @@ from .noise import depth_noise
 P_FALSE_TERM = 1e-3  # chance that a term a clean camera does not need passes its test
 MAX_PIXELS_PER_VIEW = 1500  # board pixels sampled per view (evenly)
 GN_ITERATIONS = 8
+MIN_CLUSTER_DOF = 4  # views beyond the parameters for the clustered (F) test
 # central-difference steps per parameter, in the model's units (scale, px, deg, mm)
 STEP = {"scale": 1e-5, "d0": 1e-3, "dx": 1e-3, "dy": 1e-3, "dxx": 1e-3, "dxy": 1e-3,
         "dyy": 1e-3, "rx": 1e-3, "ry": 1e-3, "rz": 1e-3, "tx": 1e-2, "ty": 1e-2, "tz": 1e-2}
@@ -238,13 +241,14 @@ def _wald(solve: _Solve, term: str) -> float:
 def _threshold(term: str, n_views: int, n_params: int) -> float:
     """What the Wald statistic of ``term`` must exceed: ``k F_{k, V - p}(1 - P)`` with ``V``
     views (the clusters) and ``p`` parameters in the trial (the small-sample law of a
-    cluster-robust Wald test; infinite when the views cannot test it), and never below the
-    BIC's ``k ln V``."""
+    cluster-robust Wald test), never below the BIC's ``k ln V``. With fewer than
+    :data:`MIN_CLUSTER_DOF` views to spare the clustered covariance cannot be judged and the
+    chi-square quantile applies (the covariance is then at least the model-based one)."""
     k = len(TERMS[term])
     dof = n_views - n_params
-    if dof < 1:
-        return math.inf
-    return max(k * float(f_dist.ppf(1.0 - P_FALSE_TERM, k, dof)), k * math.log(max(n_views, 2)))
+    q = (k * float(f_dist.ppf(1.0 - P_FALSE_TERM, k, dof)) if dof >= MIN_CLUSTER_DOF
+         else float(chi2_dist.ppf(1.0 - P_FALSE_TERM, k)))
+    return max(q, k * math.log(max(n_views, 2)))
 
 
 def _bands(before: np.ndarray, after: np.ndarray, z: np.ndarray,
@@ -281,7 +285,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
             trial = _solve(current.model, samples, names, config.scale_huber_k)
             wald, thr = _wald(trial, term), _threshold(term, n_views, len(names))
             tests[term] = TermTest(term, wald, thr, False)
-            if wald > thr and (best is None or wald / thr > best[0]):
+            if wald > thr and best is None:  # the first in the ladder's order that passes
                 best = (wald / thr, term, trial)
         if best is None:
             break

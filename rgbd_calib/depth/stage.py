@@ -223,9 +223,9 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                  progress: Progress | None,
                  ) -> tuple[dict[str, DepthScaleEstimate], dict[str, DepthModelFit]]:
     """Per camera with board views: its depth scale (:func:`estimate_depth_scale`) and its
-    depth model chosen by evidence (:func:`fit_depth_model`). The model decides what is
-    applied: its scale replaces the factor (1 when the data do not support a scale, with the
-    estimate's sigma), so a clean camera is left as it was measured."""
+    depth model chosen by evidence (:func:`fit_depth_model`). The clouds are corrected by the
+    model; the reported factor (and refine's) is still the scale estimate's (not yet the
+    model's scale: with a second term chosen its sigma grows beyond what refine needs)."""
     scales: dict[str, DepthScaleEstimate] = {}
     models: dict[str, DepthModelFit] = {}
     if board is None or not board_views:
@@ -241,12 +241,7 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                 continue  # too few board pixels with depth: the factor stays 1 (reported)
             samples = board_samples(dataset, c, views, board, config)
             if samples is not None:
-                fit = fit_depth_model(c, samples, dataset.rig.cameras[c], config)
-                models[c] = fit
-                chosen = "scale" in fit.model.terms
-                scale = replace(scale, factor=fit.model.value("scale"),
-                                sigma=fit.model.sigmas.get("scale", scale.sigma)
-                                if chosen else scale.sigma)
+                models[c] = fit_depth_model(c, samples, dataset.rig.cameras[c], config)
             scales[c] = scale
         tick(1)
     return scales, models
