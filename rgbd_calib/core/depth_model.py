@@ -253,11 +253,11 @@ def correct_depth_image(model: DepthModel, depth: NDArray[Any], intr: CameraIntr
     if depth.shape != (intr.height, intr.width):
         raise RgbdCalibError(f"depth image is {depth.shape[1]}x{depth.shape[0]} but the camera "
                              f"is {intr.width}x{intr.height}; pass the depth aligned to colour")
+    if model.is_identity:
+        return depth.copy()
     counts = np.issubdtype(depth.dtype, np.integer)
     unit = (intr.depth_scale if depth_scale is None else depth_scale) if counts else 1.0
     z_m = depth.astype(float) * unit
-    if model.is_identity:
-        return depth.copy()
     u, v = _pixel_grid(intr)
     rays = intr.rays(u, v)
     z = model.true_depth(rays[:, 0], rays[:, 1], z_m.reshape(-1)).reshape(z_m.shape)

@@ -23,7 +23,7 @@ from ..core.errors import DatasetError
 from ..core.geometry import invert_transform, transform_points
 from ..model.board import Board
 from ..model.dataset import FolderDataset
-from .noise import depth_noise, median_efficiency
+from .noise import DepthNoise, depth_noise, median_efficiency
 
 # --------------------------------------------------------------------------- results
 
@@ -464,12 +464,38 @@ def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.n
                            z_true[inside], n_c.copy(), float(n_c @ p0))
 
 
+def board_faces(dataset: FolderDataset, camera: str, T_cam_board: dict[str, np.ndarray],
+                board: Board, config: DepthConfig) -> list[tuple[str, BoardFacePixels]]:
+    """``(frame, face pixels)`` of up to ``scale_max_frames`` of ``camera``'s views, sampled
+    evenly (``T_cam_board``: frame -> board pose in the camera, 4x4 m, from the colour
+    solve), each depth image read once; views with no usable face are left out
+    (:func:`board_face_pixels`)."""
+    intr = dataset.rig.cameras[camera]
+    out = []
+    for frame in _even_sample(sorted(T_cam_board), config.scale_max_frames):
+        raw = dataset.read_depth(camera, frame)
+        if raw is None:
+            continue
+        face = board_face_pixels(raw, intr, np.asarray(T_cam_board[frame], dtype=float),
+                                 board, config)
+        if face is not None:
+            out.append((frame, face))
+    return out
+
+
+def face_sigma_z(noise: DepthNoise, intr: CameraIntrinsics, z_true: np.ndarray) -> np.ndarray:
+    """1-sigma depth error (m) of board pixels at true depth ``z_true``: the noise model's and
+    the depth unit's rounding."""
+    return np.sqrt(noise.sigma_z(z_true) ** 2 + intr.depth_scale**2 / 12.0)
+
+
 def estimate_depth_scale(
     dataset: FolderDataset,
     camera: str,
     T_cam_board: dict[str, np.ndarray],
     board: Board,
     config: DepthConfig | None = None,
+    faces: list[tuple[str, BoardFacePixels]] | None = None,
 ) -> DepthScaleEstimate:
     """Depth-scale error ``factor`` of one camera (``z_measured ~ factor * z_true``).
 
@@ -481,22 +507,18 @@ def estimate_depth_scale(
     IRLS fit (Huber, weights 1/sigma_z^2 of the noise model); frames are combined by a Huber-
     weighted random-effects mean (weights 1/(sigma_k^2 + tau^2), tau^2 the spread between
     frames beyond their formal errors), and ``sigma`` is its standard error, inflated by the
-    scatter over frames when that exceeds the weights."""
+    scatter over frames when that exceeds the weights. ``faces`` (:func:`board_faces`, when the
+    caller read them already) replaces reading them here."""
     config = config or DepthConfig()
+    if faces is None:
+        faces = board_faces(dataset, camera, T_cam_board, board, config)
     intr = dataset.rig.cameras[camera]
     noise = depth_noise(intr, config)
     frames, factors, errors, n_points = [], [], [], 0
-    for frame in _even_sample(sorted(T_cam_board), config.scale_max_frames):
-        raw = dataset.read_depth(camera, frame)
-        if raw is None:
-            continue
-        face = board_face_pixels(raw, intr, np.asarray(T_cam_board[frame], dtype=float),
-                                 board, config)
-        if face is None:
-            continue
+    for frame, face in faces:
         z_true = face.z_true
         z_meas = face.z_measured
-        sigma = np.sqrt(noise.sigma_z(z_true) ** 2 + intr.depth_scale**2 / 12.0)
+        sigma = face_sigma_z(noise, intr, z_true)
         f, err = _fit_scale(z_meas, z_true, sigma, config.scale_huber_k)
         frames.append(frame)
         factors.append(f)

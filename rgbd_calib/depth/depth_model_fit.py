@@ -24,7 +24,7 @@ A clean camera keeps the identity."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -34,9 +34,7 @@ from scipy.stats import f as f_dist
 from ..core.camera import CameraIntrinsics
 from ..core.config import DepthConfig
 from ..core.depth_model import PARAMETERS, TERMS, DepthModel, identity_model
-from ..model.board import Board
-from ..model.dataset import FolderDataset
-from .clouds import _even_sample, board_face_pixels
+from .clouds import BoardFacePixels, face_sigma_z
 from .noise import depth_noise
 
 P_FALSE_TERM = 1e-3  # chance that a term a clean camera does not need passes its test
@@ -70,30 +68,21 @@ class BoardSamples:
         return self.sigma_z * np.abs(np.sum(self.normal * self.rays, axis=1))
 
 
-def board_samples(dataset: FolderDataset, camera: str, T_cam_board: dict[str, np.ndarray],
-                  board: Board, config: DepthConfig | None = None) -> BoardSamples | None:
-    """The depth pixels on the board face of up to ``scale_max_frames`` of ``camera``'s views
-    (``T_cam_board``: frame -> board pose in the camera, 4x4 m, from the colour solve), at
-    most :data:`MAX_PIXELS_PER_VIEW` per view; None when no view gives any."""
+def board_samples(intr: CameraIntrinsics, faces: list[tuple[str, BoardFacePixels]],
+                  config: DepthConfig | None = None) -> BoardSamples | None:
+    """The depth pixels of the board ``faces`` (:func:`~.clouds.board_faces`: one camera's
+    views), at most :data:`MAX_PIXELS_PER_VIEW` per view, sampled evenly; None without any."""
     config = config or DepthConfig()
-    intr = dataset.rig.cameras[camera]
     noise = depth_noise(intr, config)
     parts, frames = [], []
-    for frame in _even_sample(sorted(T_cam_board), config.scale_max_frames):
-        raw = dataset.read_depth(camera, frame)
-        if raw is None:
-            continue
-        face = board_face_pixels(raw, intr, np.asarray(T_cam_board[frame], dtype=float),
-                                 board, config)
-        if face is None:
-            continue
+    for frame, face in faces:
         pick = np.linspace(0, face.us.size - 1, min(face.us.size, MAX_PIXELS_PER_VIEW))
         pick = np.unique(pick.astype(int))
         us, vs = face.us[pick], face.vs[pick]
-        sigma = np.sqrt(noise.sigma_z(face.z_true[pick]) ** 2 + intr.depth_scale**2 / 12.0)
         parts.append((intr.rays(us, vs), face.z_measured[pick],
                       np.tile(face.normal, (pick.size, 1)), np.full(pick.size, face.distance_m),
-                      sigma, np.full(pick.size, len(frames)), np.column_stack([us, vs])))
+                      face_sigma_z(noise, intr, face.z_true[pick]),
+                      np.full(pick.size, len(frames)), np.column_stack([us, vs])))
         frames.append(frame)
     if not parts:
         return None
@@ -148,7 +137,6 @@ class DepthModelFit:
     n_views: int
     n_samples: int
     sigma_factor: float  # sqrt(chi2 / dof) of the chosen fit: the noise model's accuracy
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -291,7 +279,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
             break
         chosen.append(best[1])
         current = best[2]
-        tests[best[1]] = replace_kept(tests[best[1]])
+        tests[best[1]] = replace(tests[best[1]], kept=True)
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
     z = samples.z_measured
     model = DepthModel(
@@ -308,10 +296,6 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     return DepthModelFit(camera, model, tuple(tests[t] for t in TERMS if t in tests),
                          _bands(before, after, z, samples.sigma_m), n_views, len(z),
                          float(math.sqrt(current.chi2 / current.dof)))
-
-
-def replace_kept(test: TermTest) -> TermTest:
-    return TermTest(test.term, test.wald, test.threshold, True)
 
 
 def _image_coverage(pixels: np.ndarray, intr: CameraIntrinsics, cells: int = 8) -> float:

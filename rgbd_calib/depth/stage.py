@@ -39,6 +39,7 @@ from ..solve.bundle import RelativePose
 from .clouds import (
     CameraCloud,
     DepthScaleEstimate,
+    board_faces,
     estimate_depth_scale,
     fuse_clouds,
     static_cloud,
@@ -234,15 +235,15 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
     for c in cams:
         views = board_views.get(c, {})
         if views:
+            faces = board_faces(dataset, c, views, board, config)  # each image read once
             try:
-                scale = estimate_depth_scale(dataset, c, views, board, config)
+                scales[c] = estimate_depth_scale(dataset, c, views, board, config, faces)
             except (CalibrationError, DatasetError):
                 tick(1)
                 continue  # too few board pixels with depth: the factor stays 1 (reported)
-            samples = board_samples(dataset, c, views, board, config)
+            samples = board_samples(dataset.rig.cameras[c], faces, config)
             if samples is not None:
                 models[c] = fit_depth_model(c, samples, dataset.rig.cameras[c], config)
-            scales[c] = scale
         tick(1)
     return scales, models
 
