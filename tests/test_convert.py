@@ -19,6 +19,7 @@ import pytest
 from conftest import SHARED_DATA, shared_data_missing
 
 from rgbd_calib.core.camera import CameraIntrinsics
+from rgbd_calib.core.depth_model import DepthModel, correct_depth_image
 from rgbd_calib.core.errors import ConfigError, DatasetError
 from rgbd_calib.core.geometry import invert_transform, make_transform, rotvec_to_matrix
 from rgbd_calib.model.dataset import FolderDataset
@@ -799,3 +800,24 @@ def test_calibrate_refuses_a_folder_mixed_with_recordings(calib_rig, tmp_path):
     result = _calibrate_cli([folder_result.parent], tmp_path / "out2", "--names", "a,b")
     assert result.exit_code == 2 and "apply to recordings" in result.output
     assert not (tmp_path / "out").exists() and not (tmp_path / "out2").exists()
+
+
+def test_convert_writes_depth_corrected_by_a_depth_model(synth_rig, tmp_path):
+    """``depth_models`` (convert --depth-model): the named camera's depth frames are those of
+    :func:`correct_depth_image`, the others untouched; a name not converted is refused."""
+    namespaces = ["/cam_left", "/cam_mid", "/cam_right"]
+    write_ros_bag(tmp_path / "rig.bag", _ros_cameras(synth_rig, namespaces), ros1=True)
+    model = DepthModel(50.0, {"scale": 1.004, "d0": 0.15}, terms=("scale", "offset"))
+    with pytest.raises(ConfigError, match="cam_nowhere.*--names"):
+        convert([tmp_path / "rig.bag"], tmp_path / "bad", depth_models={"cam_nowhere": model})
+    assert not (tmp_path / "bad").exists()
+    report = convert([tmp_path / "rig.bag"], tmp_path / "out", depth_models={"cam_mid": model})
+    assert any("cam_mid" in n for n in report.notes)
+    ds = FolderDataset(tmp_path / "out")
+    for name, (_, intr, frames) in zip(report.cameras, synth_rig):
+        for stem, (_, truth) in zip(ds.frames, frames):
+            got = ds.read_depth(name, stem)
+            want = correct_depth_image(model, truth, intr) if name == "cam_mid" else truth
+            np.testing.assert_array_equal(got, want)
+        if name == "cam_mid":
+            assert not np.array_equal(got, truth)

@@ -14,6 +14,7 @@ from rgbd_calib.core.config import CalibrationConfig
 from rgbd_calib.core.geometry import make_transform, rotvec_to_matrix, transform_error
 from rgbd_calib.model.board import thesis_board
 from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.model.depth_model_file import load_depth_models
 from rgbd_calib.model.results import CameraExtrinsics, Extrinsics, load_extrinsics, write_extrinsics
 from rgbd_calib.pipelines.calibrate import calibrate
 from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize
@@ -148,9 +149,17 @@ def test_refine_writes_the_calibration_report_with_a_verdict(tiny_calibration, t
     assert report["pairs"] and [p["cam_a"] for p in report["pairs"]] == [
         p["cam_a"] for p in legacy["pairs"]]
     assert all(p["accepted"] or p["reason"] for p in report["pairs"])
+    # each camera's depth corrected as its calibration did: the depth model of its
+    # depth_model.yaml (carried into the refined folder, so a later check applies it too),
+    # else the report's factor
     start = json.loads((calib / "report.json").read_text())
+    models = load_depth_models(calib) if (calib / "depth_model.yaml").exists() else {}
+    assert models, "calibrate writes depth_model.yaml"
+    assert load_depth_models(out) == models
     for cam, entry in report["cameras"].items():
-        assert entry["depth_scale_factor"] == start["cameras"][cam]["depth_scale_factor"]
+        want = (models[cam].value("scale") if cam in models
+                else start["cameras"][cam]["depth_scale_factor"])
+        assert entry["depth_scale_factor"] == want
         assert report["refine"]["cameras"][cam]["depth_scale_source"] == "given"
     assert report["depth"]["status"] == legacy["depth"]["status"]
     # the cameras as extrinsics.yaml has them; no board section filled

@@ -41,6 +41,24 @@ def test_depth_scales_read_from_the_calibration_report(tmp_path):
     assert CF.load_depth_scales(report) == {"left0": 1.004}
 
 
+def test_depth_models_beside_the_calibration_take_over_its_factors(tmp_path):
+    """check and refine correct each camera's depth as its calibration did: the model of its
+    depth_model.yaml (an identity one too: the evidence chose no term), else its factor."""
+    from rgbd_calib.core.depth_model import DepthModel
+    from rgbd_calib.model.depth_model_file import save_depth_models
+
+    assert CF.load_depth_corrections(tmp_path) == {}
+    (tmp_path / "report.json").write_text(json.dumps({"cameras": {
+        "left0": {"depth_scale_factor": 1.004}, "left1": {"depth_scale_factor": 0.998}}}))
+    assert CF.load_depth_corrections(tmp_path) == {"left0": 1.004, "left1": 0.998}
+    scaled = DepthModel(50.0, {"scale": 1.003}, terms=("scale",), sigmas={"scale": 0.0005})
+    save_depth_models({"left0": scaled, "left1": DepthModel(50.0)},
+                      tmp_path / "depth_model.yaml")
+    got = CF.load_depth_corrections(tmp_path)
+    assert set(got) == {"left0", "left1"}
+    assert got["left0"].value("scale") == 1.003 and got["left1"].is_identity
+
+
 def test_initial_sigmas_become_priors_and_the_verdict_names_the_outcome():
     T1 = np.eye(4)
     T1[0, 3] = 1.0

@@ -327,6 +327,8 @@ def test_depth_pairs_show_error_maps_and_warnings(runs):
         )
     ]
     report["cameras"][a]["depth_scale_factor"] = 1.006
+    report["cameras"][a]["depth_scale_sigma"] = 0.001
+    report.pop("depth_models", None)  # a report from before depth models: the factor decides
     report = finalize_report(report)
     assert validate_report(report) == []
     codes = {w["code"]: w for w in report["warnings"]}
@@ -335,6 +337,28 @@ def test_depth_pairs_show_error_maps_and_warnings(runs):
     assert codes["depth_scale"]["cameras"] == [a]
     page = render_html(report, None, "no cloud in this test")
     assert 'alt="overlap error maps"' in page and "17.50" in page
+
+
+def test_depth_scale_advice_only_when_significant(runs):
+    """Issue 33: a clean rig's scale estimates scatter within their sigmas (0.9958-0.9996 at
+    0.4-0.9 %): no advice. With depth models the model's choice decides (the scale term kept
+    by the evidence), without them a factor more than 3 sigmas from 1."""
+    report = _load(runs[0])
+    a, b = list(report["cameras"])[:2]
+    report.pop("depth_models", None)
+    report["cameras"][a].update(depth_scale_factor=0.9969, depth_scale_sigma=0.004)
+    report["cameras"][b].update(depth_scale_factor=0.9950, depth_scale_sigma=0.0005)
+    codes = {w["code"]: w for w in finalize_report(report)["warnings"]}
+    assert codes["depth_scale"]["cameras"] == [b]
+    model = {"terms": [], "parameters": {}, "sigmas": {}, "bands": []}
+    report["depth_models"] = {a: model, b: model}
+    assert "depth_scale" not in {w["code"] for w in finalize_report(report)["warnings"]}
+    report["depth_models"][a] = {**model, "terms": ["scale"], "parameters": {"scale": 1.005},
+                                 "sigmas": {"scale": 0.0004}}
+    codes = {w["code"]: w for w in finalize_report(report)["warnings"]}
+    assert codes["depth_scale"]["cameras"] == [a]
+    assert "depth_model.yaml" in codes["depth_scale"]["advice"] and "1.0050" in codes[
+        "depth_scale"]["advice"]
 
 
 def test_rebuild_reads_a_report_from_before_rmse_final(runs, tmp_path):

@@ -451,10 +451,10 @@ def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_m
     """What refine and check start from: the output folder and the scheduler checked before
     anything is read, the dataset of the rig as it is now opened (its images checked) with the
     intrinsics the calibration refined (its rig_refined.yaml, if any), the calibration's
-    ``extrinsics`` and the depth scales of the report.json beside them:
-    ``(dataset, extrinsics, scales)``."""
+    ``extrinsics`` and the depth corrections beside them (its depth_model.yaml, else its
+    report.json's depth-scale factors): ``(dataset, extrinsics, corrections)``."""
     from ..core.parallel import check_scheduler
-    from ..model.calib_folder import load_depth_scales, with_refined_intrinsics
+    from ..model.calib_folder import load_depth_corrections, with_refined_intrinsics
     from ..model.results import load_extrinsics
 
     check_output_folder(out)
@@ -466,7 +466,7 @@ def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_m
         console.print(f"intrinsics: the refined ones of {extrinsics.parent / 'rig_refined.yaml'}"
                       f" for {', '.join(changed)}", highlight=False, soft_wrap=True)
     return (ds, load_extrinsics(extrinsics, check_redundant=True),
-            load_depth_scales(extrinsics.parent / "report.json"))
+            load_depth_corrections(extrinsics.parent))
 
 
 @command()
@@ -529,14 +529,16 @@ def refine(
                                        depth_scales=scales, board=b, T_ref_board=T_ref_board,
                                        board_cameras=board_cameras, scheduler=scheduler)
     sources = depth.scale_source
-    for kind, what in (("given", "from the report.json next to --init"),
+    for kind, what in (("given", "from the calibration next to --init (its depth_model.yaml, "
+                                 "else its report.json)"),
                        ("board", "estimated from the board in view"),
                        ("unknown", "unknown (not moved along what a scale error explains)")):
         if cams := [c for c, k in sources.items() if k == kind]:
             console.print(f"depth scale {what}: {', '.join(cams)}")
     verdict = refine_verdict(init_ext, ext, depth)
     run = DepthOnlyRun(ds, init, method, verdict, depth.pairs, sources, scales,
-                       depth.status_dict(), depth.depth_scale_dict(), depth.timings_s)
+                       depth.status_dict(), depth.depth_scale_dict(), depth.timings_s,
+                       board_models={c: f.model for c, f in depth.depth_models.items()})
     write_refine_outputs(ext, depth, out, method, init, verdict=verdict, run=run,
                          warn=warn_line)
     for p in depth.pairs:
@@ -801,6 +803,12 @@ def convert(
     step: Annotated[
         int, typer.Option(help="Videos without --board: keep every STEP-th frame set.")
     ] = 1,
+    depth_model: Annotated[
+        Path | None,
+        typer.Option("--depth-model", help="Recordings: write each named camera's depth "
+                     "corrected by its model in this depth_model.yaml (or calibrate output "
+                     "folder); camera names as after --names."),
+    ] = None,
 ) -> None:
     """Convert RealSense SDK recordings, ROS bags or one video per camera into the dataset
     folder form (videos: colour only, rig.yaml with the image sizes: intrinsics calibrated from
@@ -814,6 +822,8 @@ def convert(
 
         if not all(videos):
             raise ConfigError("convert: give either video files or recordings, not both")
+        if depth_model is not None:
+            raise ConfigError("convert: --depth-model corrects depth; videos have none")
         board = None
         if board_file is not None:
             from ..model.board_file import load_board
@@ -823,7 +833,12 @@ def convert(
         return
     from .console import cli_convert
 
-    cli_convert(sources, out, _name_list(names), sync_tolerance_ms)
+    models = None
+    if depth_model is not None:
+        from ..model.depth_model_file import load_depth_models
+
+        models = load_depth_models(depth_model)
+    cli_convert(sources, out, _name_list(names), sync_tolerance_ms, models)
 
 
 @command()

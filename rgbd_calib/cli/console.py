@@ -369,13 +369,14 @@ def cli_convert(
     out: Path,
     names: Sequence[str] | None = None,
     sync_tolerance_ms: float | None = None,
+    depth_models=None,
 ):
     """Run :func:`~rgbd_calib.sources.convert` with progress bars and print a table of the
     result."""
     from ..sources import convert
 
     with stage_progress() as progress:
-        report = convert(sources, out, names, sync_tolerance_ms, progress)
+        report = convert(sources, out, names, sync_tolerance_ms, progress, depth_models)
     print_conversion_report(report)
     return report
 

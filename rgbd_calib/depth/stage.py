@@ -134,7 +134,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                   progress: Progress | None = None,
                   board_covariance: dict[str, np.ndarray | None] | None = None,
                   workers: int | None = None,
-                  depth_scales: dict[str, float] | None = None,
+                  depth_scales: dict[str, float | DepthModel] | None = None,
                   scheduler: str | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
@@ -149,8 +149,9 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     information there. Pairs run in ``workers`` processes (default: all cores) or on the Dask
     cluster of ``scheduler``.
 
-    ``depth_scales`` (camera -> factor, e.g. from the report.json of the calibration being
-    refined) are used for cameras the board gives no factor for. A camera with neither has an
+    ``depth_scales`` (camera -> depth model or factor of the calibration being refined:
+    :func:`rgbd_calib.model.calib_folder.load_depth_corrections`) are used for cameras the
+    board gives none for. A camera with neither has an
     unknown depth scale: its pairs' information leaves out the directions a depth-scale error
     would explain (:func:`rgbd_calib.depth.information.whitened_rows`, ``free_scale``).
     Intrinsics the rig marks as estimated (``dataset.rig.sigmas``) carry their uncertainty into

@@ -1,6 +1,6 @@
 """An earlier calibration's output folder read back for the depth-only commands: the
-depth-scale factors, the board views and the ``cameras`` of its ``report.json``, and the
-intrinsics its ``rig_refined.yaml`` refined (docs/formats.md)."""
+depth models or depth-scale factors, the board views and the ``cameras`` of its
+``report.json``, and the intrinsics its ``rig_refined.yaml`` refined (docs/formats.md)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,22 @@ from typing import Any
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.depth_model import DepthModel
 from ..core.errors import DatasetError
+from .depth_model_file import DEPTH_MODEL_FILE, load_depth_models
 from .rig import Rig, load_rig
+
+
+def load_depth_corrections(calib_dir: str | Path) -> dict[str, float | DepthModel]:
+    """camera -> how the calibration in ``calib_dir`` corrects its depth: the
+    :class:`DepthModel` of its ``depth_model.yaml`` (the identity where the evidence chose no
+    term), else the depth-scale factor of its ``report.json`` (a calibration from before
+    depth models); cameras with neither are left out (their depth scale is unknown)."""
+    calib_dir = Path(calib_dir)
+    out: dict[str, float | DepthModel] = dict(load_depth_scales(calib_dir / "report.json"))
+    if (calib_dir / DEPTH_MODEL_FILE).is_file():
+        out.update(load_depth_models(calib_dir / DEPTH_MODEL_FILE))
+    return out
 
 
 def load_depth_scales(report_json: Path) -> dict[str, float]:

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.config import write_config
+from ..core.depth_model import DepthModel
 from ..core.interrupts import mark_committed, sigint_deferred
 from ..core.ply import write_fused_ply
 from ..core.progress import Progress
@@ -220,17 +221,25 @@ class DepthOnlyRun:
     verdict: dict[str, Any]  # refine_verdict / fix_verdict
     pairs: list[dict[str, Any]]
     scale_source: dict[str, str]  # camera -> board / given / unknown
-    given_scales: dict[str, float]  # camera -> factor from the report.json next to --init
+    # camera -> the depth model (depth_model.yaml) or factor (report.json) next to --init
+    given_scales: dict[str, float | DepthModel]
     depth_status: dict[str, Any]  # report.json ``depth``
     board_scales: dict[str, dict[str, float]] = field(default_factory=dict)  # factor, sigma
     timings_s: dict[str, float] = field(default_factory=dict)
     moved: list[str] | None = None  # --fix-others: the cameras the check found moved
+    board_models: dict[str, DepthModel] = field(default_factory=dict)  # fitted on the board
+
+    def depth_models(self) -> dict[str, DepthModel]:
+        """The depth models the run's clouds were corrected with (depth_model.yaml of its
+        output folder, so that a later check or refine applies them too)."""
+        return {**{c: m for c, m in self.given_scales.items() if isinstance(m, DepthModel)
+                   and self.scale_source.get(c) == "given"}, **self.board_models}
 
     def report(self, extrinsics: Extrinsics) -> dict[str, Any]:
         """report.json (schema 1.3, method ``depth``) of this run at ``extrinsics``."""
         scales: dict[str, dict[str, float | None]] = {
-            c: {"factor": f, "sigma": None} for c, f in self.given_scales.items()
-            if self.scale_source.get(c) == "given"}
+            c: {"factor": f.value("scale") if isinstance(f, DepthModel) else f, "sigma": None}
+            for c, f in self.given_scales.items() if self.scale_source.get(c) == "given"}
         scales.update(self.board_scales)
         return depth_only_report_dict(
             extrinsics, self.dataset.rig, self.dataset.summary().to_dict(),
@@ -300,7 +309,8 @@ def _write_refined(extrinsics: Extrinsics, clouds: dict[str, Any], out_dir: Path
     and ``report.html`` (a figure that fails costs the page, with ``warn``, not the run),
     then ``extrinsics.yaml``."""
     out_dir = Path(out_dir)
-    with staged(out_dir, replaces=("fused.ply", "report.json", "report.html")) as stage:
+    with staged(out_dir, replaces=("fused.ply", "report.json", "report.html",
+                                   DEPTH_MODEL_FILE)) as stage:
         T_ref_cam = {c: e.T_ref_cam for c, e in extrinsics.cameras.items()}
         pts, cols, idx = fuse_clouds(clouds, T_ref_cam, fused_voxel_m)  # index: names' order
         write_fused_ply(stage / "fused.ply", pts, cols, idx,
@@ -310,6 +320,8 @@ def _write_refined(extrinsics: Extrinsics, clouds: dict[str, Any], out_dir: Path
             report = run.report(extrinsics)
             (stage / "report.json").write_text(dump_report(report))
             _html_or_warning(report, stage, out_dir, warn)
+            if models := run.depth_models():
+                save_depth_models(models, stage / DEPTH_MODEL_FILE)
         write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..core.config import DepthConfig, RegistrationMethod
+from ..core.depth_model import DepthModel
 from ..core.geometry import covariance_sigmas, invert_transform, transform_error
 from ..core.progress import Progress, start
 from ..depth.clouds import CameraCloud
@@ -137,16 +138,16 @@ class CheckRun:
 
 
 def check_dataset(dataset: FolderDataset, calib: Extrinsics,
-                  depth_scales: dict[str, float] | None = None,
+                  depth_scales: dict[str, float | DepthModel] | None = None,
                   method: RegistrationMethod = "colored-icp",
                   config: DepthConfig | None = None, tolerance: Tolerance = Tolerance(),
                   workers: int | None = None, progress: Progress | None = None,
                   scheduler: str | None = None) -> CheckRun:
     """Check ``dataset`` (one or a few frame sets of the rig as it is now; no board needed,
     anything in view is scene) against ``calib``: a static cloud per calibrated camera with
-    depth (its ``depth_scales`` factor from the calibration), the pairs that overlap under
-    the calibration (with a wider overlap search, 0.15 m, than calibrate's: a knocked camera's
-    cloud lies centimetres off), then :func:`check_rig`."""
+    depth (its ``depth_scales`` entry: the calibration's depth model or factor), the pairs
+    that overlap under the calibration (with a wider overlap search, 0.15 m, than
+    calibrate's: a knocked camera's cloud lies centimetres off), then :func:`check_rig`."""
     config = config or DepthConfig()
     scales = depth_scales or {}
     cams = [c for c in dataset.cameras if c in calib.cameras and dataset.has_depth(c)]

@@ -19,6 +19,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ..core.config import DepthConfig, RegistrationMethod
+from ..core.depth_model import DepthModel
 from ..core.errors import CalibrationError
 from ..core.geometry import invert_transform, transform_error
 from ..depth.stage import DepthRefinement, finish_pairs, measure_depth, moved_beyond_board
@@ -32,7 +33,8 @@ from ..solve.variance_components import solve_variance_components
 def refine_extrinsics(dataset: FolderDataset, init: Extrinsics,
                       method: RegistrationMethod | Literal["none"] = "colored-icp",
                       config: DepthConfig | None = None,
-                      progress=None, depth_scales: dict[str, float] | None = None,
+                      progress=None,
+                      depth_scales: dict[str, float | DepthModel] | None = None,
                       workers: int | None = None, board: Board | None = None,
                       T_ref_board: dict[str, np.ndarray] | None = None,
                       board_cameras: dict[str, list[str]] | None = None,
@@ -47,9 +49,9 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics,
     residuals (:func:`solve_variance_components`; ``depth.pair_variance_factor``). Cameras in
     no accepted pair keep their initial pose (and sigma).
 
-    ``depth_scales`` (camera -> factor;
-    :func:`rgbd_calib.model.calib_folder.load_depth_scales`) are the depth-scale factors of the
-    calibration ``init`` came from; a camera without one has an unknown depth scale and
+    ``depth_scales`` (camera -> depth model or factor;
+    :func:`rgbd_calib.model.calib_folder.load_depth_corrections`) are the depth corrections of
+    the calibration ``init`` came from; a camera without one has an unknown depth scale and
     its pairs do not move it along the directions a scale error explains. With ``board``,
     ``T_ref_board`` (frame -> board pose of the starting calibration, e.g. its report.json
     ``board_views``) and ``board_cameras`` (frame -> cameras that saw it), the board is masked

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.depth_model import DepthModel, correct_depth_image
 from ..core.errors import ConfigError, DatasetError
 from ..core.progress import Progress, start
 from ..model.dataset import FolderWriter, staged_folder
@@ -160,6 +161,7 @@ def convert(
     names: Sequence[str] | None = None,
     sync_tolerance_ms: float | None = None,
     progress: Progress | None = None,
+    depth_models: dict[str, DepthModel] | None = None,
 ) -> ConversionReport:
     """Convert recordings into the folder form (docs/formats.md) at ``out``.
 
@@ -167,7 +169,10 @@ def convert(
     cameras of one ROS bag in namespace order). ``sync_tolerance_ms`` is how far apart two
     cameras' frames may be and still form a set; default half the reference camera's frame
     period. ``progress`` (:mod:`rgbd_calib.core.progress`) has a stage per source read and one for
-    writing the frame sets."""
+    writing the frame sets. ``depth_models`` (camera name -> :class:`DepthModel`, e.g.
+    :func:`rgbd_calib.load_depth_models` of a calibration) writes those cameras' depth
+    corrected (:func:`~rgbd_calib.core.depth_model.correct_depth_image`); every name must be
+    one of the converted cameras."""
     out = Path(out)
     sources = [Path(s) for s in sources]
     if not sources:
@@ -191,7 +196,8 @@ def convert(
             else:
                 cams.extend(read_ros(src, stager, progress))
         _assign_names(cams, names)
-        report = _write_sets(cams, tmp, out, sync_tolerance_ms, progress)
+        _check_model_names(cams, depth_models or {})
+        report = _write_sets(cams, tmp, out, sync_tolerance_ms, progress, depth_models or {})
         shutil.rmtree(stager.root)
     return report
 
@@ -226,12 +232,24 @@ def _assign_names(cams: list[StagedCamera], names: Sequence[str] | None) -> None
         seen[cam.name] = cam.key
 
 
+def _check_model_names(cams: list[StagedCamera], models: dict[str, DepthModel]) -> None:
+    names = [c.name for c in cams]
+    if unknown := sorted(set(models) - set(names)):
+        raise ConfigError(
+            f"--depth-model names {', '.join(unknown)}, not among the converted cameras "
+            f"({', '.join(names)}); pass --names so that the cameras carry the calibration's "
+            "names")
+    if raw := [c.name for c in cams if c.name in models and not c.depths]:
+        raise ConfigError(f"--depth-model: {', '.join(raw)} recorded no depth to correct")
+
+
 def _write_sets(
     cams: list[StagedCamera],
     root: Path,
     out: Path,
     sync_tolerance_ms: float | None,
     progress: Progress | None,
+    models: dict[str, DepthModel],
 ) -> ConversionReport:
     """Match the cameras' staged frames into sets and write them, with rig.yaml, into the
     folder form at ``root`` (renamed to ``out`` later)."""
@@ -239,7 +257,7 @@ def _write_sets(
     # rig.yaml: the first camera found is the calibration's reference
     rig = Rig({c.name: _with_scale(c) for c in cams}, cams[0].name)
     writer = FolderWriter(root, rig, depth_cameras=[c.name for c in cams if c.depths])
-    matched, without_depth, times = _move_frames(cams, sets, writer, progress)
+    matched, without_depth, times = _move_frames(cams, sets, writer, progress, models)
     if shared_clock(cams):  # else the times of different cameras cannot be compared
         for name, table in times.items():
             writer.write_timestamps(name, table)
@@ -262,7 +280,9 @@ def _write_sets(
         counts=counts,
         intrinsics_source={c.name: c.intrinsics_source for c in cams},
         depth_source={c.name: c.depth_source for c in cams},
-        notes=clock_notes(cams),
+        notes=clock_notes(cams) + ([
+            f"depth corrected by the depth model of {', '.join(sorted(models))} "
+            "(--depth-model)"] if models else []),
     )
 
 
@@ -271,10 +291,12 @@ def _move_frames(
     sets: list[dict[str, int]],
     writer: FolderWriter,
     progress: Progress | None,
+    models: dict[str, DepthModel],
 ) -> tuple[dict[str, int], dict[str, int], dict[str, dict[str, float]]]:
     """Move each set's staged colour frames into place, each with its paired depth frame
-    (aligned here when raw). Per camera: colour frames written, those without depth, and
-    each written frame's capture time (stem -> the colour frame's timestamp, ms)."""
+    (aligned here when raw; corrected by the camera's depth model in ``models``). Per camera:
+    colour frames written, those without depth, and each written frame's capture time
+    (stem -> the colour frame's timestamp, ms)."""
     by_name = {c.name: c for c in cams}
     depth_of = {c.name: pair_depth(c) for c in cams}
     matched = {c.name: 0 for c in cams}
@@ -292,8 +314,12 @@ def _move_frames(
             depth = depth_of[name].get(i)
             if depth is None:
                 without_depth[name] += 1
-            elif cam.depth_raw:
-                writer.write(name, "depth", stem, _align_staged(cam, depth.path))
+            elif cam.depth_raw or name in models:
+                img = (_align_staged(cam, depth.path) if cam.depth_raw
+                       else cv2.imread(str(depth.path), cv2.IMREAD_UNCHANGED))
+                if name in models:
+                    img = correct_depth_image(models[name], img, _with_scale(cam))
+                writer.write(name, "depth", stem, img)
             else:  # copied, not moved: a depth frame may serve two colour frames
                 shutil.copyfile(depth.path, writer.path(name, "depth", stem))
         tick(1)

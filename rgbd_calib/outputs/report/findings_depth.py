@@ -204,19 +204,40 @@ def board_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]
 
 
 def depth_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """A camera whose depth reads long or short by more than :data:`DEPTH_SCALE_TOL`, and
+    significantly so: its depth model chose the scale term (``depth_models``), or, in a report
+    without one, its factor is more than 3 sigmas from 1."""
     if any(w["code"] == "board_scale" for w in earlier):
         return []  # one board finding instead of every camera's depth blamed
-    return [
-        finding(
+    out = []
+    for name, cam in report["cameras"].items():
+        f, modelled = _significant_scale(cam, (report.get("depth_models") or {}).get(name))
+        if f is None or abs(f - 1.0) <= DEPTH_SCALE_TOL:
+            continue
+        out.append(finding(
             "info",
             "depth_scale",
             [name],
             f"{name}'s depth reads {100 * (f - 1):+.2f}% off the board's true distance.",
-            f"Divide {name}'s depth by {f:.4f} (or recalibrate its depth unit).",
-        )
-        for name, cam in report["cameras"].items()
-        if (f := cam["depth_scale_factor"]) is not None and abs(f - 1.0) > DEPTH_SCALE_TOL
-    ]
+            (f"Correct {name}'s depth with depth_model.yaml (rgbd_calib.correct_depth_image, or "
+             f"convert --depth-model); fused.ply already is. Its scale alone: divide its depth "
+             f"by {f:.4f}." if modelled else
+             f"Divide {name}'s depth by {f:.4f} (or recalibrate its depth unit)."),
+        ))
+    return out
+
+
+def _significant_scale(cam: dict[str, Any], model: dict[str, Any] | None
+                       ) -> tuple[float | None, bool]:
+    """(the camera's significant depth-scale factor or None, whether a depth model says so)."""
+    if model is not None:
+        if "scale" not in model.get("terms", []):
+            return None, True
+        return float(model["parameters"]["scale"]), True
+    f, sigma = cam.get("depth_scale_factor"), cam.get("depth_scale_sigma")
+    if f is None or (sigma and abs(f - 1.0) <= 3.0 * sigma):
+        return None, False
+    return float(f), False
 
 
 # ----------------------------------------------------------------------------- depth-only
