@@ -151,6 +151,21 @@ class DepthModel:
         p[z <= 0] = np.nan
         return p
 
+    def measured_points(self, points: Array) -> Array:
+        """The inverse of :meth:`correct_points`: colour-frame points ``(N,3)`` as the camera
+        measured them (on the ray of the pixel it saw them in) from the true ones; rows the
+        model has no answer for are NaN."""
+        T = self.T_true_measured()
+        p = (np.asarray(points, dtype=float).reshape(-1, 3) - T[:3, 3]) @ T[:3, :3]
+        z = p[:, 2]
+        ok = z > 0
+        x = np.where(ok, p[:, 0] / np.where(ok, z, 1.0), 0.0)
+        y = np.where(ok, p[:, 1] / np.where(ok, z, 1.0), 0.0)
+        zm = self.measured_depth(x, y, np.where(ok, z, 0.0))
+        out = np.stack([x * zm, y * zm, zm], axis=1)
+        out[~ok | (zm <= 0)] = np.nan
+        return out
+
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -36,6 +36,7 @@ from ..core.progress import Progress, Tick, start, timed
 from ..model.board import Board
 from ..model.dataset import FolderDataset
 from ..solve.bundle import RelativePose
+from .agreement import FusedAgreement, fused_agreement
 from .clouds import (
     CameraCloud,
     DepthScaleEstimate,
@@ -78,6 +79,8 @@ class DepthRefinement:
     pair_variance_factor: float | None = None
     # camera -> its depth model chosen by evidence from the board (the clouds are corrected)
     depth_models: dict[str, DepthModelFit] = field(default_factory=dict)
+    # the overlapping pairs' surface distances at the final extrinsics (measure_agreement)
+    agreement: FusedAgreement | None = None
 
     def status_dict(self) -> dict[str, Any]:
         """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason`` and
@@ -492,3 +495,19 @@ def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
         if tick is not None:
             tick(1)
     return replace(depth, pairs=pairs)
+
+
+def measure_agreement(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
+                      config: DepthConfig | None = None,
+                      models: dict[str, DepthModel] | None = None) -> DepthRefinement:
+    """``depth`` with the fused cloud's agreement (:func:`fused_agreement`) at ``T_ref_cam``:
+    every pair whose clouds overlap there, before and after the depth models (``models``,
+    default the stage's own fits)."""
+    config = config or DepthConfig()
+    clouds = {c: k for c, k in depth.clouds.items() if c in T_ref_cam}
+    if len(clouds) < 2:
+        return depth
+    pairs = [(o.cam_a, o.cam_b) for o in find_overlapping_pairs(clouds, T_ref_cam, None, config)]
+    if models is None:
+        models = {c: f.model for c, f in depth.depth_models.items()}
+    return replace(depth, agreement=fused_agreement(clouds, T_ref_cam, pairs, models))

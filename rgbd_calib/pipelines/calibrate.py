@@ -28,6 +28,7 @@ from ..depth.stage import (
     DepthRefinement,
     board_views_per_camera,
     finish_pairs,
+    measure_agreement,
     measure_depth,
     moved_beyond_board,
 )
@@ -275,6 +276,9 @@ def _depth(run: _Run, pg: PoseGraphResult, solved: _Solved,
         depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in solved.cameras.items()},
                              run.config.depth,
                              start(run.progress, "checking depth pairs", len(depth.pairs)))
+    with timed(run.timings, "fused_agreement"):
+        depth = measure_agreement(depth, {c: e.T_ref_cam for c, e in solved.cameras.items()},
+                                  run.config.depth)
     return replace(solved, depth=depth)
 
 

@@ -106,6 +106,8 @@ def report_dict(
         if result.depth.depth_models:
             report["depth_models"] = {c: _depth_model_entry(f)
                                       for c, f in result.depth.depth_models.items()}
+        if result.depth.agreement is not None:
+            report["fused_agreement"] = result.depth.agreement.to_dict()
     return finalize_report(to_builtin(report))
 
 

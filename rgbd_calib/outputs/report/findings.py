@@ -55,6 +55,7 @@ from .findings_depth import (
     depth_scale_unknown,
     depth_unused,
     each_pair,
+    fused_disagrees,
     is_depth_only,
     pair_disagrees,
     pair_fitness,
@@ -97,6 +98,7 @@ __all__ = [
     "each_pair",
     "each_sound_camera",
     "explained_model_errors",
+    "fused_disagrees",
     "few_views",
     "finding",
     "findings",
@@ -148,6 +150,7 @@ RULES: tuple[Rule, ...] = (
     dropped_views,
     each_pair(pair_disagrees, pair_rmse, pair_fitness),
     depth_unused,
+    fused_disagrees,
     board_scale,
     depth_scale,
 )

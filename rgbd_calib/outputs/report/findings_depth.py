@@ -240,6 +240,38 @@ def _significant_scale(cam: dict[str, Any], model: dict[str, Any] | None
     return float(f), False
 
 
+def fused_disagrees(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The fused cloud: a camera (or a pair, when it cannot tell which camera) whose corrected
+    depth lies off its overlapping cameras' surfaces beyond the noise (``fused_agreement``)."""
+    agree = report.get("fused_agreement")
+    if not agree:
+        return []
+    off = [p for p in agree["pairs"] if p["off"]]
+
+    def pairs_text(ps: list[dict[str, Any]]) -> str:
+        return ", ".join(f"{p['cam_a']}-{p['cam_b']} {p['after']['median_mm']:+.1f} mm "
+                         f"(+-{p['after']['median_se_mm']:.1f})" for p in ps)
+
+    advice = ("The depth model is fitted on the board: hold the board where this camera sees "
+              "the scene it shares with the others (near and far, centre and edges), and check "
+              "its depth for interference (a facing D435's projector); docs/depth.md.")
+    bias = agree.get("camera_bias_mm") or {}
+    out = [finding("warning", "fused_disagrees", [c],
+                   f"fused.ply: {c}'s depth reads {bias.get(c, 0.0):+.1f} mm against the other "
+                   "cameras' where they overlap, beyond the noise, after its depth model"
+                   + (f" (off pairs: {pairs_text(ps)})"
+                      if (ps := [p for p in off if c in (p['cam_a'], p['cam_b'])]) else "")
+                   + ".", advice)
+               for c in agree["off_cameras"]]
+    for a, b in agree["ambiguous"]:
+        ps = [p for p in off if {p["cam_a"], p["cam_b"]} == {a, b}]
+        out.append(finding("warning", "fused_disagrees", [a, b],
+                           f"fused.ply: {a} and {b} disagree where they overlap beyond the "
+                           f"noise ({pairs_text(ps)}); the data cannot tell which one's depth "
+                           "is off.", advice))
+    return out
+
+
 # ----------------------------------------------------------------------------- depth-only
 def is_depth_only(report: dict[str, Any]) -> bool:
     """A report of ``rgbd-calib refine`` (no board result; schema 1.3 ``refine``)."""

@@ -546,6 +546,55 @@ def _pairs_section(report: dict[str, Any], figs: Figures) -> list[str]:
     return out
 
 
+def _fused_section(report: dict[str, Any]) -> list[str]:
+    """The fused cloud's quality: each camera's depth model and its board-plane residuals,
+    each overlapping pair's signed surface distances before and after the models."""
+    models, agree = report.get("depth_models") or {}, report.get("fused_agreement")
+    if not models and not agree:
+        return []
+    out = ["<section><h2>Fused cloud (depth models)</h2>"]
+    if models:
+        rows = []
+        for c, m in models.items():
+            bands = m["bands"]
+            worst = (max(bands, key=lambda b: abs(b["median_before_mm"])) if bands else None)
+            rows.append([
+                _e(c), _e(" + ".join(m["terms"]) or "identity"),
+                ", ".join(f"{_e(k)} {v:.4g} &plusmn; {m['sigmas'].get(k, 0.0):.2g}"
+                          for k, v in m["parameters"].items()) or "&ndash;",
+                *((_num(max(abs(b["median_before_mm"]) for b in bands), 2),
+                   _num(max(abs(b["median_after_mm"]) for b in bands), 2),
+                   f"{_num(worst['z_min_m'], 2)}&ndash;{_num(worst['z_max_m'], 2)}")
+                  if worst else ("n/a", "n/a", "n/a"))])
+        out.append(_table(["camera", "terms chosen", "parameters &plusmn; 1 sigma",
+                           "board-plane bias before (mm, worst band)",
+                           "after (mm, worst band)", "worst band (m)"], rows, left=(1, 2)))
+        out.append("<p class='cap'>Each camera's depth model, fitted on every depth pixel of "
+                   "the board (depth_model.yaml); a term is kept only when the data support it. "
+                   "Board-plane bias: median signed distance of the depth on the board face to "
+                   "the face the colour solve put there, per distance band.</p>")
+    if agree and agree["pairs"]:
+        bias = agree.get("camera_bias_mm") or {}
+        rows = [[f"{_e(p['cam_a'])} &ndash; {_e(p['cam_b'])}",
+                 _num(p["before"]["median_mm"], 2) if p["before"] else "&ndash;",
+                 f"{_num(p['after']['median_mm'], 2)} &plusmn; "
+                 f"{_num(p['after']['median_se_mm'], 2)}",
+                 _num(p["after"]["p90_mm"], 1), _num(p["noise_p90_mm"], 1),
+                 "off" if p["off"] else "agrees"] for p in agree["pairs"]]
+        out.append(_table(["pair", "bias before models (mm)", "bias after (mm)",
+                           "p90 |distance| after (mm)", "p90 the noise predicts (mm)",
+                           "beyond the noise"], rows))
+        if bias:
+            out.append(_table(["camera", "depth bias against the rig (mm)"],
+                              [[_e(c), _num(v, 2)] for c, v in sorted(bias.items())]))
+        out.append("<p class='cap'>Signed surface distance of camera a's points to camera b's "
+                   "surface where they overlap in fused.ply (+: a's depth beyond b's). A pair "
+                   "is off when its bias is beyond 1 mm and 3 of its standard errors; each "
+                   "camera's bias is solved from all pairs, the median camera at 0.</p>")
+    out.append("</section>")
+    return out
+
+
 def _dropped_tables(report: dict[str, Any], reasons: list[str]) -> list[str]:
     """Dropped views per camera and reason, the advice per reason, every dropped view."""
     dropped = report["dropped_views"]
@@ -634,6 +683,7 @@ def render_html(
         _coverage_section(report, figs) if board else [],
         _markers_section(figs) if board else [],
         _pairs_section(report, figs),
+        _fused_section(report),
         _dropped_section(report) if board else [],
         _footer(report, cloud, frame),
     )

@@ -102,6 +102,8 @@ _PCT = Nullable(Block("percentiles", {"rms": N, "p50": N, "p90": N, "p99": N, "m
 _STATS = Nullable(Block("stats", {"n": INT, "rms": N, "p50": N, "p90": N, "p99": N, "max": N}))
 _RANGE = Nullable(Block("range", {"min": N, "max": N}))
 _WORST = Nullable(Block("worst", {"camera": S, "value": N}))
+SURFACE_DISTANCES = Block("surface_distances", {"n": INT, "median_mm": N, "median_se_mm": N,
+                                                "p90_mm": N})
 
 CAMERA_SCHEMA: dict[str, Any] = {
     "calibrated": B,
@@ -271,6 +273,15 @@ REPORT_SCHEMA: dict[str, Any] = {
                          "median_after_mm": N, "p90_before_mm": N, "p90_after_mm": N,
                          "noise_mm": N}),
     }),
+    "fused_agreement?": {
+        "pairs": ListOf({"cam_a": S, "cam_b": S, "after": SURFACE_DISTANCES,
+                         "before": Nullable(SURFACE_DISTANCES), "noise_p90_mm": N, "off": B}),
+        "worst_bias_mm": Nullable(N),
+        "worst_bias_before_mm": Nullable(N),
+        "camera_bias_mm": MapOf("<camera>", N),
+        "off_cameras": ListOf(S),
+        "ambiguous": ListOf(ListOf(S)),
+    },
     "motion?": ListOf({"frame": S, "cameras": ListOf(S), "outliers": ListOf(S),
                        "spread_mm": N, "speed_mps": Nullable(N), "moved": B}),
     "pairs": ListOf(PAIR_SCHEMA),

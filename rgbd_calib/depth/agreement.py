@@ -1,0 +1,266 @@
+"""How well the cameras' depth agrees where their clouds overlap: the fused cloud's quality in
+millimetres, before and after each camera's depth model (issue 33, item 4).
+
+For an overlapping pair ``(a, b)`` at the final extrinsics, each of a's points is matched to
+b's surface there (the centroid of its nearest points within ``max_distance_m``, b's normal)
+and its *signed surface distance* taken along that normal: positive when a's point lies beyond
+b's surface as both cameras see it (a's depth reads long against b's). Over the pair: the
+median (the pair's bias) and the p90 of |distance|, against what the depth noise predicts
+(each camera's ``sigma_z`` projected on the normal, b's averaged over the centroid's points,
+``1.645 sqrt(...)`` for the p90; 0 for the median, with a standard error from the spread of
+the medians of blocks of the image, since neighbouring pixels share their depth error).
+"Before" is the same pair with each camera's depth model undone
+(:meth:`~rgbd_calib.core.depth_model.DepthModel.measured_points`).
+
+A pair is *off* when its bias is both beyond 3 standard errors and beyond ``bias_tol_mm``.
+Each camera's own bias comes from all pairs at once (:func:`blame`), and a camera is named when
+it is off beyond the same bounds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from ..core.depth_model import DepthModel
+from ..core.geometry import transform_points
+from .clouds import CameraCloud
+
+MAX_POINTS = 40_000  # a's points per pair (a random subset: the medians need no more)
+BLOCKS = 8  # image blocks per side for the median's standard error
+NORMAL_VOXEL_M = 0.01  # normals on this grid, over 3 of its cells
+NEIGHBOURS = 8  # b's surface at a's point: the centroid of this many nearest points
+BIAS_TOL_MM = 1.0  # a pair whose bias is below this agrees, however significant
+P90_GAUSS = 1.645
+
+
+@dataclass(frozen=True)
+class SurfaceDistances:
+    """Signed surface distances of one pair in one state (before or after the models)."""
+
+    n: int  # matched points
+    median_mm: float  # signed: + = a's depth beyond b's surface
+    median_se_mm: float  # standard error of the median (blocks of a's image)
+    p90_mm: float  # p90 of |distance|
+
+    def to_dict(self) -> dict[str, float | int]:
+        return {"n": self.n, "median_mm": self.median_mm, "median_se_mm": self.median_se_mm,
+                "p90_mm": self.p90_mm}
+
+
+@dataclass(frozen=True)
+class PairAgreement:
+    """One overlapping pair: its surface distances after (and before) the depth models, the
+    p90 the depth noise predicts, and whether it is off beyond the noise."""
+
+    cam_a: str
+    cam_b: str
+    after: SurfaceDistances
+    before: SurfaceDistances | None  # None: neither camera has a depth model to undo
+    noise_p90_mm: float
+    off: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"cam_a": self.cam_a, "cam_b": self.cam_b, "after": self.after.to_dict(),
+                "before": self.before.to_dict() if self.before is not None else None,
+                "noise_p90_mm": self.noise_p90_mm, "off": self.off}
+
+
+@dataclass(frozen=True)
+class FusedAgreement:
+    """Every overlapping pair's agreement and the cameras the off pairs point to."""
+
+    pairs: list[PairAgreement] = field(default_factory=list)
+    off_cameras: list[str] = field(default_factory=list)  # named: their depth is off
+    ambiguous: list[tuple[str, str]] = field(default_factory=list)  # off pairs, either camera
+    # camera -> its depth's bias against the rig (mm, + = reads long), groups of 3+ cameras
+    camera_bias_mm: dict[str, float] = field(default_factory=dict)
+
+    def worst_bias_mm(self, before: bool = False) -> float | None:
+        vals = [abs((p.before if before and p.before is not None else p.after).median_mm)
+                for p in self.pairs]
+        return max(vals) if vals else None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"pairs": [p.to_dict() for p in self.pairs],
+                "worst_bias_mm": self.worst_bias_mm(),
+                "worst_bias_before_mm": self.worst_bias_mm(before=True),
+                "camera_bias_mm": dict(self.camera_bias_mm),
+                "off_cameras": list(self.off_cameras),
+                "ambiguous": [list(p) for p in self.ambiguous]}
+
+
+def undone(cloud: CameraCloud, model: DepthModel | None) -> CameraCloud | None:
+    """``cloud`` (corrected by ``model``) as the camera measured it, or None when there is
+    no model to undo."""
+    if model is None or model.is_identity:
+        return None
+    pts = model.measured_points(cloud.points.astype(float))
+    ok = np.isfinite(pts[:, 0])
+    return CameraCloud(cloud.camera, cloud.intrinsics, pts[ok].astype(np.float32),
+                       cloud.colors[ok], cloud.sigma_z[ok], cloud.pixels[ok], cloud.stats,
+                       cloud.frames)
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A camera's cloud ready to be measured against: its points' KD-tree, and normals (facing
+    the camera) on a 1 cm voxel grid of it (normals of single noisy points are noise)."""
+
+    cloud: CameraCloud
+    points: np.ndarray  # (N,3) float64, camera frame
+    tree: cKDTree
+    normal_tree: cKDTree
+    normals: np.ndarray
+
+    @classmethod
+    def of(cls, cloud: CameraCloud) -> Surface:
+        pts = cloud.points.astype(float)
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(
+            NORMAL_VOXEL_M)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * NORMAL_VOXEL_M,
+                                                                  max_nn=30))
+        pcd.orient_normals_towards_camera_location(np.zeros(3))
+        return cls(cloud, pts, cKDTree(pts), cKDTree(np.asarray(pcd.points)),
+                   np.asarray(pcd.normals))
+
+    def normals_at(self, points: np.ndarray) -> np.ndarray:
+        return self.normals[self.normal_tree.query(points)[1]]
+
+
+def surface_distances(a: CameraCloud, surf_b: Surface, T_ref_a: np.ndarray,
+                      T_ref_b: np.ndarray, max_distance_m: float,
+                      rng: np.random.Generator) -> tuple[SurfaceDistances, float] | None:
+    """a's points against b's surface: the distances and the noise-predicted p90 (mm), or
+    None when fewer than 100 points match."""
+    b = surf_b.cloud
+    pick = (rng.choice(a.n_points, MAX_POINTS, replace=False) if a.n_points > MAX_POINTS
+            else np.arange(a.n_points))
+    T_b_a = np.linalg.inv(T_ref_b) @ T_ref_a
+    p = transform_points(T_b_a, a.points[pick].astype(float))
+    b_pts = surf_b.points
+    dist, j = surf_b.tree.query(p, k=NEIGHBOURS, distance_upper_bound=max_distance_m)
+    hit = np.isfinite(dist).all(axis=1)
+    if hit.sum() < 100:
+        return None
+    j, p, ia = j[hit], p[hit], pick[hit]
+    centre = b_pts[j].mean(axis=1)  # b's local surface: its noise averaged over NEIGHBOURS
+    n_b = surf_b.normals_at(centre)  # facing camera b
+    offset = p - centre
+    d = -np.einsum("ij,ij->i", offset, n_b)  # + = beyond b's surface
+    # a's point lies over b's surface, not off its edge
+    lateral = np.sqrt(np.maximum(np.einsum("ij,ij->i", offset, offset) - d ** 2, 0.0))
+    keep = lateral < 0.5 * max_distance_m
+    d, ia, jb, p, n_b = d[keep], ia[keep], j[keep, 0], p[keep], n_b[keep]
+    if d.size < 100:
+        return None
+    # each camera's depth noise along the normal: sigma_z times the ray's share of the normal
+    ray_a = p - T_b_a[:3, 3]
+    cos_a = np.abs(np.einsum("ij,ij->i", ray_a, n_b)) / np.linalg.norm(ray_a, axis=1)
+    cos_b = np.abs(np.einsum("ij,ij->i", b_pts[jb], n_b)) / np.linalg.norm(b_pts[jb], axis=1)
+    sigma = np.hypot(a.sigma_z[ia] * cos_a, b.sigma_z[jb] * cos_b / np.sqrt(NEIGHBOURS))
+    noise = P90_GAUSS * float(np.median(sigma))
+    return SurfaceDistances(int(d.size), 1e3 * float(np.median(d)),
+                            1e3 * _median_se(d, a.pixels[ia], a.intrinsics.width,
+                                             a.intrinsics.height),
+                            1e3 * float(np.percentile(np.abs(d), 90))), 1e3 * noise
+
+
+def _median_se(d: np.ndarray, pixels: np.ndarray, width: int, height: int) -> float:
+    """Standard error of the median of ``d`` from the spread of its blocks' medians (pixels
+    in :data:`BLOCKS` x :data:`BLOCKS` blocks of the image share their errors)."""
+    block = (np.minimum(pixels[:, 0] * BLOCKS // max(width, 1), BLOCKS - 1) * BLOCKS
+             + np.minimum(pixels[:, 1] * BLOCKS // max(height, 1), BLOCKS - 1))
+    meds = np.array([np.median(d[block == k]) for k in np.unique(block)
+                     if np.count_nonzero(block == k) >= 20])
+    if meds.size < 3:
+        return float(np.percentile(np.abs(d - np.median(d)), 90))  # too few blocks: wide
+    return float(1.2533 * meds.std(ddof=1) / np.sqrt(meds.size))
+
+
+def fused_agreement(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndarray],
+                    pairs: list[tuple[str, str]], models: dict[str, DepthModel],
+                    max_distance_m: float = 0.02, bias_tol_mm: float = BIAS_TOL_MM,
+                    seed: int = 0) -> FusedAgreement:
+    """The agreement of every overlapping pair of ``pairs`` at ``T_ref_cam``, the clouds as
+    corrected by ``models`` (after) and with the models undone (before)."""
+    rng = np.random.default_rng(seed)
+    named = [c for c in clouds if c in T_ref_cam]
+    surf = {c: Surface.of(clouds[c]) for c in named}
+    raw = {c: undone(clouds[c], models.get(c)) for c in named}
+    raw_surf = {c: Surface.of(r) for c, r in raw.items() if r is not None}
+    out = []
+    for a, b in pairs:
+        if a not in surf or b not in surf:
+            continue
+        after = surface_distances(clouds[a], surf[b], T_ref_cam[a], T_ref_cam[b],
+                                  max_distance_m, rng)
+        if after is None:
+            continue
+        before = None
+        if a in raw_surf or b in raw_surf:
+            got = surface_distances(raw[a] or clouds[a], raw_surf.get(b, surf[b]), T_ref_cam[a],
+                                    T_ref_cam[b], max_distance_m, rng)
+            before = got[0] if got is not None else None
+        dist, noise = after
+        off = (abs(dist.median_mm) > bias_tol_mm
+               and abs(dist.median_mm) > 3.0 * dist.median_se_mm)
+        out.append(PairAgreement(a, b, dist, before, noise, off))
+    cams, either, biases = blame(out, bias_tol_mm)
+    return FusedAgreement(out, cams, either, biases)
+
+
+def blame(pairs: list[PairAgreement], bias_tol_mm: float = BIAS_TOL_MM
+          ) -> tuple[list[str], list[tuple[str, str]], dict[str, float]]:
+    """Per camera its depth's bias against the rig, from the pairs' biases: least squares of
+    ``bias_a - bias_b = median_ab`` (weights 1 / se^2, se at least 0.2 mm) in each connected
+    group of three or more cameras, the group's median camera taken as right (most cameras'
+    depth is). Named: cameras whose bias is beyond ``bias_tol_mm`` and 3 of its sigmas; an off
+    pair in a group of two is ambiguous (either camera). Returns (named, ambiguous, biases)."""
+    names = sorted({c for p in pairs for c in (p.cam_a, p.cam_b)})
+    groups = _groups(names, pairs)
+    named: list[str] = []
+    either: list[tuple[str, str]] = []
+    biases: dict[str, float] = {}
+    for group in groups:
+        inside = [p for p in pairs if p.cam_a in group]
+        if len(group) < 3:
+            either += [(p.cam_a, p.cam_b) for p in inside if p.off]
+            continue
+        idx = {c: k for k, c in enumerate(group)}
+        A = np.zeros((len(inside) + 1, len(group)))
+        y = np.zeros(len(inside) + 1)
+        w = np.ones(len(inside) + 1)
+        for r, p in enumerate(inside):
+            A[r, idx[p.cam_a]], A[r, idx[p.cam_b]] = 1.0, -1.0
+            y[r], w[r] = p.after.median_mm, 1.0 / max(p.after.median_se_mm, 0.2)
+        A[-1, :] = 1.0  # gauge: sum 0 (shifted to the median below)
+        sol, *_ = np.linalg.lstsq(A * w[:, None], y * w, rcond=None)
+        cov = np.linalg.pinv((A[:-1] * w[:-1, None]).T @ (A[:-1] * w[:-1, None]))
+        sol = sol - np.median(sol)
+        for c, k in idx.items():
+            biases[c] = float(sol[k])
+            sigma = float(np.sqrt(max(cov[k, k], 0.0)))
+            if abs(sol[k]) > bias_tol_mm and abs(sol[k]) > 3.0 * sigma:
+                named.append(c)
+    return sorted(named), either, biases
+
+
+def _groups(names: list[str], pairs: list[PairAgreement]) -> list[list[str]]:
+    """Connected groups of cameras by their pairs."""
+    left, out = set(names), []
+    while left:
+        todo, group = [left.pop()], set()
+        while todo:
+            c = todo.pop()
+            group.add(c)
+            for p in pairs:
+                for x, y in ((p.cam_a, p.cam_b), (p.cam_b, p.cam_a)):
+                    if x == c and y in left:
+                        left.discard(y)
+                        todo.append(y)
+        out.append(sorted(group))
+    return out
