@@ -66,6 +66,7 @@ NEAR_M = 2.0  # p90 of |distance| over points this close to their camera
 CLEAN_SHIFT_MM = 0.3  # the issue: on a clean rig no cloud moved by more than this
 BANDS_M = (0.0, 1.0, 2.0, 3.0, 4.0)  # distance bands of the per-band bias table
 VARIANTS = ("model", "scale", "raw", "true")
+FEW_MATCHED = 0.95  # a band with fewer of its points matched is marked in the table
 
 
 # ----------------------------------------------------------------------------- runs
@@ -163,11 +164,14 @@ def camera_stats(signed_m: np.ndarray, range_m: np.ndarray) -> dict[str, Any]:
     :data:`NEAR_M` (mm), counts, and the median per distance band (mm)."""
     ok = np.isfinite(signed_m)
     near = ok & (range_m <= NEAR_M)
-    bands = {}
+    bands, matched = {}, {}
     for lo, hi in zip(BANDS_M[:-1], BANDS_M[1:]):
-        sel = ok & (range_m > lo) & (range_m <= hi)
+        band = (range_m > lo) & (range_m <= hi)
+        sel = ok & band
         bands[f"{lo:g}-{hi:g}"] = (float(1e3 * np.median(signed_m[sel]))
                                    if np.count_nonzero(sel) >= 50 else None)
+        matched[f"{lo:g}-{hi:g}"] = (np.count_nonzero(sel) / np.count_nonzero(band)
+                                     if band.any() else None)
     return {
         "bias_mm": float(1e3 * np.median(signed_m[ok])) if ok.any() else None,
         "p90_near_mm": float(1e3 * np.percentile(np.abs(signed_m[near]), 90))
@@ -177,6 +181,7 @@ def camera_stats(signed_m: np.ndarray, range_m: np.ndarray) -> dict[str, Any]:
         "n_matched": int(np.count_nonzero(ok)),
         "n_near": int(np.count_nonzero(near)),
         "bands_mm": bands,
+        "bands_matched": matched,  # fraction of the band's points within MAX_DISTANCE_M
     }
 
 
@@ -235,6 +240,10 @@ def _f(x, digits=2) -> str:
     return "-" if x is None else f"{x:+.{digits}f}" if digits >= 0 else f"{x:.{-digits}f}"
 
 
+def _few(fraction: float | None) -> str:
+    return "*" if fraction is not None and fraction < FEW_MATCHED else ""
+
+
 def markdown(layout: str, seed: int, frames: int, res: dict[str, Any]) -> str:
     m = res["cameras"]
     lines = [f"### {layout}, seed {seed}, {frames} frame sets", "",
@@ -251,13 +260,15 @@ def markdown(layout: str, seed: int, frames: int, res: dict[str, Any]) -> str:
             + " | ".join(_f(p90[v], -2) for v in VARIANTS) + f" | {_f(ratio, -2)} | "
             f"{e['model']['n_matched']} / {e['true']['n_matched']} |")
     lines += ["", "Median signed distance per distance band from the camera (mm; model / "
-              "scale only / raw / true depth):", "",
+              f"scale only / raw / true depth; * fewer than {100 * FEW_MATCHED:g} % of the "
+              f"band's points within {1e3 * MAX_DISTANCE_M:g} mm of a surface, the median "
+              "understates):", "",
               "| camera | " + " | ".join(f"{b} m" for b in m[next(iter(m))]["model"]
                                         ["bands_mm"]) + " |",
               "|---" * (len(BANDS_M)) + "|"]
     for cam, e in m.items():
-        cells = [" / ".join(_f(e[v]["bands_mm"][b], 1) for v in VARIANTS)
-                 for b in e["model"]["bands_mm"]]
+        cells = [" / ".join(_f(e[v]["bands_mm"][b], 1) + _few(e[v]["bands_matched"][b])
+                            for v in VARIANTS) for b in e["model"]["bands_mm"]]
         lines.append(f"| {cam} | " + " | ".join(cells) + " |")
     lines += ["", "Depth model (errors render) against the truth: estimate (truth) "
               "error/sigma, for the parameters estimated or non-zero in the truth:", ""]
