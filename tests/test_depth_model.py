@@ -122,3 +122,28 @@ def test_a_broken_depth_model_yaml_is_one_line_naming_the_file(tmp_path):
     with pytest.raises(RgbdCalibError, match="depth_model.yaml.*cam") as info:
         load_depth_models(bad)
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("setting", ["auto", "none"])
+def test_depth_model_none_leaves_the_clouds_to_the_depth_scale_factor(tiny_dataset, setting):
+    """``depth.model: none`` fits no model: each static cloud is divided by its camera's
+    depth-scale factor, as before the model; ``auto`` fits one per camera with board views."""
+    from rgbd_calib.core.config import DepthConfig
+    from rgbd_calib.core.geometry import invert_transform
+    from rgbd_calib.depth.stage import measure_depth
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.model.dataset import FolderDataset
+    from rgbd_calib.synth.ground_truth import load_ground_truth
+
+    ds, gt = FolderDataset(tiny_dataset), load_ground_truth(tiny_dataset)
+    views = {c: {f: invert_transform(T) @ B for f, B in gt.T_ref_board.items()}
+             for c, T in gt.T_ref_cam.items()}
+    depth = measure_depth(ds, thesis_board(), gt.T_ref_cam, views, gt.T_ref_board, "none",
+                          DepthConfig(model=setting), workers=1)
+    assert depth.depth_scales and set(depth.clouds) == set(ds.cameras)
+    if setting == "none":
+        assert depth.depth_models == {}
+        for c, cloud in depth.clouds.items():
+            assert cloud.depth_scale_factor == depth.depth_scales[c].factor
+    else:
+        assert set(depth.depth_models) == set(depth.depth_scales)

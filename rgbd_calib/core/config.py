@@ -618,6 +618,14 @@ class DepthConfig(BaseModel, extra="forbid"):
     scale_huber_k: float = Field(
         1.5, gt=0, description="Huber threshold (sigmas) of the per-pixel and per-frame fits."
     )
+    model: Literal["auto", "none"] = Field(
+        "auto",
+        description="auto: each camera's depth model (scale, disparity-offset field, "
+        "depth-to-colour pose; terms chosen by evidence from the board, depth_model.yaml) "
+        "corrects its static cloud and fused.ply; none: no model is fitted and the clouds are "
+        "divided by the depth-scale factor alone, as before the model (for comparison: "
+        "docs/depth.md, 'Fused cloud against the true surfaces').",
+    )
     # overlap
     overlap_voxel_m: float = Field(
         0.05, gt=0, description="Voxel size of the clouds used to measure overlap."

@@ -245,7 +245,8 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
             except (CalibrationError, DatasetError):
                 tick(1)
                 continue  # too few board pixels with depth: the factor stays 1 (reported)
-            samples = board_samples(dataset.rig.cameras[c], faces, config)
+            samples = (board_samples(dataset.rig.cameras[c], faces, config)
+                       if config.model == "auto" else None)
             if samples is not None:
                 models[c] = fit_depth_model(c, samples, dataset.rig.cameras[c], config)
         tick(1)
