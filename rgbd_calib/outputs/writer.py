@@ -17,7 +17,7 @@ import shutil
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,7 @@ from .report import (
     dump_report,
     finite_or_null,
     report_dict,
+    report_verdict,
     write_report_html,
 )
 from .report.storage import VIEWS_FILE, VIEWS_INLINE_MAX, write_report_json
@@ -164,6 +165,9 @@ def write_outputs(
                     T_ref_cam, result.config.depth.fused_voxel_m)
                 write_fused_ply(stage / "fused.ply", pts, cols, idx, names)
         report = report_dict(result, rig, pairs, depth_scale)
+        # the verdict goes into extrinsics.yaml and every export: a file read on its own says
+        # what it is worth
+        extrinsics = replace(result.extrinsics, verdict=report_verdict(report))
         # above views_inline_max views, the per-view detail goes to report_views.ndjson.gz
         write_report_json(report, stage, views_inline_max)
         if fused_ply is not None:
@@ -172,13 +176,13 @@ def write_outputs(
         write_config(result.config, stage / "config_resolved.yaml")
         boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
         try:
-            write_exports(result.extrinsics, stage, rig=export_rig, edges=used_edges(result),
+            write_exports(extrinsics, stage, rig=export_rig, edges=used_edges(result),
                           board_poses=boards)
         except Exception as exc:  # noqa: BLE001 - an export is not worth the result
             shutil.rmtree(stage / "exports", ignore_errors=True)
             warn(f"exports/ not written ({_one_line(exc)}); extrinsics.yaml is complete "
                  "(rgbd_calib.write_exports makes them from it)")
-        write_extrinsics(result.extrinsics, stage / "extrinsics.yaml")
+        write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written
 
@@ -310,6 +314,7 @@ def _write_refined(extrinsics: Extrinsics, clouds: dict[str, Any], out_dir: Path
             report = run.report(extrinsics)
             (stage / "report.json").write_text(dump_report(report))
             _html_or_warning(report, stage, out_dir, warn)
+            extrinsics = replace(extrinsics, verdict=report_verdict(report))
         write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written
