@@ -132,3 +132,107 @@ def test_an_unknown_camera_names_the_cameras():
         assert isinstance(caught.value, KeyError) and isinstance(caught.value, RgbdCalibError)
         assert str(caught.value) == "camera 'cam99' is not in this calibration; its cameras: a, b"
     assert ext.cameras.get("cam99") is None and "b" in ext.cameras
+
+
+# ----------------------------------------------------------------------------- videos folder
+def _videos(folder: Path, n: int = 2) -> list[Path]:
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k in range(n):
+        path = folder / f"cam_{k}.mp4"
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30, (64, 48))
+        for i in range(3):
+            writer.write(np.full((48, 64, 3), 40 * i, np.uint8))
+        writer.release()
+        paths.append(path)
+    return paths
+
+
+@pytest.mark.parametrize("command", ["calibrate", "check", "refine"])
+def test_a_folder_of_videos_or_recordings_says_to_convert_it(tmp_path, command):
+    """calibrate reads a dataset folder or recordings; given a folder of videos (or of bags),
+    it says so in one line naming the folder, with the convert command to run; nothing is
+    written. check and refine read their dataset the same way."""
+    videos = _videos(tmp_path / "vids")
+    bags = tmp_path / "bags"
+    bags.mkdir()
+    for name in ("left.bag", "right.bag"):
+        (bags / name).write_bytes(b"")
+    calib = tmp_path / "calib" / "extrinsics.yaml"
+    calib.parent.mkdir()
+    write_extrinsics(_extrinsics(), calib)
+    extra = {"calibrate": [], "check": ["--calib", calib], "refine": ["--init", calib]}[command]
+    cases = [
+        ([tmp_path / "vids"], f"{tmp_path / 'vids'}: holds videos (cam_0.mp4, cam_1.mp4), not "
+         f"a dataset folder; convert them first with `rgbd-calib convert "
+         f"{tmp_path / 'vids'}/*.mp4 --out DATASET`, then give DATASET"),
+        (videos, f"{videos[0]}: a video; calibrate, check and refine read a dataset folder or "
+         f"RealSense/ROS recordings: convert the videos first with `rgbd-calib convert "
+         f"{videos[0]} {videos[1]} --out DATASET`"),
+        ([bags], f"{bags}: holds recordings (left.bag, right.bag), not a dataset folder; "
+         f"convert them first with `rgbd-calib convert {bags}/*.bag --out DATASET`"),
+    ]
+    for sources, says in cases:
+        out = tmp_path / f"out_{command}"
+        code, text = cli(command, *sources, *extra, "--out", out)
+        assert code == cli_app.EXIT_INPUT, text
+        assert len(text.strip().splitlines()) == 1 and says in " ".join(text.split()), text
+        assert not out.exists()
+
+
+def test_the_library_refuses_a_videos_folder_the_same_way(tmp_path):
+    _videos(tmp_path / "vids")
+    with pytest.raises(DatasetError, match=r"holds videos .*`rgbd-calib convert .*/vids/\*.mp4"):
+        rgbd_calib.calibrate(str(tmp_path / "vids"), CONFIGS / "board_thesis.yaml")
+
+
+# ----------------------------------------------------------------------------- library API
+def test_library_convert_takes_str_and_pathlike(tmp_path):
+    videos = _videos(tmp_path / "vids")
+    out = tmp_path / "dataset"
+    report = rgbd_calib.convert([str(videos[0]), PathLike(videos[1])], str(out))
+    assert report.cameras == ["cam_0", "cam_1"] and report.frames_written == 3
+    rig = rgbd_calib.load_rig(PathLike(out / "rig.yaml"))
+    assert set(rig.cameras) == {"cam_0", "cam_1"}
+    assert rgbd_calib.FolderDataset(PathLike(out)).frames == ["000000", "000001", "000002"]
+    with pytest.raises(ConfigError, match="either video files or recordings"):
+        rgbd_calib.convert([videos[0], tmp_path / "x.bag"], tmp_path / "mixed")
+
+
+def test_library_calibrate_check_refine_take_paths(poor_calibration, tiny_dataset, tmp_path):
+    """calibrate(cache_dir="...") used to be a TypeError; check and refine are library calls
+    too, on a calibration folder's path, as the commands take it."""
+    from rgbd_calib import CalibrationConfig
+
+    cache = tmp_path / "cache"
+    result = rgbd_calib.calibrate(str(tiny_dataset), str(CONFIGS / "board_thesis.yaml"),
+                                  CalibrationConfig(refine="none", workers=2),
+                                  cache_dir=str(cache))
+    assert (cache / "detections.json").is_file()
+    assert set(result.extrinsics.cameras) == {"cam7", "cam8", "cam9", "cam10"}
+    paths = rgbd_calib.write_outputs(result, rgbd_calib.FolderDataset(tiny_dataset).rig,
+                                     PathLike(tmp_path / "out"))
+    assert tmp_path / "out" / "extrinsics.yaml" in paths
+    ext = rgbd_calib.load_extrinsics(PathLike(tmp_path / "out" / "extrinsics.yaml"))
+    assert ext.verdict.grade in ("good", "check")
+    assert rgbd_calib.load_config(PathLike(tmp_path / "out" / "config_resolved.yaml"))
+    assert rgbd_calib.load_board(PathLike(CONFIGS / "board_thesis.yaml")).name
+    assert rgbd_calib.load_ground_truth(PathLike(tiny_dataset)).reference == "cam7"
+    exported = rgbd_calib.write_exports(ext, PathLike(tmp_path / "again"))
+    assert all(p.is_file() for p in exported.values())
+
+    calib, _, _ = poor_calibration
+    run = rgbd_calib.check(PathLike(tiny_dataset), str(calib))
+    assert set(run.result.cameras) == {"cam7", "cam8", "cam9"}  # cam10 was not calibrated
+    assert set(run.moved) | set(run.unknown) <= set(run.result.cameras)
+    assert {"moved", "unknown", "cameras"} <= set(run.result.to_dict())
+
+    refined = rgbd_calib.refine(str(tiny_dataset), PathLike(calib))
+    assert refined.init_path == calib / "extrinsics.yaml"
+    assert refined.outcome["verdict"] in ("refined", "unchanged", "check")
+    written = rgbd_calib.write_refine(refined, str(tmp_path / "refined"))
+    assert tmp_path / "refined" / "extrinsics.yaml" in written
+    back = rgbd_calib.load_extrinsics(tmp_path / "refined" / "extrinsics.yaml")
+    assert back.verdict.grade == "poor"  # cam10 is still not calibrated

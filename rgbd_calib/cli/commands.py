@@ -573,13 +573,12 @@ TOLERANCE_DEG_OPTION = typer.Option("--tolerance-deg", help="Same, turn (deg).")
 
 def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler=None,
                depth_config=None):
-    from ..pipelines.check import check_dataset
+    from ..pipelines.check import check
     from ..solve.moved import Tolerance
 
     with stage_progress() as progress:
-        return check_dataset(ds, calib, scales, method, depth_config,
-                             tolerance=Tolerance(tolerance_mm, tolerance_deg), progress=progress,
-                             scheduler=scheduler)
+        return check(ds, calib, method, depth_config, Tolerance(tolerance_mm, tolerance_deg),
+                     scales, progress=progress, scheduler=scheduler)
 
 
 def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolerance_deg,
@@ -805,25 +804,16 @@ def convert(
     """Convert RealSense SDK recordings, ROS bags or one video per camera into the dataset
     folder form (videos: colour only, rig.yaml with the image sizes: intrinsics calibrated from
     scratch)."""
-    from ..sources import is_video
-
-    check_output_folder(out)
-    videos = [is_video(s) for s in sources]
-    if any(videos):
-        from .console import cli_convert_videos
-
-        if not all(videos):
-            raise ConfigError("convert: give either video files or recordings, not both")
-        board = None
-        if board_file is not None:
-            from ..model.board_file import load_board
-
-            board = load_board(board_file)
-        cli_convert_videos(sources, out, _name_list(names), timestamps, board, step, still_px_s)
-        return
     from .console import cli_convert
 
-    cli_convert(sources, out, _name_list(names), sync_tolerance_ms)
+    check_output_folder(out)
+    board = None
+    if board_file is not None:
+        from ..model.board_file import load_board
+
+        board = load_board(board_file)
+    cli_convert(sources, out, _name_list(names), sync_tolerance_ms, timestamps=timestamps,
+                board=board, step=step, still_px_s=still_px_s)
 
 
 @command()

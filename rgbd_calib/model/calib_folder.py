@@ -1,19 +1,47 @@
 """An earlier calibration's output folder read back for the depth-only commands: the
 depth-scale factors, the board views and the ``cameras`` of its ``report.json``, and the
-intrinsics its ``rig_refined.yaml`` refined (docs/formats.md)."""
+intrinsics its ``rig_refined.yaml`` refined (docs/formats.md); :func:`load_calibration` reads
+them all at once."""
 
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+import os
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from ..core.errors import DatasetError
+from ..core.errors import ConfigError, DatasetError
+from .results import Extrinsics, load_extrinsics
 from .rig import Rig, load_rig
+
+
+@dataclass(frozen=True)
+class EarlierCalibration:
+    """A calibration read back: its ``extrinsics.yaml`` (``path``), and from the
+    ``report.json`` beside it the depth-scale factors and the board views (frame ->
+    ``T_ref_board`` and frame -> cameras that saw it); empty when it has none."""
+
+    path: Path
+    extrinsics: Extrinsics
+    depth_scales: dict[str, float]
+    T_ref_board: dict[str, np.ndarray]
+    board_cameras: dict[str, list[str]]
+
+
+def load_calibration(calib: str | os.PathLike) -> EarlierCalibration:
+    """A calibrate (or refine) output folder, or an ``extrinsics.yaml``, read back."""
+    path = Path(calib)
+    path = path / "extrinsics.yaml" if path.is_dir() else path
+    if not path.is_file():
+        raise ConfigError(f"{calib}: no extrinsics.yaml; give a calibrate output folder or an "
+                          "extrinsics.yaml")
+    report = path.parent / "report.json"
+    return EarlierCalibration(path, load_extrinsics(path, check_redundant=True),
+                              load_depth_scales(report), *load_board_views(report))
 
 
 def load_depth_scales(report_json: Path) -> dict[str, float]:

@@ -37,7 +37,7 @@ from ..model.rig import Rig, save_rig
 from ..pipelines.calibrate import CalibrationResult
 from ..pipelines.check import CheckRun
 from ..pipelines.posegraph import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
-from ..pipelines.refine import refine_summary
+from ..pipelines.refine import IN_MEMORY, RefineResult, refine_summary
 from ..solve.ladder import refined_rig
 from .exports import write_exports
 from .report import (
@@ -219,7 +219,7 @@ class DepthOnlyRun:
     measurements."""
 
     dataset: FolderDataset
-    init: Path
+    init: Path | None  # None: extrinsics given in memory
     method: str
     verdict: dict[str, Any]  # refine_verdict / fix_verdict
     pairs: list[dict[str, Any]]
@@ -248,7 +248,7 @@ def write_refine_outputs(
     depth: DepthRefinement,
     out_dir: Path,
     method: str,
-    init: Path,
+    init: Path | None,
     fused_voxel_m: float = 0.005,
     verdict: dict[str, Any] | None = None,
     run: DepthOnlyRun | None = None,
@@ -259,10 +259,25 @@ def write_refine_outputs(
     ``report.json`` and ``report.html`` (the calibration report, method ``depth``), and
     ``extrinsics.yaml`` (last). A report.html that cannot be drawn is left out with
     ``warn(why)``: the extrinsics are written all the same."""
-    report = {**(verdict or {}), "method": method, "init": str(init),
+    report = {**(verdict or {}), "method": method,
+              "init": str(init) if init is not None else IN_MEMORY,
               "depth": depth.status_dict(), "pairs": depth.pairs}
     return _write_refined(extrinsics, depth.clouds, out_dir, fused_voxel_m,
                           json.dumps(to_builtin(report), indent=1, default=str), run, warn)
+
+
+def write_refine(result: RefineResult, out_dir: str | os.PathLike,
+                 warn: Callable[[str], None] | None = None) -> list[Path]:
+    """Write a :func:`rgbd_calib.refine` result as ``rgbd-calib refine`` does: ``fused.ply``,
+    ``refine_report.json``, ``report.json`` / ``report.html`` and ``extrinsics.yaml`` (with
+    the verdict), staged (nothing half-written)."""
+    depth = result.depth
+    init = result.init_path
+    run = DepthOnlyRun(result.dataset, init, result.method, result.outcome, depth.pairs,
+                       depth.scale_source, result.depth_scales, depth.status_dict(),
+                       depth.depth_scale_dict(), depth.timings_s)
+    return write_refine_outputs(result.extrinsics, depth, Path(out_dir), result.method, init,
+                                verdict=result.outcome, run=run, warn=warn or _python_warning)
 
 
 CHECK_REPORT = "check.json"
