@@ -77,6 +77,96 @@ def poor_calibration(poor_rig, tmp_path_factory) -> tuple[Path, int, str]:
     return out, code, text
 
 
+# ----------------------------------------------------------------------------- exit codes
+def test_exit_codes_are_distinct_and_mapped():
+    codes = [cli_app.EXIT_OK, cli_app.EXIT_MOVED, cli_app.EXIT_INPUT, cli_app.EXIT_POOR,
+             cli_app.EXIT_UNCHECKED, cli_app.EXIT_INTERRUPTED]
+    assert len(set(codes)) == len(codes) and cli_app.EXIT_OK == 0
+    assert cli_app.verdict_exit("good") == cli_app.verdict_exit("check") == cli_app.EXIT_OK
+    assert cli_app.verdict_exit("poor") == cli_app.EXIT_POOR
+    assert cli_app.verdict_exit("poor", accept_poor=True) == cli_app.EXIT_OK
+    assert cli_app.verdict_exit(None) == cli_app.EXIT_OK  # not judged (posegraph)
+    assert cli_app.check_exit([], []) == cli_app.EXIT_OK
+    assert cli_app.check_exit([], ["c1"]) == cli_app.EXIT_UNCHECKED
+    assert cli_app.check_exit(["c2"], ["c1"]) == cli_app.EXIT_MOVED  # a move comes first
+
+
+def test_readme_lists_every_exit_code():
+    """The README's exit-code table gives each code the CLI uses, with its meaning."""
+    readme = (REPO / "README.md").read_text()
+    section = readme.split("## Exit codes", 1)[1].split("\n## ", 1)[0]
+    rows = {int(m.group(1)): m.group(0) for m in re.finditer(r"^\| (\d+) \|.*$", section, re.M)}
+    assert set(rows) == {cli_app.EXIT_OK, cli_app.EXIT_MOVED, cli_app.EXIT_INPUT,
+                         cli_app.EXIT_POOR, cli_app.EXIT_UNCHECKED, cli_app.EXIT_INTERRUPTED}
+    assert "--accept-poor" in rows[cli_app.EXIT_POOR] and "check" in rows[cli_app.EXIT_UNCHECKED]
+
+
+def test_calibrate_poor_exits_3_and_every_file_says_so(poor_calibration, poor_rig):
+    out, code, text = poor_calibration
+    assert code == cli_app.EXIT_POOR, text
+    assert "verdict: POOR" in text and "exit 3" in text and "--accept-poor" in text
+    ext = load_extrinsics(out / "extrinsics.yaml", check_redundant=True)
+    assert ext.verdict.grade == "poor" and UNCONNECTED not in ext.cameras
+    assert ext.verdict.reason.startswith(f"not_calibrated [{UNCONNECTED}]")
+    raw = yaml.safe_load((out / "extrinsics.yaml").read_text())
+    assert list(raw)[0] == "verdict" and raw["verdict"]["grade"] == "poor"
+    report = json.loads((out / "report.json").read_text())
+    assert report["summary"]["verdict"] == "poor"
+    line = f"rgbd-calib verdict: POOR: {ext.verdict.reason}"
+    for name in ("camchain.yaml", "static_transforms.launch.py", "posegraph.g2o"):
+        assert f"# {line}" in (out / "exports" / name).read_text().splitlines()[:2], name
+    assert line.replace("--", "- -") in (out / "exports" / "cameras.urdf").read_text()
+    unity = json.loads((out / "exports" / "unity_cameras.json").read_text())
+    assert unity["verdict"]["grade"] == "poor"
+    # --accept-poor: the old exit 0, the same verdict in the files
+    code, text = cli("calibrate", poor_rig, "--out", out, "--refine", "none", "--workers", "2",
+                     "--accept-poor")
+    assert code == cli_app.EXIT_OK, text
+    assert "verdict: POOR" in text and "exit 3" not in text
+    assert load_extrinsics(out / "extrinsics.yaml").verdict.grade == "poor"
+
+
+def test_refine_from_a_poor_calibration_says_so_and_exits_3(poor_calibration, tiny_dataset,
+                                                            tmp_path):
+    """The --init calibration's POOR verdict is named before the run; the refined result,
+    still without cam10, is POOR too: exit 3, the verdict in its extrinsics.yaml."""
+    calib, _, _ = poor_calibration
+    out = tmp_path / "refined"
+    code, text = cli("refine", tiny_dataset, "--init", calib / "extrinsics.yaml", "--out", out)
+    flat = " ".join(text.split())
+    assert code == cli_app.EXIT_POOR, text
+    assert "its verdict is POOR" in flat and "verdict: POOR: not_calibrated" in flat
+    assert load_extrinsics(out / "extrinsics.yaml").verdict.grade == "poor"
+    assert json.loads((out / "report.json").read_text())["summary"]["verdict"] == "poor"
+
+
+@pytest.mark.parametrize("statuses, expected", [
+    ({"cam7": "in_place", "cam8": "in_place", "cam9": "in_place"}, cli_app.EXIT_OK),
+    ({"cam7": "in_place", "cam8": "in_place", "cam9": "unknown"}, cli_app.EXIT_UNCHECKED),
+    ({"cam7": "in_place", "cam8": "moved", "cam9": "unknown"}, cli_app.EXIT_MOVED),
+], ids=["all-in-place", "unknown", "moved-and-unknown"])
+def test_check_exit_code_never_says_in_place_for_an_unchecked_camera(
+        poor_calibration, tiny_dataset, tmp_path, monkeypatch, statuses, expected):
+    from rgbd_calib.cli import commands
+    from rgbd_calib.pipelines.check import CheckResult, CheckRun
+    from rgbd_calib.solve.moved import CameraCheck, Tolerance
+
+    calib, _, _ = poor_calibration
+    cams = {c: (CameraCheck(c, s, reason="no overlapping depth") if s == "unknown" else
+                CameraCheck(c, s, 0.1 if s == "in_place" else 30.0, 0.01, 0.5, 0.02, 1.0, 2))
+            for c, s in statuses.items()}
+    run = CheckRun(CheckResult(cams, [], Tolerance()), {}, [], {c: "given" for c in cams})
+    monkeypatch.setattr(commands, "_run_check", lambda *args, **kwargs: run)
+    code, text = cli("check", tiny_dataset, "--calib", calib, "--out", tmp_path / "c")
+    assert code == expected, text
+    report = json.loads((tmp_path / "c" / "check.json").read_text())
+    assert report["unknown"] == [c for c, s in statuses.items() if s == "unknown"]
+    if expected == cli_app.EXIT_UNCHECKED:
+        assert "not checked: cam9" in text and f"exit {cli_app.EXIT_UNCHECKED}" in text
+    if expected == cli_app.EXIT_OK:
+        assert "in place: every camera within" in text
+
+
 # ----------------------------------------------------------------------------- extrinsics.yaml
 def _extrinsics(verdict: Verdict | None = None) -> Extrinsics:
     T = np.eye(4)
