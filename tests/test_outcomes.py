@@ -326,3 +326,38 @@ def test_library_calibrate_check_refine_take_paths(poor_calibration, tiny_datase
     assert tmp_path / "refined" / "extrinsics.yaml" in written
     back = rgbd_calib.load_extrinsics(tmp_path / "refined" / "extrinsics.yaml")
     assert back.verdict.grade == "poor"  # cam10 is still not calibrated
+
+
+# ----------------------------------------------------------------------------- tools/run.sh
+def _venv_ready() -> str | None:
+    """Why tools/run.sh would set an environment up (slow) instead of running, or None."""
+    import hashlib
+
+    stamp = Path(sys.prefix) / ".rgbd-calib-stamp"
+    want = hashlib.sha256((REPO / "pyproject.toml").read_bytes()
+                          + (REPO / "requirements.lock").read_bytes()).hexdigest()
+    if not stamp.is_file() or stamp.read_text().strip() != want:
+        return f"{sys.prefix} is not tools/run.sh's environment of this checkout (stamp)"
+    if not (Path(sys.prefix) / "bin" / "rgbd-calib").is_file():
+        return "no rgbd-calib entry point in this environment"
+    ldconfig = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True, check=False)
+    if "libusb-1.0.so.0" not in ldconfig.stdout:
+        return "libusb-1.0-0 missing (tools/run.sh would install it)"
+    return None
+
+
+def test_run_sh_runs_a_command_in_the_callers_folder(tmp_path):
+    """Relative paths are the caller's, and so is where the outputs land (not the
+    repository)."""
+    why = _venv_ready()
+    if why:
+        pytest.skip(why)
+    shutil.copy(CONFIGS / "board_thesis.yaml", tmp_path / "my_board.yaml")
+    env = {**os.environ, "RGBD_CALIB_VENV": sys.prefix,
+           "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run(["bash", str(REPO / "tools" / "run.sh"), "board", "my_board.yaml",
+                          "--out", "printed", "--dpi", "20"], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=120, check=False)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "printed" / "board.pdf").is_file()
+    assert not (REPO / "printed").exists()
