@@ -53,7 +53,7 @@ _API = {
     "refine": "pipelines.refine",
     "RefineResult": "pipelines.refine",
     "write_refine": "outputs.writer",
-    "convert": "sources.conversion",
+    "convert": "sources.dispatch",
     "CalibrationConfig": "core.config",
     "load_config": "core.config",
     "FolderDataset": "model.dataset",

@@ -24,7 +24,6 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..core.errors import ConfigError, DatasetError
 from ..core.progress import Progress, start
-from ..model.board import Board
 from ..model.dataset import FolderWriter, staged_folder
 from ..model.rig import CAMERA_NAME, Rig
 from .align import align_depth_to_color
@@ -161,32 +160,17 @@ def convert(
     names: Sequence[str] | None = None,
     sync_tolerance_ms: float | None = None,
     progress: Progress | None = None,
-    *,
-    timestamps: str | os.PathLike | None = None,
-    board: Board | str | os.PathLike | None = None,
-    step: int = 1,
-    still_px_s: float | None = None,
 ) -> ConversionReport:
-    """Convert recordings, or one video per camera, into the folder form (docs/formats.md) at
-    ``out``: ``rgbd-calib convert`` (``rgbd_calib.convert``).
+    """Convert recordings into the folder form (docs/formats.md) at ``out`` (videos:
+    :func:`rgbd_calib.sources.dispatch.convert` takes either).
 
     ``names`` renames the cameras, in the order they are found (sources in order, the
     cameras of one ROS bag in namespace order). ``sync_tolerance_ms`` is how far apart two
     cameras' frames may be and still form a set; default half the reference camera's frame
     period. ``progress`` (:mod:`rgbd_calib.core.progress`) has a stage per source read and one for
-    writing the frame sets. Video files (all sources, never mixed with recordings) go to
-    :func:`rgbd_calib.sources.video.convert_videos` with ``timestamps``, ``board`` (a
-    :class:`~rgbd_calib.model.board.Board`), ``step`` and ``still_px_s``."""
-    from .video import STILL_PX_S, convert_videos, is_video
-
+    writing the frame sets."""
     out = Path(out)
     sources = [Path(s) for s in sources]
-    videos = [is_video(s) for s in sources]
-    if any(videos):
-        if not all(videos):
-            raise ConfigError("convert: give either video files or recordings, not both")
-        return convert_videos(sources, out, names, Path(timestamps) if timestamps else None,
-                              board, step, still_px_s or STILL_PX_S, progress)
     if not sources:
         raise ConfigError("convert: give at least one recording")
     if sync_tolerance_ms is not None and not sync_tolerance_ms > 0:
