@@ -309,8 +309,8 @@ def test_check_rejects_a_bad_method_and_tolerance(tmp_path):
 
 
 def test_check_names_the_cameras_it_could_not_check(tiny_calibration, tmp_path, monkeypatch):
-    """Exit 0 means every *checked* camera is in place: a camera no pair could measure is
-    named on the console as not checked (and listed in check.json), not silently passed."""
+    """A camera no pair could measure is named on the console as not checked (and listed in
+    check.json), and the exit code is 4, never 0 ("all in place") nor 1 ("moved")."""
     from rgbd_calib.cli import commands as cli
     from rgbd_calib.pipelines.check import CheckResult, CheckRun
     from rgbd_calib.solve.moved import CameraCheck, Tolerance
@@ -324,7 +324,7 @@ def test_check_names_the_cameras_it_could_not_check(tiny_calibration, tmp_path, 
     monkeypatch.setattr(cli, "_run_check", lambda *args, **kwargs: run)
     res = CliRunner().invoke(app, ["check", str(data), "--calib", str(calib),
                                    "--out", str(tmp_path / "check")])
-    assert res.exit_code == 0, res.output
+    assert res.exit_code == 4, res.output
     assert f"not checked: {cams[-1]}" in res.output
     assert "every checked camera within" in res.output
     report = json.loads((tmp_path / "check" / "check.json").read_text())

@@ -92,10 +92,11 @@ def test_camera_that_never_shares_a_view_is_named(small_line, tmp_path):
         for p in sorted((data / "cam10" / kind).iterdir()):
             p.rename(p.with_name("9" + p.name[1:]))
     code, text = run("calibrate", data, "--out", tmp_path / "out")
-    assert code == 0, text
-    assert "cam10" in text and "not calibrated" in text
-    cams = yaml.safe_load((tmp_path / "out" / "extrinsics.yaml").read_text())["cameras"]
-    assert set(cams) == {"cam7", "cam8", "cam9"}
+    assert code == 3, text  # written, but POOR (a camera not calibrated): not a success
+    assert "cam10" in text and "not calibrated" in text and "exit 3" in text
+    data = yaml.safe_load((tmp_path / "out" / "extrinsics.yaml").read_text())
+    assert set(data["cameras"]) == {"cam7", "cam8", "cam9"}
+    assert data["verdict"]["grade"] == "poor" and "cam10" in data["verdict"]["reason"]
 
 
 def test_wrong_board_fails_cleanly_and_keeps_earlier_result(calibrated, tmp_path):

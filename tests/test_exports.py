@@ -356,3 +356,59 @@ def test_exports_after_the_markers_were_detected_again(tmp_path_factory, tmp_pat
     write_outputs(result, dataset.rig, tmp_path / "out", warn=warned.append)
     assert not [w for w in warned if "exports" in w], warned
     _assert_exports_pair_the_graphs_views(result, tmp_path / "out" / "exports")
+
+
+# ---------------------------------------------------------------------------------------------
+# The verdict in every export (issue 34 item 1): a file copied on its own says what it is worth,
+# and each still reads back with its consumer.
+
+
+def _rig(names: list[str]) -> Rig:
+    return Rig({n: CameraIntrinsics(640, 360, 320.0, 320.0, 319.5, 179.5) for n in names},
+               names[0])
+
+
+def test_every_export_states_the_verdict_and_still_reads_back(tmp_path, calibration):
+    from dataclasses import replace
+
+    from rgbd_calib.model.results import Verdict
+
+    extrinsics, edges, boards = calibration
+    reason = "not_calibrated [cam11]: cam11 was not calibrated -- see --board-model <x> & \"y\""
+    judged = replace(extrinsics, verdict=Verdict("poor", reason))
+    rig = _rig(list(extrinsics.cameras))
+    paths = write_exports(judged, tmp_path, rig=rig, edges=edges, board_poses=boards)
+    plain = write_exports(extrinsics, tmp_path / "plain", rig=rig, edges=edges,
+                          board_poses=boards)
+    line = f"rgbd-calib verdict: POOR: {reason}"
+    head = {kind: path.read_text().splitlines()[:3] for kind, path in paths.items()}
+    for kind in ("kalibr", "ros2_launch", "g2o"):
+        assert f"# {line}" in head[kind], (kind, head[kind])
+    # XML comments may not hold "--": the URDF's says it with "- -"
+    assert f"<!-- {line.replace('--', '- -')} -->" in head["urdf"]
+    root = ET.parse(paths["urdf"]).getroot()
+    assert root.tag == "robot" and len(root.findall("joint")) == 3
+    assert yaml.safe_load(paths["kalibr"].read_text())["cam1"]["T_cn_cnm1"]
+    assert len(_launch_nodes(paths["ros2_launch"].read_text())) == 3
+    vertices, g_edges, _ = read_g2o(paths["g2o"].read_text())
+    assert len(vertices) == 4 + len(boards) and len(g_edges) == len(edges)
+    # JSON has no comments: a key, Open3D's files a namespaced one its readers skip
+    import json
+
+    unity = json.loads(paths["unity"].read_text())
+    assert unity["verdict"] == {"grade": "poor", "reason": reason}
+    open3d_files = [k for k in paths if k.startswith("open3d")]
+    assert len(open3d_files) == 2 + len(extrinsics.cameras)
+    for kind in open3d_files:
+        assert json.loads(paths[kind].read_text())["rgbd_calib_verdict"]["grade"] == "poor"
+    o3d = pytest.importorskip("open3d")
+    assert len(o3d.io.read_pose_graph(str(paths["open3d_posegraph"])).nodes) == 4
+    assert len(o3d.io.read_pinhole_camera_trajectory(
+        str(paths["open3d_trajectory"])).parameters) == 4
+    cam8 = o3d.io.read_pinhole_camera_parameters(str(paths["open3d_camera:cam8"]))
+    assert np.allclose(cam8.extrinsic, invert_transform(extrinsics.T_ref_cam("cam8")))
+    # the thesis CSVs keep their one-header-row format, byte for byte
+    for kind in ("nodes_csv", "edges_csv"):
+        assert paths[kind].read_bytes() == plain[kind].read_bytes()
+    # unjudged extrinsics (posegraph, a hand-made Extrinsics) write no verdict at all
+    assert not any("verdict" in p.read_text() for p in plain.values())

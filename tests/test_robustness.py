@@ -178,12 +178,13 @@ def check_result(w: Work, good: list[str], expect_missing: tuple[str, ...] = ())
     return json.loads((w.out / "report.json").read_text())
 
 
-def ok_case(case: str, what: str, w: Work, text: str, listed: str) -> None:
+def ok_case(case: str, what: str, w: Work, text: str, listed: str, code: int = 0) -> None:
+    """A valid result: exit ``code`` (0, or 3 when its verdict is POOR)."""
     flat = " ".join(text.split())  # the summary lines wrap at the console width
     flat = flat.split(" verdict: ")[0]  # the notes come before the verdict and its warnings
     notes = re.findall(r"not calibrated: .*?(?= not calibrated:| results in |$)", flat)
     seen = "summary table" + "".join(f"; `{w.norm(n)}`" for n in notes)
-    record(case, what, "calibrate <dataset>", 0, f"{seen}; report.json: {listed}")
+    record(case, what, "calibrate <dataset>", code, f"{seen}; report.json: {listed}")
 
 
 # ----------------------------------------------------------------------------- corruptions
@@ -702,13 +703,13 @@ def test_camera_that_never_shares_a_view(clean, tmp_path):
     w = workspace(clean, tmp_path)
     rename_frames(w.ds, w.out, "cam10", "9")
     code, text = calibrate(w)
-    assert code == 0, text
+    assert code == 3, text  # a valid result for the others, but POOR: not a success
     report = check_result(w, ["cam7", "cam8", "cam9"], expect_missing=("cam10",))
-    assert "cam10" in report["unconnected"]
+    assert "cam10" in report["unconnected"] and report["summary"]["verdict"] == "poor"
     assert any(x["code"] == "not_calibrated" and x["cameras"] == ["cam10"]
                for x in report["warnings"])
     ok_case("camera never shares a view", "a camera that never shares a view (cam10)", w, text,
-            "`unconnected.cam10`, warning `not_calibrated`")
+            "`unconnected.cam10`, warning `not_calibrated`, verdict POOR", code=3)
 
 
 def test_wrong_intrinsics_on_one_camera(clean, tmp_path):
@@ -1201,7 +1202,8 @@ def test_five_percent_corrupted_views_on_the_race_rig(race40, tmp_path):
 def table() -> str:
     lines = ["| Bad input | Command | Exit | What the user sees |", "|---|---|---|---|"]
     for what, command, code, seen in ROWS.values():
-        cells = [what, f"`{command}`", code, seen if code == "0" else f"`{seen}`"]
+        # a result (0, or 3: written but POOR) is described; an error line is quoted
+        cells = [what, f"`{command}`", code, seen if code in ("0", "3") else f"`{seen}`"]
         lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     return "\n".join(lines)
 

@@ -2,12 +2,18 @@
 # One entry point that sets everything up, then runs the demo or the tests.
 #   bash tools/run.sh demo    # render a synthetic rig, calibrate it, write the report
 #   bash tools/run.sh test    # the test suite (CI: .ci/run calls this)
+#   bash tools/run.sh <command> ...   # any other rgbd-calib command
 # Creates .venv (Python 3.11+), installs the pinned packages of requirements.lock and the
 # package itself, and Debian's libusb-1.0-0 (needed by open3d and pyrealsense2) when missing.
+# The environment lives in the repository; `demo` and the other commands run in the folder
+# the script is called from (their relative paths and outputs are the caller's), `test` in
+# the repository.
 set -euo pipefail
+CALLER=$(pwd)
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
 VENV="${RGBD_CALIB_VENV:-$ROOT/.venv}"
+case "$VENV" in /*) ;; *) VENV="$ROOT/$VENV" ;; esac  # a relative one: from the repository
 
 need_libusb() { ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; }
 if need_libusb; then
@@ -56,6 +62,7 @@ fi
 cmd="${1:-demo}"; shift || true
 case "$cmd" in
   demo)
+    cd "$CALLER"
     exec "$VENV/bin/rgbd-calib" demo "$@" ;;
   test)
     # The report's browser test drives Debian's Chromium; install it when we can (root + apt),
@@ -80,5 +87,6 @@ case "$cmd" in
     if [ $rc -eq 5 ]; then echo "error: pytest collected no tests" >&2; exit 1; fi
     exit $rc ;;
   *)
+    cd "$CALLER"
     exec "$VENV/bin/rgbd-calib" "$cmd" "$@" ;;
 esac

@@ -1,6 +1,7 @@
 """What every command shares: the typer ``app`` with click's plain type names in ``--help``,
-``--version``, the wrapper that turns a user's mistake into one ``error:`` line and an exit
-code (:func:`user_errors`), and the checks of arguments that fail before any long step."""
+``--version``, the exit codes, the wrapper that turns a user's mistake into one ``error:`` line
+and an exit code (:func:`user_errors`), and the checks of arguments that fail before any long
+step."""
 
 from __future__ import annotations
 
@@ -49,6 +50,62 @@ def _plain_type(param, ctx) -> str | None:
 
 command = functools.partial(app.command, cls=_PlainHelpCommand)
 
+# The exit codes of every command (README, "Exit codes"): a script can tell a result it may
+# use from one it must not, and both from a mistake in the input.
+EXIT_OK = 0  # done; calibrate / refine: verdict GOOD or CHECK; check: every camera in place
+EXIT_MOVED = 1  # check: some camera moved (named on the console and in check.json)
+EXIT_INPUT = 2  # bad input or options: one error line, nothing written (click's usage errors too)
+EXIT_POOR = 3  # calibrate / refine / demo: written, but the verdict is POOR (unless --accept-poor)
+EXIT_UNCHECKED = 4  # check: none moved, but some camera could not be checked ("unknown")
+EXIT_INTERRUPTED = 130  # Ctrl-C: earlier results untouched
+
+ACCEPT_POOR_OPTION = typer.Option(
+    "--accept-poor", help=f"Exit {EXIT_OK} even when the verdict is POOR (default: exit "
+    f"{EXIT_POOR}; the verdict is written into extrinsics.yaml and the exports either way).")
+
+
+def verdict_exit(grade: str | None, accept_poor: bool = False) -> int:
+    """The exit code of a written result with verdict ``grade`` (None: not judged)."""
+    return EXIT_POOR if grade == "poor" and not accept_poor else EXIT_OK
+
+
+def check_exit(moved: list[str], unknown: list[str]) -> int:
+    """``check``'s exit code: a moved camera first, then cameras that could not be checked;
+    exit 0 only when every camera was checked and is in place."""
+    return EXIT_MOVED if moved else EXIT_UNCHECKED if unknown else EXIT_OK
+
+
+def exit_on_poor(out: Path, accept_poor: bool, show: bool = False) -> None:
+    """End a command that wrote ``out/extrinsics.yaml`` with the exit code of the verdict
+    written in it (``show``: print the verdict line first)."""
+    from rich.markup import escape
+
+    from ..model.results import load_extrinsics
+
+    verdict = load_extrinsics(Path(out) / "extrinsics.yaml").verdict
+    if verdict is None:
+        return
+    if show:
+        console.print(f"verdict: {escape(verdict.line)}", highlight=False, soft_wrap=True)
+    code = verdict_exit(verdict.grade, accept_poor)
+    if code != EXIT_OK:
+        console.print(f"[bold red]exit {code}[/]: the verdict is POOR (recorded in "
+                      "extrinsics.yaml); do not deploy these extrinsics as they are "
+                      "(--accept-poor exits 0)", highlight=False, soft_wrap=True)
+        raise typer.Exit(code)
+
+
+def warn_if_poor(extrinsics, path: Path) -> None:
+    """A calibration read back (``--init``, ``--calib``, ``--fix``) whose verdict was POOR:
+    say so before using it."""
+    from rich.markup import escape
+
+    verdict = getattr(extrinsics, "verdict", None)
+    if verdict is not None and verdict.grade == "poor":
+        console.print(f"[yellow]warning[/]: {escape(str(path))}: its verdict is POOR "
+                      f"({escape(verdict.reason)}); results built on it inherit that",
+                      highlight=False, soft_wrap=True)
+
 
 def _version(value: bool) -> None:
     if value:
@@ -82,15 +139,15 @@ def user_errors(fn):
             return fn(*args, **kwargs)
         except RgbdCalibError as exc:
             error_line(" ".join(str(exc).split("\n")))
-            raise typer.Exit(2) from None
+            raise typer.Exit(EXIT_INPUT) from None
         except PermissionError as exc:
             error_line(f"{exc.filename}: permission denied; choose a writable folder")
-            raise typer.Exit(2) from None
+            raise typer.Exit(EXIT_INPUT) from None
         except OSError as exc:  # disk full, a file where a folder should be, ...
             if exc.filename is None:
                 raise
             error_line(f"{exc.filename}: {exc.strerror or exc}; check the path and the free space")
-            raise typer.Exit(2) from None
+            raise typer.Exit(EXIT_INPUT) from None
         except KeyboardInterrupt:
             from rich.markup import escape
 
@@ -105,7 +162,7 @@ def user_errors(fn):
                 message = ("[yellow]interrupted[/]: earlier results were left untouched; run "
                            "the same command again to finish")
             console.print(message, highlight=False, soft_wrap=True)
-            raise typer.Exit(130) from None
+            raise typer.Exit(EXIT_INTERRUPTED) from None
 
     return wrapper
 

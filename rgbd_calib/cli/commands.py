@@ -11,14 +11,18 @@ from typing import Annotated
 
 import typer
 
-from ..core.errors import ConfigError
 from .app import (
+    ACCEPT_POOR_OPTION,
+    EXIT_UNCHECKED,
     app,
+    check_exit,
     check_method,
     check_output_folder,
     command,
+    exit_on_poor,
     parse_resolution,
     user_errors,
+    warn_if_poor,
     workers_ignore_ctrl_c,
 )
 from .console import (
@@ -389,8 +393,10 @@ def calibrate(
     names: Annotated[str | None, NAMES_OPTION] = None,
     sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
     scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
+    accept_poor: Annotated[bool, ACCEPT_POOR_OPTION] = False,
 ) -> None:
-    """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports."""
+    """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports.
+    Exit 0: verdict GOOD or CHECK; 3: POOR (written all the same); 2: an input error."""
     from ..core.config import load_config
     from ..core.parallel import check_scheduler
     from ..model.board import thesis_board
@@ -409,11 +415,13 @@ def calibrate(
     if fix is not None:
         prior = load_extrinsics(fix, check_redundant=True)
         _check_fixed(prior, ds.rig, fix)
+        warn_if_poor(prior, fix)
         fixed = {n: c.T_ref_cam for n, c in prior.cameras.items() if n in ds.rig.cameras}
     ds.check_images()
     workers_ignore_ctrl_c()
     result = _calibrate_and_write(ds, b, cfg, out, fixed)
     print_summary(result, out)
+    exit_on_poor(out, accept_poor)
 
 
 def _check_fixed(prior, rig, path: Path) -> None:
@@ -465,8 +473,9 @@ def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_m
     if changed:
         console.print(f"intrinsics: the refined ones of {extrinsics.parent / 'rig_refined.yaml'}"
                       f" for {', '.join(changed)}", highlight=False, soft_wrap=True)
-    return (ds, load_extrinsics(extrinsics, check_redundant=True),
-            load_depth_corrections(extrinsics.parent))
+    calib = load_extrinsics(extrinsics, check_redundant=True)
+    warn_if_poor(calib, extrinsics)
+    return ds, calib, load_depth_corrections(extrinsics.parent)
 
 
 @command()
@@ -505,53 +514,49 @@ def refine(
     tolerance_deg: Annotated[float, TOLERANCE_DEG_OPTION] = 0.2,
     scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
     config: Annotated[Path | None, DEPTH_CONFIG_OPTION] = None,
+    accept_poor: Annotated[bool, ACCEPT_POOR_OPTION] = False,
 ) -> None:
-    """Depth-only refinement of existing extrinsics (no board needed in view)."""
+    """Depth-only refinement of existing extrinsics (no board needed in view). Exit 0:
+    verdict GOOD or CHECK; 3: POOR (written all the same); 2: an input error."""
     import math
 
     from ..model.board import thesis_board
     from ..model.board_file import load_board
-    from ..model.calib_folder import load_board_views
-    from ..outputs.writer import DepthOnlyRun, write_refine_outputs
-    from ..pipelines.refine import refine_extrinsics, refine_verdict
+    from ..outputs.writer import write_refine
+    from ..pipelines.refine import refine as run_refine
 
     check_method(method)
     depth_config = _depth_config(config)
     ds, init_ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, init)
-    T_ref_board, board_cameras = load_board_views(init.parent / "report.json")
     if fix_others:
         _fix_others(ds, init, init_ext, scales, method, out, tolerance_mm, tolerance_deg,
                     scheduler, depth_config)
+        exit_on_poor(out, accept_poor, show=True)
         return
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
-        ext, depth = refine_extrinsics(ds, init_ext, method, depth_config, progress=progress,
-                                       depth_scales=scales, board=b, T_ref_board=T_ref_board,
-                                       board_cameras=board_cameras, scheduler=scheduler)
-    sources = depth.scale_source
+        result = run_refine(ds, init, method, depth_config, b, scales, progress=progress,
+                            scheduler=scheduler)
     for kind, what in (("given", "from the calibration next to --init (its depth_model.yaml, "
                                  "else its report.json)"),
                        ("board", "estimated from the board in view"),
                        ("unknown", "unknown (not moved along what a scale error explains)")):
-        if cams := [c for c, k in sources.items() if k == kind]:
+        if cams := [c for c, k in result.depth.scale_source.items() if k == kind]:
             console.print(f"depth scale {what}: {', '.join(cams)}")
-    verdict = refine_verdict(init_ext, ext, depth)
-    run = DepthOnlyRun(ds, init, method, verdict, depth.pairs, sources, scales,
-                       depth.status_dict(), depth.depth_scale_dict(), depth.timings_s,
-                       board_models={c: f.model for c, f in depth.depth_models.items()})
-    write_refine_outputs(ext, depth, out, method, init, verdict=verdict, run=run,
-                         warn=warn_line)
-    for p in depth.pairs:
+    write_refine(result, out, warn=warn_line)
+    for p in result.depth.pairs:
         state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
         before, final = p["rmse_before_mm"], p["rmse_final_mm"]
         rmse = (f"rmse {before:.2f} -> {final:.2f} mm, "
                 if before is not None and final is not None and math.isfinite(before)
                 and math.isfinite(final) else "")
         console.print(f"{p['cam_a']} -> {p['cam_b']}: {rmse}{state}")
-    colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[verdict["verdict"]]
-    console.print(f"[{colour}]{verdict['verdict']}[/]: {verdict['message']}")
+    outcome = result.outcome
+    colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[outcome["verdict"]]
+    console.print(f"[{colour}]{outcome['verdict']}[/]: {outcome['message']}")
     console.print(f"results in {out}/ (extrinsics.yaml, report.html, report.json, "
                   "refine_report.json, fused.ply)")
+    exit_on_poor(out, accept_poor, show=True)
 
 
 DEPTH_CONFIG_OPTION = typer.Option(
@@ -575,13 +580,12 @@ TOLERANCE_DEG_OPTION = typer.Option("--tolerance-deg", help="Same, turn (deg).")
 
 def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler=None,
                depth_config=None):
-    from ..pipelines.check import check_dataset
+    from ..pipelines.check import check
     from ..solve.moved import Tolerance
 
     with stage_progress() as progress:
-        return check_dataset(ds, calib, scales, method, depth_config,
-                             tolerance=Tolerance(tolerance_mm, tolerance_deg), progress=progress,
-                             scheduler=scheduler)
+        return check(ds, calib, method, depth_config, Tolerance(tolerance_mm, tolerance_deg),
+                     scales, progress=progress, scheduler=scheduler)
 
 
 def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolerance_deg,
@@ -644,7 +648,8 @@ def check(
     scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
     config: Annotated[Path | None, DEPTH_CONFIG_OPTION] = None,
 ) -> None:
-    """Has a camera moved since the calibration? Exit 0: all in place; 1: moved (named)."""
+    """Has a camera moved since the calibration? Exit 0: every camera checked and in place;
+    1: some moved (named); 4: none moved, but some could not be checked; 2: an input error."""
     from ..core.errors import ConfigError
     from ..outputs.writer import write_check_outputs
 
@@ -664,20 +669,22 @@ def check(
         console.print(f"depth scale unknown (no report.json with depth_scale_factor next to "
                       f"{path.name}): {', '.join(unknown)}", highlight=False, soft_wrap=True)
     write_check_outputs(run, out, path)
-    moved = run.result.moved
+    moved, unchecked = run.result.moved, run.result.unknown
     if moved:
         console.print(f"[bold red]moved[/]: {', '.join(moved)} -> put back with: rgbd-calib "
                       f"refine {' '.join(map(str, dataset))} --init {path} --fix-others "
                       f"--out DIR", highlight=False, soft_wrap=True)
-        console.print(f"check: {out / 'check.json'}", highlight=False)
-        raise typer.Exit(1)
-    unchecked = run.result.unknown
-    if unchecked:  # exit 0 is "every checked camera in place": say which were not checked
+    elif unchecked:  # not "all in place": say which were not checked, and exit non-zero
+        console.print(f"[green]in place[/]: every checked camera within {tolerance_mm} mm / "
+                      f"{tolerance_deg} deg", highlight=False)
         console.print(f"[yellow]not checked[/]: {', '.join(unchecked)} (no depth pair of theirs "
-                      "could tell; reasons in check.json)", highlight=False, soft_wrap=True)
-    console.print(f"[green]in place[/]: {'every checked camera' if unchecked else 'every camera'} "
-                  f"within {tolerance_mm} mm / {tolerance_deg} deg", highlight=False)
+                      f"could tell; reasons in check.json): exit {EXIT_UNCHECKED}",
+                      highlight=False, soft_wrap=True)
+    else:
+        console.print(f"[green]in place[/]: every camera within {tolerance_mm} mm / "
+                      f"{tolerance_deg} deg", highlight=False)
     console.print(f"check: {out / 'check.json'}", highlight=False)
+    raise typer.Exit(check_exit(moved, unchecked))
 
 
 @command()
@@ -739,9 +746,10 @@ def demo(
     ] = "race",
     frames: Annotated[int, typer.Option(help="Frame sets to render.")] = 16,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    accept_poor: Annotated[bool, ACCEPT_POOR_OPTION] = False,
 ) -> None:
     """Render a small synthetic rig, calibrate it and compare with its ground truth (a re-run
-    with the same options reuses the render and the detections)."""
+    with the same options reuses the render and the detections). Exit codes as calibrate's."""
     from ..model.board import thesis_board
     from ..model.dataset import FolderDataset
     from ..synth.render import SynthParams, load_ground_truth, synthesize_cached
@@ -761,6 +769,7 @@ def demo(
     print_demo_errors(result, gt)
     console.print(f"dataset: {dataset}/", highlight=False)
     print_verdict(out / "calibration")
+    exit_on_poor(out / "calibration", accept_poor)
 
 
 @command()
@@ -813,32 +822,16 @@ def convert(
     """Convert RealSense SDK recordings, ROS bags or one video per camera into the dataset
     folder form (videos: colour only, rig.yaml with the image sizes: intrinsics calibrated from
     scratch)."""
-    from ..sources import is_video
-
-    check_output_folder(out)
-    videos = [is_video(s) for s in sources]
-    if any(videos):
-        from .console import cli_convert_videos
-
-        if not all(videos):
-            raise ConfigError("convert: give either video files or recordings, not both")
-        if depth_model is not None:
-            raise ConfigError("convert: --depth-model corrects depth; videos have none")
-        board = None
-        if board_file is not None:
-            from ..model.board_file import load_board
-
-            board = load_board(board_file)
-        cli_convert_videos(sources, out, _name_list(names), timestamps, board, step, still_px_s)
-        return
     from .console import cli_convert
 
-    models = None
-    if depth_model is not None:
-        from ..model.depth_model_file import load_depth_models
+    check_output_folder(out)
+    board = None
+    if board_file is not None:
+        from ..model.board_file import load_board
 
-        models = load_depth_models(depth_model)
-    cli_convert(sources, out, _name_list(names), sync_tolerance_ms, models)
+        board = load_board(board_file)
+    cli_convert(sources, out, _name_list(names), sync_tolerance_ms, timestamps=timestamps,
+                board=board, step=step, still_px_s=still_px_s, depth_models=depth_model)
 
 
 @command()

@@ -391,29 +391,15 @@ def cli_convert(
     out: Path,
     names: Sequence[str] | None = None,
     sync_tolerance_ms: float | None = None,
-    depth_models=None,
+    **options,
 ):
-    """Run :func:`~rgbd_calib.sources.convert` with progress bars and print a table of the
-    result."""
+    """Run :func:`~rgbd_calib.sources.convert` (recordings, with ``options`` ``depth_models``,
+    or videos with ``timestamps``, ``board``, ``step``, ``still_px_s``) with progress bars and
+    print a table of the result."""
     from ..sources import convert
 
     with stage_progress() as progress:
-        report = convert(sources, out, names, sync_tolerance_ms, progress, depth_models)
-    print_conversion_report(report)
-    return report
-
-
-def cli_convert_videos(videos: Sequence[Path], out: Path, names: Sequence[str] | None = None,
-                       timestamps: Path | None = None, board=None, step: int = 1,
-                       still_px_s: float | None = None):
-    """Run :func:`~rgbd_calib.sources.convert_videos` with progress bars and print a table of
-    the result."""
-    from ..sources import convert_videos
-    from ..sources.video import STILL_PX_S
-
-    with stage_progress() as progress:
-        report = convert_videos(videos, out, names, timestamps, board, step,
-                                still_px_s or STILL_PX_S, progress)
+        report = convert(sources, out, names, sync_tolerance_ms, progress, **options)
     print_conversion_report(report)
     return report
 

@@ -34,7 +34,7 @@ class RgbdCalibError(Exception):
     format_section: str | None = None  # the formats.md section of this kind of error
 
     def __str__(self) -> str:
-        text = super().__str__()
+        text = Exception.__str__(self)  # not KeyError's repr (UnknownCameraError)
         link = format_link(text, self.format_section)
         if FORMATS_DOC in text:  # a message that names the doc: point it at the section
             if link and FORMATS_DOC + "#" not in text:
@@ -61,3 +61,8 @@ class DatasetError(RgbdCalibError):
 
 class CalibrationError(RgbdCalibError):
     """Nothing valid can be calibrated from the given data."""
+
+
+class UnknownCameraError(RgbdCalibError, KeyError):
+    """A camera name that is not among a result's cameras; the message lists the valid names.
+    A ``KeyError`` too, so ``except KeyError`` written before it existed still catches it."""

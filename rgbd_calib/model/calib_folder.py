@@ -1,11 +1,13 @@
 """An earlier calibration's output folder read back for the depth-only commands: the
 depth models or depth-scale factors, the board views and the ``cameras`` of its
-``report.json``, and the intrinsics its ``rig_refined.yaml`` refined (docs/formats.md)."""
+``report.json``, and the intrinsics its ``rig_refined.yaml`` refined (docs/formats.md);
+:func:`load_calibration` reads them all at once."""
 
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+import os
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -13,8 +15,9 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.depth_model import DepthModel
-from ..core.errors import DatasetError
+from ..core.errors import ConfigError, DatasetError
 from .depth_model_file import DEPTH_MODEL_FILE, load_depth_models
+from .results import Extrinsics, load_extrinsics
 from .rig import Rig, load_rig
 
 
@@ -28,6 +31,31 @@ def load_depth_corrections(calib_dir: str | Path) -> dict[str, float | DepthMode
     if (calib_dir / DEPTH_MODEL_FILE).is_file():
         out.update(load_depth_models(calib_dir / DEPTH_MODEL_FILE))
     return out
+
+
+@dataclass(frozen=True)
+class EarlierCalibration:
+    """A calibration read back: its ``extrinsics.yaml`` (``path``), and from the files beside
+    it each camera's depth correction (:func:`load_depth_corrections`) and the board views
+    (frame -> ``T_ref_board`` and frame -> cameras that saw it); empty when it has none."""
+
+    path: Path
+    extrinsics: Extrinsics
+    depth_scales: dict[str, float | DepthModel]  # depth model, else report.json's factor
+    T_ref_board: dict[str, np.ndarray]
+    board_cameras: dict[str, list[str]]
+
+
+def load_calibration(calib: str | os.PathLike) -> EarlierCalibration:
+    """A calibrate (or refine) output folder, or an ``extrinsics.yaml``, read back."""
+    path = Path(calib)
+    path = path / "extrinsics.yaml" if path.is_dir() else path
+    if not path.is_file():
+        raise ConfigError(f"{calib}: no extrinsics.yaml; give a calibrate output folder or an "
+                          "extrinsics.yaml")
+    report = path.parent / "report.json"
+    return EarlierCalibration(path, load_extrinsics(path, check_redundant=True),
+                              load_depth_corrections(path.parent), *load_board_views(report))
 
 
 def load_depth_scales(report_json: Path) -> dict[str, float]:

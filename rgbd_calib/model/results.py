@@ -9,7 +9,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..core.errors import ConfigError
+from ..core.errors import ConfigError, UnknownCameraError
 from ..core.geometry import is_rigid, matrix_to_quaternion_xyzw, orthonormalize
 from ..core.yamlio import check_keys, matrix4, read_yaml_mapping, shown, write_yaml
 
@@ -83,15 +83,56 @@ def cameras_from_solve(solve: Solve) -> dict[str, CameraExtrinsics]:
     }
 
 
+# report.json ``summary.verdict``, best first: good (no warning), check (usable, look at the
+# warnings first), poor (do not use these extrinsics as they are)
+VERDICT_GRADES = ("good", "check", "poor")
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What a result is worth: ``grade`` (one of :data:`VERDICT_GRADES`, report.json's
+    ``summary.verdict``) and the reason in one line (its worst finding)."""
+
+    grade: str
+    reason: str
+
+    def __post_init__(self) -> None:
+        if self.grade not in VERDICT_GRADES:
+            raise ConfigError(f"verdict grade {self.grade!r}: use one of "
+                              f"{', '.join(VERDICT_GRADES)}")
+
+    def to_dict(self) -> dict[str, str]:
+        return {"grade": self.grade, "reason": self.reason}
+
+    @property
+    def line(self) -> str:
+        """``POOR: <reason>``, as the exports' header comments state it."""
+        return f"{self.grade.upper()}: {self.reason}"
+
+
+class CameraMap(dict):
+    """``Extrinsics.cameras``: a dict whose unknown name raises :class:`UnknownCameraError`
+    naming the cameras it has (a ``KeyError`` too) instead of a bare ``KeyError``."""
+
+    def __missing__(self, name: Any) -> CameraExtrinsics:
+        raise UnknownCameraError(
+            f"camera {name!r} is not in this calibration; its cameras: "
+            f"{', '.join(map(str, self)) or 'none'}")
+
+
 @dataclass(frozen=True)
 class Extrinsics:
-    """All calibrated cameras of a rig in the reference camera's frame."""
+    """All calibrated cameras of a rig in the reference camera's frame, and, once judged, the
+    verdict on them (``extrinsics.yaml`` ``verdict``; None: not judged, e.g. ``posegraph``)."""
 
     reference: str
     cameras: dict[str, CameraExtrinsics]
     unconnected: dict[str, str] = field(default_factory=dict)  # camera -> why not calibrated
+    verdict: Verdict | None = None
 
     def __post_init__(self) -> None:
+        if not isinstance(self.cameras, CameraMap):
+            object.__setattr__(self, "cameras", CameraMap(self.cameras))
         # the reference is the world frame: its pose is the identity exactly, not the
         # optimiser's 1e-28 (the prior holding it is a numerical device)
         ref = self.cameras.get(self.reference)
@@ -99,10 +140,16 @@ class Extrinsics:
             self.cameras[self.reference] = replace(ref, T_ref_cam=np.eye(4))
 
     def T_ref_cam(self, name: str) -> np.ndarray:
+        """The camera's pose (4x4, metres); an unknown name raises
+        :class:`~rgbd_calib.core.errors.UnknownCameraError` listing the cameras."""
         return self.cameras[name].T_ref_cam
 
     def to_dict(self) -> dict[str, Any]:
+        """``extrinsics.yaml``'s content: the verdict first (when judged), where a reader of
+        the file sees it before any number."""
+        head = {"verdict": self.verdict.to_dict()} if self.verdict is not None else {}
         return {
+            **head,
             "reference": self.reference,
             "cameras": {n: c.to_dict() for n, c in self.cameras.items()},
         }
@@ -114,10 +161,15 @@ Camera frame: the OpenCV optical frame of the colour sensor (x right, y down, z 
 Units: metres; quaternion_xyzw is the rotation of T_ref_cam; sigmas are 1-sigma marginals."""
 
 
+VERDICT_HEADER = """verdict: good (ready to use), check (usable; read report.html's warnings
+first) or poor (do not use these extrinsics as they are), with the worst finding as its reason."""
+
+
 def write_extrinsics(extrinsics: Extrinsics, path: Path) -> None:
     """Write ``extrinsics.yaml`` atomically (temporary file + rename), after a comment stating
-    the convention."""
-    write_yaml(path, extrinsics.to_dict(), header=EXTRINSICS_HEADER)
+    the convention (and what the verdict means, when the extrinsics carry one)."""
+    header = EXTRINSICS_HEADER + ("\n" + VERDICT_HEADER if extrinsics.verdict else "")
+    write_yaml(path, extrinsics.to_dict(), header=header)
 
 
 def load_extrinsics(path: Path, check_redundant: bool = False) -> Extrinsics:
@@ -127,7 +179,7 @@ def load_extrinsics(path: Path, check_redundant: bool = False) -> Extrinsics:
     ``translation_m`` / ``quaternion_xyzw`` that disagrees with it is an error, not ignored."""
     path = Path(path)
     data = read_yaml_mapping(path, "extrinsics file")
-    check_keys(data, {"reference", "cameras"}, str(path), required=("cameras",))
+    check_keys(data, {"verdict", "reference", "cameras"}, str(path), required=("cameras",))
     cams = data["cameras"]
     if not isinstance(cams, dict) or not cams:
         raise ConfigError(
@@ -170,7 +222,18 @@ def load_extrinsics(path: Path, check_redundant: bool = False) -> Extrinsics:
         raise ConfigError(
             f"{path}: reference {reference!r} is not among the cameras; add it (identity)"
         )
-    return Extrinsics(reference, out)
+    return Extrinsics(reference, out, verdict=_verdict(data.get("verdict"), path))
+
+
+def _verdict(raw: Any, path: Path) -> Verdict | None:
+    """``verdict: {grade, reason}`` of an extrinsics.yaml (absent or null: not judged)."""
+    if raw is None:
+        return None
+    if (not isinstance(raw, dict) or set(map(str, raw)) != {"grade", "reason"}
+            or raw["grade"] not in VERDICT_GRADES or not isinstance(raw["reason"], str)):
+        raise ConfigError(f"{path}: verdict must be {{grade: {' | '.join(VERDICT_GRADES)}, "
+                          "reason: <text>}; fix it or remove the verdict")
+    return Verdict(raw["grade"], raw["reason"])
 
 
 def _optional_float(value: Any, where: str) -> float:

@@ -12,6 +12,11 @@
 
 Every transform written is ``T_parent_child`` (maps child points into the parent frame), which
 is what tf2, URDF joints and g2o vertices mean by a pose.
+
+When the extrinsics carry a verdict (``Extrinsics.verdict``, as a calibration's do), every file
+whose format has comments states it in its first lines (``# rgbd-calib verdict: POOR: ...``;
+URDF an XML comment) and the JSON files hold it as a key, so a file copied on its own still
+says what it is worth. The thesis CSVs have no place for it (their format is one header row).
 """
 
 from __future__ import annotations
@@ -54,6 +59,22 @@ def _ordered(extrinsics: Extrinsics) -> list[str]:
 
 def _num(value: float) -> str:
     return repr(float(value))
+
+
+def verdict_comment(extrinsics: Extrinsics) -> str:
+    """``rgbd-calib verdict: POOR: <reason>`` (no comment marker), or "" when unjudged."""
+    verdict = extrinsics.verdict
+    return f"rgbd-calib verdict: {verdict.line}" if verdict is not None else ""
+
+
+def _hash_comment(extrinsics: Extrinsics) -> str:
+    """The verdict as a ``#`` comment line (with its newline), or ""."""
+    text = verdict_comment(extrinsics)
+    return f"# {text}\n" if text else ""
+
+
+def _verdict_key(extrinsics: Extrinsics) -> dict:
+    return {"verdict": extrinsics.verdict.to_dict()} if extrinsics.verdict is not None else {}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -128,6 +149,7 @@ def kalibr_camchain_text(
     chain, notes = kalibr_camchain(extrinsics, rig, topic)
     names = ", ".join(f"cam{n} = {c}" for n, c in enumerate(_ordered(extrinsics)))
     header = [f"# Kalibr camchain from rgbd-calib ({names}); T_cn_cnm1 maps cam n-1 into cam n"]
+    header += [_hash_comment(extrinsics).rstrip("\n")] if extrinsics.verdict else []
     header += [f"# note: {note}" for note in notes]
     body = yaml.safe_dump(to_builtin(chain), sort_keys=False, width=100, default_flow_style=None)
     return "\n".join(header) + "\n" + body
@@ -174,7 +196,8 @@ def ros2_launch_text(
             "        ),\n"
         )
     return (
-        f'"""Static transforms of the rgbd-calib extrinsics (parent frame: {parent})."""\n\n'
+        _hash_comment(extrinsics)
+        + f'"""Static transforms of the rgbd-calib extrinsics (parent frame: {parent})."""\n\n'
         "from launch import LaunchDescription\n"
         "from launch_ros.actions import Node\n\n\n"
         "def generate_launch_description():\n"
@@ -191,8 +214,11 @@ def urdf_text(
     """URDF with one link per frame and a fixed joint ``parent -> camera`` whose ``origin``
     is ``T_parent_cam`` (``xyz`` metres, ``rpy`` radians, fixed-axis: Rz(y) Ry(p) Rx(r))."""
     parent, published = _published(extrinsics, parent_frame, frame)
+    verdict = verdict_comment(extrinsics)
     lines = [
         '<?xml version="1.0"?>',
+        # an XML comment may not hold "--"
+        *([f"<!-- {verdict.replace('--', '- -')} -->"] if verdict else []),
         "<!-- rgbd-calib extrinsics; origin rpy is fixed-axis roll pitch yaw, "
         "R = Rz(yaw) Ry(pitch) Rx(roll) -->",
         f"<robot name={quoteattr(robot_name)}>",
@@ -271,6 +297,7 @@ def g2o_text(
 
     names = " ".join(f"{i}={kind}:{name}" for (kind, name), i in ids.items())
     lines = [f"# rgbd-calib pose graph; vertices {names}"]
+    lines += [_hash_comment(extrinsics).rstrip("\n")] if extrinsics.verdict else []
     lines += [f"VERTEX_SE3:QUAT {ids[('cam', c)]} {pose(extrinsics.T_ref_cam(c))}" for c in cameras]
     lines += [f"VERTEX_SE3:QUAT {ids[('view', v)]} {pose(T)}" for v, T in views.items()]
     lines.append(f"FIX {ids[('cam', extrinsics.reference)]}")
@@ -321,6 +348,7 @@ def unity_json_text(extrinsics: Extrinsics, rig: Rig | None = None) -> str:
         "convention": "Unity: left-handed, x right, y up, z forward (the camera looks along +z); "
         "metres; parent = the reference camera's position with y up; rotation is "
         "Quaternion(x, y, z, w)",
+        **_verdict_key(extrinsics),
         "reference": extrinsics.reference,
         "cameras": cameras,
     }
@@ -382,16 +410,20 @@ def open3d_posegraph(extrinsics: Extrinsics) -> dict:
 def open3d_texts(extrinsics: Extrinsics, rig: Rig | None = None) -> dict[str, str]:
     """The Open3D files by path under ``exports/``: the pose graph always; with the rig, one
     ``PinholeCameraParameters`` per camera and their ``PinholeCameraTrajectory`` (in the
-    order of the pose graph's nodes)."""
-    out = {EXPORT_FILES["open3d_posegraph"]: json.dumps(open3d_posegraph(extrinsics), indent=1)}
+    order of the pose graph's nodes). Each file's top level holds the verdict as
+    ``rgbd_calib_verdict`` (Open3D's readers skip keys they do not know)."""
+    mark = ({"rgbd_calib_verdict": extrinsics.verdict.to_dict()}
+            if extrinsics.verdict is not None else {})
+    out = {EXPORT_FILES["open3d_posegraph"]: json.dumps({**open3d_posegraph(extrinsics), **mark},
+                                                        indent=1)}
     if rig is None:
         return out
     params = {c: open3d_camera_parameters(extrinsics.T_ref_cam(c), rig.cameras[c])
               for c in _ordered(extrinsics) if c in rig.cameras}
     for camera, p in params.items():
-        out[OPEN3D_CAMERA.format(camera=camera)] = json.dumps(p, indent=1)
+        out[OPEN3D_CAMERA.format(camera=camera)] = json.dumps({**p, **mark}, indent=1)
     trajectory = {"class_name": "PinholeCameraTrajectory", "parameters": list(params.values()),
-                  "version_major": 1, "version_minor": 0}
+                  "version_major": 1, "version_minor": 0, **mark}
     out[EXPORT_FILES["open3d_trajectory"]] = json.dumps(trajectory, indent=1)
     return out
 

@@ -17,7 +17,7 @@ import shutil
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +38,7 @@ from ..model.rig import Rig, save_rig
 from ..pipelines.calibrate import CalibrationResult
 from ..pipelines.check import CheckRun
 from ..pipelines.posegraph import POSEGRAPH_CONFIG, POSEGRAPH_REPORT, PosegraphRun
-from ..pipelines.refine import refine_summary
+from ..pipelines.refine import IN_MEMORY, RefineResult, refine_summary
 from ..solve.ladder import refined_rig
 from .exports import write_exports
 from .report import (
@@ -46,6 +46,7 @@ from .report import (
     dump_report,
     finite_or_null,
     report_dict,
+    report_verdict,
     write_report_html,
 )
 from .report.storage import VIEWS_FILE, VIEWS_INLINE_MAX, write_report_json
@@ -165,6 +166,9 @@ def write_outputs(
                     T_ref_cam, result.config.depth.fused_voxel_m)
                 write_fused_ply(stage / "fused.ply", pts, cols, idx, names)
         report = report_dict(result, rig, pairs, depth_scale)
+        # the verdict goes into extrinsics.yaml and every export: a file read on its own says
+        # what it is worth
+        extrinsics = replace(result.extrinsics, verdict=report_verdict(report))
         # above views_inline_max views, the per-view detail goes to report_views.ndjson.gz
         write_report_json(report, stage, views_inline_max)
         if fused_ply is not None:
@@ -173,13 +177,13 @@ def write_outputs(
         write_config(result.config, stage / "config_resolved.yaml")
         boards = result.bundle.T_ref_board if result.bundle else result.posegraph.T_ref_board
         try:
-            write_exports(result.extrinsics, stage, rig=export_rig, edges=used_edges(result),
+            write_exports(extrinsics, stage, rig=export_rig, edges=used_edges(result),
                           board_poses=boards)
         except Exception as exc:  # noqa: BLE001 - an export is not worth the result
             shutil.rmtree(stage / "exports", ignore_errors=True)
             warn(f"exports/ not written ({_one_line(exc)}); extrinsics.yaml is complete "
                  "(rgbd_calib.write_exports makes them from it)")
-        write_extrinsics(result.extrinsics, stage / "extrinsics.yaml")
+        write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written
 
@@ -216,7 +220,7 @@ class DepthOnlyRun:
     measurements."""
 
     dataset: FolderDataset
-    init: Path
+    init: Path | None  # None: extrinsics given in memory
     method: str
     verdict: dict[str, Any]  # refine_verdict / fix_verdict
     pairs: list[dict[str, Any]]
@@ -253,7 +257,7 @@ def write_refine_outputs(
     depth: DepthRefinement,
     out_dir: Path,
     method: str,
-    init: Path,
+    init: Path | None,
     fused_voxel_m: float = 0.005,
     verdict: dict[str, Any] | None = None,
     run: DepthOnlyRun | None = None,
@@ -264,10 +268,26 @@ def write_refine_outputs(
     ``report.json`` and ``report.html`` (the calibration report, method ``depth``), and
     ``extrinsics.yaml`` (last). A report.html that cannot be drawn is left out with
     ``warn(why)``: the extrinsics are written all the same."""
-    report = {**(verdict or {}), "method": method, "init": str(init),
+    report = {**(verdict or {}), "method": method,
+              "init": str(init) if init is not None else IN_MEMORY,
               "depth": depth.status_dict(), "pairs": depth.pairs}
     return _write_refined(extrinsics, depth.clouds, out_dir, fused_voxel_m,
                           json.dumps(to_builtin(report), indent=1, default=str), run, warn)
+
+
+def write_refine(result: RefineResult, out_dir: str | os.PathLike,
+                 warn: Callable[[str], None] | None = None) -> list[Path]:
+    """Write a :func:`rgbd_calib.refine` result as ``rgbd-calib refine`` does: ``fused.ply``,
+    ``refine_report.json``, ``report.json`` / ``report.html`` and ``extrinsics.yaml`` (with
+    the verdict), staged (nothing half-written)."""
+    depth = result.depth
+    init = result.init_path
+    run = DepthOnlyRun(result.dataset, init, result.method, result.outcome, depth.pairs,
+                       depth.scale_source, result.depth_scales, depth.status_dict(),
+                       depth.depth_scale_dict(), depth.timings_s,
+                       board_models={c: f.model for c, f in depth.depth_models.items()})
+    return write_refine_outputs(result.extrinsics, depth, Path(out_dir), result.method, init,
+                                verdict=result.outcome, run=run, warn=warn or _python_warning)
 
 
 CHECK_REPORT = "check.json"
@@ -322,6 +342,7 @@ def _write_refined(extrinsics: Extrinsics, clouds: dict[str, Any], out_dir: Path
             _html_or_warning(report, stage, out_dir, warn)
             if models := run.depth_models():
                 save_depth_models(models, stage / DEPTH_MODEL_FILE)
+            extrinsics = replace(extrinsics, verdict=report_verdict(report))
         write_extrinsics(extrinsics, stage / "extrinsics.yaml")
         written = _written(stage, out_dir)
     return written

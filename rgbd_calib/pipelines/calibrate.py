@@ -15,6 +15,7 @@ No file is written here except the detection cache; :mod:`rgbd_calib.outputs.wri
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from ..depth.stage import (
 from ..detect.markers import MarkerDetections
 from ..detect.run import detect_dataset
 from ..model.board import Board, refined_board, refined_multiface
+from ..model.board_file import load_board
 from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics, cameras_from_solve
 from ..model.rig import Rig
@@ -55,6 +57,7 @@ from ..solve.posegraph import PoseGraphResult, calibrate_pose_graph
 from ..solve.selfcal import SelfCalibration
 from ..solve.stillness import SetMotion, board_motion
 from ..solve.time_model import capture_offsets
+from ..sources.cache import open_dataset
 
 # detections with the refined lens: at most this many passes, another one while some
 # camera's lens moved by more than LENS_SETTLED_PX at its detected corners (see lens_moved)
@@ -91,17 +94,22 @@ class CalibrationResult:
 
 # ----------------------------------------------------------------------------- pipeline
 def calibrate(
-    dataset: FolderDataset,
-    board: Board,
+    dataset: FolderDataset | str | os.PathLike,
+    board: Board | str | os.PathLike,
     config: CalibrationConfig | None = None,
-    cache_dir: Path | None = None,
+    cache_dir: str | os.PathLike | None = None,
     fixed_cameras: dict[str, np.ndarray] | None = None,
     progress: Progress | None = None,
 ) -> CalibrationResult:
-    """Calibrate the extrinsics of every camera of ``dataset`` relative to its reference.
+    """Calibrate the extrinsics of every camera of ``dataset`` (a :class:`FolderDataset` or a
+    dataset folder's path) relative to its reference, with ``board`` (a :class:`Board` or a
+    board file's path); ``cache_dir`` keeps the detections (``detections.json``).
 
     ``fixed_cameras`` holds given cameras at ``T_ref_cam`` (adding a camera to a calibrated
     rig). Raises :class:`CalibrationError` when nothing can be calibrated."""
+    dataset = open_dataset(dataset)
+    board = load_board(board) if isinstance(board, (str, os.PathLike)) else board
+    cache_dir = Path(cache_dir) if cache_dir is not None else None
     config = config or CalibrationConfig()
     n_images = sum(len(fs.color) for fs in dataset.frame_sets())
     run = _Run(dataset, board, config, cache_dir, fixed_cameras, progress, {}, n_images)

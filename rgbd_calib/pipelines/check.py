@@ -14,6 +14,7 @@ decides per camera whether it is where the calibration says, from the depth clou
    the calibration's sigmas, from which the moved cameras are found
    (:func:`rgbd_calib.solve.moved.locate_moved`).
 
+:func:`check` is the library form of ``rgbd-calib check`` (``rgbd_calib.check``).
 :func:`fix_moved` re-registers only the moved cameras against the others (from the check's
 estimate, so from a start centimetres off) and solves for them with the others held at their
 calibration. The reference camera is no exception: if it moved, the rest is re-expressed in
@@ -22,6 +23,7 @@ its new frame (the reference frame is, by contract, the reference camera's).
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -35,6 +37,7 @@ from ..core.progress import Progress, start
 from ..depth.clouds import CameraCloud
 from ..depth.registration import PairRegistration, find_overlapping_pairs
 from ..depth.stage import register_pairs, static_clouds
+from ..model.calib_folder import load_calibration, with_refined_intrinsics
 from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics
 from ..solve.bundle import RelativePose
@@ -49,6 +52,7 @@ from ..solve.moved import (
     try_solve,
     variance_factor,
 )
+from ..sources.cache import open_dataset
 
 
 @dataclass(frozen=True)
@@ -135,6 +139,41 @@ class CheckRun:
     clouds: dict[str, CameraCloud]
     overlaps: list[tuple[str, str]]
     scale_source: dict[str, str]  # camera -> "given" (the calibration's factor) / "unknown"
+
+    @property
+    def moved(self) -> list[str]:
+        """The cameras found moved (``rgbd-calib check`` exits 1 when there are any)."""
+        return self.result.moved
+
+    @property
+    def unknown(self) -> list[str]:
+        """The cameras that could not be checked (exit 4 when no camera moved)."""
+        return self.result.unknown
+
+
+def check(dataset: FolderDataset | str | os.PathLike, calib: Extrinsics | str | os.PathLike,
+          method: RegistrationMethod = "colored-icp", config: DepthConfig | None = None,
+          tolerance: Tolerance = Tolerance(), depth_scales: dict[str, float] | None = None,
+          workers: int | None = None, progress: Progress | None = None,
+          scheduler: str | None = None) -> CheckRun:
+    """Has a camera moved since the calibration ``calib``? As ``rgbd-calib check`` decides it.
+
+    ``dataset``: a :class:`FolderDataset` or a dataset folder's path (one or a few frame sets
+    of the rig as it is now, with depth; no board needed). ``calib``: :class:`Extrinsics`, or
+    a calibrate output folder or its ``extrinsics.yaml``: then, as the command does, the
+    dataset is read with the intrinsics of its ``rig_refined.yaml`` and the depth-scale
+    factors of its ``report.json`` are used (unless ``depth_scales`` is given). Returns the
+    :class:`CheckRun`: ``moved``, ``unknown`` and ``result`` (per camera its status, move and
+    sigma; ``result.to_dict()`` is check.json's content). See :func:`check_dataset`."""
+    dataset = open_dataset(dataset)
+    if not isinstance(calib, Extrinsics):
+        earlier = load_calibration(calib)
+        dataset = dataset.with_rig(with_refined_intrinsics(dataset.rig,
+                                                           earlier.path.parent)[0])
+        depth_scales = earlier.depth_scales if depth_scales is None else depth_scales
+        calib = earlier.extrinsics
+    return check_dataset(dataset, calib, depth_scales, method, config, tolerance, workers,
+                         progress, scheduler)
 
 
 def check_dataset(dataset: FolderDataset, calib: Extrinsics,

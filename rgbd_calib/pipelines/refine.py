@@ -1,6 +1,7 @@
 """The ``refine`` command: depth-only refinement of an existing calibration (no board in
 view), and its verdict.
 
+:func:`refine` is the library form of the command (``rgbd_calib.refine``);
 :func:`refine_extrinsics` runs the depth stage (:func:`rgbd_calib.depth.stage.measure_depth`)
 from the initial extrinsics and solves a pose graph of the accepted pairs with a prior per
 camera at its initial pose
@@ -12,7 +13,8 @@ camera at its initial pose
 
 from __future__ import annotations
 
-from dataclasses import replace
+import os
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -23,11 +25,65 @@ from ..core.depth_model import DepthModel
 from ..core.errors import CalibrationError
 from ..core.geometry import invert_transform, transform_error
 from ..depth.stage import DepthRefinement, finish_pairs, measure_depth, moved_beyond_board
-from ..model.board import Board
+from ..model.board import Board, thesis_board
+from ..model.board_file import load_board
+from ..model.calib_folder import load_calibration, with_refined_intrinsics
 from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics, cameras_from_solve
 from ..solve.bundle import RelativePose
 from ..solve.variance_components import solve_variance_components
+from ..sources.cache import open_dataset
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """What :func:`refine` produced: the refined ``extrinsics`` (``init`` itself where no
+    depth pair could be used), the depth stage's measurements, the ``outcome``
+    (:func:`refine_verdict`: ``verdict`` refined / unchanged / check, ``message``, each
+    camera's move from ``init``), and what it ran on (for the report:
+    :func:`rgbd_calib.outputs.writer.write_refine`)."""
+
+    extrinsics: Extrinsics
+    init: Extrinsics
+    depth: DepthRefinement
+    outcome: dict[str, Any]
+    dataset: FolderDataset
+    method: str
+    init_path: Path | None = None  # the extrinsics.yaml it started from, when read from one
+    # the depth models or factors it was given (load_depth_corrections)
+    depth_scales: dict[str, float | DepthModel] = field(default_factory=dict)
+
+
+def refine(dataset: FolderDataset | str | os.PathLike, init: Extrinsics | str | os.PathLike,
+           method: RegistrationMethod = "colored-icp", config: DepthConfig | None = None,
+           board: Board | str | os.PathLike | None = None,
+           depth_scales: dict[str, float | DepthModel] | None = None,
+           workers: int | None = None, progress=None,
+           scheduler: str | None = None) -> RefineResult:
+    """Depth-only refinement of an existing calibration, as ``rgbd-calib refine`` does it.
+
+    ``dataset``: a :class:`FolderDataset` or a dataset folder's path (with depth; no board
+    needed). ``init``: :class:`Extrinsics`, or a calibrate output folder or its
+    ``extrinsics.yaml``: then, as the command does, the dataset is read with the intrinsics
+    of its ``rig_refined.yaml``, and the depth models of its ``depth_model.yaml`` (else the
+    depth-scale factors of its ``report.json``; unless ``depth_scales`` is given) and the
+    board poses of its ``report.json`` are used, the board being ``board`` or the
+    thesis board. ``board`` may be a board file's path. See :func:`refine_extrinsics`."""
+    dataset = open_dataset(dataset)
+    init_path, T_ref_board, board_cameras = None, None, None
+    if not isinstance(init, Extrinsics):
+        earlier = load_calibration(init)
+        init_path, T_ref_board, board_cameras = (earlier.path, earlier.T_ref_board,
+                                                 earlier.board_cameras)
+        dataset = dataset.with_rig(with_refined_intrinsics(dataset.rig, init_path.parent)[0])
+        depth_scales = earlier.depth_scales if depth_scales is None else depth_scales
+        init, board = earlier.extrinsics, thesis_board() if board is None else board
+    if isinstance(board, (str, os.PathLike)):
+        board = load_board(board)
+    ext, depth = refine_extrinsics(dataset, init, method, config, progress, depth_scales,
+                                   workers, board, T_ref_board, board_cameras, scheduler)
+    return RefineResult(ext, init, depth, refine_verdict(init, ext, depth), dataset, method,
+                        init_path, dict(depth_scales or {}))
 
 
 def refine_extrinsics(dataset: FolderDataset, init: Extrinsics,
@@ -154,7 +210,10 @@ def fix_verdict(init: Extrinsics, fixed: Extrinsics, moved: list[str],
             "cameras": cameras}
 
 
-def refine_summary(init_path: Path, method: str, verdict: dict[str, Any],
+IN_MEMORY = "(extrinsics given in memory)"  # report.json refine.init of a library refine
+
+
+def refine_summary(init_path: Path | None, method: str, verdict: dict[str, Any],
                    scale_source: dict[str, str], moved: list[str] | None = None,
                    ) -> dict[str, Any]:
     """report.json ``refine`` (docs/report_schema.md) of a depth-only run from its verdict
@@ -162,7 +221,7 @@ def refine_summary(init_path: Path, method: str, verdict: dict[str, Any],
     each camera's depth-scale source (``board`` / ``given`` / ``unknown``; ``none``: the
     camera has no depth cloud)."""
     return {
-        "init": str(Path(init_path).resolve()),
+        "init": str(Path(init_path).resolve()) if init_path is not None else IN_MEMORY,
         "registration": method,
         "fix_others": moved is not None,
         "outcome": verdict["verdict"],

@@ -8,13 +8,15 @@
   CSV: :func:`convert_videos` (:mod:`.video`) keeps the frames where the board is still.
 
 Readers stage decoded frames (:mod:`.staging`); :mod:`.sync` pairs colour with depth and
-matches cameras by timestamp; :func:`convert` (:mod:`.conversion`) writes the frame sets;
+matches cameras by timestamp; :mod:`.conversion` writes the frame sets; :func:`convert`
+(:mod:`.dispatch`) takes recordings or videos;
 :mod:`.cache` converts once for ``calibrate RECORDINGS...``.
 """
 
 from .align import align_depth_to_color, distortion_from_realsense, extrinsics_matrix
 from .cache import CACHE_MARKER, cached_report, convert_to_cache, dataset_folder
-from .conversion import RECORDING_SUFFIXES, CameraCounts, ConversionReport, convert, is_recording
+from .conversion import RECORDING_SUFFIXES, CameraCounts, ConversionReport, is_recording
+from .dispatch import convert
 from .sync import match_frames
 from .video import VIDEO_SUFFIXES, convert_videos, is_video
 

@@ -156,14 +156,15 @@ def check_source(path: Path) -> None:
 
 
 def convert(
-    sources: Sequence[Path],
-    out: Path,
+    sources: Sequence[str | os.PathLike],
+    out: str | os.PathLike,
     names: Sequence[str] | None = None,
     sync_tolerance_ms: float | None = None,
     progress: Progress | None = None,
     depth_models: dict[str, DepthModel] | None = None,
 ) -> ConversionReport:
-    """Convert recordings into the folder form (docs/formats.md) at ``out``.
+    """Convert recordings into the folder form (docs/formats.md) at ``out`` (videos:
+    :func:`rgbd_calib.sources.dispatch.convert` takes either).
 
     ``names`` renames the cameras, in the order they are found (sources in order, the
     cameras of one ROS bag in namespace order). ``sync_tolerance_ms`` is how far apart two

@@ -22,7 +22,7 @@ a preview cloud), ``layout`` (display frame, frusta), ``figures`` (matplotlib), 
 
 from .build import depth_only_report_dict, error_map, finalize_report, pair_entry, report_dict
 from .cloud import Cloud, load_cloud
-from .findings import RULES, findings
+from .findings import RULES, findings, report_verdict
 from .html import render_html, write_report_html
 from .numbers import histogram_edges_px, stats
 from .rebuild import rebuild_report
@@ -59,6 +59,7 @@ __all__ = [
     "rebuild_report",
     "render_html",
     "report_dict",
+    "report_verdict",
     "schema_blocks",
     "schema_paths",
     "stats",

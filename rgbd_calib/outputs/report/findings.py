@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from ...model.results import Verdict
 from .findings_base import (
     SEVERITY_ORDER,
     Finding,
@@ -176,3 +177,25 @@ def findings(report: dict[str, Any]) -> list[Finding]:
     for rule in DEPTH_ONLY_RULES if is_depth_only(report) else RULES:
         found += rule(report, found)
     return sorted(found, key=lambda w: SEVERITY_ORDER[w["severity"]])
+
+
+REASON_MAX_CHARS = 300  # a verdict's reason stays one readable line
+
+
+def report_verdict(report: dict[str, Any]) -> Verdict:
+    """The verdict of a finalized report (``summary.verdict``) with its reason in one line:
+    the worst finding (an error for ``poor``, a warning for ``check``) and how many more of
+    that severity report.json lists."""
+    grade = report["summary"]["verdict"]
+    severity = {"poor": "error", "check": "warning"}.get(grade)
+    worst = [w for w in report.get("warnings", []) if w["severity"] == severity]
+    if not worst:
+        return Verdict(grade, "no error or warning in report.json")
+    first = worst[0]
+    cams = f" [{', '.join(first['cameras'])}]" if first.get("cameras") else ""
+    reason = " ".join(f"{first['code']}{cams}: {first['message']}".split())
+    if len(reason) > REASON_MAX_CHARS:
+        reason = reason[: REASON_MAX_CHARS - 3].rstrip() + "..."
+    if len(worst) > 1:
+        reason += f" (and {len(worst) - 1} more {severity}(s) in report.json)"
+    return Verdict(grade, reason)
