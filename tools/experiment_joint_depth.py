@@ -1,0 +1,428 @@
+"""Experiment (not in the package; docs/depth.md "What was tried and not adopted"): every
+camera's depth model from the board and the scene's overlaps at once (issue 33, item 2): the
+board fixes each camera's depth where the board was, the overlaps tie the cameras' depth
+together over the whole scene they share.
+
+    python tools/experiment_joint_depth.py RENDER_DIR WORKDIR [fixed] [full] [select]
+
+calibrates the synthetic render (default config), then fits the models jointly with the terms
+the board chose (``fixed``), every term free (``full``) or chosen by forward selection
+(``select``, slow), and prints per camera the median signed distance of its corrected cloud to
+the true scene surfaces (``rgbd_calib.synth.surfaces``) by distance band, and the parameters
+against the truth in sigmas.
+
+With the extrinsics fixed by the board (colour), two cameras that see one surface must put it
+in the same place. For an overlapping pair ``(a, b)`` each sampled point of a is matched once
+(at the board-fitted models) to a window of b's pixels around its projection
+(:class:`~.agreement.Surface`: chosen by pixel, not by depth, so the noise picks nothing). The
+residual is the distance along b's normal between a's corrected point and the plane of b's
+corrected window where b's ray through a's point meets it, over the depth noise; it is a
+function of both cameras' depth models. Together with each camera's board residuals
+(:mod:`.depth_model_fit`) one Gauss-Newton with Huber weights solves every camera's free
+parameters; the covariance is the cluster-robust sandwich (clusters: board views, and blocks of
+a's image per pair) with the model-based one as its floor, as for the board alone.
+
+Which terms are free is chosen as for the board alone (forward selection in ladder order by a
+cluster-robust Wald test), one camera at a time, every other camera's terms held at their
+current choice."""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from bench_fused import true_rig
+
+from rgbd_calib.core.config import CalibrationConfig, DepthConfig
+from rgbd_calib.core.depth_model import PARAMETERS, TERMS, DepthModel, identity_model
+from rgbd_calib.depth.agreement import EDGE_SIGMAS, Surface, plane_on_rays, surface_on_rays
+from rgbd_calib.depth.clouds import CameraCloud, board_faces
+from rgbd_calib.depth.depth_model_fit import (
+    STEP,
+    BoardSamples,
+    DepthModelFit,
+    TermTest,
+    _bands,
+    _huber,
+    _threshold,
+    board_samples,
+    plane_residuals_m,
+    predicted_depth_m,
+)
+from rgbd_calib.depth.registration import find_overlapping_pairs
+from rgbd_calib.depth.stage import board_views_per_camera
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.pipelines.calibrate import calibrate
+from rgbd_calib.synth.surfaces import surface_distances
+
+OVERLAP_POINTS = 4000  # a's points per pair
+BLOCKS = 8  # blocks per image side: a pair's clusters
+GN_ITERATIONS = 6
+
+
+@dataclass(frozen=True)
+class OverlapSamples:
+    """One pair's matched points: a's rays (z = 1) and measured depths ``(N,3)``, ``(N,)``;
+    the window of b's pixels around each one's projection, their rays and measured depths
+    ``(N,K,3)``, ``(N,K)`` and which are there ``(N,K)``; b's normal (b's frame) ``(N,3)``;
+    the residual's noise (m) and its cluster (a's image block)."""
+
+    cam_a: str
+    cam_b: str
+    rays_a: np.ndarray
+    z_a: np.ndarray
+    rays_b: np.ndarray
+    z_b: np.ndarray
+    valid_b: np.ndarray
+    normal_b: np.ndarray
+    sigma_m: np.ndarray
+    block: np.ndarray
+
+
+def _measured(cloud: CameraCloud, model: DepthModel | None) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's ray (z = 1) and measured depth: the model undone (no point dropped)."""
+    pts = cloud.points.astype(float)
+    if model is not None and not model.is_identity:
+        pts = model.measured_points(pts)
+    z = pts[:, 2]
+    return pts / np.where(np.isfinite(z) & (z > 0), z, np.nan)[:, None], z
+
+
+def overlap_samples(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndarray],
+                    pairs: list[tuple[str, str]], models: dict[str, DepthModel],
+                    seed: int = 0) -> list[OverlapSamples]:
+    """The matched points of every pair of ``pairs`` (clouds as corrected by ``models``)."""
+    rng = np.random.default_rng(seed)
+    used = {x for p in pairs for x in p if x in clouds}
+    surf = {c: Surface.of(clouds[c]) for c in used}
+    raw = {c: _measured(clouds[c], models.get(c)) for c in used}
+    out = []
+    for a, b in pairs:
+        if a in surf and b in surf:
+            s = _one_pair(clouds[a], surf[b], T_ref_cam[a], T_ref_cam[b], raw[a], raw[b], rng)
+            if s is not None:
+                out.append(s)
+    return out
+
+
+def _one_pair(a: CameraCloud, surf_b: Surface, T_ref_a: np.ndarray, T_ref_b: np.ndarray,
+              raw_a, raw_b, rng: np.random.Generator) -> OverlapSamples | None:
+    b = surf_b.cloud
+    pick = rng.choice(a.n_points, min(a.n_points, 4 * OVERLAP_POINTS), replace=False)
+    T_b_a = np.linalg.inv(T_ref_b) @ T_ref_a
+    p = a.points[pick].astype(float) @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+    idx, ok = surf_b.windows(p)
+    centre, fit, off = surface_on_rays(surf_b.points, idx, p[:, :2] / p[:, 2:])
+    sigma_b = b.sigma_z[np.where(idx >= 0, idx, 0)].max(axis=1)
+    ok &= fit & (off < EDGE_SIGMAS * sigma_b + 0.005)
+    n_b = surf_b.normals_at(centre)
+    d = np.einsum("ij,ij->i", p - centre, n_b)
+    ray_a = p - T_b_a[:3, 3]
+    pa = a.points[pick].astype(float)
+    cos_a = (np.abs(np.einsum("ij,ij->i", ray_a, n_b)) / np.linalg.norm(ray_a, axis=1)
+             * np.linalg.norm(pa, axis=1) / pa[:, 2])
+    cos_b = np.abs(np.einsum("ij,ij->i", centre, n_b)) / np.maximum(centre[:, 2], 1e-6)
+    n_win = np.maximum(np.count_nonzero(idx >= 0, axis=1), 1)
+    sigma = np.hypot(a.sigma_z[pick] * cos_a, sigma_b * cos_b / np.sqrt(n_win))
+    ok &= np.abs(d) < np.maximum(EDGE_SIGMAS * sigma, 0.01)
+    keep = np.flatnonzero(ok & np.isfinite(raw_a[1][pick]))[:OVERLAP_POINTS]
+    if keep.size < 200:
+        return None
+    pick, idx, n_b, sigma = pick[keep], idx[keep], n_b[keep], sigma[keep]
+    valid = idx >= 0
+    jb = np.where(valid, idx, 0)
+    px = a.pixels[pick]
+    block = (np.minimum(px[:, 0] * BLOCKS // a.intrinsics.width, BLOCKS - 1) * BLOCKS
+             + np.minimum(px[:, 1] * BLOCKS // a.intrinsics.height, BLOCKS - 1))
+    valid &= np.isfinite(raw_b[1][jb])
+    return OverlapSamples(a.camera, b.camera, raw_a[0][pick], raw_a[1][pick],
+                          np.nan_to_num(raw_b[0][jb]), np.nan_to_num(raw_b[1][jb], nan=1.0),
+                          valid, n_b, np.maximum(sigma, 1e-4), block)
+
+
+# --------------------------------------------------------------------------- residuals
+def board_residual(model: DepthModel, s: BoardSamples) -> np.ndarray:
+    pred = predicted_depth_m(model, s)
+    return np.where(pred > 0, s.z_measured - pred, np.nan) / s.sigma_z
+
+
+def overlap_residual(ma: DepthModel, mb: DepthModel, o: OverlapSamples,
+                     T_ref_a: np.ndarray, T_ref_b: np.ndarray) -> np.ndarray:
+    """a's corrected point against the plane of b's corrected window where b's ray through
+    it meets it, along b's normal, over the noise (+ = a's depth beyond b's surface)."""
+    T_b_a = np.linalg.inv(T_ref_b) @ T_ref_a
+    pa = ma.correct_points(o.rays_a, o.z_a) @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+    k = o.z_b.shape[1]
+    q = mb.correct_points(o.rays_b.reshape(-1, 3), o.z_b.reshape(-1)).reshape(-1, k, 3)
+    valid = o.valid_b & np.isfinite(q[..., 2])
+    centre, ok, _ = plane_on_rays(np.nan_to_num(q, nan=1.0), valid, pa[:, :2] / pa[:, 2:])
+    r = -np.einsum("ij,ij->i", pa - centre, o.normal_b) / o.sigma_m
+    return np.where(ok, r, np.nan)
+
+
+@dataclass(frozen=True)
+class JointSolve:
+    models: dict[str, DepthModel]
+    names: dict[str, tuple[str, ...]]  # camera -> its free parameters
+    index: dict[tuple[str, str], int]  # (camera, parameter) -> column
+    cov: np.ndarray
+    chi2: float
+    dof: int
+
+    def sigma(self, camera: str, p: str) -> float:
+        k = self.index[camera, p]
+        return float(math.sqrt(max(self.cov[k, k], 0.0)))
+
+
+def joint_solve(models: dict[str, DepthModel], names: dict[str, tuple[str, ...]],
+                board: dict[str, BoardSamples], overlaps: list[OverlapSamples],
+                T_ref_cam: dict[str, np.ndarray], huber_k: float,
+                iterations: int = GN_ITERATIONS) -> JointSolve:
+    """Gauss-Newton with Huber IRLS of the free parameters ``names`` of every camera (the
+    others held at ``models``) on the board and overlap residuals, and their cluster-robust
+    covariance."""
+    index = {(c, p): k for k, (c, p) in enumerate((c, p) for c in sorted(names)
+                                                  for p in names[c])}
+    n = len(index)
+    models = dict(models)
+    for it in range(iterations + 1):
+        H, g, scores, chi2, count = _normal_equations(models, names, index, board, overlaps,
+                                                      T_ref_cam, huber_k, with_jacobian=n > 0)
+        if n == 0 or it == iterations:
+            break
+        step = np.linalg.lstsq(H, -g, rcond=None)[0]
+        for (c, p), k in index.items():
+            models[c] = models[c].with_values({p: models[c].value(p) + step[k]})
+        if np.all(np.abs(step) < 1e-3 * np.array([STEP[p] for _, p in index])):
+            H, g, scores, chi2, count = _normal_equations(
+                models, names, index, board, overlaps, T_ref_cam, huber_k, True)
+            break
+    dof = max(count - n, 1)
+    if n == 0:
+        return JointSolve(models, names, index, np.zeros((0, 0)), chi2, dof)
+    Hinv = np.linalg.pinv(H)
+    G = np.array(list(scores.values()))
+    m = G.shape[0]
+    sandwich = Hinv @ (G.T @ G) @ Hinv * (m / max(m - 1, 1))
+    model_based = Hinv * max(chi2 / dof, 1.0)
+    e, V = np.linalg.eigh(sandwich - model_based)
+    return JointSolve(models, names, index, model_based + (V * np.maximum(e, 0.0)) @ V.T,
+                      chi2, dof)
+
+
+def _normal_equations(models, names, index, board, overlaps, T_ref_cam, huber_k,
+                      with_jacobian: bool):
+    n = len(index)
+    H, g = np.zeros((n, n)), np.zeros(n)
+    scores: dict[tuple, np.ndarray] = {}
+    chi2, count = 0.0, 0
+
+    def add(r: np.ndarray, cols: list[tuple[int, np.ndarray]], clusters: np.ndarray, key):
+        nonlocal chi2, count
+        ok = np.isfinite(r)
+        for _, col in cols:
+            ok &= np.isfinite(col)
+        r0 = np.where(ok, r, 0.0)
+        w = np.where(ok, _huber(r0, huber_k), 0.0)
+        chi2 += float(np.sum(w * r0 * r0))
+        count += int(np.count_nonzero(ok))
+        if not cols:
+            return
+        idx = [k for k, _ in cols]
+        J = np.column_stack([np.where(ok, col, 0.0) for _, col in cols])
+        H[np.ix_(idx, idx)] += J.T @ (w[:, None] * J)
+        wr = w * r0
+        g[idx] += J.T @ wr
+        contrib = J * wr[:, None]
+        for cl in np.unique(clusters[ok]):
+            vec = scores.setdefault((key, int(cl)), np.zeros(n))
+            vec[idx] += contrib[clusters == cl].sum(axis=0)
+
+    def columns(fun, cams):
+        out = []
+        if not with_jacobian:
+            return out
+        for c in cams:
+            for p in names.get(c, ()):
+                h = STEP[p]
+                saved = models[c]
+                models[c] = saved.with_values({p: saved.value(p) + h})
+                up = fun()
+                models[c] = saved.with_values({p: saved.value(p) - h})
+                dn = fun()
+                models[c] = saved
+                out.append((index[c, p], (up - dn) / (2 * h)))
+        return out
+
+    def board_fun(c: str, s: BoardSamples):
+        return lambda: board_residual(models[c], s)
+
+    def pair_fun(o: OverlapSamples):
+        return lambda: overlap_residual(models[o.cam_a], models[o.cam_b], o,
+                                        T_ref_cam[o.cam_a], T_ref_cam[o.cam_b])
+
+    for c, s in board.items():
+        if c in models:
+            fun = board_fun(c, s)
+            add(fun(), columns(fun, [c]), s.view, ("board", c))
+    for o in overlaps:
+        if o.cam_a in models and o.cam_b in models:
+            fun = pair_fun(o)
+            add(fun(), columns(fun, [o.cam_a, o.cam_b]), o.block, ("pair", o.cam_a, o.cam_b))
+    return H, g, scores, chi2, count
+
+
+def _wald(solve: JointSolve, camera: str, term: str) -> float:
+    idx = [solve.index[camera, p] for p in TERMS[term]]
+    theta = np.array([solve.models[camera].value(p) - (1.0 if p == "scale" else 0.0)
+                      for p in TERMS[term]])
+    return float(theta @ np.linalg.pinv(solve.cov[np.ix_(idx, idx)]) @ theta)
+
+
+def fit_joint(base: dict[str, DepthModel], board: dict[str, BoardSamples],
+              overlaps: list[OverlapSamples], T_ref_cam: dict[str, np.ndarray],
+              config: DepthConfig | None = None,
+              start_terms: dict[str, tuple[str, ...]] | None = None,
+              ) -> tuple[JointSolve, dict[str, dict[str, TermTest]]]:
+    """Every camera's terms chosen and parameters solved on the board and the overlaps (see
+    the module docstring). ``base`` are the identity models; ``start_terms`` the terms to
+    start from (default none). Returns the final solve and each camera's term tests."""
+    config = config or DepthConfig()
+    k = config.scale_huber_k
+    terms = {c: list(start_terms.get(c, ())) if start_terms else [] for c in base}
+
+    def names_of(t: dict[str, list[str]]) -> dict[str, tuple[str, ...]]:
+        return {c: tuple(p for term in TERMS if term in t[c] for p in TERMS[term]) for c in t}
+
+    current = joint_solve(base, names_of(terms), board, overlaps, T_ref_cam, k)
+    tests: dict[str, dict[str, TermTest]] = {c: {} for c in base}
+    clusters = _clusters(board, overlaps)
+    changed = True
+    while changed:
+        changed = False
+        for c in sorted(base):
+            for term in TERMS:
+                if term in terms[c]:
+                    continue
+                trial_terms = {**terms, c: [*terms[c], term]}
+                trial = joint_solve(current.models, names_of(trial_terms), board, overlaps,
+                                    T_ref_cam, k, iterations=3)
+                wald = _wald(trial, c, term)
+                thr = _threshold(term, clusters.get(c, 0), len(names_of(trial_terms)[c]))
+                tests[c][term] = TermTest(term, wald, thr, False)
+                if wald > thr:  # the first in the ladder's order that passes
+                    terms = trial_terms
+                    current = trial
+                    tests[c][term] = replace(tests[c][term], kept=True)
+                    changed = True
+                    break
+    final = joint_solve(current.models, names_of(terms), board, overlaps, T_ref_cam, k)
+    return final, tests
+
+
+def _clusters(board: dict[str, BoardSamples], overlaps: list[OverlapSamples]) -> dict[str, int]:
+    """Per camera the clusters its parameters are judged over: its board views and the image
+    blocks of its pairs."""
+    out = {c: len(s.frames) for c, s in board.items()}
+    for o in overlaps:
+        n = len(np.unique(o.block))
+        for c in (o.cam_a, o.cam_b):
+            out[c] = out.get(c, 0) + n
+    return out
+
+
+def joint_fits(solve: JointSolve, tests: dict[str, dict[str, TermTest]],
+               board: dict[str, BoardSamples], base: dict[str, DepthModel],
+               earlier: dict[str, DepthModelFit]) -> dict[str, DepthModelFit]:
+    """The joint solve as each camera's :class:`DepthModelFit` (board-plane bands before the
+    identity, after the joint model), keeping each board fit's coverage."""
+    out = {}
+    for c, m0 in solve.models.items():
+        names = solve.names.get(c, ())
+        old = earlier.get(c)
+        model = DepthModel(
+            m0.focal_baseline_px_m, {p: m0.value(p) for p in PARAMETERS if p in names},
+            tuple(t for t in TERMS if all(p in names for p in TERMS[t])),
+            {p: solve.sigma(c, p) for p in names},
+            old.model.depth_range_m if old else None, old.model.image_coverage if old else None)
+        s = board.get(c)
+        bands = ()
+        if s is not None:
+            z = s.distance_m / np.sum(s.normal * s.rays, axis=1)
+            bands = _bands(plane_residuals_m(base[c], s), plane_residuals_m(model, s), z,
+                           s.sigma_m)
+        out[c] = DepthModelFit(c, model, tuple(tests.get(c, {}).values()), bands,
+                               len(s.frames) if s is not None else 0,
+                               int(s.z_measured.size) if s is not None else 0,
+                               float(math.sqrt(solve.chi2 / solve.dof)))
+    return out
+
+
+# --------------------------------------------------------------------------- the experiment
+BANDS = ((0.0, 1.5), (1.5, 2.5), (2.5, 3.5), (3.5, 9.0))
+
+
+def truth_line(name: str, model: DepthModel, rays: np.ndarray, z: np.ndarray,
+               T_world_cam: np.ndarray, rig) -> str:
+    p = model.correct_points(rays, z)
+    ok = np.isfinite(p[:, 0])
+    pw = p[ok] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    s = surface_distances(rig.scene, pw, T_world_cam[:3, 3]).signed_m * 1e3
+    zz = p[ok][:, 2]
+    bands = [np.nanmedian(s[(zz >= lo) & (zz < hi)]) if np.any((zz >= lo) & (zz < hi))
+             else np.nan for lo, hi in BANDS]
+    return f"{name} {np.nanmedian(s):+.2f} [" + " ".join(f"{b:+.1f}" for b in bands) + "]"
+
+
+def main() -> None:
+    render, work = Path(sys.argv[1]), Path(sys.argv[2])
+    modes = sys.argv[3:] or ["fixed", "full"]
+    ds = FolderDataset(render)
+    res = calibrate(ds, thesis_board(), CalibrationConfig(), cache_dir=work)
+    rig, gt = true_rig(render)
+    T = {c: e.T_ref_cam for c, e in res.extrinsics.cameras.items()}
+    clouds, fits = res.depth.clouds, res.depth.depth_models
+    m0 = {c: f.model for c, f in fits.items()}
+    views = board_views_per_camera(res.observations, T, res.bundle.T_ref_board)
+    config = DepthConfig()
+    board = {c: board_samples(ds.rig.cameras[c], board_faces(ds, c, views[c], res.board,
+                                                              config), config)
+             for c in clouds if c in views}
+    pairs = [(o.cam_a, o.cam_b) for o in find_overlapping_pairs(clouds, T)]
+    overlaps = overlap_samples(clouds, T, pairs, m0)
+    base = {c: identity_model(ds.rig.cameras[c]) for c in clouds}
+    solved = {}
+    for mode in modes:
+        if mode == "select":
+            sol, _ = fit_joint(base, board, overlaps, T, config)
+        else:
+            names = {c: (tuple(PARAMETERS) if mode == "full"
+                         else tuple(p for p in PARAMETERS if p in m0[c].sigmas)) for c in base}
+            start = {c: base[c].with_values({p: m0[c].value(p) for p in names[c]})
+                     for c in base}
+            sol = joint_solve(start, names, board, overlaps, T, config.scale_huber_k)
+        solved[mode] = sol
+    cams = {c.name: c for c in rig.cameras}
+    print("camera: median signed distance to the true surfaces (mm) [by band "
+          + " ".join(f"{lo}-{hi} m" for lo, hi in BANDS) + "]")
+    for c in sorted(clouds):
+        rays, z = _measured(clouds[c], m0.get(c))
+        ok = np.isfinite(z)
+        Tw = cams[c].T_world_cam
+        parts = [truth_line("true-model", gt.depth_model[c], rays[ok], z[ok], Tw, rig),
+                 truth_line("board", m0[c], rays[ok], z[ok], Tw, rig)]
+        parts += [truth_line(m, s.models[c], rays[ok], z[ok], Tw, rig)
+                  for m, s in solved.items()]
+        print(c, " | ".join(parts))
+        for m, s in solved.items():
+            zs = {p: round((s.models[c].value(p) - gt.depth_model[c].value(p))
+                           / max(s.sigma(c, p), 1e-12), 1) for p in s.names[c]}
+            print(f"   {m}: parameters - truth in sigmas {zs}")
+
+
+if __name__ == "__main__":
+    main()
