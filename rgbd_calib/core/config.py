@@ -607,10 +607,12 @@ class DepthConfig(BaseModel, extra="forbid"):
         "skipped for the depth scale.",
     )
     scale_max_frames: int = Field(
-        12,
+        40,
         ge=1,
-        description="Board views per camera read for the depth scale, sampled evenly (each "
-        "gives a factor to ~0.01 %; 6 views reached 0.03 % on the race rig).",
+        description="Board views per camera read for the depth scale and the depth model, "
+        "sampled evenly (each gives a factor to ~0.01 %; 6 views reached 0.03 % on the race "
+        "rig; the depth model needs the board's whole range: with 12 instead of 40 on race "
+        "seed 101 its worst band was 13.7 mm instead of 7.1, docs/depth.md).",
     )
     scale_min_points: int = Field(
         200, ge=10, description="Fewest board-face pixels for a frame to count."
