@@ -79,3 +79,20 @@ def test_calibrate_reports_the_fused_cloud_agreement(tiny_calibration):
     assert "fused cloud: cameras agree within" in console
     page = (out / "report.html").read_text()
     assert "Fused cloud (depth models)" in page and "beyond the noise" in page
+
+
+def test_a_failing_measurement_never_ends_the_run(monkeypatch):
+    """The agreement measures the result; if it fails the calibration stands, with a warning."""
+    import pytest
+
+    from rgbd_calib.depth import stage
+
+    def broken(*args, **kwargs):
+        raise ValueError("no normals")
+
+    clouds = _clouds()
+    depth = stage.DepthRefinement("colored-icp", {}, clouds, [], [], dict(POSES))
+    monkeypatch.setattr(stage, "fused_agreement", broken)
+    with pytest.warns(RuntimeWarning, match="could not be measured.*no normals"):
+        out = stage.measure_agreement(depth, POSES)
+    assert out is depth and out.agreement is None

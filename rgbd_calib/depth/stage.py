@@ -20,6 +20,7 @@ its workers :func:`_pool_init` / :func:`_pool_job`), the clouds in threads
 from __future__ import annotations
 
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
@@ -511,4 +512,11 @@ def measure_agreement(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
     pairs = [(o.cam_a, o.cam_b) for o in find_overlapping_pairs(clouds, T_ref_cam, None, config)]
     if models is None:
         models = {c: f.model for c, f in depth.depth_models.items()}
-    return replace(depth, agreement=fused_agreement(clouds, T_ref_cam, pairs, models))
+    try:
+        agreement = fused_agreement(clouds, T_ref_cam, pairs, models)
+    except Exception as exc:  # noqa: BLE001 - a measurement of the result never ends a run
+        warnings.warn(f"the fused cloud's agreement could not be measured "
+                      f"({type(exc).__name__}: {one_line_error(exc)})", RuntimeWarning,
+                      stacklevel=2)
+        return depth
+    return replace(depth, agreement=agreement)
