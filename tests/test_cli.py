@@ -163,3 +163,23 @@ def test_python_m_runs_a_command_with_worker_processes(tmp_path):
                          timeout=300, cwd=tmp_path)
     assert run.returncode == 0, run.stdout + run.stderr
     assert load_ground_truth(out).T_ref_cam and (out / "rig.yaml").exists()
+
+
+def test_calibrate_without_board_reads_the_datasets_board_yaml(small_line, tmp_path):
+    """Issue 34: the board goes with the dataset (synth and convert --board write board.yaml);
+    without --board calibrate reads it and says so, and says when it falls back to the thesis
+    board, never silently."""
+    from rgbd_calib.model.board_file import load_board
+
+    assert load_board(small_line.path / "board.yaml").to_dict() == load_board(
+        CONFIGS / "board_thesis.yaml").to_dict()
+    code, text = run("calibrate", small_line.path, "--out", tmp_path / "own", "--refine",
+                     "none")
+    assert code == 0, text
+    assert f"board: {small_line.path / 'board.yaml'} (the dataset's" in " ".join(text.split())
+    bare = tmp_path / "bare"
+    shutil.copytree(small_line.path, bare)
+    (bare / "board.yaml").unlink()
+    code, text = run("calibrate", bare, "--out", tmp_path / "thesis", "--refine", "none")
+    assert code == 0, text
+    assert "board: the thesis board (no --board" in " ".join(text.split())

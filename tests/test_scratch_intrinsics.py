@@ -187,6 +187,9 @@ def test_convert_videos_writes_a_colour_only_dataset(charuco_line, tmp_path):
         assert middles <= {f for f, cams in kept.items() if c in cams}, (c, sorted(kept))
         assert all(seen[c][int(f)] for f, cams in kept.items() if c in cams)
     assert sum(map(len, kept.values())) < sum(map(sum, seen.values()))
+    # the board goes with the dataset: calibrate reads it when --board is not given
+    assert load_board(tmp_path / "still" / "board.yaml").to_dict() == board.to_dict()
+    assert not (tmp_path / "plain" / "board.yaml").exists()
 
 
 @pytest.mark.skipif(not CALISCOPE_DATA.is_dir(),

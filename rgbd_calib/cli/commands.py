@@ -290,6 +290,22 @@ def _name_list(names: str | None) -> list[str] | None:
     return names.split(",") if names else None
 
 
+def _dataset_board(ds):
+    """Without --board: the dataset's own board.yaml (synth, convert --board), else the thesis
+    board; the console says which."""
+    from ..model.board import thesis_board
+    from ..model.board_file import dataset_board_file, load_board
+
+    own = dataset_board_file(ds.path)
+    if own is not None:
+        console.print(f"board: {own} (the dataset's; --board overrides it)", highlight=False,
+                      soft_wrap=True)
+        return load_board(own)
+    console.print("board: the thesis board (no --board, and the dataset has no board.yaml); "
+                  "pass --board BOARD.yaml for any other", highlight=False, soft_wrap=True)
+    return thesis_board()
+
+
 def _open_dataset(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms):
     """A dataset folder as it is, or recordings converted once under OUT/cache/recordings
     (with a progress bar and the per-camera frame counts of the conversion)."""
@@ -399,7 +415,6 @@ def calibrate(
     Exit 0: verdict GOOD or CHECK; 3: POOR (written all the same); 2: an input error."""
     from ..core.config import load_config
     from ..core.parallel import check_scheduler
-    from ..model.board import thesis_board
     from ..model.board_file import load_board
     from ..model.results import load_extrinsics
 
@@ -409,8 +424,10 @@ def calibrate(
                       **{"bundle.intrinsics": intrinsics, "bundle.board": board_model,
                          "bundle.time": time})
     check_scheduler(cfg.scheduler)
-    b = load_board(board_file) if board_file else thesis_board()
+    b = load_board(board_file) if board_file else None
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
+    if b is None:
+        b = _dataset_board(ds)
     fixed = None
     if fix is not None:
         prior = load_extrinsics(fix, check_redundant=True)
@@ -801,8 +818,9 @@ def convert(
     ] = None,
     board_file: Annotated[
         Path | None,
-        typer.Option("--board", help="Videos: keep only frames where this board is seen and "
-                     "still (see --still-px-s)."),
+        typer.Option("--board", help="The board recorded: written into the dataset as "
+                     "board.yaml (calibrate reads it without --board); videos: keep only frames "
+                     "where it is seen and still (see --still-px-s)."),
     ] = None,
     still_px_s: Annotated[
         float | None,

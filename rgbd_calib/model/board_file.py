@@ -353,8 +353,18 @@ def _explicit_markers(markers: Any, where: str) -> tuple[np.ndarray, np.ndarray]
     return np.asarray(ids, dtype=int), np.asarray(corners, dtype=float)
 
 
+DATASET_BOARD_FILE = "board.yaml"  # a dataset folder's own board (docs/formats.md)
+
+
 def save_board(board: Board, path: Path) -> None:
     write_yaml(path, board.to_dict())
+
+
+def dataset_board_file(dataset_dir: str | Path) -> Path | None:
+    """The dataset folder's own board file (``board.yaml``, written by ``synth`` and
+    ``convert --board``), or None."""
+    path = Path(dataset_dir) / DATASET_BOARD_FILE
+    return path if path.is_file() else None
 
 
 # ------------------------------------------------------------------------ multi-face targets

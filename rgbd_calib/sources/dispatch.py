@@ -12,7 +12,7 @@ from ..core.depth_model import DepthModel
 from ..core.errors import ConfigError
 from ..core.progress import Progress
 from ..model.board import Board
-from ..model.board_file import load_board
+from ..model.board_file import DATASET_BOARD_FILE, load_board, save_board
 from ..model.depth_model_file import load_depth_models
 from .conversion import ConversionReport
 from .conversion import convert as convert_recordings
@@ -37,21 +37,25 @@ def convert(
     ``sync_tolerance_ms``; videos (all the sources, never mixed with recordings) take
     ``names``, ``timestamps`` (the CSV grouping frames into sets), ``board`` (a
     :class:`~rgbd_calib.model.board.Board` or a board file's path: keep the views where it is
-    seen and still), ``step`` and ``still_px_s``, as the command's options. Recordings with
+    seen and still), ``step`` and ``still_px_s``, as the command's options. ``board`` with
+    recordings or videos is written into the dataset as board.yaml. Recordings with
     ``depth_models`` (camera -> :class:`~rgbd_calib.core.depth_model.DepthModel`, or a
     ``depth_model.yaml`` / calibrate output folder) get those cameras' depth corrected."""
     sources = [Path(s) for s in sources]
     videos = [is_video(s) for s in sources]
     if isinstance(depth_models, (str, os.PathLike)):
         depth_models = load_depth_models(depth_models)
+    if isinstance(board, (str, os.PathLike)):
+        board = load_board(board)
     if not any(videos):
-        return convert_recordings(sources, out, names, sync_tolerance_ms, progress,
-                                  depth_models)
+        report = convert_recordings(sources, out, names, sync_tolerance_ms, progress,
+                                    depth_models)
+        if board is not None:  # the dataset's own board: calibrate reads it without --board
+            save_board(board, Path(out) / DATASET_BOARD_FILE)
+        return report
     if not all(videos):
         raise ConfigError("convert: give either video files or recordings, not both")
     if depth_models:
         raise ConfigError("convert: --depth-model corrects depth; videos have none")
-    if isinstance(board, (str, os.PathLike)):
-        board = load_board(board)
     return convert_videos(sources, Path(out), names, Path(timestamps) if timestamps else None,
                           board, step, still_px_s or STILL_PX_S, progress)

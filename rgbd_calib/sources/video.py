@@ -33,6 +33,7 @@ from ..core.errors import ConfigError, DatasetError
 from ..core.progress import Progress, start
 from ..detect.markers import detect_markers
 from ..model.board import Board
+from ..model.board_file import DATASET_BOARD_FILE, save_board
 from ..model.dataset import FolderWriter, staged_folder
 from ..model.rig import CAMERA_NAME, Rig, placeholder_intrinsics
 from .conversion import CameraCounts, ConversionReport
@@ -240,6 +241,8 @@ def convert_videos(
                 tick(1)
             if times_ms:
                 writer.write_timestamps(cam.name, times_ms)
+        if board is not None:  # calibrate reads it when --board is not given
+            save_board(board, tmp / DATASET_BOARD_FILE)
     spread = _spread_ms(table, keep) if table else 0.0
     if table:
         notes.append(f"cameras of a kept set up to {spread:.1f} ms apart (timestamps CSV)")

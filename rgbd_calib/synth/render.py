@@ -40,6 +40,7 @@ from ..core.geometry import invert_transform, pose_after_twist
 from ..core.parallel import executor
 from ..core.progress import Progress, start
 from ..model.board import Board
+from ..model.board_file import DATASET_BOARD_FILE, save_board
 from ..model.dataset import FolderWriter, staged_folder
 from ..model.rig import Rig
 from .ground_truth import GroundTruth, load_ground_truth, write_ground_truth
@@ -246,6 +247,7 @@ def synthesize(
             _write_timestamps(writer, rig, written, draw_timestamps_ms(timing, seed, params))
         write_ground_truth(tmp / "ground_truth.yaml", rig, poses, layout, seed, board, printed,
                            params, closeups, n_frames, timing)
+        save_board(board, tmp / DATASET_BOARD_FILE)  # the nominal board file, as a user has it
     return SynthDataset(out, rig, poses)
 
 
