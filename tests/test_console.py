@@ -61,3 +61,16 @@ def test_advice_with_nothing_to_do_is_not_a_step():
     assert not actionable(finding("info", "a", [], "m", ""))
     assert not actionable(finding("info", "a", [], "m", "Nothing to do here (see b)."))
     assert actionable(finding("info", "a", [], "m", "Also show the board nearer."))
+
+
+def test_a_change_is_a_percentage_only_of_a_prior_that_is_a_base():
+    """'p1 +830.13 %' of a near-zero distortion coefficient says less than its absolute change;
+    fx moved 4.8 % of 600 px stays a percentage."""
+    from rgbd_calib.outputs.report.numbers import change_text, percent_of_prior
+
+    assert change_text(600.0, 28.8, "px") == "+4.80 %"
+    assert change_text(0.0011, 0.0093) == "+0.0093"  # 845 % of nearly nothing
+    assert change_text(0.0004, 0.0001) == "+0.0001"  # a prior about zero
+    assert change_text(0.0, -12.5, "px") == "-12.5 px"
+    assert percent_of_prior(-0.33, 0.033) == 10.0
+    assert percent_of_prior(None, 1.0) is None
