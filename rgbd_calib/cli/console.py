@@ -124,22 +124,30 @@ VERDICT_MEANING = {
 }
 VERDICT_STYLE = {"good": "bold green", "check": "bold yellow", "poor": "bold red"}
 SEVERITY_STYLE = {"error": "red", "warning": "yellow", "info": "cyan"}
-SEVERITY_RANK = {"error": 0, "warning": 1, "info": 2}
+# findings printed on the console; report.json and report.html hold every one
+CONSOLE_FINDINGS = 3
 
 
-def verdict_lines(report: dict) -> list[tuple[str, str]]:
-    """``(style, text)`` lines ending a calibration's console output: the verdict, then each
-    warning of ``report.json`` on one line, worst first (errors, warnings, then advice)."""
+def verdict_lines(report: dict, limit: int = CONSOLE_FINDINGS) -> list[tuple[str, str]]:
+    """``(style, text)`` lines ending a calibration's console output: the verdict, the
+    ``limit`` actionable findings of ``report.json`` that matter most, one line each (errors,
+    warnings, then advice; a finding with nothing to do is not listed), then how many more
+    the report holds."""
+    from ..outputs.report.findings_base import ranked_actionable
+
     verdict = report.get("summary", {}).get("verdict", "check")
     lines = [(VERDICT_STYLE.get(verdict, "bold"),
               f"verdict: {verdict.upper()}: {VERDICT_MEANING.get(verdict, '')}")]
-    found = sorted(report.get("warnings", []),
-                   key=lambda w: SEVERITY_RANK.get(w.get("severity"), 3))
-    for w in found:
+    found = report.get("warnings", [])
+    shown = ranked_actionable(found)[:limit]
+    for w in shown:
         cams = f" [{', '.join(w['cameras'])}]" if w.get("cameras") else ""
-        advice = f" -> {w['advice']}" if w.get("advice") else ""
-        text = " ".join(f"{w['severity']}: {w['code']}{cams}: {w['message']}{advice}".split())
+        text = " ".join(f"{w['severity']}: {w['code']}{cams}: {w['message']} -> "
+                        f"{w['advice']}".split())
         lines.append((SEVERITY_STYLE.get(w["severity"], ""), text))
+    if rest := len(found) - len(shown):
+        lines.append(("", f"+ {rest} more finding{'s' if rest > 1 else ''} in report.html / "
+                          "report.json"))
     return lines
 
 

@@ -16,6 +16,7 @@ from ... import __version__
 from ...core.geometry import invert_transform, move_rows, transform_points
 from ...core.yamlio import to_builtin
 from .findings import findings
+from .findings_base import actionable
 from .numbers import histogram_edges_px, median_or_none, stats
 from .schema import (
     COVERAGE_GRID,
@@ -654,7 +655,8 @@ def finalize_report(report: dict[str, Any]) -> dict[str, Any]:
     report["summary"]["verdict"] = (
         "poor" if "error" in severities else "check" if "warning" in severities else "good"
     )
-    report["next_steps"] = list(dict.fromkeys(w["advice"] for w in found if w["advice"]))
+    # a finding with nothing to do (an info that explains the result) is not a step
+    report["next_steps"] = list(dict.fromkeys(w["advice"] for w in found if actionable(w)))
     return report
 
 

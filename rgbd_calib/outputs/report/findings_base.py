@@ -3,12 +3,15 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from typing import Any
 
 Finding = dict[str, Any]
 Rule = Callable[[dict[str, Any], list[Finding]], list[Finding]]
 SEVERITY_ORDER = {"error": 0, "warning": 1, "info": 2}
+# advice that asks for nothing ("Nothing to do; ...", "Nothing to do here ...")
+NOTHING_TO_DO = re.compile(r"\s*nothing to do\b", re.IGNORECASE)
 
 
 def finding(severity: str, code: str, cameras: list[str], message: str, advice: str) -> Finding:
@@ -24,3 +27,17 @@ def finding(severity: str, code: str, cameras: list[str], message: str, advice: 
 
 def cameras_of(found: list[Finding], code: str) -> set[str]:
     return {c for w in found if w["code"] == code for c in w["cameras"]}
+
+
+def actionable(found: Finding) -> bool:
+    """Whether a finding asks the reader to do something: its advice is neither empty nor
+    'Nothing to do ...' (an info that only explains the result is not a next step)."""
+    advice = (found.get("advice") or "").strip()
+    return bool(advice) and not NOTHING_TO_DO.match(advice)
+
+
+def ranked_actionable(found: list[Finding]) -> list[Finding]:
+    """The actionable findings by their effect on the result: errors, then warnings, then
+    infos; within a severity in the rules' order (a finding carries no finer rank)."""
+    return sorted((f for f in found if actionable(f)),
+                  key=lambda f: SEVERITY_ORDER.get(f.get("severity"), len(SEVERITY_ORDER)))

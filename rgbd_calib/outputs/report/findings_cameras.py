@@ -7,7 +7,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .findings_base import Finding, Rule, cameras_of, finding
-from .numbers import fmt, median_or_none
+from .numbers import change_text, fmt, median_or_none
 from .schema import (
     FEW_SHARED_VIEWS,
     FEW_VIEWS,
@@ -120,7 +120,7 @@ def camera_model_error(report: dict[str, Any], earlier: list[Finding]) -> list[F
                     if not explained
                     else f"{model[0].upper()}{model[1:]} explains it: its corners fit like the "
                     "rest of the rig, and its uncertainty is not inflated; but "
-                    + ", ".join(beyond) + " moved beyond 3 sigma of the rig.yaml prior."
+                    + ", ".join(beyond) + " moved beyond 3 sigma of its prior."
                 ),
                 f"Use rig_refined.yaml's entry for {name} in rig.yaml: the listed "
                 f"intrinsics (from {_lens_source(report['cameras'].get(name, {}))}) are off "
@@ -168,14 +168,15 @@ def _prior_widening(report: dict[str, Any]) -> float:
 def _beyond_prior(cam: dict[str, Any], widening: float = 1.0,
                   n_sigma: float = 3.0) -> list[str]:
     """Refined intrinsics that moved more than ``n_sigma`` configured prior sigmas (the
-    reported one over ``widening``) from rig.yaml, as 'fx +4.8 % (16 sigma)': the rig.yaml
-    value was wrong beyond its stated tolerance."""
+    reported one over ``widening``) from their prior (rig.yaml's, or the first estimate of a
+    camera calibrated from scratch), as 'fx +4.8 % (16 sigma)' or, for a prior about zero,
+    'p1 +0.0093 (5 sigma)': the prior was wrong beyond its stated tolerance."""
     out = []
     for p, e in (cam.get("intrinsics_refined") or {}).items():
         sigma = (e.get("prior_sigma") or 0.0) / widening
         if sigma and abs(e["change"]) > n_sigma * sigma:
-            size = (f"{e['change_pct']:+.2f} %" if e.get("change_pct") is not None
-                    else f"{e['change']:+.3g}")
+            size = change_text(e.get("prior"), e["change"],
+                               "px" if p in ("fx", "fy", "cx", "cy") else "")
             out.append(f"{p} {size} ({abs(e['change']) / sigma:.0f} sigma)")
     return out
 

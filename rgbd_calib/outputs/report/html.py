@@ -16,6 +16,7 @@ from ...solve.pose import DROP_ADVICE
 from .cloud import Cloud, load_cloud
 from .figures import palette, render_figures
 from .layout import display_frame
+from .numbers import percent_of_prior
 from .viewer import VIEWER_JS, viewer_data
 
 _CSS = """
@@ -399,8 +400,9 @@ def _cloud_section(figs: Figures, cloud: Cloud | None, no_cloud_reason: str) -> 
 
 
 def _intrinsics_section(report: dict[str, Any]) -> list[str]:
-    """Refined intrinsics (``bundle.intrinsics: refine``): each parameter against its
-    rig.yaml prior; nothing when the intrinsics were held fixed."""
+    """Refined intrinsics (``bundle.intrinsics: refine``): each parameter against its prior
+    (rig.yaml's, or the first estimate from scratch); nothing when the intrinsics were held
+    fixed."""
     rows = []
     for name, cam in report["cameras"].items():
         for param, e in (cam.get("intrinsics_refined") or {}).items():
@@ -409,7 +411,7 @@ def _intrinsics_section(report: dict[str, Any]) -> list[str]:
             def num(x: float | None, unit: str = unit) -> str:
                 return "-" if x is None else f"{x:.6g}{' ' + unit if unit else ''}"
 
-            pct = e["change_pct"]
+            pct = percent_of_prior(e["prior"], e["change"])
             rows.append((_e(name), param, num(e["prior"]), num(e["refined"]), num(e["change"]),
                          "-" if pct is None else f"{pct:+.3f} %", num(e["sigma"]),
                          num(e["prior_sigma"])))
@@ -417,12 +419,14 @@ def _intrinsics_section(report: dict[str, Any]) -> list[str]:
         return []
     return [
         "<section><h2>Refined intrinsics</h2>"
-        + _table(["camera", "parameter", "rig.yaml", "refined", "change", "change %",
+        + _table(["camera", "parameter", "prior", "refined", "change", "change % of prior",
                   "sigma", "prior sigma"], rows, left=(0, 1)),
-        "<p class='cap'>The bundle adjustment refined these parameters with the rig.yaml "
-        "values as a prior (sigma: the estimate's marginal 1-sigma); the refined models are "
-        "in rig_refined.yaml. A sigma close to the prior's means the views hardly constrained "
-        "that parameter.</p></section>",
+        "<p class='cap'>The bundle adjustment refined these parameters from a prior: the "
+        "rig.yaml value, or for a camera whose rig.yaml gives only its image size, the first "
+        "estimate from scratch from its own views (sigma: the estimate's marginal 1-sigma); "
+        "the refined models are in rig_refined.yaml. The change in percent only where the "
+        "prior is a base for it (not about zero, not outgrown by the change). A sigma close "
+        "to the prior's means the views hardly constrained that parameter.</p></section>",
     ]
 
 

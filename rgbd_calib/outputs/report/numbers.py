@@ -49,3 +49,26 @@ def median_or_none(values: list[float | None]) -> float | None:
 def fmt(x: float | None, digits: int = 2) -> str:
     """``x`` with ``digits`` decimals, ``n/a`` for None (findings' messages, figure titles)."""
     return "n/a" if x is None else f"{x:.{digits}f}"
+
+
+# a change in percent of its prior only where the prior is a base: not about zero (a distortion
+# coefficient's prior is often 0 or ~1e-3) and not outgrown by the change (beyond 100 % the
+# prior was about zero for this parameter: 'p1 +830.13 %' says less than 'p1 +0.0093')
+PCT_MIN_PRIOR = 1e-3
+PCT_MAX = 100.0
+
+
+def percent_of_prior(prior: float | None, change: float) -> float | None:
+    """``change`` in percent of ``|prior|``, None where the prior is no base for it
+    (:data:`PCT_MIN_PRIOR`, :data:`PCT_MAX`)."""
+    if prior is None or abs(prior) < PCT_MIN_PRIOR or abs(change) > PCT_MAX / 100.0 * abs(prior):
+        return None
+    return 100.0 * change / abs(prior)
+
+
+def change_text(prior: float | None, change: float, unit: str = "") -> str:
+    """A refined parameter's change for a reader: '+4.80 %' of its prior, or the absolute
+    '+0.0093' ('+12.3 px' with ``unit``) where :func:`percent_of_prior` finds no base."""
+    pct = percent_of_prior(prior, change)
+    return (f"{pct:+.2f} %" if pct is not None
+            else f"{change:+.3g}{' ' + unit if unit else ''}")

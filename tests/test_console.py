@@ -1,0 +1,76 @@
+"""What a calibration prints after its tables: the verdict, the findings that matter most and
+how many more the report holds (:func:`rgbd_calib.cli.console.verdict_lines`)."""
+
+from __future__ import annotations
+
+from rgbd_calib.cli.console import CONSOLE_FINDINGS, verdict_lines
+from rgbd_calib.outputs.report.findings_base import actionable, finding
+
+
+def ten_findings() -> list[dict]:
+    """The findings of the real 4-webcam set (shared/data/caliscope-charuco-4cam) in the rules'
+    order, shortened: three warnings, seven infos, two of them with nothing to do."""
+    return [
+        finding("info", "camera_model_error", ["cam_0"], "explained by the refined model.",
+                "Nothing to do; rig_refined.yaml holds the refined models."),
+        finding("warning", "intrinsics_unsupported", ["cam_0"], "cx k2 k3 unconstrained.",
+                "Record more views at several distances."),
+        finding("info", "capture_time", [], "the board moved.",
+                "Nothing to do here (the time model explains it)."),
+        finding("warning", "scratch_coverage", ["cam_1"], "corners reached 3% of the image.",
+                "Record more views reaching every image region."),
+        finding("info", "moving_board", ["cam_1"], "moved during 1 set.", "Hold it still."),
+        finding("info", "board_coverage", [], "under 35% of the image.", "Cover the corners."),
+        finding("info", "board_distance", ["cam_1"], "one distance only.", "Vary it."),
+        finding("info", "view_model_error", [], "views disagree.", ""),
+        finding("warning", "reprojection", [], "RMS 0.63 px.", "Check the intrinsics."),
+        finding("info", "dropped_views", ["cam_3"], "2 views dropped.", "Bring it closer."),
+    ]
+
+
+def test_ten_findings_print_three_and_a_count_without_nothing_to_do():
+    report = {"summary": {"verdict": "check"}, "warnings": ten_findings()}
+    lines = [text for _, text in verdict_lines(report)]
+    assert lines[0].startswith("verdict: CHECK")
+    shown = lines[1:-1]
+    assert len(shown) == CONSOLE_FINDINGS == 3
+    # the warnings before every info, in the rules' order
+    assert [ln.split(":")[1].split()[0] for ln in shown] == [
+        "intrinsics_unsupported", "scratch_coverage", "reprojection"]
+    assert lines[-1] == "+ 7 more findings in report.html / report.json"
+    assert not any("nothing to do" in ln.lower() for ln in lines)
+
+
+def test_an_error_comes_first_and_infos_with_nothing_to_do_are_only_counted():
+    found = ten_findings()[:3] + [finding("error", "not_calibrated", ["cam_2"],
+                                          "cam_2 was not calibrated.", "Record views.")]
+    lines = [text for _, text in verdict_lines({"summary": {"verdict": "poor"},
+                                                "warnings": found})]
+    assert lines[1].startswith("error: not_calibrated [cam_2]")
+    assert lines[2].startswith("warning: intrinsics_unsupported")
+    # the two infos with nothing to do are not steps: counted, not printed
+    assert len(lines) == 4 and lines[-1] == "+ 2 more findings in report.html / report.json"
+
+
+def test_a_good_rig_prints_the_verdict_alone():
+    assert verdict_lines({"summary": {"verdict": "good"}, "warnings": []}) == [
+        ("bold green", "verdict: GOOD: no warning; the extrinsics are ready to use")]
+
+
+def test_advice_with_nothing_to_do_is_not_a_step():
+    assert not actionable(finding("info", "a", [], "m", ""))
+    assert not actionable(finding("info", "a", [], "m", "Nothing to do here (see b)."))
+    assert actionable(finding("info", "a", [], "m", "Also show the board nearer."))
+
+
+def test_a_change_is_a_percentage_only_of_a_prior_that_is_a_base():
+    """'p1 +830.13 %' of a near-zero distortion coefficient says less than its absolute change;
+    fx moved 4.8 % of 600 px stays a percentage."""
+    from rgbd_calib.outputs.report.numbers import change_text, percent_of_prior
+
+    assert change_text(600.0, 28.8, "px") == "+4.80 %"
+    assert change_text(0.0011, 0.0093) == "+0.0093"  # 845 % of nearly nothing
+    assert change_text(0.0004, 0.0001) == "+0.0001"  # a prior about zero
+    assert change_text(0.0, -12.5, "px") == "-12.5 px"
+    assert percent_of_prior(-0.33, 0.033) == 10.0
+    assert percent_of_prior(None, 1.0) is None
