@@ -292,18 +292,15 @@ def _name_list(names: str | None) -> list[str] | None:
 
 def _dataset_board(ds):
     """Without --board: the dataset's own board.yaml (synth, convert --board), else the thesis
-    board; the console says which."""
+    board; with the console line that says which."""
     from ..model.board import thesis_board
     from ..model.board_file import dataset_board_file, load_board
 
     own = dataset_board_file(ds.path)
     if own is not None:
-        console.print(f"board: {own} (the dataset's; --board overrides it)", highlight=False,
-                      soft_wrap=True)
-        return load_board(own)
-    console.print("board: the thesis board (no --board, and the dataset has no board.yaml); "
-                  "pass --board BOARD.yaml for any other", highlight=False, soft_wrap=True)
-    return thesis_board()
+        return load_board(own), f"board: {own} (the dataset's; --board overrides it)"
+    return thesis_board(), ("board: the thesis board (no --board, and the dataset has no "
+                            "board.yaml); pass --board BOARD.yaml for any other")
 
 
 def _open_dataset(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms):
@@ -426,8 +423,9 @@ def calibrate(
     check_scheduler(cfg.scheduler)
     b = load_board(board_file) if board_file else None
     ds = _open_dataset(dataset, out, names, sync_tolerance_ms)
+    board_note = None
     if b is None:
-        b = _dataset_board(ds)
+        b, board_note = _dataset_board(ds)
     fixed = None
     if fix is not None:
         prior = load_extrinsics(fix, check_redundant=True)
@@ -437,6 +435,8 @@ def calibrate(
     ds.check_images()
     workers_ignore_ctrl_c()
     result = _calibrate_and_write(ds, b, cfg, out, fixed)
+    if board_note:  # after the run: a failing one ends on its error line alone
+        console.print(board_note, highlight=False, soft_wrap=True)
     print_summary(result, out)
     exit_on_poor(out, accept_poor)
 
