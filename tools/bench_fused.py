@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from rgbd_calib.core.depth_model import PARAMETERS, DepthModel
+from rgbd_calib.core.depth_model import PARAMETERS
 from rgbd_calib.core.geometry import invert_transform, transform_points
 from rgbd_calib.core.ply import read_ply
 from rgbd_calib.core.yamlio import read_yaml_mapping
@@ -149,17 +149,6 @@ def fused_clouds(calib: Path) -> dict[str, np.ndarray]:
     return {name: points[index == k] for k, name in enumerate(names)}
 
 
-def undo_model(model: DepthModel, points_cam: np.ndarray) -> np.ndarray:
-    """The points ``(N,3)`` (camera frame, m) the camera measured before ``model`` corrected
-    them (:meth:`DepthModel.correct_points` inverted): the pose correction undone, then the
-    measured depth of the true depth along the same pixel's ray."""
-    T = model.T_true_measured()
-    q = (np.asarray(points_cam, float) - T[:3, 3]) @ T[:3, :3]  # T^-1 p, row form
-    x, y = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]
-    z_m = model.measured_depth(x, y, q[:, 2])
-    return np.column_stack([x, y, np.ones_like(x)]) * z_m[:, None]
-
-
 def camera_stats(signed_m: np.ndarray, range_m: np.ndarray, near_m: float = NEAR_M,
                  ) -> dict[str, Any]:
     """Median signed distance (mm, every matched point), p90 of |distance| within
@@ -203,7 +192,7 @@ def measure(calib: Path, render_dir: Path, variants: dict[str, str],
         T_cam_ref = invert_transform(extrinsics.T_ref_cam(cam))
         points_cam = transform_points(T_cam_ref, points_ref)
         model = models.get(cam)
-        raw_cam = points_cam if model is None else undo_model(model, points_cam)
+        raw_cam = points_cam if model is None else model.measured_points(points_cam)
         entry: dict[str, Any] = {
             "shift_mm": float(1e3 * np.median(np.linalg.norm(points_cam - raw_cam, axis=1))),
         }

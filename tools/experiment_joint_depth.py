@@ -38,7 +38,7 @@ from bench_fused import true_rig
 
 from rgbd_calib.core.config import CalibrationConfig, DepthConfig
 from rgbd_calib.core.depth_model import PARAMETERS, TERMS, DepthModel, identity_model
-from rgbd_calib.depth.agreement import EDGE_SIGMAS, Surface, plane_on_rays, surface_on_rays
+from rgbd_calib.depth.agreement import Surface, image_blocks, match_points, plane_on_rays
 from rgbd_calib.depth.clouds import CameraCloud, board_faces
 from rgbd_calib.depth.depth_model_fit import (
     STEP,
@@ -60,7 +60,7 @@ from rgbd_calib.pipelines.calibrate import calibrate
 from rgbd_calib.synth.surfaces import surface_distances
 
 OVERLAP_POINTS = 4000  # a's points per pair
-BLOCKS = 8  # blocks per image side: a pair's clusters
+MAX_DISTANCE_M = 0.05  # a point farther from b's surface is not on it (the report's bound)
 GN_ITERATIONS = 6
 
 
@@ -111,37 +111,21 @@ def overlap_samples(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndar
 
 def _one_pair(a: CameraCloud, surf_b: Surface, T_ref_a: np.ndarray, T_ref_b: np.ndarray,
               raw_a, raw_b, rng: np.random.Generator) -> OverlapSamples | None:
-    b = surf_b.cloud
+    """a's points matched to b's windows as the report matches them (:func:`match_points`),
+    kept with the measured rays and depths the models act on."""
     pick = rng.choice(a.n_points, min(a.n_points, 4 * OVERLAP_POINTS), replace=False)
-    T_b_a = np.linalg.inv(T_ref_b) @ T_ref_a
-    p = a.points[pick].astype(float) @ T_b_a[:3, :3].T + T_b_a[:3, 3]
-    idx, ok = surf_b.windows(p)
-    centre, fit, off = surface_on_rays(surf_b.points, idx, p[:, :2] / p[:, 2:])
-    sigma_b = b.sigma_z[np.where(idx >= 0, idx, 0)].max(axis=1)
-    ok &= fit & (off < EDGE_SIGMAS * sigma_b + 0.005)
-    n_b = surf_b.normals_at(centre)
-    d = np.einsum("ij,ij->i", p - centre, n_b)
-    ray_a = p - T_b_a[:3, 3]
-    pa = a.points[pick].astype(float)
-    cos_a = (np.abs(np.einsum("ij,ij->i", ray_a, n_b)) / np.linalg.norm(ray_a, axis=1)
-             * np.linalg.norm(pa, axis=1) / pa[:, 2])
-    cos_b = np.abs(np.einsum("ij,ij->i", centre, n_b)) / np.maximum(centre[:, 2], 1e-6)
-    n_win = np.maximum(np.count_nonzero(idx >= 0, axis=1), 1)
-    sigma = np.hypot(a.sigma_z[pick] * cos_a, sigma_b * cos_b / np.sqrt(n_win))
-    ok &= np.abs(d) < np.maximum(EDGE_SIGMAS * sigma, 0.01)
-    keep = np.flatnonzero(ok & np.isfinite(raw_a[1][pick]))[:OVERLAP_POINTS]
+    m = match_points(a, surf_b, np.linalg.inv(T_ref_b) @ T_ref_a, pick, MAX_DISTANCE_M)
+    keep = np.flatnonzero(np.isfinite(raw_a[1][m.ia]))[:OVERLAP_POINTS]
     if keep.size < 200:
         return None
-    pick, idx, n_b, sigma = pick[keep], idx[keep], n_b[keep], sigma[keep]
+    ia, idx = m.ia[keep], m.idx[keep]
     valid = idx >= 0
     jb = np.where(valid, idx, 0)
-    px = a.pixels[pick]
-    block = (np.minimum(px[:, 0] * BLOCKS // a.intrinsics.width, BLOCKS - 1) * BLOCKS
-             + np.minimum(px[:, 1] * BLOCKS // a.intrinsics.height, BLOCKS - 1))
     valid &= np.isfinite(raw_b[1][jb])
-    return OverlapSamples(a.camera, b.camera, raw_a[0][pick], raw_a[1][pick],
+    return OverlapSamples(a.camera, surf_b.cloud.camera, raw_a[0][ia], raw_a[1][ia],
                           np.nan_to_num(raw_b[0][jb]), np.nan_to_num(raw_b[1][jb], nan=1.0),
-                          valid, n_b, np.maximum(sigma, 1e-4), block)
+                          valid, m.normal_b[keep], np.maximum(m.sigma[keep], 1e-4),
+                          image_blocks(a.pixels[ia], a.intrinsics))
 
 
 # --------------------------------------------------------------------------- residuals

@@ -26,6 +26,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from ..core.camera import CameraIntrinsics
 from ..core.depth_model import DepthModel
 from ..core.geometry import transform_points
 from .clouds import CameraCloud
@@ -34,7 +35,7 @@ MAX_POINTS = 20_000  # a's points per pair (a random subset: the medians need no
 BLOCKS = 8  # image blocks per side for the median's standard error
 NORMAL_VOXEL_M = 0.02  # normals on this grid, over 3 of its cells (6 cm: planes, not noise)
 EDGE_SIGMAS = 4.0  # a point or window this many noise sigmas off its surface is not on it
-WINDOW = 2  # b's surface at a's point: the centroid of a 5 x 5 pixel window of b
+WINDOW = 2  # b's surface at a's point: the plane of a 5 x 5 pixel window of b
 BIAS_TOL_MM = 1.0  # a pair whose bias is below this agrees, however significant
 
 
@@ -183,15 +184,25 @@ def plane_on_rays(q: np.ndarray, valid: np.ndarray, xy: np.ndarray
     return np.column_stack([xy * z[:, None], z]), ok, off * z * z
 
 
-def surface_distances(a: CameraCloud, surf_b: Surface, T_ref_a: np.ndarray,
-                      T_ref_b: np.ndarray, max_distance_m: float,
-                      rng: np.random.Generator) -> tuple[SurfaceDistances, float] | None:
-    """a's points against b's surface: the distances and the noise-predicted p90 (mm), or
-    None when fewer than 100 points match."""
+@dataclass(frozen=True)
+class Matches:
+    """a's points matched to b's surface (:func:`match_points`): per match a's point index
+    ``ia``, b's window ``idx`` ``(M,K)`` (-1: none), the signed distance ``d`` along b's normal
+    (m, + = beyond b's surface), that normal ``normal_b`` (b's frame) and the noise ``sigma``
+    of ``d`` (m)."""
+
+    ia: np.ndarray
+    idx: np.ndarray
+    d: np.ndarray
+    normal_b: np.ndarray
+    sigma: np.ndarray
+
+
+def match_points(a: CameraCloud, surf_b: Surface, T_b_a: np.ndarray, pick: np.ndarray,
+                 max_distance_m: float) -> Matches:
+    """a's points ``pick`` matched to b's surface (see :class:`Surface`): windows without a
+    depth edge, points within ``max_distance_m`` and 4 noise sigmas (at least 1 cm) of it."""
     b = surf_b.cloud
-    pick = (rng.choice(a.n_points, MAX_POINTS, replace=False) if a.n_points > MAX_POINTS
-            else np.arange(a.n_points))
-    T_b_a = np.linalg.inv(T_ref_b) @ T_ref_a
     p = transform_points(T_b_a, a.points[pick].astype(float))
     idx, ok = surf_b.windows(p)
     p, idx, ia = p[ok], idx[ok], pick[ok]
@@ -211,22 +222,36 @@ def surface_distances(a: CameraCloud, surf_b: Surface, T_ref_a: np.ndarray,
     sigma = np.hypot(a.sigma_z[ia] * cos_a, sigma_b * cos_b / np.sqrt(n_win))
     # else another surface (an occluder), a mixed pixel at an edge, an outlier
     keep = np.abs(d) < np.minimum(max_distance_m, np.maximum(EDGE_SIGMAS * sigma, 0.01))
-    d, ia, sigma = d[keep], ia[keep], sigma[keep]
-    if d.size < 100:
+    return Matches(ia[keep], idx[keep], d[keep], n_b[keep], sigma[keep])
+
+
+def surface_distances(a: CameraCloud, surf_b: Surface, T_ref_a: np.ndarray,
+                      T_ref_b: np.ndarray, max_distance_m: float,
+                      rng: np.random.Generator) -> tuple[SurfaceDistances, float] | None:
+    """a's points against b's surface: the distances and the noise-predicted p90 (mm), or
+    None when fewer than 100 points match."""
+    pick = (rng.choice(a.n_points, MAX_POINTS, replace=False) if a.n_points > MAX_POINTS
+            else np.arange(a.n_points))
+    m = match_points(a, surf_b, np.linalg.inv(T_ref_b) @ T_ref_a, pick, max_distance_m)
+    if m.d.size < 100:
         return None
     # the p90 of |N(0, sigma_i)| over the points (near and far ones mixed): drawn once
-    noise = float(np.percentile(np.abs(rng.standard_normal(sigma.size) * sigma), 90))
-    return SurfaceDistances(int(d.size), 1e3 * float(np.median(d)),
-                            1e3 * _median_se(d, a.pixels[ia], a.intrinsics.width,
-                                             a.intrinsics.height),
-                            1e3 * float(np.percentile(np.abs(d), 90))), 1e3 * noise
+    noise = float(np.percentile(np.abs(rng.standard_normal(m.sigma.size) * m.sigma), 90))
+    return SurfaceDistances(int(m.d.size), 1e3 * float(np.median(m.d)),
+                            1e3 * _median_se(m.d, image_blocks(a.pixels[m.ia], a.intrinsics)),
+                            1e3 * float(np.percentile(np.abs(m.d), 90))), 1e3 * noise
 
 
-def _median_se(d: np.ndarray, pixels: np.ndarray, width: int, height: int) -> float:
-    """Standard error of the median of ``d`` from the spread of its blocks' medians (pixels
-    in :data:`BLOCKS` x :data:`BLOCKS` blocks of the image share their errors)."""
-    block = (np.minimum(pixels[:, 0] * BLOCKS // max(width, 1), BLOCKS - 1) * BLOCKS
-             + np.minimum(pixels[:, 1] * BLOCKS // max(height, 1), BLOCKS - 1))
+def image_blocks(pixels: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
+    """Each pixel's block of a :data:`BLOCKS` x :data:`BLOCKS` grid over the image (pixels of
+    one block share their depth errors: the clusters of a median's or a fit's uncertainty)."""
+    return (np.minimum(pixels[:, 0] * BLOCKS // max(intr.width, 1), BLOCKS - 1) * BLOCKS
+            + np.minimum(pixels[:, 1] * BLOCKS // max(intr.height, 1), BLOCKS - 1))
+
+
+def _median_se(d: np.ndarray, block: np.ndarray) -> float:
+    """Standard error of the median of ``d`` from the spread of its blocks' medians
+    (:func:`image_blocks`)."""
     meds = np.array([np.median(d[block == k]) for k in np.unique(block)
                      if np.count_nonzero(block == k) >= 20])
     if meds.size < 3:
