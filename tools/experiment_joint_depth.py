@@ -43,13 +43,10 @@ from rgbd_calib.depth.clouds import CameraCloud, board_faces
 from rgbd_calib.depth.depth_model_fit import (
     STEP,
     BoardSamples,
-    DepthModelFit,
     TermTest,
-    _bands,
     _huber,
     _threshold,
     board_samples,
-    plane_residuals_m,
     predicted_depth_m,
 )
 from rgbd_calib.depth.registration import find_overlapping_pairs
@@ -316,33 +313,6 @@ def _clusters(board: dict[str, BoardSamples], overlaps: list[OverlapSamples]) ->
         n = len(np.unique(o.block))
         for c in (o.cam_a, o.cam_b):
             out[c] = out.get(c, 0) + n
-    return out
-
-
-def joint_fits(solve: JointSolve, tests: dict[str, dict[str, TermTest]],
-               board: dict[str, BoardSamples], base: dict[str, DepthModel],
-               earlier: dict[str, DepthModelFit]) -> dict[str, DepthModelFit]:
-    """The joint solve as each camera's :class:`DepthModelFit` (board-plane bands before the
-    identity, after the joint model), keeping each board fit's coverage."""
-    out = {}
-    for c, m0 in solve.models.items():
-        names = solve.names.get(c, ())
-        old = earlier.get(c)
-        model = DepthModel(
-            m0.focal_baseline_px_m, {p: m0.value(p) for p in PARAMETERS if p in names},
-            tuple(t for t in TERMS if all(p in names for p in TERMS[t])),
-            {p: solve.sigma(c, p) for p in names},
-            old.model.depth_range_m if old else None, old.model.image_coverage if old else None)
-        s = board.get(c)
-        bands = ()
-        if s is not None:
-            z = s.distance_m / np.sum(s.normal * s.rays, axis=1)
-            bands = _bands(plane_residuals_m(base[c], s), plane_residuals_m(model, s), z,
-                           s.sigma_m)
-        out[c] = DepthModelFit(c, model, tuple(tests.get(c, {}).values()), bands,
-                               len(s.frames) if s is not None else 0,
-                               int(s.z_measured.size) if s is not None else 0,
-                               float(math.sqrt(solve.chi2 / solve.dof)))
     return out
 
 
