@@ -596,13 +596,21 @@ TOLERANCE_DEG_OPTION = typer.Option("--tolerance-deg", help="Same, turn (deg).")
 
 
 def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler=None,
-               depth_config=None):
+               depth_config=None, calib_dir: Path | None = None):
+    """check, the board (evidence where in view) the calibration's in ``calib_dir``."""
+    from ..model.calib_folder import calibration_board
     from ..pipelines.check import check
     from ..solve.moved import Tolerance
 
+    board, where = calibration_board(calib_dir or Path("."), ds.path)
     with stage_progress() as progress:
-        return check(ds, calib, method, depth_config, Tolerance(tolerance_mm, tolerance_deg),
-                     scales, progress=progress, scheduler=scheduler)
+        run = check(ds, calib, method, depth_config, Tolerance(tolerance_mm, tolerance_deg),
+                    scales, progress=progress, scheduler=scheduler, board=board)
+    used = run.result.board.get("frame_sets", 0)
+    console.print(f"board: {where}; " + (f"seen by two cameras or more in {used} frame sets: "
+                  "evidence beside the depth" if used else "not seen by two cameras in one "
+                  "frame set: depth alone"), highlight=False, soft_wrap=True)
+    return run
 
 
 def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolerance_deg,
@@ -614,16 +622,16 @@ def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolera
     from ..pipelines.refine import fix_verdict
 
     run = _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler,
-                     depth_config)
+                     depth_config, init.parent)
     print_check_table(run.result, f"{ds.path} against {init}")
     unknown = {c for c, k in run.scale_source.items() if k == "unknown"}
     with stage_progress() as progress:
         tick = start(progress, "re-registering the moved cameras", 1)
-        fixed, pairs = fix_moved(run.clouds, calib, run.result, run.overlaps, method,
-                                 depth_config, unknown_scale=unknown, scheduler=scheduler)
+        fix = fix_moved(run.clouds, calib, run.result, run.overlaps, method, depth_config,
+                        unknown_scale=unknown, scheduler=scheduler, links=run.links)
         tick(1)
-    moved = run.result.moved
-    verdict = fix_verdict(calib, fixed, moved, pairs)
+    moved, fixed, pairs = run.result.moved, fix.extrinsics, fix.pairs
+    verdict = fix_verdict(calib, fixed, moved, pairs, fix.disagree)
     status = ({"status": "skipped", "reason": "no camera moved beyond the tolerance",
                "weak_cameras": {}} if not moved else
               {"status": "used", "reason": None, "weak_cameras": {}}
@@ -680,7 +688,7 @@ def check(
     depth_config = _depth_config(config)
     ds, ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, path)
     run = _run_check(ds, ext, scales, method, tolerance_mm, tolerance_deg, scheduler,
-                     depth_config)
+                     depth_config, path.parent)
     print_check_table(run.result, f"{ds.path} against {path}")
     if unknown := [c for c, k in run.scale_source.items() if k == "unknown"]:
         console.print(f"depth scale unknown (no report.json with depth_scale_factor next to "

@@ -16,6 +16,8 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..core.depth_model import DepthModel
 from ..core.errors import ConfigError, DatasetError
+from .board import Board, thesis_board
+from .board_file import DATASET_BOARD_FILE, load_board
 from .depth_model_file import DEPTH_MODEL_FILE, load_depth_models
 from .results import Extrinsics, load_extrinsics
 from .rig import Rig, load_rig
@@ -119,3 +121,28 @@ def load_board_views(report_json: Path) -> tuple[dict[str, np.ndarray], dict[str
         raise DatasetError(f"{report_json}: board_views unreadable ({exc}); remove or repair "
                            "the report.json next to --init") from exc
     return poses, cams
+
+
+BOARD_REFINED_FILE = "board_refined.yaml"  # calibrate's measured board (docs/formats.md)
+
+
+def calibration_board(calib_dir: str | Path, dataset_dir: str | Path | None = None,
+                      ) -> tuple[Board, str]:
+    """The board a check of the calibration in ``calib_dir`` looks for, and where it came
+    from: the board the calibration measured (its ``board_refined.yaml``), else the board file
+    of the dataset checked (``dataset_dir``'s ``board.yaml``), else that of the dataset the
+    calibration was made from (its ``report.json``'s ``dataset``), else the thesis board."""
+    calib_dir = Path(calib_dir)
+    candidates = [calib_dir / BOARD_REFINED_FILE]
+    if dataset_dir is not None:
+        candidates.append(Path(dataset_dir) / DATASET_BOARD_FILE)
+    try:
+        source = json.loads((calib_dir / "report.json").read_text())["dataset"]["path"]
+        if isinstance(source, str):
+            candidates.append(Path(source) / DATASET_BOARD_FILE)
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    for path in candidates:
+        if path.is_file():
+            return load_board(path), str(path)
+    return thesis_board(), "the thesis board (no board file with the calibration or dataset)"

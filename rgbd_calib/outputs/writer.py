@@ -31,6 +31,7 @@ from ..depth.clouds import fuse_clouds
 from ..depth.stage import DepthRefinement
 from ..model.board import refined_board, refined_multiface
 from ..model.board_file import save_board
+from ..model.calib_folder import BOARD_REFINED_FILE
 from ..model.dataset import FolderDataset
 from ..model.depth_model_file import DEPTH_MODEL_FILE, save_depth_models
 from ..model.results import Extrinsics, PoseEdge, write_extrinsics
@@ -100,7 +101,7 @@ def used_edges(result: CalibrationResult) -> list[PoseEdge]:
 
 
 RIG_REFINED = "rig_refined.yaml"
-BOARD_REFINED = "board_refined.yaml"
+BOARD_REFINED = BOARD_REFINED_FILE
 
 
 def write_outputs(

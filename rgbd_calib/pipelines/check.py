@@ -10,7 +10,10 @@ decides per camera whether it is where the calibration says, from the depth clou
    model (a camera knocked 5 cm / 5 deg is outside ICP's basin), the same ICP with a wider
    basin, then from a global alignment guided by the calibration (FPFH features + RANSAC,
    Rusu et al. ICRA 2009 / Open3D);
-3. a pose graph of the measured pairs and one prior per camera at its calibrated pose with
+3. when the board is in the frames, its markers detected and each camera's PnP pose of it:
+   two cameras that saw the board in one frame set measure their relative pose to a few
+   tenths of a millimetre, where depth in a scene of walls and floor measures millimetres;
+4. a pose graph of this evidence and one prior per camera at its calibrated pose with
    the calibration's sigmas, from which the moved cameras are found
    (:func:`rgbd_calib.solve.moved.locate_moved`).
 
@@ -30,28 +33,33 @@ from typing import Any
 
 import numpy as np
 
-from ..core.config import DepthConfig, RegistrationMethod
+from ..core.config import DepthConfig, DetectionConfig, PoseConfig, RegistrationMethod
 from ..core.depth_model import DepthModel
 from ..core.geometry import covariance_sigmas, invert_transform, transform_error
 from ..core.progress import Progress, start
 from ..depth.clouds import CameraCloud
 from ..depth.registration import PairRegistration, find_overlapping_pairs
 from ..depth.stage import register_pairs, static_clouds
-from ..model.calib_folder import load_calibration, with_refined_intrinsics
+from ..detect.run import detect_dataset
+from ..model.board import Board
+from ..model.calib_folder import calibration_board, load_calibration, with_refined_intrinsics
 from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics
 from ..solve.bundle import RelativePose
 from ..solve.moved import (
     MOVED_CHI2,
+    BoardLink,
     CameraCheck,
+    Evidence,
     Tolerance,
     adjoint_map,
     anchored,
+    kinds_disagree,
     locate_moved,
     prior_covariance,
-    try_solve,
-    variance_factor,
+    weighed_solve,
 )
+from ..solve.pose import BoardObservation, board_poses
 from ..sources.cache import open_dataset
 
 
@@ -64,6 +72,9 @@ class CheckResult:
     pairs: list[dict[str, Any]]
     tolerance: Tolerance
     timings_s: dict[str, float] = field(default_factory=dict)
+    # the board's evidence: views, frame sets seen by two cameras or more, per camera views
+    board: dict[str, Any] = field(default_factory=dict)
+    variance_factors: dict[str, float] = field(default_factory=dict)
 
     @property
     def moved(self) -> list[str]:
@@ -79,7 +90,8 @@ class CheckResult:
             "tolerance": {"mm": self.tolerance.mm, "deg": self.tolerance.deg},
             "moved_chi2": MOVED_CHI2,
             "cameras": {c: r.to_dict() for c, r in self.cameras.items()},
-            "pairs": self.pairs, "timings_s": self.timings_s,
+            "pairs": self.pairs, "board": self.board,
+            "variance_factors": self.variance_factors, "timings_s": self.timings_s,
         }
 
 
@@ -100,18 +112,76 @@ def _jobs(pairs: list[tuple[str, str]], T: dict[str, np.ndarray],
     return [(a, b, T[a], T[b], (a in unknown_scale, b in unknown_scale)) for a, b in pairs]
 
 
+MODEL_ERROR_PX = 0.1  # the board views' shared systematic (px) added to their PnP covariance
+
+
+def board_links(observations: list[BoardObservation], cameras: set[str],
+                model_error_px: float = MODEL_ERROR_PX) -> list[BoardLink]:
+    """Each PnP pose of the board as a :class:`BoardLink` of the cameras in ``cameras``, its
+    covariance the corner noise's plus a shared ``model_error_px`` per view (what the
+    calibration's pose graph estimates as its model-error floor: a lens or a board slightly
+    off moves all corners of a view together); only the frame sets that two of the cameras saw
+    (:meth:`Evidence.of`)."""
+    links = []
+    for o in observations:
+        if o.camera not in cameras:
+            continue
+        C = np.asarray(o.covariance, dtype=float)
+        if o.model_error_unit is not None:
+            C = C + model_error_px**2 * np.asarray(o.model_error_unit, dtype=float)
+        links.append(BoardLink(o.camera, o.frame, np.asarray(o.T_cam_board, dtype=float), C))
+    return list(Evidence.of([], links, cameras).links)
+
+
+def board_evidence(dataset: FolderDataset, board: Board, cameras: set[str], calib: Extrinsics,
+                   workers: int | None = None, progress: Progress | None = None,
+                   scheduler: str | None = None,
+                   ) -> tuple[list[BoardLink], dict[str, Any], dict[str, np.ndarray]]:
+    """The board in the checked frames: markers detected in every colour image
+    (:func:`~rgbd_calib.detect.run.detect_dataset`, default settings, no cache), a PnP pose
+    per view (:func:`~rgbd_calib.solve.pose.board_poses` with its gates), as
+    :func:`board_links`; a summary for check.json (views, frame sets seen by two cameras or
+    more, views per camera); and per frame where the board was (reference frame, through the
+    calibration; the medoid of the cameras' views, so one knocked camera does not misplace it),
+    for masking it out of the static clouds: a board waved through a few frames is not
+    scene, and its remnants in a temporal median bias the depth pairs."""
+    n_images = len(dataset.frames) * len(dataset.cameras)
+    detections = detect_dataset(dataset, board, DetectionConfig(), None, workers,
+                                start(progress, "detecting the board", n_images), scheduler)
+    observations, _ = board_poses(detections, board, dataset.rig, PoseConfig())
+    links = board_links(observations, cameras)
+    per_camera: dict[str, int] = {}
+    for k in links:
+        per_camera[k.camera] = per_camera.get(k.camera, 0) + 1
+    by_frame: dict[str, list[np.ndarray]] = {}
+    for o in observations:
+        if o.camera in cameras:
+            by_frame.setdefault(o.frame, []).append(calib.T_ref_cam(o.camera) @ o.T_cam_board)
+    placed = {}
+    for f, poses in by_frame.items():
+        centres = np.array([T[:3, 3] for T in poses])
+        cost = np.linalg.norm(centres[:, None] - centres[None], axis=2).sum(axis=1)
+        placed[f] = poses[int(np.argmin(cost))]
+    return links, {"views": len(observations), "frame_sets": len({k.frame for k in links}),
+                   "views_used": per_camera, "model_error_px": MODEL_ERROR_PX,
+                   "masked_frames": len(placed)}, placed
+
+
 def check_rig(clouds: dict[str, CameraCloud], calib: Extrinsics,
               overlaps: list[tuple[str, str]], method: RegistrationMethod = "colored-icp",
               config: DepthConfig | None = None, tolerance: Tolerance = Tolerance(),
               unknown_scale: set[str] = frozenset(), workers: int | None = None,
-              tick=None, scheduler: str | None = None) -> CheckResult:
+              tick=None, scheduler: str | None = None,
+              links: list[BoardLink] | tuple = (),
+              board: dict[str, Any] | None = None) -> CheckResult:
     """:func:`~rgbd_calib.depth.registration.register_robust` for each overlapping ``(cam_a,
     cam_b)`` from the calibrated extrinsics (in a process pool of ``workers``, or on the Dask
     cluster of ``scheduler``),
     then :func:`locate_moved` on the pairs that fit (``accepted``; the check needs the
-    measurements that confirm the calibration too, so ``min_improvement_chi2`` is 0). Cameras
+    measurements that confirm the calibration too, so ``min_improvement_chi2`` is 0) and the
+    board ``links`` (:func:`board_evidence`; ``board`` its summary). Cameras
     in ``unknown_scale`` have no depth-scale factor: their pairs leave out what a scale error
-    explains. Cameras of ``calib`` without a cloud are ``unknown``."""
+    explains. Cameras of ``calib`` with neither a cloud nor a board view are ``unknown``."""
     config = check_config(config)
     t0 = time.perf_counter()
     T = {c: e.T_ref_cam for c, e in calib.cameras.items()}
@@ -119,15 +189,29 @@ def check_rig(clouds: dict[str, CameraCloud], calib: Extrinsics,
                           workers, tick, robust=True, scheduler=scheduler)
     t_reg = time.perf_counter() - t0
     pairs = [RelativePose(r.cam_a, r.cam_b, r.T_b_a, r.information) for r in regs if r.accepted]
-    held = {c: T[c] for c in clouds if c in T}
+    checked = set(clouds) | {k.camera for k in links}
+    held = {c: T[c] for c in checked if c in T}
     cov = {c: prior_covariance(calib.cameras[c]) for c in held}
-    cams = locate_moved(held, cov, pairs, tolerance)
+    evidence = Evidence.of(pairs, links, set(held))
+    cams = locate_moved(held, cov, evidence, tolerance)
     for c in calib.cameras:
         if c not in cams:
             cams[c] = CameraCheck(c, "unknown", reason="no depth cloud (no depth frames or "
-                                  "none usable)")
+                                  "none usable) and no board seen with another camera")
+    factors = _final_factors(held, cov, evidence, cams)
     return CheckResult(cams, [r.to_dict() for r in regs], tolerance,
-                       {"registration": t_reg, "total": time.perf_counter() - t0})
+                       {"registration": t_reg, "total": time.perf_counter() - t0},
+                       board or {}, factors)
+
+
+def _final_factors(T: dict[str, np.ndarray], cov: dict[str, np.ndarray], evidence: Evidence,
+                   cams: dict[str, CameraCheck]) -> dict[str, float]:
+    """The variance factors of depth and board evidence with the moved cameras free (for
+    check.json: how far each kind's residuals exceed its own sigmas)."""
+    free = {c for c, r in cams.items() if r.status == "moved" and c in T}
+    weighed = (weighed_solve(T, cov, evidence, free) if evidence.pairs or evidence.links
+               else None)
+    return weighed[1] if weighed is not None else {}
 
 
 @dataclass(frozen=True)
@@ -139,6 +223,7 @@ class CheckRun:
     clouds: dict[str, CameraCloud]
     overlaps: list[tuple[str, str]]
     scale_source: dict[str, str]  # camera -> "given" (the calibration's factor) / "unknown"
+    links: tuple[BoardLink, ...] = ()  # the board's evidence (board_evidence)
 
     @property
     def moved(self) -> list[str]:
@@ -153,16 +238,19 @@ class CheckRun:
 
 def check(dataset: FolderDataset | str | os.PathLike, calib: Extrinsics | str | os.PathLike,
           method: RegistrationMethod = "colored-icp", config: DepthConfig | None = None,
-          tolerance: Tolerance = Tolerance(), depth_scales: dict[str, float] | None = None,
+          tolerance: Tolerance = Tolerance(),
+          depth_scales: dict[str, float | DepthModel] | None = None,
           workers: int | None = None, progress: Progress | None = None,
-          scheduler: str | None = None) -> CheckRun:
+          scheduler: str | None = None, board: Board | None = None) -> CheckRun:
     """Has a camera moved since the calibration ``calib``? As ``rgbd-calib check`` decides it.
 
     ``dataset``: a :class:`FolderDataset` or a dataset folder's path (one or a few frame sets
-    of the rig as it is now, with depth; no board needed). ``calib``: :class:`Extrinsics`, or
-    a calibrate output folder or its ``extrinsics.yaml``: then, as the command does, the
-    dataset is read with the intrinsics of its ``rig_refined.yaml`` and the depth-scale
-    factors of its ``report.json`` are used (unless ``depth_scales`` is given). Returns the
+    of the rig as it is now, with depth; the board in view is evidence too, not needed).
+    ``calib``: :class:`Extrinsics`, or a calibrate output folder or its ``extrinsics.yaml``:
+    then, as the command does, the dataset is read with the intrinsics of its
+    ``rig_refined.yaml``, the depth corrections beside it are used (unless ``depth_scales`` is
+    given) and, without ``board``, the board is the calibration's
+    (:func:`~rgbd_calib.model.calib_folder.calibration_board`). Returns the
     :class:`CheckRun`: ``moved``, ``unknown`` and ``result`` (per camera its status, move and
     sigma; ``result.to_dict()`` is check.json's content). See :func:`check_dataset`."""
     dataset = open_dataset(dataset)
@@ -172,8 +260,10 @@ def check(dataset: FolderDataset | str | os.PathLike, calib: Extrinsics | str | 
                                                            earlier.path.parent)[0])
         depth_scales = earlier.depth_scales if depth_scales is None else depth_scales
         calib = earlier.extrinsics
+        if board is None:
+            board = calibration_board(earlier.path.parent, dataset.path)[0]
     return check_dataset(dataset, calib, depth_scales, method, config, tolerance, workers,
-                         progress, scheduler)
+                         progress, scheduler, board)
 
 
 def check_dataset(dataset: FolderDataset, calib: Extrinsics,
@@ -181,18 +271,27 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
                   method: RegistrationMethod = "colored-icp",
                   config: DepthConfig | None = None, tolerance: Tolerance = Tolerance(),
                   workers: int | None = None, progress: Progress | None = None,
-                  scheduler: str | None = None) -> CheckRun:
-    """Check ``dataset`` (one or a few frame sets of the rig as it is now; no board needed,
-    anything in view is scene) against ``calib``: a static cloud per calibrated camera with
+                  scheduler: str | None = None, board: Board | None = None) -> CheckRun:
+    """Check ``dataset`` (one or a few frame sets of the rig as it is now; anything in view is
+    scene) against ``calib``: a static cloud per calibrated camera with
     depth (its ``depth_scales`` entry: the calibration's depth model or factor), the pairs
     that overlap under the calibration (with a wider overlap search, 0.15 m, than
-    calibrate's: a knocked camera's cloud lies centimetres off), then :func:`check_rig`."""
+    calibrate's: a knocked camera's cloud lies centimetres off), with ``board`` the board's
+    poses (:func:`board_evidence`), then :func:`check_rig`."""
     config = config or DepthConfig()
     scales = depth_scales or {}
+    links: list[BoardLink] = []
+    summary: dict[str, Any] = {"used": False}
+    placed: dict[str, np.ndarray] = {}
+    if board is not None:
+        t0 = time.perf_counter()
+        links, summary, placed = board_evidence(dataset, board, set(calib.cameras) & set(
+            dataset.cameras), calib, workers, progress, scheduler)
+        summary = {"used": bool(links), **summary, "time_s": time.perf_counter() - t0}
     cams = [c for c in dataset.cameras if c in calib.cameras and dataset.has_depth(c)]
     clouds, skipped = static_clouds(
-        dataset, [(c, calib.T_ref_cam(c), scales.get(c, 1.0)) for c in cams], {}, None, config,
-        workers, start(progress, "static clouds", len(cams)), scheduler)
+        dataset, [(c, calib.T_ref_cam(c), scales.get(c, 1.0)) for c in cams], placed, board,
+        config, workers, start(progress, "static clouds", len(cams)), scheduler)
     T = {c: calib.T_ref_cam(c) for c in clouds}
     wide = config.model_copy(update={"overlap_distance_m": max(config.overlap_distance_m,
                                                                0.15)})
@@ -201,11 +300,12 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
     tick = start(progress, f"registering pairs ({method})", len(overlaps))
     unknown = {c for c in clouds if c not in scales}
     result = check_rig(clouds, calib, overlaps, method, config, tolerance, unknown, workers,
-                       tick, scheduler)
+                       tick, scheduler, links, summary)
     for c, why in skipped.items():
-        result.cameras[c] = CameraCheck(c, "unknown", reason=f"no depth cloud: {why}")
+        if not any(k.camera == c for k in links):
+            result.cameras[c] = CameraCheck(c, "unknown", reason=f"no depth cloud: {why}")
     return CheckRun(result, clouds, overlaps,
-                    {c: "unknown" if c in unknown else "given" for c in clouds})
+                    {c: "unknown" if c in unknown else "given" for c in clouds}, tuple(links))
 
 
 # --------------------------------------------------------------------------- fix
@@ -242,15 +342,17 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
               overlaps: list[tuple[str, str]], method: RegistrationMethod = "colored-icp",
               config: DepthConfig | None = None, max_passes: int = 3,
               unknown_scale: set[str] = frozenset(), workers: int | None = None,
-              scheduler: str | None = None,
-              ) -> tuple[Extrinsics, list[dict[str, Any]]]:
+              scheduler: str | None = None, links: list[BoardLink] | tuple = (),
+              ) -> FixResult:
     """Re-register the moved cameras of ``check`` against the others and solve for them with
     the others held at their calibration (priors with its sigmas); only pairs with a moved
     camera count. Each moved camera starts from the check's estimate (its pairs' ICP, after
     the global alignment where needed) and is re-registered from each new estimate, up to
     ``max_passes`` times, until it moves less than 0.1 mm / 0.01 deg: ICP crops each cloud to
     the other camera's view under the start, so a start centimetres off leaves points out.
-    Covariances are the graph marginals times its variance factor. Returns the extrinsics (the
+    The board ``links`` of the check (:func:`board_evidence`) are evidence too. Covariances
+    are the graph marginals with each kind of evidence scaled by its variance factor
+    (:func:`~rgbd_calib.solve.moved.variance_factors`). Returns the extrinsics (the
     cameras in place keep their calibration exactly; if the reference moved, everything is
     re-expressed in its new frame) and the last pass's pairs."""
     config = check_config(config)
@@ -264,7 +366,8 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
         cov_now[c] = check.cameras[c].covariance_now
     jobs = [(a, b) for a, b in overlaps
             if (a in moved or b in moved) and a in clouds and b in clouds]
-    held = [c for c in clouds if c in T_now]
+    held = sorted({c for c in clouds if c in T_now}
+                  | {k.camera for k in links if k.camera in T_now})
     cov = {c: prior_covariance(calib.cameras[c]) for c in held}
     regs: list[PairRegistration] = []
     for _ in range(max_passes):
@@ -272,16 +375,17 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
                               workers, robust=True, scheduler=scheduler)
         pairs = [RelativePose(r.cam_a, r.cam_b, r.T_b_a, r.information)
                  for r in regs if r.accepted]
-        free = {c for c in moved if any(c in (r.cam_a, r.cam_b) for r in pairs)}
-        if not free or not anchored(sorted(held), pairs, free):
+        evidence = Evidence.of(pairs, links, set(held))
+        free = {c for c in moved if sum(evidence.count(c))}
+        if not free or not anchored(held, evidence, free):
             break
-        sol = try_solve({c: T_now[c] for c in held}, cov, pairs, free)
-        if sol is None:
+        weighed = weighed_solve({c: T_now[c] for c in held}, cov, evidence, free)
+        if weighed is None:
             break
-        s2 = variance_factor(sol, len(pairs), len(free))
+        sol = weighed[0]
         steps = [transform_error(sol.T[c], T_now[c]) for c in free]  # (deg, mm) each
         for c in free:
-            T_now[c], cov_now[c] = sol.T[c], s2 * sol.covariance[c]
+            T_now[c], cov_now[c] = sol.T[c], sol.covariance[c]
         if all(mm < 0.1 and deg < 0.01 for deg, mm in steps):
             break
     cams = dict(calib.cameras)
@@ -292,5 +396,20 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
     if ref in moved:
         cams = reexpress(cams, ref, {c: cov[c] for c in cov if c not in moved})
     out = Extrinsics(ref, cams, dict(calib.unconnected))
-    return out, [{**r.to_dict(), "re_registered_for": sorted({r.cam_a, r.cam_b} & moved)}
-                 for r in regs]
+    evidence = Evidence.of([RelativePose(r.cam_a, r.cam_b, r.T_b_a, r.information)
+                            for r in regs if r.accepted], links, set(held))
+    return FixResult(out, [{**r.to_dict(), "re_registered_for": sorted({r.cam_a, r.cam_b}
+                                                                       & moved)} for r in regs],
+                     kinds_disagree({c: T_now[c] for c in held}, cov, evidence, moved))
+
+
+@dataclass(frozen=True)
+class FixResult:
+    """What :func:`fix_moved` made: the ``extrinsics``, the last pass's ``pairs``
+    (report-ready dicts) and, per fixed camera, why its evidence disagrees with itself
+    (``disagree``; :func:`~rgbd_calib.solve.moved.kinds_disagree`): such a camera's pose
+    is CHECK, not GOOD."""
+
+    extrinsics: Extrinsics
+    pairs: list[dict[str, Any]]
+    disagree: dict[str, str] = field(default_factory=dict)

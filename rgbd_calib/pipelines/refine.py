@@ -190,24 +190,33 @@ def camera_moves(init: Extrinsics, result: Extrinsics) -> dict[str, dict[str, fl
 
 
 def fix_verdict(init: Extrinsics, fixed: Extrinsics, moved: list[str],
-                pairs: list[dict[str, Any]]) -> dict[str, Any]:
+                pairs: list[dict[str, Any]], disagree: dict[str, str] | None = None,
+                ) -> dict[str, Any]:
     """``refine --fix-others`` in one line: ``verdict`` ``unchanged`` (no camera moved),
-    ``refined`` (every moved camera fits a pair again) or ``check`` (one does not: its pose is
-    the check's estimate), the ``message`` and per camera its move (:func:`camera_moves`)."""
+    ``refined`` (every moved camera fits a pair or the board again, and where both measure
+    it they agree) or ``check`` (one fits nothing: its pose is the check's estimate; or its
+    depth pairs and the board put it apart beyond their sigmas: ``disagree``,
+    :func:`rgbd_calib.solve.moved.kinds_disagree`), the ``message`` and per camera its
+    move (:func:`camera_moves`)."""
     cameras = camera_moves(init, fixed)
     if not moved:
         return {"verdict": "unchanged", "message": "no camera moved beyond the tolerance: "
                 "the extrinsics are --init's", "cameras": cameras}
+    disagree = disagree or {}
     lost = [c for c in moved if not any(c in (p["cam_a"], p["cam_b"]) and p["accepted"]
-                                        for p in pairs)]
+                                        for p in pairs) and not np.isfinite(
+        fixed.cameras[c].sigma_translation_mm)]
     moves = [f"{c} {cameras[c]['moved_mm']:.1f} mm / {cameras[c]['moved_deg']:.2f} deg (now "
              f"sigma {fixed.cameras[c].sigma_translation_mm:.2f} mm / "
              f"{fixed.cameras[c].sigma_rotation_deg:.3f} deg)" for c in moved]
-    return {"verdict": "check" if lost else "refined",
+    unconfirmed = {c: "no pair fits after re-registration and no board view: its pose is "
+                   "the check's rough estimate" for c in lost} | disagree
+    return {"verdict": "check" if unconfirmed else "refined",
             "message": "re-registered " + "; ".join(moves)
             + (f"; {', '.join(lost)}: no pair fits after re-registration, kept the "
-               "check's estimate" if lost else ""),
-            "cameras": cameras}
+               "check's estimate" if lost else "")
+            + "".join(f"; {c}: {why}" for c, why in disagree.items()),
+            "cameras": cameras, "unconfirmed": unconfirmed}
 
 
 IN_MEMORY = "(extrinsics given in memory)"  # report.json refine.init of a library refine
@@ -227,6 +236,7 @@ def refine_summary(init_path: Path | None, method: str, verdict: dict[str, Any],
         "outcome": verdict["verdict"],
         "message": verdict["message"],
         "moved_since_init": list(moved or []),
+        "unconfirmed": dict(verdict.get("unconfirmed", {})),
         "pair_variance_factor": verdict.get("pair_variance_factor"),
         "cameras": {c: {**m, "depth_scale_source": scale_source.get(c, "none")}
                     for c, m in verdict["cameras"].items()},

@@ -319,19 +319,27 @@ def depth_scale_unknown(report: dict[str, Any], earlier: list[Finding]) -> list[
 
 
 def refit_failed(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
-    """``refine --fix-others``: a camera found moved that no pair fits after its
-    re-registration (its pose is the check's estimate)."""
+    """``refine --fix-others``: a camera found moved whose new pose the evidence does not
+    confirm: no pair fits after its re-registration and no board view (its pose is the
+    check's estimate), or its depth pairs and the board put it apart beyond their sigmas
+    (``refine.unconfirmed``; reports before it: no accepted pair of the camera)."""
     ref = report["refine"]
-    lost = [c for c in ref["moved_since_init"]
-            if not any(p["accepted"] and c in (p["cam_a"], p["cam_b"]) for p in report["pairs"])]
-    if not lost:
+    if "unconfirmed" in ref:
+        why = ref["unconfirmed"]
+    else:
+        why = {c: "no camera pair fits after re-registering: its pose is the check's rough "
+               "estimate" for c in ref["moved_since_init"]
+               if not any(p["accepted"] and c in (p["cam_a"], p["cam_b"])
+                          for p in report["pairs"])}
+    if not why:
         return []
+    lost = sorted(why)
     return [finding(
         "warning",
         "refit_failed",
         lost,
-        f"{', '.join(lost)} moved since the calibration, and no camera pair fits after "
-        "re-registering: its pose is the check's rough estimate.",
+        f"{', '.join(lost)} moved since the calibration, and the evidence does not confirm "
+        "where the fix put it: " + "; ".join(f"{c}: {why[c]}" for c in lost) + ".",
         f"Calibrate {', '.join(lost)} again with the board (or record frames where it overlaps "
-        "more of its neighbours' views).",
+        "more of its neighbours' views, with the board held where they all see it).",
     )]

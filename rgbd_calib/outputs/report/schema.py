@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.12"
+REPORT_SCHEMA_VERSION = "1.13"
 
 
 class ReportError(RgbdCalibError):
@@ -294,6 +294,7 @@ REPORT_SCHEMA: dict[str, Any] = {
         "outcome": S,
         "message": S,
         "moved_since_init": ListOf(S),
+        "unconfirmed?": MapOf("<camera>", S),
         "pair_variance_factor?": Nullable(N),
         "cameras": MapOf("<camera>", {"moved_mm": N, "moved_deg": N,
                                       "initial_sigma_mm": Nullable(N),
