@@ -313,3 +313,60 @@ def test_printed_lengths_name_the_charuco_square_and_marker():
     spec = CharucoSpec(squares_x=5, squares_y=4, square_length=0.04, marker_length=0.03)
     charuco = board_from_charuco("DICT_4X4_50", spec)
     assert charuco.printed_lengths == (0.03, 0.04)
+
+
+# ------------------------------------------------------------- a wrong or forgotten --board
+def test_a_charuco_recording_calibrated_with_the_marker_board_names_the_board_to_pass(
+        charuco_line, tmp_path):
+    """Issue 34: the ChArUco render calibrated with the thesis board (a forgotten --board):
+    exit 2 with one line saying the images show a ChArUco board and which file to pass,
+    nothing written; not a lens or view-count diagnosis."""
+    import shutil
+
+    from rgbd_calib.cli.commands import app
+
+    data = tmp_path / "data"
+    shutil.copytree(charuco_line, data)
+    (data / "board.yaml").unlink(missing_ok=True)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["calibrate", str(data), "--board",
+                                   str(CONFIGS / "board_thesis.yaml"), "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    line = res.output.strip().splitlines()[-1]
+    assert "ChArUco board" in line and "pass --board" in line and "type: charuco" in line
+    assert "intrinsics" not in line and not (out / "extrinsics.yaml").exists()
+
+
+def test_the_probe_tells_a_marker_board_from_a_charuco_board(charuco_line, small_line):
+    from rgbd_calib.detect.probe import probe_targets
+    from rgbd_calib.model.dataset import FolderDataset
+
+    def images(path):
+        ds = FolderDataset(path)
+        return [ds.read_color(c, f) for c in ds.cameras for f in ds.frames[:2]]
+
+    charuco = probe_targets(images(charuco_line))  # a path already
+    assert charuco is not None and charuco.charuco and not charuco.inverted
+    aruco = probe_targets(images(small_line.path))
+    assert aruco is not None and not aruco.charuco and aruco.family() == "DICT_4X4"
+
+
+@pytest.mark.skipif(not CALISCOPE_DATA.is_dir(), reason=shared_data_missing(
+    "caliscope-charuco-4cam"))
+def test_the_probe_reads_the_real_inverted_charuco_video():
+    """The real Caliscope recording (white markers on black, a ChArUco board): found as an
+    inverted ChArUco board of the 4x4 family."""
+    from rgbd_calib.detect.probe import probe_targets
+
+    cap = cv2.VideoCapture(str(CALISCOPE_DATA / "cam_0.mp4"))
+    frames, k = [], 0
+    while len(frames) < 6:
+        ok, image = cap.read()
+        if not ok:
+            break
+        if k % 20 == 0:
+            frames.append(image)
+        k += 1
+    guess = probe_targets(frames)
+    assert guess is not None and guess.charuco and guess.inverted
+    assert guess.family() == "DICT_4X4" and guess.id_max <= 9

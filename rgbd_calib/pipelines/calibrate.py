@@ -34,6 +34,7 @@ from ..depth.stage import (
     moved_beyond_board,
 )
 from ..detect.markers import MarkerDetections
+from ..detect.probe import probe_targets
 from ..detect.run import detect_dataset
 from ..model.board import Board, refined_board, refined_multiface
 from ..model.board_file import load_board
@@ -121,7 +122,8 @@ def calibrate(
     # 2. one board pose per view (PnP, covariance, gates)
     with timed(run.timings, "pose"):
         views = _Views(*board_poses(detections, board, run.rig, run.config.pose))
-    _check_views(run.dataset, detections, views.observations, views.rejected, n_images)
+    _check_views(run.dataset, detections, views.observations, views.rejected, n_images,
+                 run.board)
     # 3. robust pose graph over the views: initial extrinsics and board poses
     with timed(run.timings, "pose_graph"):
         pg = pose_graph(run.dataset, views.observations, run.config, fixed_cameras)
@@ -380,14 +382,19 @@ def _check_views(
     observations: list[BoardObservation],
     rejected: list[RejectedView],
     n_images: int,
+    board: Board | None = None,
 ) -> None:
     """Stop with the reason when the views cannot link any camera to the reference (before the
-    pose graph, whose own errors name no dataset)."""
+    pose graph, whose own errors name no dataset). With no usable view at all, the images are
+    probed for another target (:func:`wrong_board`): a wrong or forgotten ``--board`` is said
+    to be one, with the board file to pass."""
     if not observations:
         total = sum(len(d.ids) for d in detections.values())
+        other = wrong_board(dataset, board) if board is not None else None
         raise CalibrationError(
             f"{dataset.path}: no usable board view in {n_images} images ({total} board markers "
-            + ("detected); check that --board matches the printed board (dictionary, ids) and "
+            + (f"detected); {other}" if other else
+               "detected); check that --board matches the printed board (dictionary, ids) and "
                "that the board is in view" if not rejected or not total else
                f"detected); {_why_dropped(detections, rejected)}")
         )
@@ -404,6 +411,38 @@ def _check_views(
     reference_frames = {o.frame for o in observations if o.camera == reference}
     if not any(o.camera != reference and o.frame in reference_frames for o in observations):
         raise _no_shared_view(dataset)
+
+
+PROBE_IMAGES = 8  # images probed for another target when no view of the board is usable
+
+
+def wrong_board(dataset: FolderDataset, board: Board) -> str | None:
+    """When the images show another target than ``board`` (another marker family, printed
+    inverted, or a ChArUco board where a marker board was given, or the reverse): what they
+    show and which board file to pass; None when they show nothing else
+    (:func:`rgbd_calib.detect.probe.probe_targets` on up to :data:`PROBE_IMAGES` images spread
+    over the cameras and frames)."""
+    pairs = [(c, f) for f in dataset.frames for c in dataset.cameras
+             if dataset.color_path(c, f) is not None]
+    picked = [pairs[int(i)] for i in np.unique(np.linspace(0, len(pairs) - 1, PROBE_IMAGES)
+                                               .round().astype(int))] if pairs else []
+    guess = probe_targets([dataset.read_color(c, f) for c, f in picked])
+    if guess is None:
+        return None
+    charuco = board.charuco is not None
+    inverted = bool(board.charuco.inverted) if charuco else False
+    family = board.dictionary.rsplit("_", 1)[0] if board.dictionary[5:6].isdigit() else \
+        board.dictionary
+    if (guess.family() == family and guess.inverted == inverted and guess.charuco == charuco):
+        return None
+    given = (f"{board.dictionary}{' inverted' if inverted else ''} "
+             f"{'ChArUco' if charuco else 'marker'} board")
+    example = ("configs/board_charuco_caliscope.yaml is such a file" if guess.charuco else
+               "configs/board_thesis.yaml is such a file")
+    return (f"the images show {guess.describe()}, not the {given} given: pass --board with "
+            f"the recorded board's file (type: {'charuco' if guess.charuco else 'aruco'}, "
+            f"dictionary: {guess.dictionary}{', inverted: true' if guess.inverted else ''}; "
+            f"{example})")
 
 
 SMALL_MARKER_PX = 20.0  # markers narrower than this in the images: at ArUco's limit

@@ -358,7 +358,7 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
     config = check_config(config)
     moved = set(check.moved)
     if not moved:
-        return calib, []
+        return FixResult(calib, [])
     T_now = {c: e.T_ref_cam for c, e in calib.cameras.items()}
     cov_now: dict[str, np.ndarray | None] = {}
     for c in moved:
