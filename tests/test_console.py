@@ -34,9 +34,10 @@ def test_ten_findings_print_three_and_a_count_without_nothing_to_do():
     assert lines[0].startswith("verdict: CHECK")
     shown = lines[1:-1]
     assert len(shown) == CONSOLE_FINDINGS == 3
-    # the warnings before every info, in the rules' order
+    # the warnings before every info; the one about this result (reprojection) before the
+    # advice for the next recording, then in the rules' order
     assert [ln.split(":")[1].split()[0] for ln in shown] == [
-        "intrinsics_unsupported", "scratch_coverage", "reprojection"]
+        "reprojection", "intrinsics_unsupported", "scratch_coverage"]
     assert lines[-1] == "+ 7 more findings in report.html / report.json"
     assert not any("nothing to do" in ln.lower() for ln in lines)
 
@@ -50,6 +51,18 @@ def test_an_error_comes_first_and_infos_with_nothing_to_do_are_only_counted():
     assert lines[2].startswith("warning: intrinsics_unsupported")
     # the two infos with nothing to do are not steps: counted, not printed
     assert len(lines) == 4 and lines[-1] == "+ 2 more findings in report.html / report.json"
+
+
+def test_a_fused_cloud_off_is_not_hidden_behind_lens_coverage():
+    """Issue 34: findings are ranked by their effect on the result: the fused cloud off by
+    centimetres outranks advice to cover the lens better, whatever the rules' order."""
+    found = [finding("warning", "lens_coverage", [f"cam{k}"], "corners in 20% of the image.",
+                     "Record views near the corners.") for k in range(3)]
+    found.append(finding("warning", "fused_disagrees", ["cam1"], "cam1 is 12 mm off.",
+                         "Calibrate cam1's depth."))
+    lines = [text for _, text in verdict_lines({"summary": {"verdict": "check"},
+                                                "warnings": found})]
+    assert lines[1].startswith("warning: fused_disagrees [cam1]")
 
 
 def test_a_good_rig_prints_the_verdict_alone():

@@ -36,8 +36,18 @@ def actionable(found: Finding) -> bool:
     return bool(advice) and not NOTHING_TO_DO.match(advice)
 
 
+# findings that advise the next recording (more views, other board poses) rather than say
+# that a part of this result is off: within a severity they rank after those that do
+NEXT_RECORDING = frozenset({
+    "few_views", "lens_coverage", "scratch_coverage", "board_coverage", "board_distance",
+    "board_tilt", "dropped_views", "pair_fitness", "intrinsics_unsupported", "weak_link"})
+
+
 def ranked_actionable(found: list[Finding]) -> list[Finding]:
     """The actionable findings by their effect on the result: errors, then warnings, then
-    infos; within a severity in the rules' order (a finding carries no finer rank)."""
+    infos; within a severity, those that say a part of this result is off (a camera, the
+    fused cloud, the board, the timing) before advice for the next recording
+    (:data:`NEXT_RECORDING`), then in the rules' order."""
     return sorted((f for f in found if actionable(f)),
-                  key=lambda f: SEVERITY_ORDER.get(f.get("severity"), len(SEVERITY_ORDER)))
+                  key=lambda f: (SEVERITY_ORDER.get(f.get("severity"), len(SEVERITY_ORDER)),
+                                 f.get("code") in NEXT_RECORDING))
