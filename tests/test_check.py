@@ -33,7 +33,7 @@ from rgbd_calib.solve.moved import (
     Tolerance,
     locate_moved,
     prior_covariance,
-    variance_factor,
+    variance_factors,
 )
 
 PAIR_SIGMA_MM, PAIR_SIGMA_DEG = 1.0, 0.03  # a depth pair's sigma, per axis
@@ -147,13 +147,26 @@ def test_a_camera_without_pairs_is_unknown_not_in_place():
     assert locate_moved(T_cal, _priors(T_cal), [])["c1"].status == "unknown"
 
 
-def test_variance_factor_is_at_least_one():
+def test_each_kind_of_evidence_has_its_own_variance_factor_of_at_least_one():
+    """Depth pairs and board views: each kind's chi-square over its share of the redundancy
+    (6 rows each; the free nodes' unknowns shared in proportion), never below 1."""
     class Sol:
-        chi2 = 5.0
-    assert variance_factor(Sol(), 4, 1) == 1.0
-    Sol.chi2 = 180.0
-    assert variance_factor(Sol(), 4, 1) == pytest.approx(10.0)
-    assert variance_factor(Sol(), 1, 1) == 1.0  # no redundancy: nothing to estimate from
+        chi2_group = {"prior": 0.0, "depth": 5.0, "board": 0.0}
+        n_free_nodes = 1
+    rng = np.random.default_rng(0)
+    T = _ring(4)
+    pair = _pairs(T, rng)[0]
+    ev = Evidence((pair,) * 4)
+    assert variance_factors(Sol(), ev) == {"depth": 1.0, "board": 1.0}
+    Sol.chi2_group = {"prior": 0.0, "depth": 180.0, "board": 0.0}
+    assert variance_factors(Sol(), ev)["depth"] == pytest.approx(10.0)  # 6 * (4 - 1) dof
+    Sol.chi2_group = {"prior": 0.0, "depth": 180.0, "board": 900.0}
+    links = tuple(BoardLink("c0", "f", np.eye(4), np.eye(6)) for _ in range(4))
+    both = variance_factors(Sol(), Evidence((pair,) * 4, links))  # 48 rows, 6 unknowns
+    assert both["depth"] == pytest.approx(180.0 / 21.0)
+    assert both["board"] == pytest.approx(900.0 / 21.0)
+    Sol.n_free_nodes = 4
+    assert variance_factors(Sol(), ev)["depth"] == 1.0  # no redundancy: nothing to estimate
 
 
 # --------------------------------------------------------------------------- whole path
@@ -384,7 +397,7 @@ def test_check_rejects_a_bad_method_and_tolerance(tmp_path):
 def test_check_names_the_cameras_it_could_not_check(tiny_calibration, tmp_path, monkeypatch):
     """A camera no pair could measure is named on the console as not checked (and listed in
     check.json), and the exit code is 4, never 0 ("all in place") nor 1 ("moved")."""
-    from rgbd_calib.cli import commands as cli
+    from rgbd_calib.cli import commands_depth as cli
     from rgbd_calib.pipelines.check import CheckResult, CheckRun
     from rgbd_calib.solve.moved import CameraCheck, Tolerance
 

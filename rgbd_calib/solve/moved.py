@@ -296,12 +296,6 @@ def variance_factors(sol: _Solution, evidence: Evidence | list[RelativePose]
     return out
 
 
-def variance_factor(sol: _Solution, n_pairs: int, n_free: int) -> float:
-    """The variance factor of a depth-pairs-only solve (:func:`variance_factors`)."""
-    dof = 6 * (n_pairs - n_free)
-    return max(1.0, sol.chi2 / dof) if dof > 0 else 1.0
-
-
 def weighed_solve(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray],
                   evidence: Evidence | list[RelativePose], free: set[str],
                   iterations: int = 4) -> tuple[_Solution, dict[str, float]] | None:
@@ -347,8 +341,8 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
     ambiguous: dict[str, list[str]] = {}
     weighed = weighed_solve(T_prior, cov_prior, ev, set()) if checkable else None
     s2 = weighed[1] if weighed is not None else {g: 1.0 for g in GROUPS}
-    while weighed is not None:
-        drops: dict[str, tuple[float, dict[str, float]]] = {}
+    while weighed is not None:  # (None: the evidence determines nothing; every camera as is)
+        drops: dict[str, tuple[float, tuple[_Solution, dict[str, float]]]] = {}
         for c in checkable:
             free = set(moved) | {c}
             if c in moved or not anchored(names, ev, free):
@@ -357,14 +351,13 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
             held = try_solve(T_prior, cov_prior, ev, set(moved), trial[1]) if trial else None
             if trial is None or held is None:
                 continue
-            drops[c] = (held.chi2 - trial[0].chi2, trial[1])
+            drops[c] = (held.chi2 - trial[0].chi2, trial)
         if not drops:
             break
         c = max(drops, key=lambda k: drops[k][0])
-        drop, factors = drops[c]
+        drop, (sol, factors) = drops[c]
         if drop <= chi2_threshold:
             break
-        sol = try_solve(T_prior, cov_prior, ev, set(moved) | {c}, factors)
         deg, mm = transform_error(sol.T[c], T_prior[c])
         if mm <= tolerance.mm and deg <= tolerance.deg:
             break
