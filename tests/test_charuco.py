@@ -333,7 +333,7 @@ def test_a_charuco_recording_calibrated_with_the_marker_board_names_the_board_to
                                    str(CONFIGS / "board_thesis.yaml"), "--out", str(out)])
     assert res.exit_code == 2, res.output
     line = res.output.strip().splitlines()[-1]
-    assert "ChArUco board" in line and "pass --board" in line and "type: charuco" in line
+    assert "ChArUco board" in line and "give --board" in line and "type: charuco" in line
     assert "intrinsics" not in line and not (out / "extrinsics.yaml").exists()
 
 

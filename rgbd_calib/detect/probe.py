@@ -105,7 +105,9 @@ def probe_targets(images: list[np.ndarray], min_markers: int = 4) -> TargetGuess
         if sum(map(len, either[0])) < min_markers:
             continue
         plain = _detect(grays, largest, False)
-        inverted = sum(map(len, either[0])) > sum(map(len, plain[0]))
+        # both polarities also pick up a few inverted codes in texture: a print is inverted
+        # only when the plain pass misses most of what both find
+        inverted = sum(map(len, plain[0])) < 0.5 * sum(map(len, either[0]))
         ids_all, corners_all = either if inverted else plain
         n = sum(len(i) for i in ids_all)
         if n < min_markers or (best is not None and n <= best.markers):

@@ -439,8 +439,8 @@ def wrong_board(dataset: FolderDataset, board: Board) -> str | None:
              f"{'ChArUco' if charuco else 'marker'} board")
     example = ("configs/board_charuco_caliscope.yaml is such a file" if guess.charuco else
                "configs/board_thesis.yaml is such a file")
-    return (f"the images show {guess.describe()}, not the {given} given: pass --board with "
-            f"the recorded board's file (type: {'charuco' if guess.charuco else 'aruco'}, "
+    return (f"the images show {guess.describe()}, not the {given} given; give --board "
+            f"the file of the board recorded (type: {'charuco' if guess.charuco else 'aruco'}, "
             f"dictionary: {guess.dictionary}{', inverted: true' if guess.inverted else ''}; "
             f"{example})")
 
