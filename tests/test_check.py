@@ -450,3 +450,24 @@ def test_the_demo_false_alarm_names_only_the_knocked_camera(tmp_path):
     deg, mm = transform_error(fixed.T_ref_cam("right1"), truth["right1"])
     assert mm <= 2.0 and deg <= 0.1, (mm, deg)
     assert mm <= 3.0 * fixed.cameras["right1"].sigma_translation_mm
+
+
+def test_a_fix_the_evidence_does_not_confirm_is_check_not_refined():
+    """Issue 34: a fixed camera whose depth pairs and board views disagree (or that nothing
+    measured) makes --fix-others' outcome check and raises refit_failed with the reason."""
+    from rgbd_calib.outputs.report.findings_depth import refit_failed
+    from rgbd_calib.pipelines.refine import fix_verdict, refine_summary
+
+    T_cal = _ring(3)
+    init = Extrinsics("c0", {c: CameraExtrinsics(c, T, 0.005, 0.1) for c, T in T_cal.items()})
+    fixed = Extrinsics("c0", {**init.cameras, "c1": CameraExtrinsics(
+        "c1", T_cal["c1"] @ make_transform(np.eye(3), [0.01, 0, 0]), 0.01, 0.3)})
+    pairs = [{"cam_a": "c1", "cam_b": "c2", "accepted": True}]
+    why = "the depth pairs and the board put it 3.0 mm / 0.10 deg apart"
+    verdict = fix_verdict(init, fixed, ["c1"], pairs, {"c1": why})
+    assert verdict["verdict"] == "check" and why in verdict["message"]
+    assert fix_verdict(init, fixed, ["c1"], pairs, {})["verdict"] == "refined"
+    report = {"refine": refine_summary(None, "colored-icp", verdict, {}, ["c1"]),
+              "pairs": pairs}
+    found = refit_failed(report, [])
+    assert [f["cameras"] for f in found] == [["c1"]] and why in found[0]["message"]

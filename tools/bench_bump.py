@@ -72,7 +72,7 @@ def run_one(root: Path, layout: str, seed: int, bias: float, recording: str, mm:
     fix = fix_moved(run.clouds, calib, run.result, run.overlaps, unknown_scale=unknown_scale,
                     links=run.links)
     t_fix = time.perf_counter() - t0
-    verdict = fix_verdict(calib, fix.extrinsics, run.moved, fix.pairs, fix.disagree)
+    verdict = fix_verdict(calib, fix.extrinsics, run.moved, fix.pairs, fix.unconfirmed)
     before, after = errors(calib, truth), errors(fix.extrinsics, truth)
     others = [c for c in calib.cameras if c != camera or not mm]
     damage = max(after[c][0] - before[c][0] for c in others)

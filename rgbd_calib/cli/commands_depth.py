@@ -184,7 +184,7 @@ def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolera
                         unknown_scale=unknown, scheduler=scheduler, links=run.links)
         tick(1)
     moved, fixed, pairs = run.result.moved, fix.extrinsics, fix.pairs
-    verdict = fix_verdict(calib, fixed, moved, pairs, fix.disagree)
+    verdict = fix_verdict(calib, fixed, moved, pairs, fix.unconfirmed)
     status = ({"status": "skipped", "reason": "no camera moved beyond the tolerance",
                "weak_cameras": {}} if not moved else
               {"status": "used", "reason": None, "weak_cameras": {}}

@@ -354,7 +354,8 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
     are the graph marginals with each kind of evidence scaled by its variance factor
     (:func:`~rgbd_calib.solve.moved.variance_factors`). Returns the extrinsics (the
     cameras in place keep their calibration exactly; if the reference moved, everything is
-    re-expressed in its new frame) and the last pass's pairs."""
+    re-expressed in its new frame), the last pass's pairs and the fixed cameras the evidence
+    does not confirm (:class:`FixResult`)."""
     config = check_config(config)
     moved = set(check.moved)
     if not moved:
@@ -370,6 +371,7 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
                   | {k.camera for k in links if k.camera in T_now})
     cov = {c: prior_covariance(calib.cameras[c]) for c in held}
     regs: list[PairRegistration] = []
+    solved: set[str] = set()
     for _ in range(max_passes):
         regs = [_within_fix_reach(r) for r in register_pairs(
             clouds, _jobs(jobs, T_now, set(unknown_scale)), method, config, workers,
@@ -387,6 +389,7 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
         steps = [transform_error(sol.T[c], T_now[c]) for c in free]  # (deg, mm) each
         for c in free:
             T_now[c], cov_now[c] = sol.T[c], sol.covariance[c]
+        solved |= free
         if all(mm < 0.1 and deg < 0.01 for deg, mm in steps):
             break
     cams = dict(calib.cameras)
@@ -401,9 +404,12 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
                             for r in regs if r.accepted], links, set(held))
     return FixResult(out, [{**r.to_dict(), "re_registered_for": sorted({r.cam_a, r.cam_b}
                                                                        & moved)} for r in regs],
-                     kinds_disagree({c: T_now[c] for c in held}, cov, evidence, moved))
+                     {**{c: NOTHING_FITS for c in sorted(moved - solved)},
+                      **kinds_disagree({c: T_now[c] for c in held}, cov, evidence, moved)})
 
 
+NOTHING_FITS = ("no pair fits after re-registration and no board view measures it: its pose "
+                "is the check's rough estimate")
 FIX_REACH = (100.0, 10.0)  # mm, deg: how far a fix's pair may move from the check's estimate
 
 
@@ -423,10 +429,11 @@ def _within_fix_reach(r: PairRegistration) -> PairRegistration:
 @dataclass(frozen=True)
 class FixResult:
     """What :func:`fix_moved` made: the ``extrinsics``, the last pass's ``pairs``
-    (report-ready dicts) and, per fixed camera, why its evidence disagrees with itself
-    (``disagree``; :func:`~rgbd_calib.solve.moved.kinds_disagree`): such a camera's pose
-    is CHECK, not GOOD."""
+    (report-ready dicts) and, per fixed camera the evidence does not confirm, why
+    (``unconfirmed``: nothing measured it, or its depth pairs and board views disagree,
+    :func:`~rgbd_calib.solve.moved.kinds_disagree`): such a camera's pose is CHECK, not
+    GOOD."""
 
     extrinsics: Extrinsics
     pairs: list[dict[str, Any]]
-    disagree: dict[str, str] = field(default_factory=dict)
+    unconfirmed: dict[str, str] = field(default_factory=dict)

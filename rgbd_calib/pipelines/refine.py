@@ -190,33 +190,29 @@ def camera_moves(init: Extrinsics, result: Extrinsics) -> dict[str, dict[str, fl
 
 
 def fix_verdict(init: Extrinsics, fixed: Extrinsics, moved: list[str],
-                pairs: list[dict[str, Any]], disagree: dict[str, str] | None = None,
+                pairs: list[dict[str, Any]], unconfirmed: dict[str, str] | None = None,
                 ) -> dict[str, Any]:
     """``refine --fix-others`` in one line: ``verdict`` ``unchanged`` (no camera moved),
-    ``refined`` (every moved camera fits a pair or the board again, and where both measure
-    it they agree) or ``check`` (one fits nothing: its pose is the check's estimate; or its
-    depth pairs and the board put it apart beyond their sigmas: ``disagree``,
-    :func:`rgbd_calib.solve.moved.kinds_disagree`), the ``message`` and per camera its
-    move (:func:`camera_moves`)."""
+    ``refined`` (the evidence confirms every fixed camera) or ``check`` (it does not confirm
+    one: ``unconfirmed``, camera -> why, :class:`rgbd_calib.pipelines.check.FixResult`;
+    without it, a moved camera in no accepted pair), the ``message``, per camera its move
+    (:func:`camera_moves`) and ``unconfirmed``."""
     cameras = camera_moves(init, fixed)
     if not moved:
         return {"verdict": "unchanged", "message": "no camera moved beyond the tolerance: "
-                "the extrinsics are --init's", "cameras": cameras}
-    disagree = disagree or {}
-    lost = [c for c in moved if not any(c in (p["cam_a"], p["cam_b"]) and p["accepted"]
-                                        for p in pairs) and not np.isfinite(
-        fixed.cameras[c].sigma_translation_mm)]
+                "the extrinsics are --init's", "cameras": cameras, "unconfirmed": {}}
+    if unconfirmed is None:
+        unconfirmed = {c: "no pair fits after re-registration: its pose is the check's rough "
+                       "estimate" for c in moved
+                       if not any(c in (p["cam_a"], p["cam_b"]) and p["accepted"]
+                                  for p in pairs)}
     moves = [f"{c} {cameras[c]['moved_mm']:.1f} mm / {cameras[c]['moved_deg']:.2f} deg (now "
              f"sigma {fixed.cameras[c].sigma_translation_mm:.2f} mm / "
              f"{fixed.cameras[c].sigma_rotation_deg:.3f} deg)" for c in moved]
-    unconfirmed = {c: "no pair fits after re-registration and no board view: its pose is "
-                   "the check's rough estimate" for c in lost} | disagree
     return {"verdict": "check" if unconfirmed else "refined",
             "message": "re-registered " + "; ".join(moves)
-            + (f"; {', '.join(lost)}: no pair fits after re-registration, kept the "
-               "check's estimate" if lost else "")
-            + "".join(f"; {c}: {why}" for c, why in disagree.items()),
-            "cameras": cameras, "unconfirmed": unconfirmed}
+            + "".join(f"; {c}: {why}" for c, why in unconfirmed.items()),
+            "cameras": cameras, "unconfirmed": dict(unconfirmed)}
 
 
 IN_MEMORY = "(extrinsics given in memory)"  # report.json refine.init of a library refine
