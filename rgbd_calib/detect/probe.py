@@ -53,8 +53,13 @@ class TargetGuess:
                 f"{self.id_max}) in {self.images} images, laid out as {kind}")
 
     def family(self) -> str:
-        return self.dictionary.rsplit("_", 1)[0] if self.dictionary[5:6].isdigit() else \
-            self.dictionary
+        return dictionary_family(self.dictionary)
+
+
+def dictionary_family(name: str) -> str:
+    """The family of an OpenCV dictionary name: ``DICT_4X4_100`` -> ``DICT_4X4`` (its
+    members share their first markers); a dictionary of one size is its own family."""
+    return name.rsplit("_", 1)[0] if name[5:6].isdigit() else name
 
 
 def _smallest(stem: str, sizes: tuple[int, ...], id_max: int) -> str:

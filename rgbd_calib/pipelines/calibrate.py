@@ -34,7 +34,7 @@ from ..depth.stage import (
     moved_beyond_board,
 )
 from ..detect.markers import MarkerDetections
-from ..detect.probe import probe_targets
+from ..detect.probe import dictionary_family, probe_targets
 from ..detect.run import detect_dataset
 from ..model.board import Board, refined_board, refined_multiface
 from ..model.board_file import load_board
@@ -431,9 +431,8 @@ def wrong_board(dataset: FolderDataset, board: Board) -> str | None:
         return None
     charuco = board.charuco is not None
     inverted = bool(board.charuco.inverted) if charuco else False
-    family = board.dictionary.rsplit("_", 1)[0] if board.dictionary[5:6].isdigit() else \
-        board.dictionary
-    if (guess.family() == family and guess.inverted == inverted and guess.charuco == charuco):
+    if (guess.family() == dictionary_family(board.dictionary) and guess.inverted == inverted
+            and guess.charuco == charuco):
         return None
     given = (f"{board.dictionary}{' inverted' if inverted else ''} "
              f"{'ChArUco' if charuco else 'marker'} board")

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -150,9 +151,7 @@ def board_evidence(dataset: FolderDataset, board: Board, cameras: set[str], cali
                                 start(progress, "detecting the board", n_images), scheduler)
     observations, _ = board_poses(detections, board, dataset.rig, PoseConfig())
     links = board_links(observations, cameras)
-    per_camera: dict[str, int] = {}
-    for k in links:
-        per_camera[k.camera] = per_camera.get(k.camera, 0) + 1
+    per_camera = dict(Counter(k.camera for k in links))
     by_frame: dict[str, list[np.ndarray]] = {}
     for o in observations:
         if o.camera in cameras:

@@ -334,8 +334,7 @@ def locate_moved(T_prior: dict[str, np.ndarray], cov_prior: dict[str, np.ndarray
     other and the move, and neither is put back by a fix."""
     ev = _as_evidence(evidence)
     names = sorted(T_prior)
-    counts = {c: ev.count(c) for c in names}
-    n_meas = {c: sum(counts[c]) for c in names}
+    n_meas = {c: sum(ev.count(c)) for c in names}
     checkable = [c for c in names if n_meas[c]]
     moved: list[str] = []
     ambiguous: dict[str, list[str]] = {}
