@@ -300,13 +300,13 @@ def _stamped(out, frames=STAMP_FRAMES, **params):
 
 
 def test_a_timed_render_stamps_each_colour_frame(tmp_path):
-    """``t_ms = f * 1000/30 + offset_c + jitter`` per camera and frame set (close-ups continue
-    the count, dropped frames have no row); the stamps' mean difference to the reference
-    camera's recovers the true offsets; the jitter is a stream of its own (another sigma
-    changes no image and no truth, only the stamps)."""
+    """``t_ms = f * 1000 + offset_c + jitter`` per camera and frame set (a board position a
+    second, close-ups continue the count, dropped frames have no row); the stamps' mean
+    difference to the reference camera's recovers the true offsets; the jitter is a stream
+    of its own (another sigma changes no image and no truth, only the stamps)."""
     kw = dict(sync_offset_ms=16.0, drop_rate=0.15, closeups=1)
     ds, gt = _stamped(tmp_path / "a", timestamp_jitter_ms=STAMP_JITTER_MS, **kw)
-    period_ms = 1000.0 / 30.0
+    period_ms = 1000.0  # one position per second, no burst
     residuals, dropped = [], 0
     for camera in ds.cameras:
         stamps = ds.timestamps_ms(camera)
@@ -343,6 +343,33 @@ def test_a_timed_render_stamps_each_colour_frame(tmp_path):
         for frame, t_ms in stamps.items():
             assert t_ms == pytest.approx(int(frame) * period_ms + gt.offset_ms[camera],
                                          abs=1e-9)
+
+
+def test_a_burst_renders_consecutive_frames_on_one_trajectory(tmp_path):
+    """``--burst 3 --acceleration``: each position becomes 3 frame sets 1000/30 ms apart
+    (positions 1 s apart), the truth of each set lies on its position's trajectory (the next
+    set's pose is this one's moved by the set's twist and acceleration over a frame period),
+    the twist changes by the acceleration times the period, and close-ups are named per set."""
+    ds, gt = _stamped(tmp_path / "b", frames=2, motion=(0.3, 30.0), acceleration=(1.0, 100.0),
+                      burst=3, closeups=1, timestamp_jitter_ms=0.0)
+    n_sets = (2 + len(ds.cameras)) * 3
+    assert len(ds.frames) == n_sets and len(gt.T_ref_board) == n_sets
+    assert sorted(gt.closeups) == [f"{f:06d}" for f in range(6, n_sets)]
+    ref = ds.timestamps_ms(gt.reference)
+    period = 1000.0 / 30.0
+    for f in range(n_sets - 1):
+        name, nxt = f"{f:06d}", f"{f + 1:06d}"
+        if f % 3 == 2:  # the next position, a second after this burst's first set
+            assert ref[nxt] - ref[f"{f - 2:06d}"] == pytest.approx(1000.0)
+            continue
+        assert ref[nxt] - ref[name] == pytest.approx(period)
+        moved = gt.T_ref_board_at(name, period / 1000.0)
+        assert np.allclose(moved, gt.T_ref_board[nxt], atol=1e-9)
+        a = gt.board_a_mps2[name]
+        assert np.linalg.norm(a) == pytest.approx(1.0)
+        assert np.allclose(gt.board_v_mps[nxt] - gt.board_v_mps[name], a * period / 1000.0)
+        assert np.degrees(np.linalg.norm(gt.board_alpha_radps2[name])) == pytest.approx(100.0)
+    assert np.linalg.norm(gt.board_v_mps["000001"]) == pytest.approx(0.3)  # the middle's speed
 
 
 def test_a_still_render_has_no_timestamps(tmp_path):

@@ -126,8 +126,22 @@ ROLLING_SHUTTER_OPTION = typer.Option(
 TIMESTAMP_JITTER_OPTION = typer.Option(
     metavar="MS",
     help="with a time option on, each camera's timestamps.csv stamps its frames at "
-    "t_f + offset + a Gaussian error of sigma MS ms (frame sets 1000/30 ms apart); "
+    "t_f + offset + a Gaussian error of sigma MS ms (board positions 1 s apart, a burst's "
+    "frame sets 1000/30 ms); "
     "ground_truth.yaml keeps the exact offsets.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+BURST_OPTION = typer.Option(
+    metavar="N",
+    help="a continuous recording: each board position held for N consecutive frame sets at "
+    "30 fps, the board moving along one trajectory through them (with --motion), as a video "
+    "kept whole around each pose; timestamps.csv says so (positions 1 s apart).",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+ACCELERATION_OPTION = typer.Option(
+    metavar="MPS2 DPS2",
+    help="the board accelerates along its trajectory as a hand moves it: MPS2 m/s^2 in a "
+    "seeded direction and DPS2 deg/s^2 about its turn axis, per position (e.g. 1 100).",
     rich_help_panel=IMPERFECTIONS_PANEL,
 )
 DEPTH_OFFSET_OPTION = typer.Option(
@@ -216,6 +230,8 @@ def synth(
     sync_offset_ms: Annotated[float, SYNC_OFFSET_OPTION] = 0.0,
     rolling_shutter_ms: Annotated[float, ROLLING_SHUTTER_OPTION] = 0.0,
     timestamp_jitter_ms: Annotated[float, TIMESTAMP_JITTER_OPTION] = 0.5,
+    burst: Annotated[int, BURST_OPTION] = 1,
+    acceleration: Annotated[tuple[float, float], ACCELERATION_OPTION] = (0.0, 0.0),
 ) -> None:
     """Render a synthetic RGB-D rig with ground truth (dataset folder + ground_truth.yaml).
 
@@ -252,11 +268,14 @@ def synth(
         sync_offset_ms=sync_offset_ms,
         rolling_shutter_ms=rolling_shutter_ms,
         timestamp_jitter_ms=timestamp_jitter_ms,
+        burst=burst,
+        acceleration=acceleration,
     )
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
         ds = synthesize(out, layout, frames, seed, b, params, workers, progress=progress)
     extra = f" + {closeups} close-ups per camera" if closeups else ""
+    extra += f", each {burst} consecutive frame sets" if burst > 1 else ""
     console.print(f"wrote {len(ds.rig.cameras)} cameras x {frames} frames{extra} to {ds.path}")
 
 

@@ -77,17 +77,24 @@ def rotvec_to_matrix(rotvec: ArrayLike) -> Array:
 
 
 def pose_after_twist(T_a_b: ArrayLike, v_mps: ArrayLike, w_radps: ArrayLike,
-                     tau_s: float) -> Array:
+                     tau_s: float, a_mps2: ArrayLike | None = None,
+                     alpha_radps2: ArrayLike | None = None) -> Array:
     """``T_a_b`` (4x4, metres) ``tau_s`` seconds later under the constant twist ``v_mps``,
     ``w_radps`` (both in frame ``a``; rotation about ``b``'s origin):
-    ``[Exp_SO3(w tau) R | p + v tau]`` (docs/conventions.md, "Time"). With a zero ``tau_s``
-    or twist, ``T_a_b`` itself."""
+    ``[Exp_SO3(w tau) R | p + v tau]`` (docs/conventions.md, "Time"). With the constant
+    accelerations ``a_mps2`` and ``alpha_radps2`` (frame ``a``; ``alpha`` parallel to ``w``, so
+    the turn keeps its axis and the exponent is exact):
+    ``[Exp_SO3(w tau + alpha tau^2 / 2) R | p + v tau + a tau^2 / 2]``. With a zero ``tau_s``
+    or motion, ``T_a_b`` itself."""
     v, w = np.asarray(v_mps, float), np.asarray(w_radps, float)
-    if tau_s == 0 or (not np.any(v) and not np.any(w)):
+    a = np.zeros(3) if a_mps2 is None else np.asarray(a_mps2, float)
+    alpha = np.zeros(3) if alpha_radps2 is None else np.asarray(alpha_radps2, float)
+    if tau_s == 0 or not (np.any(v) or np.any(w) or np.any(a) or np.any(alpha)):
         return T_a_b
     T_a_b = np.asarray(T_a_b, dtype=float)
-    R = rotvec_to_matrix(w * tau_s) @ T_a_b[:3, :3]
-    return make_transform(R, T_a_b[:3, 3] + v * tau_s)
+    half = 0.5 * tau_s * tau_s
+    R = rotvec_to_matrix(w * tau_s + alpha * half) @ T_a_b[:3, :3]
+    return make_transform(R, T_a_b[:3, 3] + v * tau_s + a * half)
 
 
 def matrix_to_rotvec(R: ArrayLike) -> Array:

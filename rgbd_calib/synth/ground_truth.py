@@ -19,7 +19,8 @@ from .params import SynthCamera, SynthParams, SynthRig
 from .timing import SynthTiming, row_time_s
 
 # listed only when a time setting is on
-TIME_PARAMS = ("motion", "sync_offset_ms", "rolling_shutter_ms", "timestamp_jitter_ms")
+TIME_PARAMS = ("motion", "sync_offset_ms", "rolling_shutter_ms", "timestamp_jitter_ms", "burst",
+               "acceleration")
 # listed only when a depth error beyond depth_bias is on
 DEPTH_ERROR_PARAMS = ("depth_disparity_offset_px", "depth_disparity_field_px",
                       "depth_pose_error")
@@ -47,6 +48,7 @@ def write_ground_truth(
     not the identity, the depth-error settings only when one of them is on."""
     T_world_ref = rig.cameras[rig.reference_index].T_world_cam
     T_ref_world = invert_transform(T_world_ref)
+    burst = 1 if timing is None else timing.burst
     write_yaml(
         path,
         {
@@ -72,8 +74,8 @@ def write_ground_truth(
                 and (params.depth_errors or k not in DEPTH_ERROR_PARAMS)
             },
             "bumped": {name: {"mm": mm, "deg": deg} for name, mm, deg in params.bump},
-            "closeups": {f"{n_frames + i:06d}": name
-                         for i, (name, _) in enumerate(closeups)},
+            "closeups": {f"{(n_frames + i) * burst + k:06d}": name
+                         for i, (name, _) in enumerate(closeups) for k in range(burst)},
             **({} if timing is None else {"time": _time_section(rig, timing)}),
             **_depth_model_section(rig),
         },
@@ -98,14 +100,21 @@ def _true_model(cam: SynthCamera) -> DepthModel:
 
 def _time_section(rig: SynthRig, timing: SynthTiming) -> dict:
     """``time:``: per camera its clock offset and colour readout (ms), per frame set the
-    board's twist in the reference frame (m/s, rad/s); the convention is :mod:`.timing`'s."""
+    board's twist in the reference frame (m/s, rad/s), with its accelerations (m/s^2, rad/s^2)
+    when it accelerates and its nominal time ``t_ms``; the convention is :mod:`.timing`'s."""
+
+    def motion(i: int) -> dict:
+        out = {"v_mps": [float(x) for x in timing.v_mps[i]],
+               "w_radps": [float(x) for x in timing.w_radps[i]]}
+        if np.any(timing.a_mps2[i]) or np.any(timing.alpha_radps2[i]):
+            out |= {"a_mps2": [float(x) for x in timing.a_mps2[i]],
+                    "alpha_radps2": [float(x) for x in timing.alpha_radps2[i]]}
+        return out | {"t_ms": float(timing.t_ms[i])}
+
     return {
         "offset_ms": {c.name: 1000.0 * t for c, t in zip(rig.cameras, timing.offset_s)},
         "readout_ms": {c.name: 1000.0 * t for c, t in zip(rig.cameras, timing.readout_s)},
-        "board_twist": {
-            f"{i:06d}": {"v_mps": [float(x) for x in v], "w_radps": [float(x) for x in w]}
-            for i, (v, w) in enumerate(zip(timing.v_mps, timing.w_radps))
-        },
+        "board_twist": {f"{i:06d}": motion(i) for i in range(len(timing.v_mps))},
     }
 
 
@@ -149,14 +158,19 @@ class GroundTruth:
     readout_ms: dict[str, float] = field(default_factory=dict)  # camera -> colour readout
     board_v_mps: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> v (ref frame)
     board_w_radps: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> w (ref)
+    board_a_mps2: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> a (ref)
+    board_alpha_radps2: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> alpha
     depth_model: dict[str, DepthModel] = field(default_factory=dict)  # camera -> true model
 
     def T_ref_board_at(self, frame: str, tau_s: float) -> np.ndarray:
         """The board pose (4x4, metres, reference frame) ``tau_s`` seconds after frame set
-        ``frame``'s nominal time: ``[Exp_SO3(w tau) R | p + v tau]``."""
+        ``frame``'s nominal time: ``[Exp_SO3(w tau + alpha tau^2 / 2) R | p + v tau +
+        a tau^2 / 2]``."""
         zero = np.zeros(3)
         return pose_after_twist(self.T_ref_board[frame], self.board_v_mps.get(frame, zero),
-                             self.board_w_radps.get(frame, zero), tau_s)
+                                self.board_w_radps.get(frame, zero), tau_s,
+                                self.board_a_mps2.get(frame, zero),
+                                self.board_alpha_radps2.get(frame, zero))
 
     def exposure_tau_s(self, camera: str, v_px: float | np.ndarray, height: int):
         """When ``camera``'s colour pixel row ``v_px`` (0 = top) of an image ``height`` rows
@@ -191,7 +205,7 @@ def load_ground_truth(path: Path) -> GroundTruth:
 
     def per_frame(key: str) -> dict[str, np.ndarray]:
         values = {str(k): _vector3(v.get(key), f"{path}: time.board_twist.{k}.{key}")
-                  for k, v in twist.items()}
+                  for k, v in twist.items() if key in v or key in ("v_mps", "w_radps")}
         return {f: values.get(f, np.zeros(3)) for f in frames}
 
     return GroundTruth(
@@ -215,6 +229,8 @@ def load_ground_truth(path: Path) -> GroundTruth:
         per_camera("readout_ms"),
         per_frame("v_mps"),
         per_frame("w_radps"),
+        per_frame("a_mps2"),
+        per_frame("alpha_radps2"),
         {str(k): DepthModel.from_dict(v, f"{path}: depth_model.{k}")
          for k, v in (data.get("depth_model") or {}).items()},
     )

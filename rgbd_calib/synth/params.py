@@ -65,6 +65,11 @@ class SynthParams:
     # a timed render's timestamps.csv: each stamp's error (Gaussian sigma, ms); the truth in
     # ground_truth.yaml stays exact
     timestamp_jitter_ms: float = 0.5
+    # a continuous recording: each board position held for `burst` consecutive frame sets at
+    # 30 fps, the board moving along one trajectory with the constant linear and angular
+    # acceleration `acceleration` (m/s^2, deg/s^2; seeded directions) (docs/synthetic.md)
+    burst: int = 1
+    acceleration: tuple[float, float] = (0.0, 0.0)
 
     @property
     def depth_errors(self) -> bool:
@@ -76,7 +81,9 @@ class SynthParams:
     @property
     def timed(self) -> bool:
         """Whether any of the time settings is on (the render then has a ``time:`` truth)."""
-        return any(x != 0 for x in (*self.motion, self.sync_offset_ms, self.rolling_shutter_ms))
+        return self.burst > 1 or any(x != 0 for x in (*self.motion, self.sync_offset_ms,
+                                                      self.rolling_shutter_ms,
+                                                      *self.acceleration))
 
 
 def check_params(params: SynthParams) -> None:
@@ -115,6 +122,13 @@ def check_params(params: SynthParams) -> None:
     if not (0 <= params.rolling_shutter_ms <= 100):
         raise ConfigError(f"--rolling-shutter-ms {params.rolling_shutter_ms}: give a colour "
                           "readout time (first to last row) of 0-100 ms")
+    if not (1 <= params.burst <= 30):
+        raise ConfigError(f"--burst {params.burst}: give 1-30 consecutive frame sets per "
+                          "board position")
+    accel_mps2, accel_dps2 = params.acceleration
+    if not (0 <= accel_mps2 <= 30 and 0 <= accel_dps2 <= 3000):
+        raise ConfigError(f"--acceleration {accel_mps2} {accel_dps2}: give 0-30 m/s^2 and "
+                          "0-3000 deg/s^2")
     if not (0 <= params.timestamp_jitter_ms <= 50):
         raise ConfigError(f"--timestamp-jitter-ms {params.timestamp_jitter_ms}: give a "
                           "timestamp error (sigma) of 0-50 ms")

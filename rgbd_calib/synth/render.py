@@ -165,7 +165,8 @@ def _pose_at(rig: SynthRig, timing: SynthTiming, index: int, T_cam_world: np.nda
     T_ref_board = invert_transform(T_world_ref) @ T_world_board
     T_cam_ref = T_cam_world @ T_world_ref
     v, w = timing.v_mps[index], timing.w_radps[index]
-    return lambda tau_s: T_cam_ref @ pose_after_twist(T_ref_board, v, w, tau_s)
+    a, alpha = timing.a_mps2[index], timing.alpha_radps2[index]
+    return lambda tau_s: T_cam_ref @ pose_after_twist(T_ref_board, v, w, tau_s, a, alpha)
 
 
 @dataclass(frozen=True)
@@ -208,6 +209,11 @@ def synthesize(
                              np.random.default_rng([seed, CLOSEUP_STREAM]))
     poses += [T for _, T in closeups]  # after the regular frames, which stay as without them
     timing = draw_timing(rig, len(poses), seed, params) if params.timed else None
+    if timing is not None and timing.burst > 1:  # each position -> its burst's frame sets
+        T_world_ref = rig.cameras[rig.reference_index].T_world_cam
+        T_ref_world = invert_transform(T_world_ref)
+        poses = [T_world_ref @ timing.T_ref_board(f, T_ref_world @ poses[f // timing.burst])
+                 for f in range(len(poses) * timing.burst)]
     with staged_folder(out) as tmp:
         writer = FolderWriter(
             tmp, Rig({c.name: c.rig_intrinsics for c in rig.cameras}, rig.reference)
