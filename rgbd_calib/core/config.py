@@ -511,6 +511,14 @@ class BundleConfig(BaseModel):
         "spread, and the sigmas claim several times the error (race, 0.1 m/s, global "
         "shutter: RMS error/sigma 0.15)"
     )
+    time_link_ms: float = Field(
+        100.0, ge=0, description="frame sets of a continuous recording no further apart than "
+        "this (ms, from the timestamps) are tied by a motion prior (the board's twist changes "
+        "smoothly: white-noise acceleration, its scale estimated from the data; rgbd_calib/"
+        "solve/time_model.py MotionPrior): consecutive frames then measure the board's "
+        "motion, which makes clock offsets with a global shutter and a readout between "
+        "synchronised cameras observable; 0: never"
+    )
 
     @model_validator(mode="after")
     def _known_intrinsics(self) -> BundleConfig:

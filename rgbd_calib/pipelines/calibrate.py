@@ -57,7 +57,7 @@ from ..solve.pose import DROP_ADVICE, BoardObservation, RejectedView, board_pose
 from ..solve.posegraph import PoseGraphResult, calibrate_pose_graph
 from ..solve.selfcal import SelfCalibration
 from ..solve.stillness import SetMotion, board_motion
-from ..solve.time_model import capture_offsets
+from ..solve.time_model import capture_offsets, set_times_ms
 from ..sources.cache import open_dataset
 
 # detections with the refined lens: at most this many passes, another one while some
@@ -216,7 +216,7 @@ def _bundle(run: _Run, pg: PoseGraphResult, views: _Views) -> _Solved:
     with timed(run.timings, "bundle"):
         bundle, problem, ladder = self_calibrated_bundle(
             views.observations, pg, run.rig, run.board, config.bundle, run.fixed_cameras,
-            run.progress, _capture_ms(run))
+            run.progress, _capture_ms(run), _set_ms(run))
     solved = _Solved(views, {}, {}, bundle, problem, ladder)
     lens_refined = (ladder.chosen.distortion if ladder is not None
                     else _refines_distortion(config.bundle))
@@ -348,6 +348,12 @@ def _capture_ms(run: _Run) -> dict[tuple[str, str], float]:
     """Each view's capture time after its set's reference view (ms; from timestamps.csv)."""
     return capture_offsets({c: run.dataset.timestamps_ms(c) for c in run.rig.names},
                            run.rig.reference)
+
+
+def _set_ms(run: _Run) -> dict[str, float]:
+    """Each frame set's time on the reference camera's clock (ms; from timestamps.csv)."""
+    return set_times_ms({c: run.dataset.timestamps_ms(c) for c in run.rig.names},
+                        run.rig.reference)
 
 
 def _motion(run: _Run, pg: PoseGraphResult, views: _Views,

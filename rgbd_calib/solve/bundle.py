@@ -46,13 +46,17 @@ from .bundle_factors import (
 from .posegraph import sigmas_from_covariance
 from .time_model import (
     READOUT_INIT_MS,
+    MotionPrior,
     TimeModel,
     TimePrior,
     TwistPrior,
+    motion_link_factor,
+    motion_links,
     project_timed,
     row_fraction,
     time_prior,
     timed_view_factor,
+    twist_from_poses,
     twist_prior,
 )
 
@@ -141,6 +145,9 @@ class BundleProblem:
     # the priors of the cameras' [offset, readout] (default: weak, TimePrior())
     capture_ms: dict[tuple[str, str], float] | None = None
     time_priors: dict[str, TimePrior] | None = None
+    # the time model: each frame set's nominal time (ms, from timestamps): consecutive sets
+    # of a continuous recording are tied by the motion prior (time_model.motion_links)
+    set_ms: dict[str, float] | None = None
 
 
 def intrinsics_vector(base: CameraIntrinsics, names: tuple[str, ...]) -> np.ndarray:
@@ -290,6 +297,8 @@ class _FactorLayout:
     capture_ms: dict[tuple[str, str], float] = field(default_factory=dict)
     heights: dict[str, int] = field(default_factory=dict)
     twist_sigma: TwistPrior | None = None  # the twist prior estimated from the data
+    links: tuple[tuple[str, str, float], ...] = ()  # (set, next set, dt_s): motion prior
+    motion_prior: MotionPrior = MotionPrior()  # its scale (estimated from the data)
 
     @property
     def timed(self) -> bool:
@@ -371,7 +380,8 @@ def _factor_layout(problem: BundleProblem) -> tuple[
                   "time_priors": {c: (problem.time_priors or {}).get(c, TimePrior())
                                   for c in cams},
                   "capture_ms": dict(problem.capture_ms or {}),
-                  "heights": {c: intrinsics[c].height for c in cams if c in intrinsics}}
+                  "heights": {c: intrinsics[c].height for c in cams if c in intrinsics},
+                  "links": motion_links(problem.set_ms or {}, views, config.time_link_ms)}
         kept = [m for m in kept if m.camera in intrinsics]
     layout = _FactorLayout(config, problem.K, cam_key, view_key, intr_key, intrinsics, names,
                            x0, prior_intr, fixed, problem.relative_poses, tuple(moving), refine,
@@ -469,9 +479,36 @@ def _twist_prior_from_data(layout: _FactorLayout, solution: _Solution, sigma: fl
         sigma_w, sigma_v = np.sqrt(second[:, :3].mean()), np.sqrt(second[:, 3:].mean())
         layout = replace(layout, twist_sigma=TwistPrior(
             sigma_mps=max(float(sigma_v), TWIST_FLOOR.sigma_mps),
-            sigma_dps=max(float(np.degrees(sigma_w)), TWIST_FLOOR.sigma_dps)))
+            sigma_dps=max(float(np.degrees(sigma_w)), TWIST_FLOOR.sigma_dps)),
+            motion_prior=_motion_prior_from_data(layout, solution.values, marginals))
         solution = _solve_at_sigma(layout, solution, sigma, params)
     return layout, solution
+
+
+MOTION_FLOOR = MotionPrior(q_mps=0.01, q_dps=1.0)  # a board moved at a steady pace
+
+
+def _motion_prior_from_data(layout: _FactorLayout, values: gtsam.Values,
+                            marginals: gtsam.Marginals) -> MotionPrior:
+    """The motion prior's scale from the linked sets' twist changes (the EM update, as
+    :func:`_twist_prior_from_data`'s: per axis ``(change^2 + its marginal variance) / dt``,
+    averaged over links, linear and angular parts apart, floored at :data:`MOTION_FLOOR`);
+    ``layout``'s own without links."""
+    rows = []
+    for f, g, dt_s in layout.links:
+        kf, kg = layout.twist_key[f], layout.twist_key[g]
+        if not (values.exists(kf) and values.exists(kg)):
+            continue
+        d = values.atVector(kg) - values.atVector(kf)
+        C = marginals.jointMarginalCovariance([kf, kg]).fullMatrix()
+        var = np.diag(C[:6, :6]) + np.diag(C[6:, 6:]) - 2.0 * np.diag(C[:6, 6:])
+        rows.append((d**2 + var) / dt_s)
+    if not rows:
+        return layout.motion_prior
+    second = np.array(rows)
+    return MotionPrior(q_mps=max(float(np.sqrt(second[:, 3:].mean())), MOTION_FLOOR.q_mps),
+                       q_dps=max(float(np.degrees(np.sqrt(second[:, :3].mean()))),
+                                 MOTION_FLOOR.q_dps))
 
 
 def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_marg: float,
@@ -552,8 +589,13 @@ def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
             graph.add(time_prior(p.time_key[c], p.time_priors[c], c == p.reference))
         twist_sigma = p.twist_sigma or TwistPrior(config.time_twist_sigma_mps,
                                                   config.time_twist_sigma_dps)
-        for v in dict.fromkeys(g.view for g in groups):
+        seen = dict.fromkeys(g.view for g in groups)
+        for v in seen:
             graph.add(twist_prior(p.twist_key[v], twist_sigma))
+        for f, g, dt_s in p.links:
+            if f in seen and g in seen:
+                graph.add(motion_link_factor(p.view_key[f], p.twist_key[f], p.view_key[g],
+                                             p.twist_key[g], dt_s, p.motion_prior))
     return graph
 
 
@@ -580,9 +622,15 @@ def _initial_values(p: _FactorLayout, init_T_ref_cam: dict[str, np.ndarray],
             free = prior.readout_sigma_ms > READOUT_INIT_MS  # not a known or held readout
             readout = prior.readout_ms or (READOUT_INIT_MS if free else 0.0)
             values.insert(k, np.array([0.0 if c == p.reference else prior.offset_ms, readout]))
+    starts: dict[str, list[np.ndarray]] = {}  # linked sets: the twist between their poses
+    for f, g, dt_s in p.links:
+        if f in init_T_ref_board and g in init_T_ref_board:
+            x = twist_from_poses(init_T_ref_board[f], init_T_ref_board[g], dt_s)
+            starts.setdefault(f, []).append(x)
+            starts.setdefault(g, []).append(x)
     for v, k in p.twist_key.items():
         if values.exists(p.view_key[v]):
-            values.insert(k, np.zeros(6))
+            values.insert(k, np.mean(starts[v], axis=0) if v in starts else np.zeros(6))
     return values
 
 

@@ -69,20 +69,24 @@ def bundle_problem(measurements: list[MarkerMeasurement], rig: Rig, board: Board
                    T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, np.ndarray],
                    config: BundleConfig,
                    fixed_cameras: dict[str, np.ndarray] | None = None,
-                   capture_ms: dict[tuple[str, str], float] | None = None) -> BundleProblem:
+                   capture_ms: dict[tuple[str, str], float] | None = None,
+                   set_ms: dict[str, float] | None = None) -> BundleProblem:
     """The bundle adjustment of ``measurements`` with ``rig``'s cameras (their pinhole
     matrices, and their models as the priors of refined intrinsics and their image heights for
     the time model) and ``board``'s back sheet or faces, started at ``T_ref_cam`` /
     ``T_ref_board`` (4x4, m); ``capture_ms`` the views' capture times from the cameras'
     timestamps (:func:`~rgbd_calib.solve.time_model.capture_offsets`), which anchor the time
-    model's offsets (``config.time_offset_sigma_ms``)."""
+    model's offsets (``config.time_offset_sigma_ms``); ``set_ms`` each frame set's time on the
+    reference's clock (:func:`~rgbd_calib.solve.time_model.set_times_ms`), which ties
+    consecutive sets by the motion prior."""
     capture_ms = capture_ms or {}
     return BundleProblem(measurements, camera_matrices(rig), rig.reference, T_ref_cam,
                          T_ref_board, config, fixed_cameras, intrinsics=rig.cameras,
                          back_centre=back_centre(board), face_frames=face_frames(board),
                          capture_ms=capture_ms,
                          time_priors=anchored_priors(rig.names, capture_ms,
-                                                     config.time_offset_sigma_ms))
+                                                     config.time_offset_sigma_ms),
+                         set_ms=set_ms)
 
 
 def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:
@@ -241,6 +245,7 @@ class _Ladder:
     fixed_cameras: dict[str, np.ndarray] | None
     tick: Tick
     capture_ms: dict[tuple[str, str], float] | None = None
+    set_ms: dict[str, float] | None = None
 
     def solve(self, level: BundleConfig, init_cam: dict[str, np.ndarray],
               init_board: dict[str, np.ndarray],
@@ -257,7 +262,7 @@ class _Ladder:
                                    keep_outlier_views=freed,
                                    boards=init_board if refined else None)
         problem = bundle_problem(meas, self.rig, self.board, init_cam, init_board, level,
-                                 self.fixed_cameras, self.capture_ms)
+                                 self.fixed_cameras, self.capture_ms, self.set_ms)
         return bundle_sound_first(problem, self.pg.model_error), problem
 
 
@@ -281,6 +286,7 @@ def self_calibrated_bundle(
     fixed_cameras: dict[str, np.ndarray] | None = None,
     progress: Progress | None = None,
     capture_ms: dict[tuple[str, str], float] | None = None,
+    set_ms: dict[str, float] | None = None,
 ) -> tuple[BundleResult, BundleProblem, selfcal.SelfCalibration | None]:
     """The bundle adjustment with ``config``'s board and intrinsics models.
 
@@ -290,9 +296,11 @@ def self_calibrated_bundle(
     markers better than its extra parameters cost (BIC). Returns the chosen solve, its problem
     (measurements and the explicit config it was solved with, for the later solves) and the
     ladder (None for explicit modes). ``capture_ms``: the views' capture times from the
-    cameras' timestamps, for the time model (:func:`bundle_problem`)."""
+    cameras' timestamps, and ``set_ms`` the frame sets' times, for the time model
+    (:func:`bundle_problem`)."""
     ladder = _Ladder(observations, pg, rig, board, fixed_cameras,
-                     start(progress, "bundle adjustment (models solved)", None), capture_ms)
+                     start(progress, "bundle adjustment (models solved)", None), capture_ms,
+                     set_ms)
     if not selfcal.is_auto(config):
         result, problem = ladder.solve(config, pg.T_ref_cam, pg.T_ref_board,
                                        "refine" in (config.board, config.time))

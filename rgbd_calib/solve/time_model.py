@@ -327,6 +327,112 @@ def anchored_priors(cameras: Collection[str], capture_ms: dict[tuple[str, str], 
             for c in cameras}
 
 
+MAX_LINK_MS = 100.0  # consecutive frame sets further apart are not linked by the motion prior
+
+
+@dataclass(frozen=True)
+class MotionPrior:
+    """The board's motion between consecutive frame sets of a continuous recording: white
+    noise on its acceleration (Barfoot, State Estimation for Robotics, 11.3: the constant-
+    velocity Gaussian-process prior), so over ``dt`` seconds the twist changes by a Gaussian of
+    variance ``q^2 dt`` per axis and the pose follows the twist. ``q_mps``: m/s per sqrt(s)
+    (linear), ``q_dps``: deg/s per sqrt(s) (angular). A hand changes a board's speed by about
+    0.1 m/s in a frame period: 0.5 m/s/sqrt(s); estimated from the data by default."""
+
+    q_mps: float = 0.5
+    q_dps: float = 50.0
+
+
+def set_times_ms(timestamps: dict[str, dict[str, float] | None],
+                 reference: str) -> dict[str, float]:
+    """Each frame set's nominal time on the reference camera's clock (ms): the reference's
+    stamp where it has the set, else another stamped camera's minus that camera's median
+    difference to the reference (the median over such cameras). Empty when the reference
+    has no timestamps."""
+    ref = timestamps.get(reference)
+    if not ref:
+        return {}
+    shift = {}
+    for c, times in timestamps.items():
+        common = [times[f] - ref[f] for f in (times or {}) if f in ref]
+        if common:
+            shift[c] = float(np.median(common))
+    out = dict(ref)
+    others: dict[str, list[float]] = {}
+    for c, times in timestamps.items():
+        if c == reference or c not in shift:
+            continue
+        for f, t in (times or {}).items():
+            if f not in ref:
+                others.setdefault(f, []).append(t - shift[c])
+    return out | {f: float(np.median(ts)) for f, ts in others.items()}
+
+
+def motion_links(set_ms: dict[str, float], views: Collection[str],
+                 max_ms: float = MAX_LINK_MS) -> tuple[tuple[str, str, float], ...]:
+    """``(view, next view, dt_s)`` for every two of ``views`` consecutive in time no more
+    than ``max_ms`` apart: the frame sets of a continuous recording the motion prior ties."""
+    timed = sorted((set_ms[v], v) for v in views if v in set_ms)
+    return tuple((f, g, (tg - tf) * MS) for (tf, f), (tg, g) in zip(timed, timed[1:])
+                 if 0.0 < tg - tf <= max_ms)
+
+
+def _so3_right_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
+    """``J_r^-1(phi)`` (3x3): ``Log(Exp(phi) Exp(d)) = phi + J_r^-1(phi) d`` to first order."""
+    t = float(np.linalg.norm(phi))
+    S = _skew_stack(phi[None])[0]
+    if t < 1e-6:
+        return np.eye(3) + 0.5 * S + S @ S / 12.0
+    c = 1.0 / t**2 - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t))
+    return np.eye(3) + 0.5 * S + c * (S @ S)
+
+
+def motion_link_factor(key_board_f: int, key_twist_f: int, key_board_g: int, key_twist_g: int,
+                       dt_s: float, prior: MotionPrior = MotionPrior()) -> gtsam.CustomFactor:
+    """The motion prior between frame sets ``f`` and ``g`` = f + ``dt_s`` of a continuous
+    recording (:class:`MotionPrior`): errors ``Log(R_g R_f^T) - w_f dt``, ``p_g - p_f -
+    v_f dt``, ``w_g - w_f``, ``v_g - v_f`` (the module's twist convention), under the
+    constant-velocity prior's covariance ``q^2 [[dt^3/3, dt^2/2], [dt^2/2, dt]]`` per axis
+    between each pose error and its twist's change. Analytic Jacobians (board poses: GTSAM's
+    right perturbation ``[dw, dv]``)."""
+    qw2, qv2 = np.radians(prior.q_dps) ** 2, prior.q_mps**2
+    block = np.array([[dt_s**3 / 3.0, dt_s**2 / 2.0], [dt_s**2 / 2.0, dt_s]])
+    cov = np.zeros((12, 12))
+    for axis in range(3):  # error rows: rot 0-2, pos 3-5, dw 6-8, dv 9-11
+        for q2, (i, j) in ((qw2, (axis, 6 + axis)), (qv2, (3 + axis, 9 + axis))):
+            cov[np.ix_([i, j], [i, j])] = q2 * block
+    noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+    eye = np.eye(3)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
+        Tf, Tg = values.atPose3(key_board_f).matrix(), values.atPose3(key_board_g).matrix()
+        xf, xg = values.atVector(key_twist_f), values.atVector(key_twist_g)
+        Rf, Rg = Tf[:3, :3], Tg[:3, :3]
+        phi = gtsam.Rot3.Logmap(gtsam.Rot3(Rg @ Rf.T))
+        e = np.concatenate([phi - dt_s * xf[:3], Tg[:3, 3] - Tf[:3, 3] - dt_s * xf[3:],
+                            xg - xf])
+        if H is not None:
+            Jinv = _so3_right_jacobian_inverse(phi)
+            Hf, Hg = np.zeros((12, 6)), np.zeros((12, 6))
+            Hf[:3, :3], Hg[:3, :3] = -Jinv @ Rf, Jinv @ Rf
+            Hf[3:6, 3:], Hg[3:6, 3:] = -Rf, Rg
+            Hwf, Hwg = np.zeros((12, 6)), np.zeros((12, 6))
+            Hwf[:3, :3], Hwf[3:6, 3:] = -dt_s * eye, -dt_s * eye
+            Hwf[6:, :], Hwg[6:, :] = -np.eye(6), np.eye(6)
+            H[0], H[1], H[2], H[3] = Hf, Hwf, Hg, Hwg
+        return e
+
+    return gtsam.CustomFactor(noise, [key_board_f, key_twist_f, key_board_g, key_twist_g],
+                              error)
+
+
+def twist_from_poses(T_f: np.ndarray, T_g: np.ndarray, dt_s: float) -> np.ndarray:
+    """The twist ``[w, v]`` that moves ``T_f`` to ``T_g`` in ``dt_s`` (the module's
+    convention): a starting value for a linked set's twist."""
+    phi = gtsam.Rot3.Logmap(gtsam.Rot3(T_g[:3, :3] @ T_f[:3, :3].T))
+    return np.concatenate([phi, T_g[:3, 3] - T_f[:3, 3]]) / dt_s
+
+
 @dataclass(frozen=True)
 class TimeModel:
     """The bundle adjustment's time estimates (``bundle.time: refine``).
