@@ -36,9 +36,12 @@ from rgbd_calib.solve.bundle import BundleProblem, MarkerMeasurement, bundle_adj
 from rgbd_calib.solve.time_model import (
     MotionPrior,
     TimePrior,
+    acceleration_stencils,
     motion_link_factor,
     motion_links,
+    project_timed,
     set_times_ms,
+    timed_view_factor,
 )
 
 FRAME_S = 1.0 / 30.0
@@ -63,6 +66,64 @@ def test_the_link_factor_jacobians_match_central_differences():
         np.testing.assert_allclose(A[:, col:col + 6], whitened, rtol=1e-5,
                                    atol=1e-5 * np.abs(whitened).max(), err_msg=f"key {key}")
         col += 6
+
+
+def test_an_accelerating_board_projects_where_it_was():
+    """``project_timed`` with an acceleration puts each corner where the constant-acceleration
+    trajectory (``pose_after_twist`` with ``a`` and ``alpha`` along the turn) had it at the
+    corner's own time (offset + readout x row), to 1e-9 px."""
+    T_cam = make_transform(rotvec_to_matrix([0.1, -0.2, 0.05]), [0.3, 0.1, -0.2])
+    T_board = make_transform(rotvec_to_matrix([np.pi + 0.2, 0.1, -0.3]), [-0.2, -0.1, 1.3])
+    w, v = np.array([0.3, -0.2, 0.4]), np.array([0.2, 0.1, -0.25])
+    alpha, a = 2.0 * w, np.array([1.0, -0.5, 0.3])
+    P_b = board_points().reshape(-1, 3)
+    s_row = np.linspace(0.0, 1.0, len(P_b))
+    time_ms = np.array([-14.0, 25.0])
+    uv = project_timed(T_cam, T_board, np.r_[w, v], time_ms, K, P_b, s_row, False,
+                       accel=np.r_[alpha, a])[0]
+    for i, (P, s) in enumerate(zip(P_b, s_row)):
+        tau = 1e-3 * (time_ms[0] + time_ms[1] * s)
+        T = pose_after_twist(T_board, v, w, tau, a, alpha)
+        p = invert_transform(T_cam) @ T @ np.r_[P, 1.0]
+        expected = (K @ p[:3])[:2] / p[2]
+        np.testing.assert_allclose(uv[i], expected, atol=1e-9)
+
+
+def test_the_view_factor_jacobians_with_an_acceleration_stencil(rng):
+    """A view factor whose acceleration is a central difference of its neighbours' twists
+    (and a one-sided one including its own): every block, the stencil's twists included,
+    equals central differences of the error."""
+    from test_time_model import _factor_values
+    values = _factor_values(rng)
+    values.insert(5, values.atVector(3) + rng.normal(0, 0.05, 6))
+    values.insert(6, values.atVector(3) + rng.normal(0, 0.05, 6))
+    obj = board_points()
+    px = project_timed(values.atPose3(1).matrix(), values.atPose3(2).matrix(),
+                       values.atVector(3), values.atVector(4), K, obj.reshape(-1, 3),
+                       np.zeros(48), False)[0].reshape(-1, 4, 2) + rng.normal(0, 2.0, (12, 4, 2))
+    for stencil in (((6, 15.0), (5, -15.0)), ((6, 30.0), (3, -30.0))):
+        factor = timed_view_factor(1, 2, 3, 4, K, HEIGHT, obj, px, 0.5, "none", 3.0,
+                                   accel=stencil)
+        A, _ = factor.linearize(values).jacobian()
+        keys = [(1, 6, True), (2, 6, True), (3, 6, False), (4, 2, False)]
+        keys += [(k, 6, False) for k, _ in stencil if k != 3]
+        col = 0
+        for key, dim, pose in keys:
+            numeric = _central_differences(factor, values, key, dim, pose, np.full(dim, 1e-6))
+            scale = np.abs(numeric).max()
+            assert scale > 1e-4, f"key {key}: the data do not depend on it"
+            np.testing.assert_allclose(A[:, col:col + dim], numeric, rtol=1e-5,
+                                       atol=1e-5 * scale, err_msg=f"{stencil} key {key}")
+            col += dim
+
+
+def test_acceleration_stencils():
+    links = (("a", "b", 0.03), ("b", "c", 0.04))
+    st = acceleration_stencils(links)
+    assert st["a"] == (("b", 1 / 0.03), ("a", -1 / 0.03))
+    assert st["b"] == (("c", 1 / 0.07), ("a", -1 / 0.07))
+    assert st["c"] == (("c", 1 / 0.04), ("b", -1 / 0.04))
+    assert acceleration_stencils(()) == {}
 
 
 def test_a_constant_twist_trajectory_has_zero_error():

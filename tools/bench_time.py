@@ -2,6 +2,7 @@
 
     python tools/bench_time.py WORKDIR [--layout race] [--frames 20] [--seed 31]
         [--speeds 0 0.1 0.3 0.5] [--offset-ms 16] [--readout-ms 25] [--no-timestamps]
+        [--burst 3 --acceleration 1 100] [--readouts 0 25] [--methods timeless default thesis]
 
 Renders (once, into WORKDIR; reused by later runs) the rig with the board moving at each speed
 (turning at 100 deg/s per m/s), cameras' clocks drawn in +-``--offset-ms`` and, in a second
@@ -12,7 +13,10 @@ auto), the default (``bundle.time: auto``: the evidence ladder decides) and the 
 (tools/peers.py), and prints one markdown table row per render and method: worst camera error
 against ground_truth.yaml, RMS of error/sigma over the non-reference cameras, the model the
 ladder chose, the worst clock-offset and readout errors, and the bundle stage's time.
-``--no-timestamps`` calibrates a copy of each render without its timestamps.csv.
+``--no-timestamps`` calibrates a copy of each render without its timestamps.csv. ``--burst N``
+renders each board position as N consecutive frame sets (a continuous recording, 1/30 s apart)
+with the board accelerating at ``--acceleration`` (m/s^2, deg/s^2) within the burst: the time
+model's motion prior then ties consecutive sets (``bundle.time_link_ms``).
 """
 
 from __future__ import annotations
@@ -38,13 +42,17 @@ DPS_PER_MPS = 100.0  # the board turns at this rate per unit of speed (a hand's 
 
 
 def render(workdir: Path, layout: str, frames: int, seed: int, speed: float, offset_ms: float,
-           readout_ms: float, timestamps: bool) -> Path:
+           readout_ms: float, timestamps: bool, burst: int = 1,
+           acceleration: tuple[float, float] = (0.0, 0.0)) -> Path:
     name = f"{layout}_s{speed:g}_rs{readout_ms:g}_f{frames}_seed{seed}"
+    if burst > 1:
+        name += f"_b{burst}_a{acceleration[0]:g}_{acceleration[1]:g}"
     out = workdir / name
     if not (out / "ground_truth.yaml").exists():
         shutil.rmtree(out, ignore_errors=True)
         params = SynthParams(motion=(speed, DPS_PER_MPS * speed), sync_offset_ms=offset_ms,
-                             rolling_shutter_ms=readout_ms)
+                             rolling_shutter_ms=readout_ms, burst=burst,
+                             acceleration=acceleration if speed else (0.0, 0.0))
         synthesize(out, layout, frames, seed, thesis_board(), params)
     if timestamps:
         return out
@@ -95,26 +103,38 @@ def main() -> None:
     ap.add_argument("--offset-ms", type=float, default=16.0)
     ap.add_argument("--readout-ms", type=float, default=25.0)
     ap.add_argument("--no-timestamps", action="store_true")
+    ap.add_argument("--readouts", type=float, nargs="+", default=None,
+                    help="the readouts to render (ms; default: 0 and --readout-ms)")
+    ap.add_argument("--burst", type=int, default=1)
+    ap.add_argument("--acceleration", type=float, nargs=2, default=[0.0, 0.0],
+                    metavar=("MPS2", "DPS2"))
+    ap.add_argument("--methods", nargs="+", default=["timeless", "default", "thesis"],
+                    choices=["timeless", "default", "thesis"])
     ap.add_argument("--no-thesis", action="store_true")
     args = ap.parse_args()
+    if args.no_thesis and "thesis" in args.methods:
+        args.methods.remove("thesis")
     args.workdir.mkdir(parents=True, exist_ok=True)
     board = thesis_board()
     print(f"{args.layout}, {args.frames} frame sets, seed {args.seed}, offsets in "
-          f"+-{args.offset_ms:g} ms, timestamps {'removed' if args.no_timestamps else 'kept'}")
+          f"+-{args.offset_ms:g} ms, timestamps {'removed' if args.no_timestamps else 'kept'}"
+          + (f", bursts of {args.burst} sets, acceleration {args.acceleration[0]:g} m/s^2 / "
+             f"{args.acceleration[1]:g} deg/s^2" if args.burst > 1 else ""))
     print("| speed, shutter | method | worst mm / deg | RMS err/sigma | model chosen | "
           "offset err ms | readout err ms | bundle s | total s |")
     print("|---|---|---|---|---|---|---|---|---|")
     for speed in args.speeds:
-        for readout in (0.0, args.readout_ms):
+        for readout in (args.readouts if args.readouts is not None else (0.0, args.readout_ms)):
             data = render(args.workdir, args.layout, args.frames, args.seed, speed,
-                          args.offset_ms, readout, not args.no_timestamps)
+                          args.offset_ms, readout, not args.no_timestamps, args.burst,
+                          tuple(args.acceleration))
             label = f"{speed:g} m/s, " + (f"{readout:g} ms rolling" if readout else "global")
             cache = data.parent / (data.name + "_cache")
-            runs = [("timeless", CalibrationConfig(refine="none",
-                                                   bundle=BundleConfig(time="fixed"))),
-                    ("default (time auto)", CalibrationConfig(refine="none"))]
-            if not args.no_thesis:
-                runs.append(("thesis", None))
+            runs = [(m, c) for m, c in
+                    [("timeless", CalibrationConfig(refine="none",
+                                                    bundle=BundleConfig(time="fixed"))),
+                     ("default", CalibrationConfig(refine="none")),
+                     ("thesis", None)] if m in args.methods]
             for method, config in runs:
                 t0 = time.perf_counter()
                 result = (thesis_method(FolderDataset(data), board, cache_dir=cache)

@@ -44,12 +44,14 @@ from .bundle_factors import (
     with_parameters,
 )
 from .posegraph import sigmas_from_covariance
+from .runs import RunCorrelation, recording_runs, run_inflation
 from .time_model import (
     READOUT_INIT_MS,
     MotionPrior,
     TimeModel,
     TimePrior,
     TwistPrior,
+    acceleration_stencils,
     motion_link_factor,
     motion_links,
     project_timed,
@@ -122,6 +124,9 @@ class BundleResult:
     faces: tuple[FaceModel, ...] = ()
     # the time model (config.time == "refine"): clocks, readouts and the board's motion
     time: TimeModel | None = None
+    # consecutive frames of a continuous recording: per camera the correlation of their corner
+    # errors and the variance factor applied to its sigmas (rgbd_calib/solve/runs.py)
+    run_correlation: dict[str, RunCorrelation] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -298,11 +303,26 @@ class _FactorLayout:
     heights: dict[str, int] = field(default_factory=dict)
     twist_sigma: TwistPrior | None = None  # the twist prior estimated from the data
     links: tuple[tuple[str, str, float], ...] = ()  # (set, next set, dt_s): motion prior
+    runs: tuple[tuple[str, ...], ...] = ()  # the continuous stretches (runs.recording_runs)
     motion_prior: MotionPrior = MotionPrior()  # its scale (estimated from the data)
 
     @property
     def timed(self) -> bool:
         return bool(self.time_key)
+
+    @property
+    def stencils(self) -> dict[str, tuple[tuple[str, float], ...]]:
+        """Per linked set, its acceleration from the twists (time_model.acceleration_stencils)."""
+        return acceleration_stencils(self.links)
+
+    def accelerations(self, values: gtsam.Values) -> dict[str, np.ndarray]:
+        """Per linked set with every twist of its stencil in ``values``: its acceleration."""
+        out = {}
+        for v, stencil in self.stencils.items():
+            keys = [(self.twist_key[u], c) for u, c in stencil]
+            if all(values.exists(k) for k, _ in keys):
+                out[v] = sum(c * values.atVector(k) for k, c in keys)
+        return out
 
     def connected(self, values: gtsam.Values) -> set[str]:
         """The cameras with a pose in ``values``."""
@@ -323,15 +343,22 @@ class _FactorLayout:
         return out, sub
 
     def marker_rms(self, groups: list[_ViewGroup], n: int, values: gtsam.Values) -> np.ndarray:
-        """:func:`_marker_rms` through the current models and face poses of ``values``."""
+        """Each marker's RMS corner residual (px): sqrt(mean over the 4 corners of
+        |uv - uv_meas|^2) of :meth:`marker_residuals`."""
+        return np.sqrt(np.mean(np.sum(self.marker_residuals(groups, n, values) ** 2, axis=2),
+                               axis=1))
+
+    def marker_residuals(self, groups: list[_ViewGroup], n: int,
+                         values: gtsam.Values) -> np.ndarray:
+        """:func:`_marker_residuals` through the current models and face poses of ``values``."""
         timing = None
         if self.timed:
             timing = (self.heights, self.capture_ms,
                       {c: values.atVector(k) for c, k in self.time_key.items()
                        if values.exists(k)},
                       {v: values.atVector(k) for v, k in self.twist_key.items()
-                       if values.exists(k)})
-        return _marker_rms(groups, n, values, self.cam_key, self.view_key, self.K,
+                       if values.exists(k)}, self.accelerations(values))
+        return _marker_residuals(groups, n, values, self.cam_key, self.view_key, self.K,
                            _current_models(self, values),
                            moves=[(label, face_transform(values.atPose3(key).matrix(), A))
                                   for key, label, A in self.moving], timing=timing)
@@ -383,6 +410,7 @@ def _factor_layout(problem: BundleProblem) -> tuple[
                   "heights": {c: intrinsics[c].height for c in cams if c in intrinsics},
                   "links": motion_links(problem.set_ms or {}, views, config.time_link_ms)}
         kept = [m for m in kept if m.camera in intrinsics]
+    timing["runs"] = recording_runs(problem.set_ms or {}, views, config.time_link_ms)
     layout = _FactorLayout(config, problem.K, cam_key, view_key, intr_key, intrinsics, names,
                            x0, prior_intr, fixed, problem.relative_poses, tuple(moving), refine,
                            problem.reference, cams, views, **timing)
@@ -523,11 +551,18 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
     marginals = gtsam.Marginals(marg_graph, values)
     out_cam, cov, s_rot, s_trans = _camera_marginals(layout.cams, values, layout.cam_key,
                                                      layout.fixed, marginals)
+    runs = _run_correlation(layout, solution)
+    for c, r in runs.items():
+        if c in cov:
+            cov[c] = cov[c] * r.factor
+            s_rot[c], s_trans[c] = sigmas_from_covariance(out_cam[c], cov[c])
     boards = {v: values.atPose3(layout.view_key[v]).matrix() for v in layout.views
               if values.exists(layout.view_key[v])}
     residuals = [(m.camera, m.view, m.marker_id, r)
                  for m, r in zip(solution.active, solution.rms.tolist())]
     refined, sigma_intr, sigma_prior = _refined_intrinsics(layout, values, marginals)
+    sigma_intr = {c: {k: s * np.sqrt(runs[c].factor) if c in runs else s for k, s in d.items()}
+                  for c, d in sigma_intr.items()}
     if board_model is not None and not board_model.held:
         board_model = replace(board_model, T_front_back=values.atPose3(_BACK_SHEET_KEY).matrix(),
                               covariance=np.asarray(marginals.marginalCovariance(_BACK_SHEET_KEY)))
@@ -539,8 +574,36 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
                         sigma_hat, solution.optimizer.iterations(),
                         solution.graph.error(values), refined, sigma_intr, sigma_prior,
                         board_model, face_models,
-                        _with_prior(clock, layout) if clock is not None
-                        else _time_model(layout, values, marginals))
+                        _inflated(_with_prior(clock, layout) if clock is not None
+                                  else _time_model(layout, values, marginals), runs),
+                        runs)
+
+
+def _stencil_keys(p: _FactorLayout, stencil: tuple[tuple[str, float], ...],
+                  in_graph: set[str]) -> tuple[tuple[int, float], ...]:
+    """A set's acceleration stencil as twist keys, empty unless all its sets are solved."""
+    if not all(u in in_graph for u, _ in stencil):
+        return ()
+    return tuple((p.twist_key[u], c) for u, c in stencil)
+
+
+def _run_correlation(layout: _FactorLayout, solution: _Solution) -> dict[str, RunCorrelation]:
+    """:func:`~rgbd_calib.solve.runs.run_inflation` of the solution's corner residuals over
+    the layout's runs of consecutive frames (empty without runs)."""
+    if not layout.runs:
+        return {}
+    res = layout.marker_residuals(solution.groups, len(solution.active), solution.values)
+    return run_inflation(layout.runs, {(m.camera, m.view, m.marker_id): r
+                                       for m, r in zip(solution.active, res)})
+
+
+def _inflated(clock: TimeModel | None, runs: dict[str, RunCorrelation]) -> TimeModel | None:
+    """``clock`` with each camera's offset and readout sigmas scaled by its run factor."""
+    if clock is None or not runs:
+        return clock
+    k = {c: np.sqrt(runs[c].factor) if c in runs else 1.0 for c in clock.offset_ms}
+    return replace(clock, sigma_offset_ms={c: s * k[c] for c, s in clock.sigma_offset_ms.items()},
+                   sigma_readout_ms={c: s * k[c] for c, s in clock.sigma_readout_ms.items()})
 
 
 def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
@@ -551,6 +614,7 @@ def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
     config = p.config
     graph = gtsam.NonlinearFactorGraph()
     kind = config.robust if robust else "none"
+    stencils, in_graph = (p.stencils, {g.view for g in groups}) if p.timed else ({}, set())
     for g in groups:
         seen = [(key, g.face == label, A) for key, label, A in p.moving
                 if np.any(g.face == label)]
@@ -561,7 +625,8 @@ def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
                 p.cam_key[g.camera], p.view_key[g.view], p.twist_key[g.view],
                 p.time_key[g.camera], p.K.get(g.camera), p.heights[g.camera], g.object_points,
                 g.corners_px, sigma, kind, config.robust_k, intr, p.names, **extra,
-                known_ms=p.capture_ms.get((g.camera, g.view), 0.0)))
+                known_ms=p.capture_ms.get((g.camera, g.view), 0.0),
+                accel=_stencil_keys(p, stencils.get(g.view, ()), in_graph)))
         elif p.refine:
             graph.add(view_factor_intrinsics(
                 p.cam_key[g.camera], p.view_key[g.view], p.intr_key[g.camera],
@@ -739,17 +804,17 @@ def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
     return kept, sub
 
 
-def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,
-                view_key: dict, K: dict,
-                models: dict[str, CameraIntrinsics] | None = None, moves=(),
-                timing=None) -> np.ndarray:
-    """RMS corner residual (px) of each of the ``n`` active markers at ``values``:
-    sqrt(mean over the 4 corners of |uv - uv_meas|^2), vectorised per camera view; through
+def _marker_residuals(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,
+                      view_key: dict, K: dict,
+                      models: dict[str, CameraIntrinsics] | None = None, moves=(),
+                      timing=None) -> np.ndarray:
+    """The corner residuals ``uv - uv_meas`` (n, 4, 2; px) of the ``n`` active markers at
+    ``values``, vectorised per camera view; through
     the full camera ``models`` when given (refined intrinsics), else the pinhole ``K``; each
     face's markers moved by its board-frame move ``C`` of ``moves`` ``(label, C)`` (board
     self-calibration); each corner at its own time with ``timing`` ``(heights, capture_ms,
-    time per camera, twist per view)`` (the time model)."""
-    out = np.empty(n)
+    time per camera, twist per view, acceleration per linked view)`` (the time model)."""
+    out = np.empty((n, 4, 2))
     for g in groups:
         T_cam = values.atPose3(cam_key[g.camera]).matrix()
         T_board = values.atPose3(view_key[g.view]).matrix()
@@ -757,18 +822,17 @@ def _marker_rms(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key:
         if moves:
             P_b = move_rows(P_b, [(np.repeat(g.face == label, 4), C) for label, C in moves])
         if timing is not None:
-            heights, capture, times, twists = timing
+            heights, capture, times, twists, accels = timing
             known = capture.get((g.camera, g.view), 0.0)
             uv = project_timed(T_cam, T_board, twists[g.view], times[g.camera] + [known, 0.0],
                                K[g.camera] if models is None else models[g.camera], P_b,
                                row_fraction(g.corners_px.reshape(-1, 2)[:, 1], heights[g.camera]),
-                               False)[0]
+                               False, accel=accels.get(g.view))[0]
         elif models is not None:
             uv = project_board_full(T_cam, T_board, models[g.camera], None, P_b, jacobians=False)[0]
         else:
             uv, _, _ = project_board(T_cam, T_board, K[g.camera], P_b, jacobians=False)
-        d2 = np.sum((uv.reshape(-1, 4, 2) - g.corners_px) ** 2, axis=2)
-        out[g.index] = np.sqrt(np.mean(d2, axis=1))
+        out[g.index] = uv.reshape(-1, 4, 2) - g.corners_px
     return out
 
 

@@ -99,7 +99,8 @@ def row_fraction(v_px: np.ndarray, height_px: int) -> np.ndarray:
 
 def project_timed(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, twist: np.ndarray,
                   time_ms: np.ndarray, K, P_b: np.ndarray, s_row: np.ndarray,
-                  jacobians: bool = True, columns: np.ndarray | None = None):
+                  jacobians: bool = True, columns: np.ndarray | None = None,
+                  accel: np.ndarray | None = None):
     """Pixels (N,2) of board points ``P_b`` (N,3, m) each seen at its own time.
 
     Point i is seen at ``tau_i = 1e-3 (offset_ms + readout_ms s_i)`` (``time_ms = [offset_ms,
@@ -115,9 +116,17 @@ def project_timed(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, twist: np.ndar
     time (dP_ref/dtau = w x E q + v, dtau/d[offset_ms, readout_ms] = 1e-3 [1, s]), each chained
     through d(u,v)/dp_cam R_rc^T; then d(u,v)/dP_b (N,2,3) (= d(u,v)/dP_ref E R_f, what a
     face's pose moves); with a full model and ``columns``, also d(u,v)/d of those columns of
-    :meth:`~rgbd_calib.core.camera.CameraIntrinsics.intrinsics_jacobian` (last)."""
-    w, v = np.asarray(twist[:3], dtype=float), np.asarray(twist[3:], dtype=float)
+    :meth:`~rgbd_calib.core.camera.CameraIntrinsics.intrinsics_jacobian` (last).
+
+    ``accel`` ``[alpha (rad/s^2), a (m/s^2)]``: the board accelerates through the capture
+    (constant acceleration, the angular part taken along the turn): point i moves by the twist
+    ``twist + accel tau_i / 2`` over ``tau_i``; its Jacobian is the twist's times ``tau_i / 2``
+    (returned as d(u,v)/d twist: the caller chains it to whatever gives the acceleration)."""
     tau = MS * (time_ms[0] + time_ms[1] * s_row)  # (N,) seconds
+    xi = np.asarray(twist, dtype=float)[None, :] * np.ones((len(tau), 1))
+    if accel is not None:
+        xi = xi + 0.5 * tau[:, None] * np.asarray(accel, dtype=float)
+    w, v = xi[:, :3], xi[:, 3:]  # (N,3) each
     E, J_l = _so3_exp_and_left_jacobian(tau[:, None] * w)
     R_rb, p_rb = T_ref_board[:3, :3], T_ref_board[:3, 3]
     R_rc, t_rc = T_ref_cam[:3, :3], T_ref_cam[:3, 3]
@@ -141,7 +150,11 @@ def project_timed(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, twist: np.ndar
     J_board = np.concatenate([A @ (-ER @ _skew_stack(P_b)), A @ R_rb], axis=2)
     J_w = A @ (-_skew_stack(Eq) @ J_l) * tau[:, None, None]
     J_v = A * tau[:, None, None]
-    dP_dtau = np.cross(w, Eq) + v  # (N,3)
+    w_now, v_now = w, v  # the rates at tau_i: with an acceleration, twist + accel tau_i
+    if accel is not None:
+        w_now, v_now = w + 0.5 * tau[:, None] * accel[:3], v + 0.5 * tau[:, None] * accel[3:]
+    # d Exp(phi)/d tau = [J_l(phi) dphi/dtau]x Exp(phi); J_l(phi) phi = phi without acceleration
+    dP_dtau = np.cross(np.einsum("nij,nj->ni", J_l, w_now), Eq) + v_now  # (N,3)
     dtau = MS * np.stack([np.ones_like(s_row), s_row], axis=1)  # (N,2)
     J_time = np.einsum("nij,nj->ni", A, dP_dtau)[:, :, None] * dtau[:, None, :]
     out = (J_cam, J_board, np.concatenate([J_w, J_v], axis=2), J_time, A @ ER)
@@ -178,7 +191,8 @@ def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: in
                       K: np.ndarray | None, height_px: int, object_points: np.ndarray,
                       corners_px: np.ndarray, sigma: float, robust: str, robust_k: float,
                       intr: tuple | None = None, names: tuple[str, ...] = (),
-                      moving: list | None = None, known_ms: float = 0.0):
+                      moving: list | None = None, known_ms: float = 0.0,
+                      accel: tuple[tuple[int, float], ...] = ()):
     """All markers of one camera view in one factor, each corner predicted at its own time.
 
     As :func:`~rgbd_calib.solve.bundle_factors.view_factor` (pinhole ``K``, undistorted pixels
@@ -196,7 +210,11 @@ def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: in
     self-calibration, as :func:`~rgbd_calib.solve.bundle_factors.view_factor`)
     (:func:`_moved_point_jacobian`).
     ``known_ms`` is the view's capture time after the set's nominal time as the cameras'
-    timestamps say (ms; :func:`capture_offsets`), added to the camera's offset."""
+    timestamps say (ms; :func:`capture_offsets`), added to the camera's offset.
+    ``accel`` ``((twist key, 1/s), ...)``: the board's acceleration through the capture as a
+    combination of the twists of the set and its neighbours in a continuous recording
+    (:func:`acceleration_stencils`), so that a board waved by hand is seen where it was, not
+    where a constant twist would have carried it (``project_timed``'s ``accel``)."""
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_file = np.asarray(object_points, dtype=float).reshape(-1, 3)
@@ -211,16 +229,20 @@ def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: in
         padded, columns = refined_model(base, names)
         keys.append(key_intr)
     keys += [key for key, _, _ in faces] + [key_twist, key_time]
+    own = sum(c for k, c in accel if k == key_twist)
+    others = [(k, c) for k, c in accel if k != key_twist]
+    keys += [k for k, _ in others]
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
         X = [values.atPose3(key).matrix() for key, _, _ in faces]
         P_b = move_rows(P_file, [(rows, face_transform(x, A))
                                  for (_, rows, A), x in zip(faces, X)]) if faces else P_file
         model = with_parameters(padded, names, values.atVector(key_intr)) if intr else K
+        acc = (sum(c * values.atVector(k) for k, c in accel) if accel else None)
         uv, J = project_timed(values.atPose3(key_cam).matrix(),
                               values.atPose3(key_board).matrix(), values.atVector(key_twist),
                               values.atVector(key_time) + [known_ms, 0.0], model, P_b, s_row,
-                              H is not None, columns)
+                              H is not None, columns, acc)
         r = ((uv - measured) * inv_sigma).reshape(n, 8)
 
         def blocks():
@@ -228,7 +250,9 @@ def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: in
             out = [J_cam, J_board] + ([J[5]] if intr else [])
             out += [_moved_point_jacobian(J_pb, rows, P_b, x if A is None else A @ x)
                     for (_, rows, A), x in zip(faces, X)]
-            out += [J_twist, J_time]
+            t_ms = values.atVector(key_time) + [known_ms, 0.0]
+            J_acc = J_twist * (0.5 * MS * (t_ms[0] + t_ms[1] * s_row))[:, None, None]
+            out += [J_twist + own * J_acc, J_time] + [c * J_acc for _, c in others]
             return tuple(j.reshape(8 * n, -1) * inv_sigma for j in out)
 
         return robust_rows(r, blocks, H, robust, robust_k)
@@ -375,6 +399,28 @@ def motion_links(set_ms: dict[str, float], views: Collection[str],
     timed = sorted((set_ms[v], v) for v in views if v in set_ms)
     return tuple((f, g, (tg - tf) * MS) for (tf, f), (tg, g) in zip(timed, timed[1:])
                  if 0.0 < tg - tf <= max_ms)
+
+
+def acceleration_stencils(links: tuple[tuple[str, str, float], ...],
+                          ) -> dict[str, tuple[tuple[str, float], ...]]:
+    """Per linked frame set, its acceleration as a finite difference of twists: ``((set,
+    coefficient 1/s), ...)``, central between the previous and the next set where both are
+    linked, one-sided at a run's ends. Sets without a link have none (a lone set's acceleration
+    is not observable: its twist alone carries the motion)."""
+    prev = {g: (f, dt) for f, g, dt in links}
+    nxt = {f: (g, dt) for f, g, dt in links}
+    out = {}
+    for v in prev.keys() | nxt.keys():
+        if v in prev and v in nxt:
+            (p, dp), (n, dn) = prev[v], nxt[v]
+            out[v] = ((n, 1.0 / (dp + dn)), (p, -1.0 / (dp + dn)))
+        elif v in nxt:
+            n, dn = nxt[v]
+            out[v] = ((n, 1.0 / dn), (v, -1.0 / dn))
+        else:
+            p, dp = prev[v]
+            out[v] = ((v, 1.0 / dp), (p, -1.0 / dp))
+    return out
 
 
 def _so3_right_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
