@@ -718,12 +718,15 @@ def _time_model(p: _FactorLayout, values: gtsam.Values,
         anchored=tuple(sorted({c for c, _ in p.capture_ms} & set(times))),
         capture_ms=dict(p.capture_ms),
         twist_prior=p.twist_sigma or TwistPrior(p.config.time_twist_sigma_mps,
-                                                p.config.time_twist_sigma_dps))
+                                                p.config.time_twist_sigma_dps),
+        acceleration=p.accelerations(values),
+        linked_sets=len({v for f, g, _ in p.links for v in (f, g)}),
+        motion_prior=p.motion_prior)
 
 
 def _with_prior(clock: TimeModel, p: _FactorLayout) -> TimeModel:
-    """``clock`` with the twist prior the final solve used."""
-    return replace(clock, twist_prior=p.twist_sigma)
+    """``clock`` with the twist and motion priors the final solve used."""
+    return replace(clock, twist_prior=p.twist_sigma, motion_prior=p.motion_prior)
 
 
 def _current_models(p: _FactorLayout, values: gtsam.Values) -> dict[str, CameraIntrinsics] | None:

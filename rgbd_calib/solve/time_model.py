@@ -38,7 +38,7 @@ graph from these factors and priors; :class:`TimeModel` is what it estimated.
 from __future__ import annotations
 
 from collections.abc import Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -501,6 +501,11 @@ class TimeModel:
     anchored: tuple[str, ...] = ()
     capture_ms: dict[tuple[str, str], float] | None = None
     twist_prior: TwistPrior | None = None  # the twist prior's sigmas in the final solve
+    # continuous recordings: the linked sets' accelerations [alpha, a] (rad/s^2, m/s^2), how
+    # many sets the motion prior linked, and its scale in the final solve
+    acceleration: dict[str, np.ndarray] = field(default_factory=dict)
+    linked_sets: int = 0
+    motion_prior: MotionPrior | None = None
 
     @property
     def speed_mps(self) -> dict[str, float]:
@@ -525,7 +530,8 @@ class TimeModel:
             time_ms = np.array([self.offset_ms[camera] + known, self.readout_ms[camera]])
             twist = self.twist[view]
         return project_timed(T_ref_cam, T_ref_board, twist, time_ms, model, P_b,
-                             row_fraction(rows_px, model.height), False)[0]
+                             row_fraction(rows_px, model.height), False,
+                             accel=self.acceleration.get(view))[0]
 
     def total_offset_ms(self, camera: str) -> float:
         """The camera's median capture time after the reference's: its timestamps' median
@@ -546,4 +552,7 @@ class TimeModel:
                         for c in sorted(self.offset_ms)},
             "board_speed_mps": {"median": float(np.median(speed)), "max": float(speed.max())},
             "board_rate_dps": {"median": float(np.median(rate)), "max": float(rate.max())},
-        }
+        } | ({"linked_sets": self.linked_sets,
+              "motion_prior": {"q_mps": self.motion_prior.q_mps,
+                               "q_dps": self.motion_prior.q_dps}}
+             if self.linked_sets and self.motion_prior is not None else {})

@@ -581,6 +581,9 @@ def _bundle_entry(bundle: BundleResult) -> dict[str, Any]:
     }
     if bundle.time is not None:
         entry["time"] = bundle.time.to_dict()
+    if bundle.run_correlation:  # consecutive frames: their sigmas' variance factors
+        entry["run_correlation"] = {c: {"rho": r.rho, "pairs": r.pairs, "factor": r.factor}
+                                    for c, r in sorted(bundle.run_correlation.items())}
     return entry
 
 

@@ -13,7 +13,8 @@ TIME_ADVICE = (
     "For the best accuracy hold the board still for a moment at each pose (or pick those "
     "frames), connect the cameras' sync cable (D435i: inter_cam_sync_mode), and record with "
     "timestamps (rgbd-calib record and convert keep them in timestamps.csv), which fix the "
-    "clocks' scale; more frame sets help too."
+    "clocks' scale; keep the recording's consecutive frames (convert every frame of the .bag): "
+    "they measure the board's motion; more frame sets help too."
 )
 
 
@@ -27,11 +28,14 @@ def time_sentence(time: dict[str, Any], reference: str) -> str:
                         for c in others)
     readouts = [cams[c]["readout_ms"] for c in sorted(cams)]
     speed, rate = time["board_speed_mps"], time["board_rate_dps"]
+    linked = time.get("linked_sets", 0)
     return (
         f"The board moved at {speed['median']:.2f} m/s (median over the frame sets; max "
         f"{speed['max']:.2f}) and {rate['median']:.0f} deg/s while the cameras exposed; clock "
         f"offsets from {reference} (ms): {offsets or 'none'}; rolling-shutter readouts "
         f"{min(readouts):.1f}-{max(readouts):.1f} ms"
+        + (f"; {linked} consecutive frame sets tracked the board's motion and acceleration"
+           if linked else "")
     )
 
 

@@ -312,7 +312,10 @@ REPORT_SCHEMA: dict[str, Any] = {
                                           "readout_sigma_ms": N}),
             "board_speed_mps": {"median": N, "max": N},
             "board_rate_dps": {"median": N, "max": N},
+            "linked_sets?": INT,
+            "motion_prior?": {"q_mps": N, "q_dps": N},
         },
+        "run_correlation?": MapOf("<camera>", {"rho": N, "pairs": INT, "factor": N}),
         "self_calibration?": {
             "chosen": S,
             "board": B,
