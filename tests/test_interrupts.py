@@ -35,6 +35,8 @@ def test_ctrl_c_during_the_renames_waits_for_the_last_one(tmp_path, monkeypatch)
     raised; the folder holds the new run whole and is recorded as complete."""
     out = tmp_path / "out"
     _earlier(out)
+    # the handler before (SIG_IGN where the run was started in the background by a shell)
+    handler = signal.getsignal(signal.SIGINT)
     real_replace = os.replace
     calls = []
 
@@ -54,7 +56,7 @@ def test_ctrl_c_during_the_renames_waits_for_the_last_one(tmp_path, monkeypatch)
                            ("config_resolved.yaml", "extrinsics.yaml", "report.json")}
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
     assert interrupts.committed() == (out,)
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is handler  # restored
 
 
 def test_ctrl_c_before_the_renames_leaves_the_earlier_results(tmp_path):

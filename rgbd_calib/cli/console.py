@@ -258,6 +258,11 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
     Console().print(table)
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
+    selection = result.set_selection
+    if selection is not None:
+        console.print(f"frame sets: kept {len(selection.kept)} of {selection.total} (runs of "
+                      f"{selection.run_length} consecutive sets spread over the recording; "
+                      "bundle.max_sets)", highlight=False, soft_wrap=True)
     ladder = result.self_calibration
     if ladder is not None and ladder.chosen.name != "nominal":
         chosen = next((f for f in ladder.fits if f.level == ladder.chosen), None)

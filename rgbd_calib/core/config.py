@@ -519,6 +519,18 @@ class BundleConfig(BaseModel):
         "motion, which makes clock offsets with a global shutter and a readout between "
         "synchronised cameras observable; 0: never"
     )
+    max_sets: int = Field(
+        150, ge=0, description="a continuous recording (runs of frame sets time_link_ms "
+        "apart) with more frame sets that see the board than this is thinned to about this "
+        "many: its stretches keep their best runs of set_run_length consecutive sets, each "
+        "camera at least max_sets / 5 views (rgbd_calib/solve/runs.py select_sets). A "
+        "minute at 30 fps is 1800 sets of near-duplicate poses, which would make the time "
+        "model's bundle adjustment take tens of minutes; 0: keep every set"
+    )
+    set_run_length: int = Field(
+        3, ge=1, description="consecutive frame sets kept together when a recording is "
+        "thinned (max_sets): the motion prior measures the board's twist from them"
+    )
 
     @model_validator(mode="after")
     def _known_intrinsics(self) -> BundleConfig:

@@ -16,6 +16,7 @@ No file is written here except the detection cache; :mod:`rgbd_calib.outputs.wri
 from __future__ import annotations
 
 import os
+from collections import defaultdict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,7 @@ from ..solve.ladder import (
 )
 from ..solve.pose import DROP_ADVICE, BoardObservation, RejectedView, board_poses, pose_edges
 from ..solve.posegraph import PoseGraphResult, calibrate_pose_graph
+from ..solve.runs import SetSelection, select_sets
 from ..solve.selfcal import SelfCalibration
 from ..solve.stillness import SetMotion, board_motion
 from ..solve.time_model import capture_offsets, set_times_ms
@@ -91,6 +93,8 @@ class CalibrationResult:
     rig: Rig | None = None
     # per frame set: where the cameras put the board, its speed, whether it moved
     motion: list[SetMotion] = field(default_factory=list)
+    # a long continuous recording: the frame sets kept (bundle.max_sets)
+    set_selection: SetSelection | None = None
 
 
 # ----------------------------------------------------------------------------- pipeline
@@ -124,6 +128,8 @@ def calibrate(
         views = _Views(*board_poses(detections, board, run.rig, run.config.pose))
     _check_views(run.dataset, detections, views.observations, views.rejected, n_images,
                  run.board)
+    # 2b. a long continuous recording: runs of consecutive sets spread over it
+    run, views = _thinned(run, views)
     # 3. robust pose graph over the views: initial extrinsics and board poses
     with timed(run.timings, "pose_graph"):
         pg = pose_graph(run.dataset, views.observations, run.config, fixed_cameras)
@@ -151,6 +157,7 @@ class _Run:
     progress: Progress | None
     timings: dict[str, float]
     n_images: int
+    selection: SetSelection | None = None  # the frame sets kept of a long recording
 
     @property
     def rig(self) -> Rig:
@@ -240,7 +247,8 @@ def _redetect(run: _Run, pg: PoseGraphResult, solved: _Solved) -> _Solved:
             detections = _detect(run, run.dataset.with_rig(lens_rig),
                                  "detecting markers with the refined lens",
                                  "detections_refined_lens.json")
-            views = _Views(*board_poses(detections, run.board, lens_rig, config.pose))
+            views = _kept(_Views(*board_poses(detections, run.board, lens_rig, config.pose)),
+                          run.selection)
         with timed(run.timings, "bundle"):
             # with the lens right, views its rig.yaml model failed pass PnP: add them
             boards = {**pg.T_ref_board, **bundle.T_ref_board}
@@ -341,7 +349,8 @@ def _result(run: _Run, pg: PoseGraphResult, solved: _Solved, unconnected: dict[s
                              run.dataset.summary().to_dict(), solved.depth, solved.board_only,
                              model_error_factor=solved.factors, board=run.board,
                              self_calibration=solved.ladder, initial_intrinsics=initial,
-                             rig=rig, motion=_motion(run, pg, solved.views, extrinsics))
+                             rig=rig, motion=_motion(run, pg, solved.views, extrinsics),
+                             set_selection=run.selection)
 
 
 def _capture_ms(run: _Run) -> dict[tuple[str, str], float]:
@@ -354,6 +363,30 @@ def _set_ms(run: _Run) -> dict[str, float]:
     """Each frame set's time on the reference camera's clock (ms; from timestamps.csv)."""
     return set_times_ms({c: run.dataset.timestamps_ms(c) for c in run.rig.names},
                         run.rig.reference)
+
+
+def _thinned(run: _Run, views: _Views) -> tuple[_Run, _Views]:
+    """A continuous recording with more than ``bundle.max_sets`` frame sets that see the
+    board: the run with its :func:`~rgbd_calib.solve.runs.select_sets` and the views of the
+    sets kept; any other dataset unchanged."""
+    config = run.config.bundle
+    seen: dict[str, dict[str, int]] = defaultdict(dict)
+    for o in views.observations:
+        seen[o.frame][o.camera] = o.n_markers
+    selection = select_sets(_set_ms(run), seen, config.max_sets, config.set_run_length,
+                            config.time_link_ms)
+    if selection is None:
+        return run, views
+    return replace(run, selection=selection), _kept(views, selection)
+
+
+def _kept(views: _Views, selection: SetSelection | None) -> _Views:
+    """``views`` of the frame sets ``selection`` kept (all without one)."""
+    if selection is None:
+        return views
+    keep = set(selection.kept)
+    return _Views([o for o in views.observations if o.frame in keep],
+                  [r for r in views.rejected if r.frame in keep])
 
 
 def _motion(run: _Run, pg: PoseGraphResult, views: _Views,

@@ -97,3 +97,74 @@ def run_inflation(runs: tuple[tuple[str, ...], ...],
                   if pairs >= MIN_PAIRS else 1.0)
         out[c] = RunCorrelation(rho, pairs, factor)
     return out
+
+
+@dataclass(frozen=True)
+class SetSelection:
+    """The frame sets a long continuous recording was thinned to (:func:`select_sets`):
+    ``kept`` in time order, out of ``total`` sets with board views, as runs of up to
+    ``run_length`` consecutive sets."""
+
+    kept: tuple[str, ...]
+    total: int
+    run_length: int
+
+    def to_dict(self) -> dict:
+        return {"kept": len(self.kept), "total": self.total, "run_length": self.run_length}
+
+
+def select_sets(set_ms: Mapping[str, float], seen: Mapping[str, Mapping[str, int]],
+                max_sets: int, run_length: int, max_ms: float,
+                min_camera_views: int | None = None) -> SetSelection | None:
+    """Thin a continuous recording to about ``max_sets`` frame sets, or None when it has no
+    more (or no runs: separate poses are all kept). ``seen``: per set, the markers each
+    camera saw of the board.
+
+    A recording kept whole holds a frame set every frame period: 1800 sets in a minute, each
+    near its neighbours. What the calibration needs of them is the board at many poses, and at
+    each pose a few consecutive sets (the motion prior measures the board's twist from them:
+    :func:`recording_runs`). So the sets in time order are cut into ``max_sets //
+    run_length`` equal stretches, and each keeps its best window of ``run_length``
+    consecutive sets of one run (a shorter run: all of it), scored by the cameras that see
+    the board in it, then their markers (sets two cameras see link them). A camera left with
+    fewer than ``min_camera_views`` views (default a fifth of ``max_sets``; all it had, when
+    fewer) gets its best windows back, so thinning never drops a camera a sparse view links
+    to the rig."""
+    cands = [v for v, cams in seen.items() if cams]
+    if max_sets <= 0 or len(cands) <= max_sets:
+        return None
+    runs = recording_runs(set_ms, cands, max_ms)
+    if not runs:
+        return None
+    order = sorted(cands, key=lambda v: (set_ms.get(v, np.inf), v))
+    index = {v: i for i, v in enumerate(order)}
+    most = max(sum(c.values()) for c in seen.values() if c)
+    score = {v: len(seen[v]) + sum(seen[v].values()) / (1.0 + most) for v in cands}
+    in_runs = {v for r in runs for v in r}
+    windows = []  # (start index in time order, score, sets)
+    for seg in list(runs) + [(v,) for v in order if v not in in_runs]:
+        k = min(run_length, len(seg))
+        windows += [(index[seg[i]], sum(score[v] for v in seg[i:i + k]), seg[i:i + k])
+                     for i in range(len(seg) - k + 1)]
+    stretches = max(1, max_sets // max(1, run_length))
+    bounds = np.linspace(0, len(order), stretches + 1)
+    best: dict[int, list] = defaultdict(list)
+    for w in windows:
+        best[int(np.searchsorted(bounds, w[0], side="right")) - 1].append(w)
+    kept: set[str] = set()
+    for stretch in sorted(best):
+        for _, _, sets in sorted(best[stretch], key=lambda w: (-w[1], w[0])):
+            if not kept.intersection(sets):
+                kept.update(sets)
+                break
+    for camera in sorted({c for cams in seen.values() for c in cams}):
+        mine = [v for v in cands if camera in seen[v]]
+        want = min(len(mine), max_sets // 5 if min_camera_views is None else min_camera_views)
+        ranked = sorted((w for w in windows if any(camera in seen[v] for v in w[2])),
+                        key=lambda w: (-sum(seen[v].get(camera, 0) for v in w[2]), w[0]))
+        for _, _, sets in ranked:
+            if sum(camera in seen[v] for v in kept) >= want:
+                break
+            kept.update(sets)
+    return SetSelection(tuple(sorted(kept, key=index.__getitem__)), len(cands),
+                        run_length)

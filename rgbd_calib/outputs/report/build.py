@@ -98,6 +98,8 @@ def report_dict(
         "pairs": [pair_entry(p) for p in (pairs or [])],
         "timings_s": result.timings_s,
     }
+    if getattr(result, "set_selection", None) is not None:
+        report["frame_selection"] = result.set_selection.to_dict()
     if result.bundle is not None:
         report["bundle"] = _bundle_entry(result.bundle)
         if result.self_calibration is not None:

@@ -284,6 +284,7 @@ REPORT_SCHEMA: dict[str, Any] = {
     },
     "motion?": ListOf({"frame": S, "cameras": ListOf(S), "outliers": ListOf(S),
                        "spread_mm": N, "speed_mps": Nullable(N), "moved": B}),
+    "frame_selection?": {"kept": INT, "total": INT, "run_length": INT},
     "pairs": ListOf(PAIR_SCHEMA),
     "timings_s": MapOf("<stage>", N),
     "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S)},
