@@ -2,7 +2,7 @@
 (rgbd_calib/solve/runs.py select_sets, rgbd_calib/pipelines/calibrate.py): runs of
 consecutive sets spread over it, every camera kept, the selection in the result, the report
 and on the console. A still burst render (race, 10 poses x 6 consecutive sets, seed 52):
-about a minute on 2 cores."""
+about a minute on 2 cores (slow); the README's tiny rig stamped as a recording (default)."""
 
 from __future__ import annotations
 
@@ -17,8 +17,6 @@ from rgbd_calib.outputs.writer import write_outputs
 from rgbd_calib.solve.runs import recording_runs
 from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize
 
-pytestmark = pytest.mark.slow
-
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
@@ -32,6 +30,7 @@ def _config(max_sets: int) -> CalibrationConfig:
         {"refine": "none", "bundle": {"max_sets": max_sets, "set_run_length": 3}})
 
 
+@pytest.mark.slow
 def test_the_recording_is_thinned_to_runs_and_every_camera_calibrated(recording, tmp_path):
     result = calibrate(FolderDataset(recording), thesis_board(), _config(30))
     sel = result.set_selection
@@ -53,7 +52,28 @@ def test_the_recording_is_thinned_to_runs_and_every_camera_calibrated(recording,
     assert {v["frame"] for v in report["views"]} <= set(sel.kept)
 
 
+@pytest.mark.slow
 def test_every_set_kept_with_max_sets_0(recording):
     result = calibrate(FolderDataset(recording), thesis_board(), _config(0))
     assert result.set_selection is None
     assert len({o.frame for o in result.observations}) == 60
+
+
+def test_a_stamped_recording_longer_than_max_sets_is_thinned(tiny_dataset, tmp_path):
+    """Default tier: the README's tiny rig (4 still frame sets) stamped as one continuous
+    recording, max_sets 3: one run of 3 consecutive sets kept, every camera calibrated."""
+    import shutil
+
+    data = tmp_path / "tiny"
+    shutil.copytree(tiny_dataset, data)
+    for cam in (p for p in data.iterdir() if p.is_dir() and (p / "color").is_dir()):
+        frames = sorted(f.stem for f in (cam / "color").iterdir())
+        (cam / "timestamps.csv").write_text("frame,t_ms\n" + "".join(
+            f"{f},{1000 + 33.3 * int(f)}\n" for f in frames))
+    result = calibrate(FolderDataset(data), thesis_board(), _config(3))
+    sel = result.set_selection
+    assert sel is not None and sel.total == 4 and len(sel.kept) == 3
+    assert recording_runs({f: 33.3 * int(f) for f in sel.kept}, sel.kept, 100.0) == (
+        sel.kept,)
+    assert {o.frame for o in result.observations} <= set(sel.kept)
+    assert set(result.extrinsics.cameras) == set(FolderDataset(data).rig.names)
