@@ -4,10 +4,11 @@ One call per stage (:func:`calibrate`)::
 
     dataset (FolderDataset) -> detection (ArUco + unbiased corners, cached, in parallel:
         rgbd_calib.detect.run) -> [intrinsics from scratch] -> pose (per-view PnP, covariance,
-        gates: rgbd_calib.solve.pose) -> pose graph (initialisation from the co-visibility
-        spanning tree, robust solve, marginals: rgbd_calib.solve.posegraph) -> bundle
-        adjustment with self-calibration (rgbd_calib.solve.ladder) [-> detection again with the
-        refined lens] -> depth (rgbd_calib.depth.stage) -> joint solve -> checks -> result
+        gates: rgbd_calib.solve.pose) -> [a long continuous recording thinned to runs of
+        consecutive sets: rgbd_calib.solve.runs] -> pose graph (initialisation from the
+        co-visibility spanning tree, robust solve, marginals: rgbd_calib.solve.posegraph) ->
+        bundle adjustment with self-calibration (rgbd_calib.solve.ladder) [-> detection again
+        with the refined lens] -> depth (rgbd_calib.depth.stage) -> joint solve -> checks -> result
         (extrinsics + uncertainty)
 
 No file is written here except the detection cache; :mod:`rgbd_calib.outputs.writer` writes results.
