@@ -54,8 +54,7 @@ def main() -> None:
         sel = result.set_selection
         kept = (f"{len(sel.kept)} of {sel.total}" if sel is not None
                 else str(len({o.frame for o in result.observations})))
-        print(f"| {max_sets} | {kept} " + row(data, "x", result, seconds)[len("| x "):],
-              flush=True)
+        print(row(data, f"{max_sets} | {kept}", result, seconds), flush=True)
 
 
 if __name__ == "__main__":

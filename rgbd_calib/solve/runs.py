@@ -157,14 +157,16 @@ def select_sets(set_ms: Mapping[str, float], seen: Mapping[str, Mapping[str, int
             if not kept.intersection(sets):
                 kept.update(sets)
                 break
+    floor = max_sets // 5 if min_camera_views is None else min_camera_views
     for camera in sorted({c for cams in seen.values() for c in cams}):
-        mine = [v for v in cands if camera in seen[v]]
-        want = min(len(mine), max_sets // 5 if min_camera_views is None else min_camera_views)
+        want = min(sum(camera in seen[v] for v in cands), floor)
+        have = sum(camera in seen[v] for v in kept)
         ranked = sorted((w for w in windows if any(camera in seen[v] for v in w[2])),
                         key=lambda w: (-sum(seen[v].get(camera, 0) for v in w[2]), w[0]))
         for _, _, sets in ranked:
-            if sum(camera in seen[v] for v in kept) >= want:
+            if have >= want:
                 break
+            have += sum(camera in seen[v] for v in sets if v not in kept)
             kept.update(sets)
     return SetSelection(tuple(sorted(kept, key=index.__getitem__)), len(cands),
                         run_length)
