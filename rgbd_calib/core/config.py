@@ -640,6 +640,31 @@ class DepthConfig(BaseModel, extra="forbid"):
     scale_huber_k: float = Field(
         1.5, gt=0, description="Huber threshold (sigmas) of the per-pixel and per-frame fits."
     )
+    board_depth_gate: float = Field(
+        0.03,
+        gt=0,
+        description="Board-face pixels whose measured depth is off the face by more than this "
+        "fraction of its depth are not the board (an occluder, a hand) and are not used "
+        "(a D435's depth errors stay within 1 %).",
+    )
+    model_unseen_views: bool = Field(
+        False,
+        description="The depth model also reads the board in views where the camera did not "
+        "detect its markers (too far, too oblique in colour) but the board, placed by the "
+        "cameras that did, lies in its depth image. Off by default: on the renders measured it "
+        "helped one rig and hurt another (docs/depth.md, 'The board where the camera did not "
+        "detect it').",
+    )
+    model_unseen_max_view_angle_deg: float = Field(
+        45.0,
+        gt=0,
+        lt=90,
+        description="Such views that see the board face more obliquely are not used (a board "
+        "the colour detection missed is often seen at a grazing angle, where depth is worst).",
+    )
+    model_unseen_max_frames: int = Field(
+        40, ge=0, description="Such views per camera read for the depth model, sampled evenly."
+    )
     model: Literal["auto", "none"] = Field(
         "auto",
         description="auto: each camera's depth model (scale, disparity-offset field, "

@@ -457,11 +457,14 @@ def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.n
         & (hit_b[:, 0] > x0 + mg) & (hit_b[:, 0] < x1 - mg)
         & (hit_b[:, 1] > y0 + mg) & (hit_b[:, 1] < y1 - mg)
     )
+    z_meas = raw[vs, us].astype(float) * intr.depth_scale
+    # pixels far off the face are something else: a hand or an object between the camera and
+    # the board (a board placed by the other cameras is not always in this camera's sight)
+    inside &= np.abs(z_meas - z_true) <= config.board_depth_gate * np.abs(z_true)
     if np.count_nonzero(inside) < config.scale_min_points:
         return None
-    us, vs = us[inside], vs[inside]
-    return BoardFacePixels(us, vs, raw[vs, us].astype(float) * intr.depth_scale,
-                           z_true[inside], n_c.copy(), float(n_c @ p0))
+    return BoardFacePixels(us[inside], vs[inside], z_meas[inside], z_true[inside], n_c.copy(),
+                           float(n_c @ p0))
 
 
 def board_faces(dataset: FolderDataset, camera: str, T_cam_board: dict[str, np.ndarray],

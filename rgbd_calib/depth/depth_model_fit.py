@@ -11,14 +11,18 @@ report's board-plane residuals are the corrected points' signed distances to the
 (:func:`plane_residuals_m`).
 
 Which terms are free is chosen by evidence, as the self-calibration does for lens and board:
-forward selection in :data:`~rgbd_calib.core.depth_model.TERMS` (scale, disparity offset,
-its gradients, its curvature, the depth-to-colour pose), at each step adding the first term
-in that order (the simplest: over a narrow depth range a scale and an offset look alike) whose
-Wald statistic ``theta_t^T C_t^-1 theta_t`` exceeds its threshold
-``k F_{k, views - parameters}(1 - 1e-3)`` (never below ``k ln(views)``). ``C`` is the
-cluster-robust (sandwich) covariance with the views as clusters (never below the model-based
-one), so that what is common to one view (its board pose error, depth noise correlated over
-neighbouring pixels) counts once per view, not once per pixel; its sigmas are the model's.
+forward selection over :data:`LADDER` (the stereo law: scale and disparity offset together;
+the offset's gradients; its curvature; the depth-to-colour pose), at each step adding the first
+step in that order whose Wald statistic ``theta_t^T C_t^-1 theta_t`` exceeds its threshold
+``k F_{k, views - parameters}(1 - 1e-3)`` (never below ``k ln(views)``). Scale and offset are
+one step because both are physical on every stereo camera and, over the board's depth range
+(often 1-2 m), nearly collinear: keeping the one the test happens to prefer extrapolates with a
+bias beyond the board (race seed 101, a camera that kept the scale alone: -6.6 mm at 3.5 m;
+both: +2.0 +- 2.8 mm; docs/depth.md), keeping both extrapolates with an honest, larger sigma.
+``C`` is the cluster-robust (sandwich) covariance with the views as clusters (never below the
+model-based one), so that what is common to one view (its board pose error, depth noise
+correlated over neighbouring pixels) counts once per view, not once per pixel; its sigmas are
+the model's.
 A clean camera keeps the identity."""
 
 from __future__ import annotations
@@ -37,6 +41,9 @@ from ..core.depth_model import PARAMETERS, TERMS, DepthModel, identity_model
 from .clouds import BoardFacePixels, face_sigma_z
 from .noise import depth_noise
 
+# the evidence ladder's steps, each a group of TERMS freed together (see the module docstring)
+LADDER: tuple[tuple[str, ...], ...] = (("scale", "offset"), ("gradient",), ("curvature",),
+                                       ("pose",))
 P_FALSE_TERM = 1e-3  # chance that a term a clean camera does not need passes its test
 MAX_PIXELS_PER_VIEW = 1500  # board pixels sampled per view (evenly)
 GN_ITERATIONS = 8
@@ -110,8 +117,9 @@ def predicted_depth_m(model: DepthModel, s: BoardSamples) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TermTest:
-    """The evidence for one term when it was last tested: its Wald statistic, the threshold
-    it had to exceed, and whether it was kept."""
+    """The evidence for one step of :data:`LADDER` when it was last tested (``term``: its terms
+    joined by ``+``, e.g. ``scale+offset``): its Wald statistic, the threshold it had to
+    exceed, and whether it was kept."""
 
     term: str
     wald: float
@@ -137,6 +145,7 @@ class DepthModelFit:
     n_views: int
     n_samples: int
     sigma_factor: float  # sqrt(chi2 / dof) of the chosen fit: the noise model's accuracy
+    n_unseen_views: int = 0  # of n_views: the board where the camera did not detect it
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -148,6 +157,7 @@ class DepthModelFit:
                                 "noise_mm"), b)) for b in self.bands],
             "n_views": self.n_views,
             "n_samples": self.n_samples,
+            "n_unseen_views": self.n_unseen_views,
             "sigma_factor": self.sigma_factor,
         }
 
@@ -218,21 +228,25 @@ def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: f
     return _Solve(model, names, cov, chi2, dof)
 
 
-def _wald(solve: _Solve, term: str) -> float:
-    idx = [solve.names.index(p) for p in TERMS[term]]
-    theta = np.array([solve.model.value(p) - (1.0 if p == "scale" else 0.0)
-                      for p in TERMS[term]])
+def _params(step: tuple[str, ...]) -> tuple[str, ...]:
+    return tuple(p for t in step for p in TERMS[t])
+
+
+def _wald(solve: _Solve, step: tuple[str, ...]) -> float:
+    names = _params(step)
+    idx = [solve.names.index(p) for p in names]
+    theta = np.array([solve.model.value(p) - (1.0 if p == "scale" else 0.0) for p in names])
     C = solve.cov[np.ix_(idx, idx)]
     return float(theta @ np.linalg.pinv(C) @ theta)
 
 
-def _threshold(term: str, n_views: int, n_params: int) -> float:
-    """What the Wald statistic of ``term`` must exceed: ``k F_{k, V - p}(1 - P)`` with ``V``
+def _threshold(step: tuple[str, ...], n_views: int, n_params: int) -> float:
+    """What the Wald statistic of ``step`` must exceed: ``k F_{k, V - p}(1 - P)`` with ``V``
     views (the clusters) and ``p`` parameters in the trial (the small-sample law of a
     cluster-robust Wald test), never below the BIC's ``k ln V``. With fewer than
     :data:`MIN_CLUSTER_DOF` views to spare the clustered covariance cannot be judged and the
     chi-square quantile applies (the covariance is then at least the model-based one)."""
-    k = len(TERMS[term])
+    k = len(_params(step))
     dof = n_views - n_params
     q = (k * float(f_dist.ppf(1.0 - P_FALSE_TERM, k, dof)) if dof >= MIN_CLUSTER_DOF
          else float(chi2_dist.ppf(1.0 - P_FALSE_TERM, k)))
@@ -263,21 +277,21 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     n_views = len(samples.frames)
     chosen: list[str] = []
     current = _solve(base, samples, (), config.scale_huber_k)
-    tests: dict[str, TermTest] = {}
+    tests: dict[tuple[str, ...], TermTest] = {}
     while True:
         best = None
-        for term in TERMS:
-            if term in chosen:
+        for step in LADDER:
+            if step[0] in chosen:
                 continue
-            names = tuple(p for t in [*chosen, term] for p in TERMS[t])
+            names = tuple(p for t in TERMS if t in chosen or t in step for p in TERMS[t])
             trial = _solve(current.model, samples, names, config.scale_huber_k)
-            wald, thr = _wald(trial, term), _threshold(term, n_views, len(names))
-            tests[term] = TermTest(term, wald, thr, False)
+            wald, thr = _wald(trial, step), _threshold(step, n_views, len(names))
+            tests[step] = TermTest("+".join(step), wald, thr, False)
             if wald > thr and best is None:  # the first in the ladder's order that passes
-                best = (wald / thr, term, trial)
+                best = (wald / thr, step, trial)
         if best is None:
             break
-        chosen.append(best[1])
+        chosen.extend(best[1])
         current = best[2]
         tests[best[1]] = replace(tests[best[1]], kept=True)
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
@@ -293,7 +307,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     # banded by the board's depth along each ray, not the measured one (whose noise would
     # select the pixels that read long into the far bands)
     z = samples.distance_m / np.sum(samples.normal * samples.rays, axis=1)
-    return DepthModelFit(camera, model, tuple(tests[t] for t in TERMS if t in tests),
+    return DepthModelFit(camera, model, tuple(tests[t] for t in LADDER if t in tests),
                          _bands(before, after, z, samples.sigma_m), n_views, len(z),
                          float(math.sqrt(current.chi2 / current.dof)))
 

@@ -44,7 +44,9 @@ from .clouds import (
     board_faces,
     estimate_depth_scale,
     fuse_clouds,
+    in_view,
     static_cloud,
+    target_box,
 )
 from .depth_model_fit import DepthModelFit, board_samples, fit_depth_model
 from .information import tangent_error
@@ -140,12 +142,15 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                   workers: int | None = None,
                   depth_scales: dict[str, float | DepthModel] | None = None,
                   scheduler: str | None = None,
+                  unseen_views: dict[str, dict[str, np.ndarray]] | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
 
     ``board_views`` maps camera -> {frame: T_cam_board} of the views it saw (for the depth
     scale); ``T_ref_board`` maps frame -> board pose (for masking the board). Both may be
-    None (refinement of an existing calibration without a board in view).
+    None (refinement of an existing calibration without a board in view). ``unseen_views``
+    (:func:`unseen_board_views`, same form) are the board where the camera did not detect it,
+    for its depth model only.
 
     With ``board_covariance`` (camera -> 6x6 marginal of the board solve) only pairs with a
     camera the board constrains weakly (:func:`weak_cameras`) are registered, and nothing but
@@ -168,7 +173,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                              if c != dataset.rig.reference}, config)
     timings: dict[str, float] = {}
     with timed(timings, "depth_scale"):
-        scales, models = _board_depth(dataset, cams, board, board_views, config, progress)
+        scales, models = _board_depth(dataset, cams, board, board_views, config, progress,
+                                      unseen_views)
 
     no_pair = method != "none" and weak is not None and not weak
     with timed(timings, "clouds"):
@@ -227,16 +233,22 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
 def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                  board_views: dict[str, dict[str, np.ndarray]] | None, config: DepthConfig,
                  progress: Progress | None,
+                 unseen_views: dict[str, dict[str, np.ndarray]] | None = None,
                  ) -> tuple[dict[str, DepthScaleEstimate], dict[str, DepthModelFit]]:
     """Per camera with board views: its depth scale (:func:`estimate_depth_scale`) and its
-    depth model chosen by evidence (:func:`fit_depth_model`). The clouds are corrected by the
-    model; the reported factor (and refine's) is still the scale estimate's (not yet the
-    model's scale: with a second term chosen its sigma grows beyond what refine needs)."""
+    depth model chosen by evidence (:func:`fit_depth_model`) from those views and its
+    ``unseen_views`` (:func:`unseen_board_views`). The clouds are corrected by the model; the
+    reported factor (and refine's) is still the scale estimate's, of the views it detected (not
+    yet the model's scale: with a second term chosen its sigma grows beyond what refine
+    needs)."""
     scales: dict[str, DepthScaleEstimate] = {}
     models: dict[str, DepthModelFit] = {}
     if board is None or not board_views:
         return scales, models
     tick = start(progress, "depth model per camera", len(cams))
+    unseen_config = config.model_copy(update={"scale_max_frames": max(
+        config.model_unseen_max_frames, 1), "scale_max_view_angle_deg": min(
+        config.scale_max_view_angle_deg, config.model_unseen_max_view_angle_deg)})
     for c in cams:
         views = board_views.get(c, {})
         if views:
@@ -246,12 +258,51 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
             except (CalibrationError, DatasetError):
                 tick(1)
                 continue  # too few board pixels with depth: the factor stays 1 (reported)
-            samples = (board_samples(dataset.rig.cameras[c], faces, config)
+            far = (board_faces(dataset, c, (unseen_views or {}).get(c, {}), board,
+                               unseen_config)
+                   if config.model == "auto" and config.model_unseen_max_frames else [])
+            samples = (board_samples(dataset.rig.cameras[c], faces + far, config)
                        if config.model == "auto" else None)
             if samples is not None:
-                models[c] = fit_depth_model(c, samples, dataset.rig.cameras[c], config)
+                models[c] = replace(fit_depth_model(c, samples, dataset.rig.cameras[c], config),
+                                    n_unseen_views=len(far))
         tick(1)
     return scales, models
+
+
+def unseen_board_views(T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, np.ndarray],
+                       seen: dict[str, dict[str, np.ndarray]], board: Board | None,
+                       dataset: FolderDataset, config: DepthConfig,
+                       at_capture: dict[str, dict[str, np.ndarray]] | None = None,
+                       ) -> dict[str, dict[str, np.ndarray]]:
+    """camera -> {frame: T_cam_board} of the frame sets whose board the camera did not
+    detect (or did not use) but whose board, placed by the cameras that did, has a corner of its
+    box in the camera's image within its depth range: the board seen in depth only, often far
+    beyond the range the camera detects it in. :func:`rgbd_calib.depth.clouds.board_face_pixels`
+    then keeps the face pixels whose depth agrees with the face (``board_depth_gate``), so an
+    occluded board gives none. ``at_capture`` (camera -> frame -> the board pose at that
+    camera's capture, by the time model; :func:`board_views_per_camera`) replaces
+    ``T_ref_board`` and leaves out the sets it lacks."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    if board is None or not config.model_unseen_views:
+        return out
+    lo, hi = target_box(board)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    for c, T_rc in T_ref_cam.items():
+        if c not in dataset.rig.cameras or not dataset.has_depth(c):
+            continue
+        intr = dataset.rig.cameras[c]
+        T_cr = invert_transform(T_rc)
+        boards = T_ref_board if at_capture is None else at_capture.get(c, {})
+        for frame, T_rb in boards.items():
+            if frame in seen.get(c, {}):
+                continue
+            T_cb = T_cr @ T_rb
+            pts = corners @ T_cb[:3, :3].T + T_cb[:3, 3]
+            if np.any(in_view(intr, pts, 0.0, config.min_range_m, config.max_range_m)):
+                out.setdefault(c, {})[frame] = T_cb
+    return out
 
 
 # --------------------------------------------------------------------------- pairs
@@ -452,14 +503,20 @@ def moved_beyond_board(board_only: dict[str, Any], joint: dict[str, Any]) -> dic
 
 
 def board_views_per_camera(observations, T_ref_cam: dict[str, np.ndarray],
-                           T_ref_board: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
+                           T_ref_board: dict[str, np.ndarray],
+                           at_capture: dict[str, dict[str, np.ndarray]] | None = None,
+                           ) -> dict[str, dict[str, np.ndarray]]:
     """camera -> {frame: T_cam_board} from the calibrated poses, for the views each camera
-    used (the board pose is the joint estimate, not the single-view PnP)."""
+    used (the board pose is the joint estimate, not the single-view PnP). ``at_capture``
+    (camera -> frame -> T_ref_board at that camera's capture: a moving board seen by
+    unsynchronised cameras, by the time model) replaces ``T_ref_board``; a view it lacks (its
+    pose at the camera's capture too uncertain) is left out."""
     out: dict[str, dict[str, np.ndarray]] = {}
     for o in observations:
-        if o.camera in T_ref_cam and o.frame in T_ref_board:
+        boards = T_ref_board if at_capture is None else at_capture.get(o.camera, {})
+        if o.camera in T_ref_cam and o.frame in boards:
             out.setdefault(o.camera, {})[o.frame] = (invert_transform(T_ref_cam[o.camera])
-                                                     @ T_ref_board[o.frame])
+                                                     @ boards[o.frame])
     return out
 
 

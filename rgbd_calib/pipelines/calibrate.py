@@ -27,6 +27,7 @@ import numpy as np
 from ..core.config import BundleConfig, CalibrationConfig
 from ..core.errors import CalibrationError
 from ..core.progress import Progress, start, timed
+from ..depth.clouds import target_box
 from ..depth.stage import (
     DepthRefinement,
     board_views_per_camera,
@@ -34,6 +35,7 @@ from ..depth.stage import (
     measure_agreement,
     measure_depth,
     moved_beyond_board,
+    unseen_board_views,
 )
 from ..detect.markers import MarkerDetections
 from ..detect.probe import dictionary_family, probe_targets
@@ -66,6 +68,8 @@ from ..sources.cache import open_dataset
 # detections with the refined lens: at most this many passes, another one while some
 # camera's lens moved by more than LENS_SETTLED_PX at its detected corners (see lens_moved)
 REDETECTIONS = 3
+# the depth stage's board pose at a camera's capture must be known to this (mm, 1 sigma)
+MAX_CAPTURE_POSE_SIGMA_MM = 0.3
 
 
 @dataclass(frozen=True)
@@ -282,11 +286,17 @@ def _depth(run: _Run, pg: PoseGraphResult, solved: _Solved,
     board_only = Extrinsics(run.rig.reference, dict(cameras), dict(unconnected))
     T_ref_cam = {c: e.T_ref_cam for c, e in cameras.items()}
     with timed(run.timings, "depth"):
-        views = board_views_per_camera(solved.views.observations, T_ref_cam, bundle.T_ref_board)
-        depth = measure_depth(dataset, _depth_board(run.board, bundle), T_ref_cam, views,
+        board = _depth_board(run.board, bundle)
+        at_capture = _boards_at_capture(bundle, board, T_ref_cam)
+        views = board_views_per_camera(solved.views.observations, T_ref_cam, bundle.T_ref_board,
+                                       at_capture)
+        unseen = unseen_board_views(T_ref_cam, bundle.T_ref_board, views, board, dataset,
+                                    run.config.depth, at_capture)
+        depth = measure_depth(dataset, board, T_ref_cam, views,
                               bundle.T_ref_board, refine, run.config.depth, run.progress,
                               board_covariance={c: e.covariance for c, e in cameras.items()},
-                              workers=run.config.workers, scheduler=run.config.scheduler)
+                              workers=run.config.workers, scheduler=run.config.scheduler,
+                              unseen_views=unseen)
     solved = replace(solved, depth=depth, board_only=board_only)
     if depth.used:
         solved = _joint_solve(run, pg, solved, T_ref_cam)
@@ -299,6 +309,26 @@ def _depth(run: _Run, pg: PoseGraphResult, solved: _Solved,
         depth = measure_agreement(depth, {c: e.T_ref_cam for c, e in solved.cameras.items()},
                                   run.config.depth)
     return replace(solved, depth=depth)
+
+
+def _boards_at_capture(bundle: BundleResult, board: Board, T_ref_cam: dict[str, np.ndarray],
+                       ) -> dict[str, dict[str, np.ndarray]] | None:
+    """camera -> set -> the board pose at that camera's capture by the time model, for the
+    depth stage (its depth pixels must meet the face where it was when the camera saw it); the
+    sets where the twist's uncertainty moves the board's outermost point by more than
+    ``MAX_CAPTURE_POSE_SIGMA_MM`` are left out. None without a time model: the board is taken as
+    still and the cameras as synchronised, as the solve did."""
+    if bundle.time is None:
+        return None
+    lo, hi = target_box(board)
+    lever = float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi))))
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for c in T_ref_cam:
+        for v, T in bundle.T_ref_board.items():
+            moved = bundle.time.board_at_capture(c, v, T, lever)
+            if moved is not None and moved[1] <= MAX_CAPTURE_POSE_SIGMA_MM:
+                out.setdefault(c, {})[v] = moved[0]
+    return out
 
 
 def _depth_board(board: Board, bundle: BundleResult) -> Board:

@@ -49,7 +49,7 @@ from ..core.camera import (
     pinhole_pose_jacobian,
     project_pinhole,
 )
-from ..core.geometry import move_rows
+from ..core.geometry import move_rows, pose_after_twist
 from .bundle_factors import (
     face_transform,
     refined_model,
@@ -532,6 +532,25 @@ class TimeModel:
         return project_timed(T_ref_cam, T_ref_board, twist, time_ms, model, P_b,
                              row_fraction(rows_px, model.height), False,
                              accel=self.acceleration.get(view))[0]
+
+    def board_at_capture(self, camera: str, view: str, T_ref_board: np.ndarray,
+                         lever_m: float) -> tuple[np.ndarray, float] | None:
+        """The board pose of set ``view`` (``T_ref_board``: at the set's instant) at
+        ``camera``'s capture, the middle of its readout, under the set's twist and acceleration;
+        with how uncertain that makes a board point ``lever_m`` from the board origin (mm: the
+        twist's sigmas times the time moved). None when the set or camera was not solved."""
+        if view not in self.twist or camera not in self.offset_ms:
+            return None
+        known = (self.capture_ms or {}).get((camera, view))
+        offset = (self.offset_ms[camera] + known if known is not None
+                  else self.total_offset_ms(camera))
+        tau_ms = offset + 0.5 * self.readout_ms[camera]
+        w, v = self.twist[view][:3], self.twist[view][3:]
+        acc = self.acceleration.get(view)
+        T = pose_after_twist(T_ref_board, v, w, MS * tau_ms,
+                             None if acc is None else acc[3:], None if acc is None else acc[:3])
+        sw, sv = self.sigma_twist[view][:3], self.sigma_twist[view][3:]
+        return T, float((np.linalg.norm(sv) + np.linalg.norm(sw) * lever_m) * abs(tau_ms))
 
     def total_offset_ms(self, camera: str) -> float:
         """The camera's median capture time after the reference's: its timestamps' median

@@ -1,0 +1,120 @@
+"""The board where a camera did not detect it, for its depth model (issue 33): the board placed
+by the other cameras, seen in the camera's depth only, and the gate that keeps an occluder's
+pixels out of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rgbd_calib.core.config import DepthConfig
+from rgbd_calib.core.geometry import invert_transform
+from rgbd_calib.depth.clouds import board_face_pixels
+from rgbd_calib.depth.stage import board_views_per_camera, unseen_board_views
+from rgbd_calib.model.board import thesis_board
+from rgbd_calib.model.dataset import FolderDataset
+from rgbd_calib.synth.ground_truth import load_ground_truth
+
+
+def _half_seen(gt):
+    """Each camera 'detected' every other frame set."""
+    frames = sorted(gt.T_ref_board)
+    return {c: {f: invert_transform(T) @ gt.T_ref_board[f] for f in frames[::2]}
+            for c, T in gt.T_ref_cam.items()}
+
+
+def test_the_board_a_camera_did_not_detect_is_read_from_its_depth(tiny_dataset):
+    ds, gt, board, config = (FolderDataset(tiny_dataset), load_ground_truth(tiny_dataset),
+                             thesis_board(), DepthConfig(model_unseen_views=True))
+    seen = _half_seen(gt)
+    unseen = unseen_board_views(gt.T_ref_cam, gt.T_ref_board, seen, board, ds, config)
+    n_faces = 0
+    for c, views in unseen.items():
+        assert not set(views) & set(seen[c])  # only the sets the camera did not use
+        intr = ds.rig.cameras[c]
+        for frame, T_cam_board in views.items():
+            assert np.allclose(T_cam_board, invert_transform(gt.T_ref_cam[c])
+                               @ gt.T_ref_board[frame])
+            face = board_face_pixels(ds.read_depth(c, frame), intr, T_cam_board, board, config)
+            if face is None:
+                continue
+            n_faces += 1
+            # the true depth on the face: the measured depth agrees within the noise
+            assert abs(np.median(face.z_measured - face.z_true)) < 2e-3
+    assert n_faces >= 2
+    # switched off: nothing
+    off = DepthConfig(model_unseen_views=False)
+    assert unseen_board_views(gt.T_ref_cam, gt.T_ref_board, seen, board, ds, off) == {}
+
+
+def test_an_occluded_board_gives_no_depth_pixels(tiny_dataset):
+    """A board the camera cannot see (here: put 15 % nearer than it was, so the depth image
+    shows the real board, or what is behind it, far off that face) yields no face pixels: the
+    gate ``board_depth_gate`` keeps out what is not the board."""
+    ds, gt, board, config = (FolderDataset(tiny_dataset), load_ground_truth(tiny_dataset),
+                             thesis_board(), DepthConfig())
+    checked = 0
+    for c, T_ref_cam in gt.T_ref_cam.items():
+        intr = ds.rig.cameras[c]
+        for frame, T_ref_board in gt.T_ref_board.items():
+            T_cam_board = invert_transform(T_ref_cam) @ T_ref_board
+            if board_face_pixels(ds.read_depth(c, frame), intr, T_cam_board, board,
+                                 config) is None:
+                continue
+            nearer = T_cam_board.copy()
+            nearer[:3, 3] *= 0.85  # along the ray through the board origin: same image region
+            assert board_face_pixels(ds.read_depth(c, frame), intr, nearer, board,
+                                     config) is None
+            checked += 1
+    assert checked >= 4
+
+
+def test_at_capture_poses_replace_the_sets_and_leave_out_the_unknown(tiny_dataset):
+    """With a time model, each camera's board poses are those at its own capture
+    (``at_capture``); a set missing there (its pose at that capture too uncertain) is left
+    out of both the detected and the depth-only views."""
+    ds, gt, board, config = (FolderDataset(tiny_dataset), load_ground_truth(tiny_dataset),
+                             thesis_board(), DepthConfig(model_unseen_views=True))
+    frames = sorted(gt.T_ref_board)
+    shift = np.eye(4)
+    shift[0, 3] = 0.004
+    at_capture = {c: {f: shift @ gt.T_ref_board[f] for f in frames[1:]} for c in gt.T_ref_cam}
+
+    class _Obs:
+        def __init__(self, camera, frame):
+            self.camera, self.frame = camera, frame
+
+    obs = [_Obs(c, f) for c in gt.T_ref_cam for f in frames[::2]]
+    views = board_views_per_camera(obs, gt.T_ref_cam, gt.T_ref_board, at_capture)
+    for c, v in views.items():
+        assert frames[0] not in v
+        for f, T in v.items():
+            assert np.allclose(gt.T_ref_cam[c] @ T, shift @ gt.T_ref_board[f])
+    unseen = unseen_board_views(gt.T_ref_cam, gt.T_ref_board, views, board, ds, config,
+                                at_capture)
+    for c, v in unseen.items():
+        assert frames[0] not in v and not set(v) & set(views.get(c, {}))
+
+
+def test_the_board_at_a_cameras_capture_follows_the_sets_twist():
+    """``TimeModel.board_at_capture``: the set's board moved by its twist to the middle of the
+    camera's readout (offset + timestamps + readout / 2), with the twist's sigmas times that
+    time as its uncertainty; None for a set or camera the solve did not have."""
+    from rgbd_calib.core.geometry import pose_after_twist
+    from rgbd_calib.solve.time_model import TimeModel
+
+    twist = np.array([0.0, 0.0, 0.5, 0.3, -0.1, 0.0])  # w (rad/s), v (m/s)
+    sigma = np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002])
+    tm = TimeModel({"a": 0.0, "b": 6.0}, {"a": 0.0, "b": 0.1}, {"a": 0.0, "b": 20.0},
+                   {"a": 0.0, "b": 0.5}, {"s": twist}, {"s": sigma},
+                   capture_ms={("b", "s"): 4.0})
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.2, 1.5]
+    moved, unc = tm.board_at_capture("b", "s", T, 0.3)
+    tau = 1e-3 * (6.0 + 4.0 + 10.0)
+    assert np.allclose(moved, pose_after_twist(T, twist[3:], twist[:3], tau))
+    assert np.linalg.norm(moved[:3, 3] - T[:3, 3]) > 5e-3  # it did move (0.3 m/s x 20 ms)
+    assert unc == pytest.approx((np.linalg.norm(sigma[3:]) + 0.3 * np.linalg.norm(sigma[:3]))
+                                * 20.0)
+    assert tm.board_at_capture("c", "s", T, 0.3) is None
+    assert tm.board_at_capture("b", "t", T, 0.3) is None
