@@ -102,7 +102,8 @@ def render(folder: Path, layout: str, frames: int, seed: int, errors: bool,
 
 
 def calibrate(dataset: Path, out: Path, refine: str, depth_model: str,
-              times: dict[str, float], cache_from: Path | None = None) -> None:
+              times: dict[str, float], cache_from: Path | None = None,
+              depth_options: tuple[str, ...] = ()) -> None:
     """``rgbd-calib calibrate`` into ``out`` (``depth.model`` set by a config file) unless
     it holds a finished run; ``cache_from``: another run of the same dataset whose marker
     detections are copied in (the detection does not depend on the depth settings)."""
@@ -113,7 +114,8 @@ def calibrate(dataset: Path, out: Path, refine: str, depth_model: str,
     if cache_from is not None and (cache_from / "cache").is_dir():
         shutil.copytree(cache_from / "cache", out / "cache", dirs_exist_ok=True)
     config = out.parent / f"{out.name}.config.yaml"
-    config.write_text(f"depth:\n  model: {depth_model}\n")
+    config.write_text(f"depth:\n  model: {depth_model}\n"
+                      + "".join(f"  {o.replace('=', ': ', 1)}\n" for o in depth_options))
     args = ["calibrate", str(dataset), "--out", str(out), "--config", str(config),
             *([] if refine == "auto" else ["--refine", refine])]
     times[f"calibrate {out.name}"] = _cli(args, out.parent / f"{out.name}.log")
@@ -284,7 +286,8 @@ def markdown(layout: str, seed: int, frames: int, res: dict[str, Any],
 
 
 def run_layout(workdir: Path, layout: str, frames: int, seed: int, refine: str,
-               times: dict[str, float], near_m: float = NEAR_M) -> dict[str, Any]:
+               times: dict[str, float], near_m: float = NEAR_M,
+               depth_options: tuple[str, ...] = ()) -> dict[str, Any]:
     base = workdir / f"{layout}-{seed}-{frames}"
     base.mkdir(parents=True, exist_ok=True)
     errors, true = base / "errors", base / "true"
@@ -292,9 +295,9 @@ def run_layout(workdir: Path, layout: str, frames: int, seed: int, refine: str,
     render(true, layout, frames, seed, False, times)
     with_model, scale_only, clean = (base / "calib-errors-model", base / "calib-errors-nomodel",
                                      base / "calib-true")
-    calibrate(errors, with_model, refine, "auto", times)
+    calibrate(errors, with_model, refine, "auto", times, depth_options=depth_options)
     calibrate(errors, scale_only, refine, "none", times, cache_from=with_model)
-    calibrate(true, clean, refine, "auto", times)
+    calibrate(true, clean, refine, "auto", times, depth_options=depth_options)
     t0 = time.perf_counter()
     a = measure(with_model, errors, {"model": "as-is", "raw": "raw"}, near_m)
     b = measure(scale_only, errors, {"scale": "as-is"}, near_m)
@@ -316,6 +319,9 @@ def main() -> None:
     ap.add_argument("--near-m", type=float, default=NEAR_M,
                     help="p90 over points this close to their camera (m; default 2: the ring's "
                     "cameras see nothing that close, give 3 there)")
+    ap.add_argument("--depth-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a depth setting for the model calibrations (repeatable), e.g. "
+                    "model_unseen_views=true; give each setting its own WORKDIR")
     args = ap.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     report = [f"Run {datetime.now(UTC):%Y-%m-%d %H:%M} UTC: "
@@ -328,7 +334,8 @@ def main() -> None:
     for layout in args.layouts:
         times: dict[str, float] = {}
         results[layout] = run_layout(args.workdir, layout, args.frames, args.seed,
-                                     args.refine, times, args.near_m)
+                                     args.refine, times, args.near_m,
+                                     tuple(args.depth_option))
         results[layout]["times_s"] = times
         report.append(markdown(layout, args.seed, args.frames, results[layout], args.near_m))
         report.append("Wall time (s): " + ", ".join(f"{k} {v:.0f}" for k, v in times.items())
