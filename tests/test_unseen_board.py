@@ -35,7 +35,8 @@ def test_the_board_a_camera_did_not_detect_is_read_from_its_depth(tiny_dataset):
         for frame, T_cam_board in views.items():
             assert np.allclose(T_cam_board, invert_transform(gt.T_ref_cam[c])
                                @ gt.T_ref_board[frame])
-            face = board_face_pixels(ds.read_depth(c, frame), intr, T_cam_board, board, config)
+            face = board_face_pixels(ds.read_depth(c, frame), intr, T_cam_board, board, config,
+                                     config.board_depth_gate)
             if face is None:
                 continue
             n_faces += 1
@@ -50,7 +51,8 @@ def test_the_board_a_camera_did_not_detect_is_read_from_its_depth(tiny_dataset):
 def test_an_occluded_board_gives_no_depth_pixels(tiny_dataset):
     """A board the camera cannot see (here: put 15 % nearer than it was, so the depth image
     shows the real board, or what is behind it, far off that face) yields no face pixels: the
-    gate ``board_depth_gate`` keeps out what is not the board."""
+    gate ``board_depth_gate`` of the views the camera did not detect keeps out what is not the
+    board."""
     ds, gt, board, config = (FolderDataset(tiny_dataset), load_ground_truth(tiny_dataset),
                              thesis_board(), DepthConfig())
     checked = 0
@@ -58,13 +60,18 @@ def test_an_occluded_board_gives_no_depth_pixels(tiny_dataset):
         intr = ds.rig.cameras[c]
         for frame, T_ref_board in gt.T_ref_board.items():
             T_cam_board = invert_transform(T_ref_cam) @ T_ref_board
-            if board_face_pixels(ds.read_depth(c, frame), intr, T_cam_board, board,
-                                 config) is None:
+            gate = config.board_depth_gate
+            if board_face_pixels(ds.read_depth(c, frame), intr, T_cam_board, board, config,
+                                 gate) is None:
                 continue
             nearer = T_cam_board.copy()
             nearer[:3, 3] *= 0.85  # along the ray through the board origin: same image region
+            assert board_face_pixels(ds.read_depth(c, frame), intr, nearer, board, config,
+                                     gate) is None
+            # a detected view keeps its pixels (a board printed at the wrong scale must still
+            # show as every camera's depth off by the same factor)
             assert board_face_pixels(ds.read_depth(c, frame), intr, nearer, board,
-                                     config) is None
+                                     config) is not None
             checked += 1
     assert checked >= 4
 
@@ -118,3 +125,38 @@ def test_the_board_at_a_cameras_capture_follows_the_sets_twist():
                                 * 20.0)
     assert tm.board_at_capture("c", "s", T, 0.3) is None
     assert tm.board_at_capture("b", "t", T, 0.3) is None
+
+
+def test_the_depth_beyond_the_board_is_known_worse_the_farther_and_reported(tiny_dataset):
+    """``correction_sigma_mm`` grows beyond the board's depths (the stereo law extrapolated),
+    also for a camera that kept the identity; the finding ``depth_extrapolated`` names the
+    cameras with a quarter of their cloud beyond the board and their depth there known to worse
+    than 1 mm, and no other."""
+    from rgbd_calib.depth.clouds import board_faces
+    from rgbd_calib.depth.depth_model_fit import beyond_board, board_samples, fit_depth_model
+    from rgbd_calib.outputs.report.findings_depth import depth_extrapolated
+
+    ds, gt, board, config = (FolderDataset(tiny_dataset), load_ground_truth(tiny_dataset),
+                             thesis_board(), DepthConfig())
+    c = ds.cameras[0]
+    views = {f: invert_transform(gt.T_ref_cam[c]) @ T for f, T in gt.T_ref_board.items()}
+    intr = ds.rig.cameras[c]
+    fit = fit_depth_model(c, board_samples(intr, board_faces(ds, c, views, board, config),
+                                           config), intr, config)
+    lo, hi = fit.model.depth_range_m
+    near, far = fit.correction_sigma_mm(0.5 * (lo + hi)), fit.correction_sigma_mm(2.5 * hi)
+    assert 0 < near < far
+    b = beyond_board(fit, np.array([0.5 * (lo + hi)] * 10 + [2.5 * hi] * 90))
+    assert b.fraction == pytest.approx(0.9) and b.sigma_mm == pytest.approx(far)
+
+    def report(fraction, sigma_mm):
+        return {"depth_models": {"cam0": {"beyond_board": {
+            "board_max_m": 1.5, "cloud_p90_m": 3.8, "fraction": fraction,
+            "sigma_mm": sigma_mm}}}}
+
+    found = depth_extrapolated(report(0.9, 3.3), [])
+    assert [f["code"] for f in found] == ["depth_extrapolated"]
+    assert found[0]["cameras"] == ["cam0"] and "+-3.3 mm at 3.8 m" in found[0]["message"]
+    assert depth_extrapolated(report(0.1, 3.3), []) == []
+    assert depth_extrapolated(report(0.9, 0.6), []) == []
+    assert depth_extrapolated({}, []) == []

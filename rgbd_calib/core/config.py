@@ -643,17 +643,18 @@ class DepthConfig(BaseModel, extra="forbid"):
     board_depth_gate: float = Field(
         0.03,
         gt=0,
-        description="Board-face pixels whose measured depth is off the face by more than this "
-        "fraction of its depth are not the board (an occluder, a hand) and are not used "
-        "(a D435's depth errors stay within 1 %).",
+        description="In views where the camera did not detect the board (model_unseen_views), "
+        "board-face pixels whose measured depth is off the face by more than this fraction of "
+        "its depth are not the board (an occluder) and are not used (a D435's depth errors "
+        "stay within 1 %).",
     )
     model_unseen_views: bool = Field(
         False,
         description="The depth model also reads the board in views where the camera did not "
         "detect its markers (too far, too oblique in colour) but the board, placed by the "
         "cameras that did, lies in its depth image. Off by default: on the renders measured it "
-        "helped one rig and hurt another (docs/depth.md, 'The board where the camera did not "
-        "detect it').",
+        "helped one rig and hurt another (docs/depth.md, 'The ladder's first step, and the "
+        "board where a camera did not detect it').",
     )
     model_unseen_max_view_angle_deg: float = Field(
         45.0,

@@ -415,12 +415,16 @@ class BoardFacePixels:
 
 
 def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.ndarray,
-                      board: Board, config: DepthConfig) -> BoardFacePixels | None:
+                      board: Board, config: DepthConfig,
+                      gate: float | None = None) -> BoardFacePixels | None:
     """The pixels of depth image ``raw`` (counts) that see the board face towards the camera
     inside its panel minus ``scale_face_margin_m``, when the face is in front of the camera,
     seen within ``scale_max_view_angle_deg`` of its normal, with at least
     ``scale_min_points`` such pixels (else None). ``T_cam_board``: the board pose in the camera
-    (4x4, m) from the calibration."""
+    (4x4, m) from the calibration. ``gate``: keep only the pixels whose depth is within
+    this fraction of the face's (the board placed by other cameras may be hidden from this
+    one); None keeps every pixel (a view whose markers the camera detected sees the board, and
+    a board printed at the wrong scale must still show as a common depth scale)."""
     mg = config.scale_face_margin_m
     facing = _facing_face(board, T_cam_board)
     if facing is None:
@@ -458,9 +462,8 @@ def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.n
         & (hit_b[:, 1] > y0 + mg) & (hit_b[:, 1] < y1 - mg)
     )
     z_meas = raw[vs, us].astype(float) * intr.depth_scale
-    # pixels far off the face are something else: a hand or an object between the camera and
-    # the board (a board placed by the other cameras is not always in this camera's sight)
-    inside &= np.abs(z_meas - z_true) <= config.board_depth_gate * np.abs(z_true)
+    if gate is not None:  # pixels far off the face are something else: a hand, an object
+        inside &= np.abs(z_meas - z_true) <= gate * np.abs(z_true)
     if np.count_nonzero(inside) < config.scale_min_points:
         return None
     return BoardFacePixels(us[inside], vs[inside], z_meas[inside], z_true[inside], n_c.copy(),
@@ -468,7 +471,8 @@ def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.n
 
 
 def board_faces(dataset: FolderDataset, camera: str, T_cam_board: dict[str, np.ndarray],
-                board: Board, config: DepthConfig) -> list[tuple[str, BoardFacePixels]]:
+                board: Board, config: DepthConfig,
+                gate: float | None = None) -> list[tuple[str, BoardFacePixels]]:
     """``(frame, face pixels)`` of up to ``scale_max_frames`` of ``camera``'s views, sampled
     evenly (``T_cam_board``: frame -> board pose in the camera, 4x4 m, from the colour
     solve), each depth image read once; views with no usable face are left out
@@ -480,7 +484,7 @@ def board_faces(dataset: FolderDataset, camera: str, T_cam_board: dict[str, np.n
         if raw is None:
             continue
         face = board_face_pixels(raw, intr, np.asarray(T_cam_board[frame], dtype=float),
-                                 board, config)
+                                 board, config, gate)
         if face is not None:
             out.append((frame, face))
     return out

@@ -146,6 +146,26 @@ class DepthModelFit:
     n_samples: int
     sigma_factor: float  # sqrt(chi2 / dof) of the chosen fit: the noise model's accuracy
     n_unseen_views: int = 0  # of n_views: the board where the camera did not detect it
+    # the fit with the stereo law (scale and offset) free whatever the ladder chose: what the
+    # data say of the depth beyond the board (correction_sigma_mm); not written to files
+    law_model: DepthModel | None = None
+    law_names: tuple[str, ...] = ()
+    law_cov: np.ndarray | None = None
+
+    def correction_sigma_mm(self, z_measured_m: float) -> float:
+        """1 sigma (mm) of the true depth this camera's data give for a measured depth
+        ``z_measured_m`` on the image centre's ray: the covariance of the fit with scale and
+        disparity offset free (and the terms the ladder chose) propagated through
+        :meth:`DepthModel.true_depth`. Beyond the board's depth range it grows fast (the
+        stereo law extrapolated): race seed 101, board at 1-1.8 m, 1.8-3.0 mm at 3.5 m."""
+        m = self.law_model
+        if m is None or not self.law_names or self.law_cov is None:
+            return 0.0
+        x, y, z = np.zeros(1), np.zeros(1), np.array([float(z_measured_m)])
+        J = np.array([(m.with_values({p: m.value(p) + STEP[p]}).true_depth(x, y, z)[0]
+                       - m.with_values({p: m.value(p) - STEP[p]}).true_depth(x, y, z)[0])
+                      / (2 * STEP[p]) for p in self.law_names])
+        return float(1e3 * math.sqrt(max(float(J @ self.law_cov @ J), 0.0)))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -160,6 +180,38 @@ class DepthModelFit:
             "n_unseen_views": self.n_unseen_views,
             "sigma_factor": self.sigma_factor,
         }
+
+
+@dataclass(frozen=True)
+class BeyondBoard:
+    """How much of a camera's cloud lies beyond the depths its model was fitted on, and how
+    well its depth is known there: ``board_max_m`` the board's farthest depth (99th
+    percentile), ``cloud_p90_m`` the 90th percentile of the cloud's depths, ``fraction`` of
+    its points beyond ``board_max_m``, ``sigma_mm`` the corrected depth's 1 sigma at
+    ``cloud_p90_m`` (:meth:`DepthModelFit.correction_sigma_mm`)."""
+
+    camera: str
+    board_max_m: float
+    cloud_p90_m: float
+    fraction: float
+    sigma_mm: float
+
+    def to_dict(self) -> dict[str, float]:
+        return {"board_max_m": self.board_max_m, "cloud_p90_m": self.cloud_p90_m,
+                "fraction": self.fraction, "sigma_mm": self.sigma_mm}
+
+
+def beyond_board(fit: DepthModelFit, z_cloud_m: np.ndarray) -> BeyondBoard | None:
+    """:class:`BeyondBoard` of the camera's cloud depths ``z_cloud_m`` (m; None without a
+    depth range or points)."""
+    z = np.asarray(z_cloud_m, dtype=float)
+    z = z[np.isfinite(z) & (z > 0)]
+    rng = fit.model.depth_range_m
+    if rng is None or z.size == 0:
+        return None
+    p90 = float(np.percentile(z, 90))
+    return BeyondBoard(fit.camera, float(rng[1]), p90, float(np.mean(z > rng[1])),
+                       fit.correction_sigma_mm(p90))
 
 
 def _huber(r: np.ndarray, k: float) -> np.ndarray:
@@ -294,6 +346,11 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
         chosen.extend(best[1])
         current = best[2]
         tests[best[1]] = replace(tests[best[1]], kept=True)
+    law = current
+    if not set(LADDER[0]) <= set(chosen):
+        law = _solve(current.model, samples, tuple(
+            p for t in TERMS if t in chosen or t in LADDER[0] for p in TERMS[t]),
+            config.scale_huber_k)
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
     z = samples.z_measured
     model = DepthModel(
@@ -309,7 +366,8 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     z = samples.distance_m / np.sum(samples.normal * samples.rays, axis=1)
     return DepthModelFit(camera, model, tuple(tests[t] for t in LADDER if t in tests),
                          _bands(before, after, z, samples.sigma_m), n_views, len(z),
-                         float(math.sqrt(current.chi2 / current.dof)))
+                         float(math.sqrt(current.chi2 / current.dof)),
+                         law_model=law.model, law_names=law.names, law_cov=law.cov)
 
 
 def _image_coverage(pixels: np.ndarray, intr: CameraIntrinsics, cells: int = 8) -> float:

@@ -48,7 +48,13 @@ from .clouds import (
     static_cloud,
     target_box,
 )
-from .depth_model_fit import DepthModelFit, board_samples, fit_depth_model
+from .depth_model_fit import (
+    BeyondBoard,
+    DepthModelFit,
+    beyond_board,
+    board_samples,
+    fit_depth_model,
+)
 from .information import tangent_error
 from .registration import (
     PairRegistration,
@@ -84,6 +90,8 @@ class DepthRefinement:
     depth_models: dict[str, DepthModelFit] = field(default_factory=dict)
     # the overlapping pairs' surface distances at the final extrinsics (measure_agreement)
     agreement: FusedAgreement | None = None
+    # camera -> how much of its cloud lies beyond the board's depths, known how well there
+    beyond_board: dict[str, BeyondBoard] = field(default_factory=dict)
 
     def status_dict(self) -> dict[str, Any]:
         """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason`` and
@@ -186,6 +194,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
         clouds, skipped = static_clouds(dataset, jobs, T_ref_board or {}, board, cloud_config,
                                         workers, start(progress, "static clouds", len(cams)),
                                         scheduler)
+    far = {c: b for c in models if c in clouds
+           if (b := beyond_board(models[c], clouds[c].points[:, 2])) is not None}
 
     if no_pair:
         # the clouds are still built: fused.ply and the report's cloud checks use them
@@ -193,7 +203,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
             note=(f"the board constrains every camera within {config.board_weak_sigma_mm} mm "
                   f"/ {config.board_weak_sigma_deg} deg: depth registration would add no "
-                  "information and was skipped"), weak_cameras={}, depth_models=models)
+                  "information and was skipped"), weak_cameras={}, depth_models=models,
+            beyond_board=far)
 
     pairs: list[dict[str, Any]] = []
     relative: list[RelativePose] = []
@@ -224,7 +235,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                             skipped, weak_cameras=weak,
                             scale_source={c: "board" if c in scales else "given"
                                           if c in (depth_scales or {}) else "unknown"
-                                          for c in clouds}, depth_models=models)
+                                          for c in clouds}, depth_models=models,
+                            beyond_board=far)
     if method != "none" and not relative:
         depth = depth.with_fallback(no_pair_reason(depth))
     return depth
@@ -259,7 +271,7 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                 tick(1)
                 continue  # too few board pixels with depth: the factor stays 1 (reported)
             far = (board_faces(dataset, c, (unseen_views or {}).get(c, {}), board,
-                               unseen_config)
+                               unseen_config, gate=config.board_depth_gate)
                    if config.model == "auto" and config.model_unseen_max_frames else [])
             samples = (board_samples(dataset.rig.cameras[c], faces + far, config)
                        if config.model == "auto" else None)

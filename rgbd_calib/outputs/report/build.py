@@ -107,20 +107,26 @@ def report_dict(
     if getattr(result, "depth", None) is not None:
         report["depth"] = result.depth.status_dict()
         if result.depth.depth_models:
-            report["depth_models"] = {c: _depth_model_entry(f)
+            far = getattr(result.depth, "beyond_board", {}) or {}
+            report["depth_models"] = {c: _depth_model_entry(f, far.get(c))
                                       for c, f in result.depth.depth_models.items()}
         if result.depth.agreement is not None:
             report["fused_agreement"] = result.depth.agreement.to_dict()
     return finalize_report(to_builtin(report))
 
 
-def _depth_model_entry(fit: Any) -> dict[str, Any]:
+def _depth_model_entry(fit: Any, far: Any = None) -> dict[str, Any]:
     """report.json ``depth_models.<camera>``: the chosen terms, their parameters and sigmas, the
-    board-plane residuals by distance band before and after the model."""
+    board-plane residuals by distance band before and after the model, and (``far``, a
+    :class:`~rgbd_calib.depth.depth_model_fit.BeyondBoard`) how much of the camera's cloud lies
+    beyond the board's depths and how well its depth is known there."""
     d = fit.to_dict()
-    return {"terms": d["model"]["terms"],
-            "parameters": {p: d["model"]["parameters"][p] for p in d["model"]["sigmas"]},
-            "sigmas": d["model"]["sigmas"], "bands": d["bands"]}
+    entry = {"terms": d["model"]["terms"],
+             "parameters": {p: d["model"]["parameters"][p] for p in d["model"]["sigmas"]},
+             "sigmas": d["model"]["sigmas"], "bands": d["bands"]}
+    if far is not None:
+        entry["beyond_board"] = far.to_dict()
+    return entry
 
 
 def depth_only_report_dict(

@@ -52,6 +52,7 @@ from .findings_depth import (
     board_scale_sentence,
     common_depth_scale,
     confirming_pairs,
+    depth_extrapolated,
     depth_scale,
     depth_scale_unknown,
     depth_unused,
@@ -93,6 +94,7 @@ __all__ = [
     "common_depth_scale",
     "confirming_pairs",
     "depth_scale",
+    "depth_extrapolated",
     "depth_scale_unknown",
     "depth_unused",
     "dropped_views",
@@ -152,6 +154,7 @@ RULES: tuple[Rule, ...] = (
     each_pair(pair_disagrees, pair_rmse, pair_fitness),
     depth_unused,
     fused_disagrees,
+    depth_extrapolated,
     board_scale,
     depth_scale,
 )

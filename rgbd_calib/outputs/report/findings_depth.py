@@ -14,6 +14,8 @@ from .schema import (
     BOARD_SCALE_MIN,
     BOARD_SCALE_SPREAD,
     DEPTH_SCALE_TOL,
+    FAR_FRACTION,
+    FAR_SIGMA_MM,
     PAIR_FINAL_EXCESS_MM,
     PAIR_FITNESS_MIN,
     PAIR_RMSE_MAX_MM,
@@ -238,6 +240,28 @@ def _significant_scale(cam: dict[str, Any], model: dict[str, Any] | None
     if f is None or (sigma and abs(f - 1.0) <= 3.0 * sigma):
         return None, False
     return float(f), False
+
+
+def depth_extrapolated(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Cameras whose cloud lies largely beyond the depths their model was fitted on, where
+    their depth is known to worse than :data:`FAR_SIGMA_MM` (``depth_models.<camera>.
+    beyond_board``): the far part of ``fused.ply`` is an extrapolation of the board."""
+    far = [(c, m["beyond_board"]) for c, m in (report.get("depth_models") or {}).items()
+           if m.get("beyond_board") and m["beyond_board"]["fraction"] >= FAR_FRACTION
+           and m["beyond_board"]["sigma_mm"] > FAR_SIGMA_MM]
+    if not far:
+        return []
+    return [finding(
+        "info", "depth_extrapolated", [c for c, _ in far],
+        "fused.ply lies beyond the board's depths, where each camera's depth model is an "
+        "extrapolation (points beyond the board's farthest depth; the depth's 1 sigma at the "
+        "cloud's 90th percentile): " + "; ".join(
+            f"{c} {100 * b['fraction']:.0f} % beyond {b['board_max_m']:.2f} m, "
+            f"+-{b['sigma_mm']:.1f} mm at {b['cloud_p90_m']:.1f} m" for c, b in far) + ".",
+        "The depth model is fitted where the board was and extrapolated beyond: hold the board "
+        "at those distances too (the cameras that detect it place it; depth.model_unseen_views "
+        "reads it where this camera cannot detect it), or count the far cloud that uncertain; "
+        "docs/depth.md.")]
 
 
 def fused_disagrees(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:

@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.14"
+REPORT_SCHEMA_VERSION = "1.15"
 
 
 class ReportError(RgbdCalibError):
@@ -61,6 +61,10 @@ BOARD_SCALE_MIN = 0.01  # every camera's depth scale off by this much the same w
 BOARD_SCALE_SPREAD = 0.003  # camera-to-camera depth-scale spread allowed on top of the sigmas
 DEPTH_SCALE_TOL = 0.003  # |factor - 1| above this: the camera's depth needs its scale
 REFINE_MOVE_SIGMAS = 3.0  # refine: a camera moved by more than this many initial sigmas
+# depth_extrapolated: a camera with at least this fraction of its cloud beyond the board's
+# depths, where its depth is known to worse than FAR_SIGMA_MM (1 sigma; the bound)
+FAR_FRACTION = 0.25
+FAR_SIGMA_MM = 1.0
 INTRINSICS_SUPPORT_MAX = 0.5  # a refined parameter's sigma above this x its prior's: the
 # data added little to the rig.yaml value (few views, corners not reaching the image border)
 COVERAGE_GRID = (48, 27)  # sample points across, down, for the image coverage of a camera
@@ -272,6 +276,7 @@ REPORT_SCHEMA: dict[str, Any] = {
         "bands": ListOf({"z_min_m": N, "z_max_m": N, "n": INT, "median_before_mm": N,
                          "median_after_mm": N, "p90_before_mm": N, "p90_after_mm": N,
                          "noise_mm": N}),
+        "beyond_board?": {"board_max_m": N, "cloud_p90_m": N, "fraction": N, "sigma_mm": N},
     }),
     "fused_agreement?": {
         "pairs": ListOf({"cam_a": S, "cam_b": S, "after": SURFACE_DISTANCES,
