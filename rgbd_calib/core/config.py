@@ -643,10 +643,11 @@ class DepthConfig(BaseModel, extra="forbid"):
     board_depth_gate: float = Field(
         0.03,
         gt=0,
-        description="In views where the camera did not detect the board (model_unseen_views), "
-        "board-face pixels whose measured depth is off the face by more than this fraction of "
-        "its depth are not the board (an occluder) and are not used (a D435's depth errors "
-        "stay within 1 %).",
+        description="Board-face pixels whose measured depth over the face's is off the view's "
+        "median by more than this are not the board (a hand, a mixed edge pixel) and are not "
+        "used; in views where the camera did not detect the board (model_unseen_views) the "
+        "median itself must be within it of 1, so a hidden board gives none (a D435's depth "
+        "errors stay within 1-2 %).",
     )
     model_unseen_views: bool = Field(
         False,
@@ -655,13 +656,6 @@ class DepthConfig(BaseModel, extra="forbid"):
         "cameras that did, lies in its depth image. Off by default: on the renders measured it "
         "helped one rig and hurt another (docs/depth.md, 'The ladder's first step, and the "
         "board where a camera did not detect it').",
-    )
-    model_unseen_max_view_angle_deg: float = Field(
-        45.0,
-        gt=0,
-        lt=90,
-        description="Such views that see the board face more obliquely are not used (a board "
-        "the colour detection missed is often seen at a grazing angle, where depth is worst).",
     )
     model_unseen_max_frames: int = Field(
         40, ge=0, description="Such views per camera read for the depth model, sampled evenly."

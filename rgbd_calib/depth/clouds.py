@@ -416,15 +416,17 @@ class BoardFacePixels:
 
 def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.ndarray,
                       board: Board, config: DepthConfig,
-                      gate: float | None = None) -> BoardFacePixels | None:
+                      detected: bool = True) -> BoardFacePixels | None:
     """The pixels of depth image ``raw`` (counts) that see the board face towards the camera
     inside its panel minus ``scale_face_margin_m``, when the face is in front of the camera,
     seen within ``scale_max_view_angle_deg`` of its normal, with at least
     ``scale_min_points`` such pixels (else None). ``T_cam_board``: the board pose in the camera
-    (4x4, m) from the calibration. ``gate``: keep only the pixels whose depth is within
-    this fraction of the face's (the board placed by other cameras may be hidden from this
-    one); None keeps every pixel (a view whose markers the camera detected sees the board, and
-    a board printed at the wrong scale must still show as a common depth scale)."""
+    (4x4, m) from the calibration. Pixels whose depth-to-face ratio is off the view's median
+    ratio by more than ``board_depth_gate`` are something else (a hand, a mixed edge pixel)
+    and left out; the median itself may be off 1 (a board printed at the wrong scale must show
+    as a common depth scale) unless the camera did not detect the board in this view
+    (``detected`` False: placed by the other cameras, it may be hidden from this one), where
+    a median off 1 by more than the gate means the face is hidden (None)."""
     mg = config.scale_face_margin_m
     facing = _facing_face(board, T_cam_board)
     if facing is None:
@@ -462,8 +464,14 @@ def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.n
         & (hit_b[:, 1] > y0 + mg) & (hit_b[:, 1] < y1 - mg)
     )
     z_meas = raw[vs, us].astype(float) * intr.depth_scale
-    if gate is not None:  # pixels far off the face are something else: a hand, an object
-        inside &= np.abs(z_meas - z_true) <= gate * np.abs(z_true)
+    if np.count_nonzero(inside) < config.scale_min_points:
+        return None
+    ratio = z_meas / np.where(inside, z_true, 1.0)
+    centre = float(np.median(ratio[inside]))  # a gate about the face itself would cut the
+    # noise of a camera whose depth reads 1-2 % short on one side only: a bias
+    if not detected and abs(centre - 1.0) > config.board_depth_gate:
+        return None  # most of the face's pixels are something else: the board is hidden
+    inside &= np.abs(ratio - centre) <= config.board_depth_gate
     if np.count_nonzero(inside) < config.scale_min_points:
         return None
     return BoardFacePixels(us[inside], vs[inside], z_meas[inside], z_true[inside], n_c.copy(),
@@ -472,7 +480,7 @@ def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.n
 
 def board_faces(dataset: FolderDataset, camera: str, T_cam_board: dict[str, np.ndarray],
                 board: Board, config: DepthConfig,
-                gate: float | None = None) -> list[tuple[str, BoardFacePixels]]:
+                detected: bool = True) -> list[tuple[str, BoardFacePixels]]:
     """``(frame, face pixels)`` of up to ``scale_max_frames`` of ``camera``'s views, sampled
     evenly (``T_cam_board``: frame -> board pose in the camera, 4x4 m, from the colour
     solve), each depth image read once; views with no usable face are left out
@@ -484,7 +492,7 @@ def board_faces(dataset: FolderDataset, camera: str, T_cam_board: dict[str, np.n
         if raw is None:
             continue
         face = board_face_pixels(raw, intr, np.asarray(T_cam_board[frame], dtype=float),
-                                 board, config, gate)
+                                 board, config, detected)
         if face is not None:
             out.append((frame, face))
     return out

@@ -146,25 +146,29 @@ class DepthModelFit:
     n_samples: int
     sigma_factor: float  # sqrt(chi2 / dof) of the chosen fit: the noise model's accuracy
     n_unseen_views: int = 0  # of n_views: the board where the camera did not detect it
-    # the fit with the stereo law (scale and offset) free whatever the ladder chose: what the
-    # data say of the depth beyond the board (correction_sigma_mm); not written to files
+    # the fit with every term free whatever the ladder chose: what the data say of the depth
+    # beyond the board (correction_sigma_mm); not written to files
     law_model: DepthModel | None = None
     law_names: tuple[str, ...] = ()
     law_cov: np.ndarray | None = None
 
     def correction_sigma_mm(self, z_measured_m: float) -> float:
         """1 sigma (mm) of the true depth this camera's data give for a measured depth
-        ``z_measured_m`` on the image centre's ray: the covariance of the fit with scale and
-        disparity offset free (and the terms the ladder chose) propagated through
-        :meth:`DepthModel.true_depth`. Beyond the board's depth range it grows fast (the
-        stereo law extrapolated): race seed 101, board at 1-1.8 m, 1.8-3.0 mm at 3.5 m."""
+        ``z_measured_m`` on the image centre's ray: the covariance of the fit with every
+        term free propagated through :meth:`DepthModel.correct_points` (the depth along the
+        ray and the depth-to-colour pose). Beyond the board's depth range it grows fast (the
+        stereo law extrapolated; docs/depth.md)."""
         m = self.law_model
         if m is None or not self.law_names or self.law_cov is None:
             return 0.0
-        x, y, z = np.zeros(1), np.zeros(1), np.array([float(z_measured_m)])
-        J = np.array([(m.with_values({p: m.value(p) + STEP[p]}).true_depth(x, y, z)[0]
-                       - m.with_values({p: m.value(p) - STEP[p]}).true_depth(x, y, z)[0])
-                      / (2 * STEP[p]) for p in self.law_names])
+        ray, z = np.array([[0.0, 0.0, 1.0]]), np.array([float(z_measured_m)])
+
+        def depth(model: DepthModel) -> float:
+            return float(model.correct_points(ray, z)[0, 2])
+
+        J = np.array([(depth(m.with_values({p: m.value(p) + STEP[p]}))
+                       - depth(m.with_values({p: m.value(p) - STEP[p]}))) / (2 * STEP[p])
+                      for p in self.law_names])
         return float(1e3 * math.sqrt(max(float(J @ self.law_cov @ J), 0.0)))
 
     def to_dict(self) -> dict[str, Any]:
@@ -346,11 +350,9 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
         chosen.extend(best[1])
         current = best[2]
         tests[best[1]] = replace(tests[best[1]], kept=True)
-    law = current
-    if not set(LADDER[0]) <= set(chosen):
-        law = _solve(current.model, samples, tuple(
-            p for t in TERMS if t in chosen or t in LADDER[0] for p in TERMS[t]),
-            config.scale_huber_k)
+    # what the data say of the depth beyond the board, whatever the ladder chose: every term
+    # free (the terms it left out are there on a real camera, only too small to show here)
+    law = _solve(current.model, samples, PARAMETERS, config.scale_huber_k)
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
     z = samples.z_measured
     model = DepthModel(

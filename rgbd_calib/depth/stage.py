@@ -259,8 +259,7 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
         return scales, models
     tick = start(progress, "depth model per camera", len(cams))
     unseen_config = config.model_copy(update={"scale_max_frames": max(
-        config.model_unseen_max_frames, 1), "scale_max_view_angle_deg": min(
-        config.scale_max_view_angle_deg, config.model_unseen_max_view_angle_deg)})
+        config.model_unseen_max_frames, 1)})
     for c in cams:
         views = board_views.get(c, {})
         if views:
@@ -271,7 +270,7 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                 tick(1)
                 continue  # too few board pixels with depth: the factor stays 1 (reported)
             far = (board_faces(dataset, c, (unseen_views or {}).get(c, {}), board,
-                               unseen_config, gate=config.board_depth_gate)
+                               unseen_config, detected=False)
                    if config.model == "auto" and config.model_unseen_max_frames else [])
             samples = (board_samples(dataset.rig.cameras[c], faces + far, config)
                        if config.model == "auto" else None)
