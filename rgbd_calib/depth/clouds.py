@@ -151,6 +151,15 @@ def target_box(board: Board) -> tuple[np.ndarray, np.ndarray]:
     return allp.min(axis=0), allp.max(axis=0)
 
 
+def target_corners(board: Board, margin_m: float = 0.0) -> np.ndarray:
+    """The eight corners ``(8,3)`` (board frame, m) of :func:`target_box` grown by
+    ``margin_m`` on every side."""
+    lo, hi = target_box(board)
+    lo, hi = lo - margin_m, hi + margin_m
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                     for z in (lo[2], hi[2])])
+
+
 def _facing_face(board: Board, T_cam_board: np.ndarray):
     """The face the camera looks at most squarely, as ``(T_cam_face, panel, z_face)``: the
     face's pose in the camera, its panel (face frame) and the z of its printed plane; None when
@@ -182,11 +191,7 @@ def board_mask(intr: CameraIntrinsics, T_cam_board: np.ndarray, board: Board,
 
     The box is convex, so its image is the convex hull of its eight projected corners. A board
     crossing the camera plane masks the whole image."""
-    lo, hi = target_box(board)
-    m = margin_m
-    box_b = np.array([[x, y, z] for x in (lo[0] - m, hi[0] + m) for y in (lo[1] - m, hi[1] + m)
-                      for z in (hi[2] + m, lo[2] - m)])
-    box_c = transform_points(T_cam_board, box_b)
+    box_c = transform_points(T_cam_board, target_corners(board, margin_m))
     mask = np.zeros((intr.height, intr.width), dtype=bool)
     if np.all(box_c[:, 2] <= 0.02):
         return mask

@@ -352,7 +352,8 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
         tests[best[1]] = replace(tests[best[1]], kept=True)
     # what the data say of the depth beyond the board, whatever the ladder chose: every term
     # free (the terms it left out are there on a real camera, only too small to show here)
-    law = _solve(current.model, samples, PARAMETERS, config.scale_huber_k)
+    law = (current if current.names == PARAMETERS
+           else _solve(current.model, samples, PARAMETERS, config.scale_huber_k))
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
     z = samples.z_measured
     model = DepthModel(

@@ -46,7 +46,7 @@ from .clouds import (
     fuse_clouds,
     in_view,
     static_cloud,
-    target_box,
+    target_corners,
 )
 from .depth_model_fit import (
     BeyondBoard,
@@ -297,9 +297,7 @@ def unseen_board_views(T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, 
     out: dict[str, dict[str, np.ndarray]] = {}
     if board is None or not config.model_unseen_views:
         return out
-    lo, hi = target_box(board)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])
+    corners = target_corners(board)
     for c, T_rc in T_ref_cam.items():
         if c not in dataset.rig.cameras or not dataset.has_depth(c):
             continue

@@ -27,7 +27,7 @@ import numpy as np
 from ..core.config import BundleConfig, CalibrationConfig
 from ..core.errors import CalibrationError
 from ..core.progress import Progress, start, timed
-from ..depth.clouds import target_box
+from ..depth.clouds import target_corners
 from ..depth.stage import (
     DepthRefinement,
     board_views_per_camera,
@@ -320,8 +320,7 @@ def _boards_at_capture(bundle: BundleResult, board: Board, T_ref_cam: dict[str, 
     still and the cameras as synchronised, as the solve did."""
     if bundle.time is None:
         return None
-    lo, hi = target_box(board)
-    lever = float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi))))
+    lever = float(np.linalg.norm(target_corners(board), axis=1).max())
     out: dict[str, dict[str, np.ndarray]] = {}
     for c in T_ref_cam:
         for v, T in bundle.T_ref_board.items():

@@ -107,7 +107,7 @@ def report_dict(
     if getattr(result, "depth", None) is not None:
         report["depth"] = result.depth.status_dict()
         if result.depth.depth_models:
-            far = getattr(result.depth, "beyond_board", {}) or {}
+            far = result.depth.beyond_board
             report["depth_models"] = {c: _depth_model_entry(f, far.get(c))
                                       for c, f in result.depth.depth_models.items()}
         if result.depth.agreement is not None:
