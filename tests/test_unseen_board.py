@@ -105,25 +105,32 @@ def test_at_capture_poses_replace_the_sets_and_leave_out_the_unknown(tiny_datase
 
 
 def test_the_board_at_a_cameras_capture_follows_the_sets_twist():
-    """``TimeModel.board_at_capture``: the set's board moved by its twist to the middle of the
-    camera's readout (offset + timestamps + readout / 2), with the twist's sigmas times that
-    time as its uncertainty; None for a set or camera the solve did not have."""
+    """``TimeModel.board_at_capture``: the set's board moved by its twist to the camera's
+    capture, the time synth exposes its depth image and its colour image's middle row
+    (``row_time_s`` at the middle row: offset + timestamps, not the readout's end or start),
+    and there it is where synth's truth puts it; the twist's sigmas times that time are its
+    uncertainty; None for a set or camera the solve did not have."""
     from rgbd_calib.core.geometry import pose_after_twist
     from rgbd_calib.solve.time_model import TimeModel
+    from rgbd_calib.synth.timing import row_time_s
 
     twist = np.array([0.0, 0.0, 0.5, 0.3, -0.1, 0.0])  # w (rad/s), v (m/s)
     sigma = np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002])
-    tm = TimeModel({"a": 0.0, "b": 6.0}, {"a": 0.0, "b": 0.1}, {"a": 0.0, "b": 20.0},
+    height, readout_ms = 480, 20.0
+    tm = TimeModel({"a": 0.0, "b": 6.0}, {"a": 0.0, "b": 0.1}, {"a": 0.0, "b": readout_ms},
                    {"a": 0.0, "b": 0.5}, {"s": twist}, {"s": sigma},
                    capture_ms={("b", "s"): 4.0})
     T = np.eye(4)
     T[:3, 3] = [0.1, 0.2, 1.5]
     moved, unc = tm.board_at_capture("b", "s", T, 0.3)
-    tau = 1e-3 * (6.0 + 4.0 + 10.0)
+    tau = row_time_s((height - 1) / 2, height, 1e-3 * (6.0 + 4.0), 1e-3 * readout_ms)
+    assert tau == pytest.approx(0.010)
     assert np.allclose(moved, pose_after_twist(T, twist[3:], twist[:3], tau))
-    assert np.linalg.norm(moved[:3, 3] - T[:3, 3]) > 5e-3  # it did move (0.3 m/s x 20 ms)
+    assert np.linalg.norm(moved[:3, 3] - T[:3, 3]) > 3e-3  # it did move (0.3 m/s x 10 ms)
     assert unc == pytest.approx((np.linalg.norm(sigma[3:]) + 0.3 * np.linalg.norm(sigma[:3]))
-                                * 20.0)
+                                * 10.0)
+    reference, _ = tm.board_at_capture("a", "s", T, 0.3)  # the set's own instant
+    assert np.allclose(reference, T)
     assert tm.board_at_capture("c", "s", T, 0.3) is None
     assert tm.board_at_capture("b", "t", T, 0.3) is None
 

@@ -69,7 +69,7 @@ from ..sources.cache import open_dataset
 # camera's lens moved by more than LENS_SETTLED_PX at its detected corners (see lens_moved)
 REDETECTIONS = 3
 # the depth stage's board pose at a camera's capture must be known to this (mm, 1 sigma)
-MAX_CAPTURE_POSE_SIGMA_MM = 0.3
+MAX_CAPTURE_POSE_SIGMA_MM = 1.0  # a bound: the errors were 3-5x smaller (race, 0.3 m/s)
 
 
 @dataclass(frozen=True)

@@ -536,15 +536,18 @@ class TimeModel:
     def board_at_capture(self, camera: str, view: str, T_ref_board: np.ndarray,
                          lever_m: float) -> tuple[np.ndarray, float] | None:
         """The board pose of set ``view`` (``T_ref_board``: at the set's instant) at
-        ``camera``'s capture, the middle of its readout, under the set's twist and acceleration;
-        with how uncertain that makes a board point ``lever_m`` from the board origin (mm: the
-        twist's sigmas times the time moved). None when the set or camera was not solved."""
+        ``camera``'s capture, under the set's twist and acceleration; with how uncertain that
+        makes a board point ``lever_m`` from the board origin (mm: the twist's sigmas times the
+        time moved). The capture is the camera's offset (timestamps plus estimate): the middle
+        row of its colour image is exposed then (:func:`row_fraction`, docs/conventions.md
+        'Time'), and its global-shutter depth image with it. None when the set or camera was
+        not solved."""
         if view not in self.twist or camera not in self.offset_ms:
             return None
         known = (self.capture_ms or {}).get((camera, view))
         offset = (self.offset_ms[camera] + known if known is not None
                   else self.total_offset_ms(camera))
-        tau_ms = offset + 0.5 * self.readout_ms[camera]
+        tau_ms = offset
         w, v = self.twist[view][:3], self.twist[view][3:]
         acc = self.acceleration.get(view)
         T = pose_after_twist(T_ref_board, v, w, MS * tau_ms,
