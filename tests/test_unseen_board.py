@@ -168,3 +168,27 @@ def test_the_depth_beyond_the_board_is_known_worse_the_farther_and_reported(tiny
     assert depth_extrapolated(report(0.1, 3.3), []) == []
     assert depth_extrapolated(report(0.9, 0.6), []) == []
     assert depth_extrapolated({}, []) == []
+
+
+def test_a_camera_with_depth_but_no_board_view_is_named(tiny_dataset):
+    """A camera that has depth but no view of the board usable for it (here: given none) gets
+    no depth model; the depth stage says so (``depth.unmodelled``), the report's finding
+    ``depth_unmodelled`` names it, and a camera that got its model is not named."""
+    from rgbd_calib.depth.stage import measure_depth
+    from rgbd_calib.outputs.report.findings_depth import depth_unmodelled
+
+    ds, gt, board = FolderDataset(tiny_dataset), load_ground_truth(tiny_dataset), thesis_board()
+    seen = _half_seen(gt)
+    bare = ds.cameras[1]
+    seen.pop(bare)
+    depth = measure_depth(ds, board, gt.T_ref_cam, seen, gt.T_ref_board, "none",
+                          DepthConfig(model_unseen_views=False))
+    assert set(depth.unmodelled) == {bare}
+    assert set(depth.depth_models) == set(ds.cameras) - {bare}
+    status = depth.status_dict()
+    assert set(status["unmodelled"]) == {bare}
+    found = depth_unmodelled({"depth": status}, [])
+    assert [f["code"] for f in found] == ["depth_unmodelled"] and found[0]["cameras"] == [bare]
+    assert "uncorrected" in found[0]["message"]
+    assert depth_unmodelled({"depth": {"status": "none", "reason": None,
+                                       "weak_cameras": {}}}, []) == []

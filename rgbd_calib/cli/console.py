@@ -199,12 +199,15 @@ def fused_line(agreement) -> str | None:
     return text + (f"; off beyond the noise: {', '.join(off)}" if off else "")
 
 
-def depth_model_line(fits: dict) -> str:
-    """'depth model: left0 scale+pose, right0 offset, 6 identity; board-plane bias within
-    0.4 mm after the model (3.1 mm before), noise 5.2 mm' from the depth stage's fits."""
+def depth_model_line(fits: dict, unmodelled: dict | None = None) -> str:
+    """'depth model: left0 scale+pose, right0 offset, 6 identity, none for right3; board-plane
+    bias within 0.4 mm after the model (3.1 mm before), noise 5.2 mm' from the depth stage's
+    fits and the cameras with depth it had no model for."""
     named = [f"{c} {'+'.join(f.model.terms)}" for c, f in sorted(fits.items()) if f.model.terms]
     clean = sum(1 for f in fits.values() if not f.model.terms)
     parts = named + ([f"{clean} identity"] if clean else [])
+    if unmodelled:
+        parts.append(f"none for {', '.join(sorted(unmodelled))} (uncorrected)")
     bands = [b for f in fits.values() for b in f.bands]
     if not bands:
         return "depth model: " + ", ".join(parts)
@@ -300,9 +303,9 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
     if result.depth is not None and result.depth.agreement is not None:
         if line := fused_line(result.depth.agreement):
             console.print(line, highlight=False, soft_wrap=True)
-    if result.depth is not None and result.depth.depth_models:
-        console.print(depth_model_line(result.depth.depth_models), highlight=False,
-                      soft_wrap=True)
+    if result.depth is not None and (result.depth.depth_models or result.depth.unmodelled):
+        console.print(depth_model_line(result.depth.depth_models, result.depth.unmodelled),
+                      highlight=False, soft_wrap=True)
     scales = result.depth.depth_scale_dict() if result.depth is not None else {}
     ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
     if ratio is not None:

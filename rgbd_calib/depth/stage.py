@@ -67,6 +67,11 @@ from .registration import (
     register_robust,
 )
 
+# why a camera with depth has no depth model (report.json depth.unmodelled)
+NO_BOARD_DEPTH = ("no view of the board usable for depth (none detected by it, or the board's "
+                  "pose at its capture uncertain by more than the gate)")
+FEW_BOARD_PIXELS = "too few board pixels with depth in its views"
+
 
 @dataclass(frozen=True)
 class DepthRefinement:
@@ -92,14 +97,18 @@ class DepthRefinement:
     agreement: FusedAgreement | None = None
     # camera -> how much of its cloud lies beyond the board's depths, known how well there
     beyond_board: dict[str, BeyondBoard] = field(default_factory=dict)
+    # camera with depth -> why it has no depth model (its cloud is uncorrected)
+    unmodelled: dict[str, str] = field(default_factory=dict)
 
     def status_dict(self) -> dict[str, Any]:
-        """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason`` and
-        the cameras the board constrained weakly (those depth was registered for)."""
+        """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason``, the
+        cameras the board constrained weakly (those depth was registered for) and, when some
+        camera with depth got no depth model, ``unmodelled`` (camera -> why)."""
         status = ("fallback" if self.fallback else "skipped" if self.note
                   else "used" if self.relative_poses else "none")
         return {"status": status, "reason": self.fallback or self.note,
-                "weak_cameras": dict(self.weak_cameras or {})}
+                "weak_cameras": dict(self.weak_cameras or {})} | (
+                    {"unmodelled": dict(self.unmodelled)} if self.unmodelled else {})
 
     @property
     def used(self) -> bool:
@@ -181,8 +190,9 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                              if c != dataset.rig.reference}, config)
     timings: dict[str, float] = {}
     with timed(timings, "depth_scale"):
-        scales, models = _board_depth(dataset, cams, board, board_views, config, progress,
-                                      unseen_views)
+        scales, models, unmodelled = _board_depth(dataset, cams, board, board_views, config,
+                                                  progress, unseen_views)
+        unmodelled = {c: why for c, why in unmodelled.items() if c not in (depth_scales or {})}
 
     no_pair = method != "none" and weak is not None and not weak
     with timed(timings, "clouds"):
@@ -204,7 +214,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             note=(f"the board constrains every camera within {config.board_weak_sigma_mm} mm "
                   f"/ {config.board_weak_sigma_deg} deg: depth registration would add no "
                   "information and was skipped"), weak_cameras={}, depth_models=models,
-            beyond_board=far)
+            beyond_board=far, unmodelled=unmodelled)
 
     pairs: list[dict[str, Any]] = []
     relative: list[RelativePose] = []
@@ -236,7 +246,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                             scale_source={c: "board" if c in scales else "given"
                                           if c in (depth_scales or {}) else "unknown"
                                           for c in clouds}, depth_models=models,
-                            beyond_board=far)
+                            beyond_board=far, unmodelled=unmodelled)
     if method != "none" and not relative:
         depth = depth.with_fallback(no_pair_reason(depth))
     return depth
@@ -246,17 +256,19 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                  board_views: dict[str, dict[str, np.ndarray]] | None, config: DepthConfig,
                  progress: Progress | None,
                  unseen_views: dict[str, dict[str, np.ndarray]] | None = None,
-                 ) -> tuple[dict[str, DepthScaleEstimate], dict[str, DepthModelFit]]:
+                 ) -> tuple[dict[str, DepthScaleEstimate], dict[str, DepthModelFit],
+                            dict[str, str]]:
     """Per camera with board views: its depth scale (:func:`estimate_depth_scale`) and its
     depth model chosen by evidence (:func:`fit_depth_model`) from those views and its
     ``unseen_views`` (:func:`unseen_board_views`). The clouds are corrected by the model; the
     reported factor (and refine's) is still the scale estimate's, of the views it detected (not
     yet the model's scale: with a second term chosen its sigma grows beyond what refine
-    needs)."""
+    needs). Third: with ``config.model`` auto, each camera that got no model and why."""
     scales: dict[str, DepthScaleEstimate] = {}
     models: dict[str, DepthModelFit] = {}
-    if board is None or not board_views:
-        return scales, models
+    if board is None or board_views is None:
+        return scales, models, {}
+    unmodelled = {c: NO_BOARD_DEPTH for c in cams} if config.model == "auto" else {}
     tick = start(progress, "depth model per camera", len(cams))
     unseen_config = config.model_copy(update={"scale_max_frames": max(
         config.model_unseen_max_frames, 1)})
@@ -268,6 +280,8 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                 scales[c] = estimate_depth_scale(dataset, c, views, board, config, faces)
             except (CalibrationError, DatasetError):
                 tick(1)
+                if c in unmodelled:
+                    unmodelled[c] = FEW_BOARD_PIXELS
                 continue  # too few board pixels with depth: the factor stays 1 (reported)
             far = (board_faces(dataset, c, (unseen_views or {}).get(c, {}), board,
                                unseen_config, detected=False)
@@ -277,8 +291,9 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
             if samples is not None:
                 models[c] = replace(fit_depth_model(c, samples, dataset.rig.cameras[c], config),
                                     n_unseen_views=len(far))
+                unmodelled.pop(c, None)
         tick(1)
-    return scales, models
+    return scales, models, unmodelled
 
 
 def unseen_board_views(T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, np.ndarray],

@@ -264,6 +264,20 @@ def depth_extrapolated(report: dict[str, Any], earlier: list[Finding]) -> list[F
         "docs/depth.md.")]
 
 
+def depth_unmodelled(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Cameras with depth that got no depth model from the board (``depth.unmodelled``): their
+    part of ``fused.ply`` is their raw depth, which a D435 reads millimetres off."""
+    unmodelled = (report.get("depth") or {}).get("unmodelled") or {}
+    if not unmodelled:
+        return []
+    return [finding(
+        "warning", "depth_unmodelled", sorted(unmodelled),
+        "No depth model for " + "; ".join(f"{c} ({why})" for c, why in sorted(
+            unmodelled.items())) + ": their depth in fused.ply is uncorrected.",
+        "Hold the board still where these cameras see it, at the distances their scene is; "
+        "docs/depth.md.")]
+
+
 def fused_disagrees(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     """The fused cloud: a camera (or a pair, when it cannot tell which camera) whose corrected
     depth lies off its overlapping cameras' surfaces beyond the noise (``fused_agreement``)."""

@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.15"
+REPORT_SCHEMA_VERSION = "1.16"
 
 
 class ReportError(RgbdCalibError):
@@ -292,7 +292,8 @@ REPORT_SCHEMA: dict[str, Any] = {
     "frame_selection?": {"kept": INT, "total": INT, "run_length": INT},
     "pairs": ListOf(PAIR_SCHEMA),
     "timings_s": MapOf("<stage>", N),
-    "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S)},
+    "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S),
+               "unmodelled?": MapOf("<camera>", S)},
     "refine?": {
         "init": S,
         "registration": S,
