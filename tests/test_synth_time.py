@@ -390,3 +390,20 @@ def test_the_timestamp_jitter_option_is_checked(tmp_path, value):
     assert not (tmp_path / "s").exists()
     with pytest.raises(ConfigError, match="--timestamp-jitter-ms"):
         make_rig(LAYOUT, 0, SynthParams(timestamp_jitter_ms=float(value)))
+
+
+def test_the_frame_rate_spaces_a_burst():
+    """``--frame-rate 6``: a burst's sets 1000/6 ms apart on one trajectory (the twist
+    changes by the acceleration over that period), positions still 1 s apart; the option is
+    checked and the render counts as timed."""
+    params = SynthParams(motion=(0.3, 30.0), acceleration=(1.0, 100.0), burst=3,
+                         frame_rate=6.0)
+    timing = draw_timing(make_rig(LAYOUT, SEED, params), 2, SEED, params)
+    assert np.allclose(timing.t_ms, [0.0, 1000 / 6, 2000 / 6, 1000.0, 1000 + 1000 / 6,
+                                     1000 + 2000 / 6])
+    assert timing.frame_period_ms == pytest.approx(1000 / 6)
+    assert np.allclose(timing.v_mps[1] - timing.v_mps[0], timing.a_mps2[0] / 6.0)
+    assert timing.burst_s(0) == pytest.approx(-1 / 6)
+    assert replace(SynthParams(), frame_rate=10.0).timed
+    with pytest.raises(ConfigError, match="--frame-rate"):
+        make_rig(LAYOUT, SEED, SynthParams(frame_rate=0.5))

@@ -33,6 +33,7 @@ from rgbd_calib.core.geometry import (
     transform_error,
 )
 from rgbd_calib.solve.bundle import BundleProblem, MarkerMeasurement, bundle_adjust
+from rgbd_calib.solve.runs import frame_period_ms, link_window_ms
 from rgbd_calib.solve.time_model import (
     MotionPrior,
     TimePrior,
@@ -211,3 +212,24 @@ def test_consecutive_sets_make_offsets_with_a_global_shutter_observable():
         linked, z = _solve(base, boards, meas, set_ms, seed)
         assert linked < 0.5 * alone and linked < 1.5, (seed, alone, linked)
         assert 0.4 < z < 1.8, (seed, z)
+
+
+def test_the_link_window_follows_the_frame_rate():
+    """``bundle.time_link_ms: auto``: 1.5 frame periods of the recording (the median gap
+    between consecutive sets up to 200 ms), at least the 100 ms of before; separate poses
+    (gaps of a second) or no timestamps keep 100 ms; a number is used as given."""
+    def recording(fps, positions=4, burst=3):
+        return {f"{j * burst + k:06d}": j * 1000.0 + k * 1000.0 / fps
+                for j in range(positions) for k in range(burst)}
+    assert frame_period_ms(recording(30)) == pytest.approx(1000 / 30)
+    assert link_window_ms("auto", recording(30)) == 100.0  # 30 fps links as before
+    assert link_window_ms("auto", recording(10)) == pytest.approx(150.0)
+    assert link_window_ms("auto", recording(6)) == pytest.approx(250.0)
+    assert frame_period_ms(recording(4)) is None  # 250 ms apart: poses, not a trajectory
+    assert link_window_ms("auto", recording(4)) == 100.0
+    assert link_window_ms("auto", {f"{i}": 1000.0 * i for i in range(9)}) == 100.0
+    assert link_window_ms("auto", {}) == 100.0
+    assert link_window_ms(40.0, recording(6)) == 40.0
+    # the window links a 6 fps burst's sets, and not the next position's
+    links = motion_links(recording(6), list(recording(6)), link_window_ms("auto", recording(6)))
+    assert len(links) == 4 * 2

@@ -1,9 +1,10 @@
 """The time model on real unsynchronised webcams: shared/data/caliscope-charuco-4cam with
 every frame kept (not only the still ones), calibrated from scratch with each
 ``bundle.time_link_ms`` given (0: frame sets never linked; the videos are 6 fps, sets ~164 ms
-apart, so the default 100 ms links none), against Caliscope's own camera poses.
+apart, so a fixed 100 ms links none; ``auto``, the default, 1.5 frame periods), against
+Caliscope's own camera poses.
 
-    python tools/bench_caliscope_time.py WORKDIR [--links 0 250]
+    python tools/bench_caliscope_time.py WORKDIR [--links 0 250 auto]
 
 Converts the four videos with their timestamps CSV and no ``--board`` (every frame set kept)
 into WORKDIR/all once, calibrates (``--refine none``, intrinsics from scratch, detections
@@ -33,7 +34,8 @@ from bench_caliscope import BOARD, DATA, caliscope  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("workdir", type=Path)
-    ap.add_argument("--links", type=float, nargs="+", default=[0.0, 250.0])
+    ap.add_argument("--links", nargs="+", default=["0", "250"],
+                    help="bundle.time_link_ms values (ms, or auto)")
     args = ap.parse_args()
     data = args.workdir / "all"
     if not (data / "rig.yaml").is_file():
@@ -45,11 +47,13 @@ def main() -> None:
     _, theirs = caliscope()
     for link in args.links:
         config = CalibrationConfig.model_validate(
-            {"refine": "none", "bundle": {"time_link_ms": link}})
+            {"refine": "none",
+             "bundle": {"time_link_ms": link if link == "auto" else float(link)}})
         t0 = time.perf_counter()
         r = calibrate(FolderDataset(data), board, config, cache_dir=args.workdir / "cache")
         clock = r.bundle.time
-        print(f"\ntime_link_ms {link:g}: {time.perf_counter() - t0:.0f} s, chosen "
+        print(f"\ntime_link_ms {link} (= {r.config.bundle.time_link_ms:g} ms): "
+              f"{time.perf_counter() - t0:.0f} s, chosen "
               f"{r.self_calibration.chosen.name}, {len(r.observations)} views, "
               f"{clock.linked_sets if clock else 0} sets linked")
         print("| camera | offset ms | readout ms | run factor | vs Caliscope deg / mm "

@@ -2,7 +2,8 @@
 
     python tools/bench_time.py WORKDIR [--layout race] [--frames 20] [--seed 31]
         [--speeds 0 0.1 0.3 0.5] [--offset-ms 16] [--readout-ms 25] [--no-timestamps]
-        [--burst 3 --acceleration 1 100] [--readouts 0 25] [--methods timeless default thesis]
+        [--burst 3 --acceleration 1 100] [--frame-rate 30] [--readouts 0 25]
+        [--methods timeless default thesis] [--links auto 100]
 
 Renders (once, into WORKDIR; reused by later runs) the rig with the board moving at each speed
 (turning at 100 deg/s per m/s), cameras' clocks drawn in +-``--offset-ms`` and, in a second
@@ -16,7 +17,9 @@ ladder chose, the worst clock-offset and readout errors, and the bundle stage's 
 ``--no-timestamps`` calibrates a copy of each render without its timestamps.csv. ``--burst N``
 renders each board position as N consecutive frame sets (a continuous recording, 1/30 s apart)
 with the board accelerating at ``--acceleration`` (m/s^2, deg/s^2) within the burst: the time
-model's motion prior then ties consecutive sets (``bundle.time_link_ms``).
+model's motion prior then ties consecutive sets (``bundle.time_link_ms``). ``--frame-rate``
+spaces a burst's sets 1/FPS s apart; ``--links`` runs the default once per
+``bundle.time_link_ms`` given (a number of ms or ``auto``), labelled ``default, link X``.
 """
 
 from __future__ import annotations
@@ -43,16 +46,19 @@ DPS_PER_MPS = 100.0  # the board turns at this rate per unit of speed (a hand's 
 
 def render(workdir: Path, layout: str, frames: int, seed: int, speed: float, offset_ms: float,
            readout_ms: float, timestamps: bool, burst: int = 1,
-           acceleration: tuple[float, float] = (0.0, 0.0)) -> Path:
+           acceleration: tuple[float, float] = (0.0, 0.0), frame_rate: float = 30.0) -> Path:
     name = f"{layout}_s{speed:g}_rs{readout_ms:g}_f{frames}_seed{seed}"
     if burst > 1:
         name += f"_b{burst}_a{acceleration[0]:g}_{acceleration[1]:g}"
+    if frame_rate != 30.0:
+        name += f"_fps{frame_rate:g}_o{offset_ms:g}"
     out = workdir / name
     if not (out / "ground_truth.yaml").exists():
         shutil.rmtree(out, ignore_errors=True)
         params = SynthParams(motion=(speed, DPS_PER_MPS * speed), sync_offset_ms=offset_ms,
                              rolling_shutter_ms=readout_ms, burst=burst,
-                             acceleration=acceleration if speed else (0.0, 0.0))
+                             acceleration=acceleration if speed else (0.0, 0.0),
+                             frame_rate=frame_rate)
         synthesize(out, layout, frames, seed, thesis_board(), params)
     if timestamps:
         return out
@@ -111,6 +117,9 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["timeless", "default", "thesis"],
                     choices=["timeless", "default", "thesis"])
     ap.add_argument("--no-thesis", action="store_true")
+    ap.add_argument("--frame-rate", type=float, default=30.0)
+    ap.add_argument("--links", nargs="+", default=None,
+                    help="bundle.time_link_ms values to run the default with (ms or auto)")
     args = ap.parse_args()
     if args.no_thesis and "thesis" in args.methods:
         args.methods.remove("thesis")
@@ -119,7 +128,8 @@ def main() -> None:
     print(f"{args.layout}, {args.frames} frame sets, seed {args.seed}, offsets in "
           f"+-{args.offset_ms:g} ms, timestamps {'removed' if args.no_timestamps else 'kept'}"
           + (f", bursts of {args.burst} sets, acceleration {args.acceleration[0]:g} m/s^2 / "
-             f"{args.acceleration[1]:g} deg/s^2" if args.burst > 1 else ""))
+             f"{args.acceleration[1]:g} deg/s^2" if args.burst > 1 else "")
+          + (f", {args.frame_rate:g} fps" if args.frame_rate != 30.0 else ""))
     print("| speed, shutter | method | worst mm / deg | RMS err/sigma | model chosen | "
           "offset err ms | readout err ms | bundle s | total s |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -127,7 +137,7 @@ def main() -> None:
         for readout in (args.readouts if args.readouts is not None else (0.0, args.readout_ms)):
             data = render(args.workdir, args.layout, args.frames, args.seed, speed,
                           args.offset_ms, readout, not args.no_timestamps, args.burst,
-                          tuple(args.acceleration))
+                          tuple(args.acceleration), args.frame_rate)
             label = f"{speed:g} m/s, " + (f"{readout:g} ms rolling" if readout else "global")
             cache = data.parent / (data.name + "_cache")
             runs = [(m, c) for m, c in
@@ -135,11 +145,19 @@ def main() -> None:
                                                     bundle=BundleConfig(time="fixed"))),
                      ("default", CalibrationConfig(refine="none")),
                      ("thesis", None)] if m in args.methods]
+            if args.links is not None and "default" in args.methods:
+                at = [m for m, _ in runs].index("default")
+                runs[at:at + 1] = [(f"default, link {link}", CalibrationConfig(
+                    refine="none", bundle=BundleConfig(
+                        time_link_ms=link if link == "auto" else float(link))))
+                    for link in args.links]
             for method, config in runs:
                 t0 = time.perf_counter()
                 result = (thesis_method(FolderDataset(data), board, cache_dir=cache)
                           if config is None else
                           calibrate(FolderDataset(data), board, config, cache_dir=cache))
+                if method.startswith("default, link"):  # the window used
+                    method += f" = {result.config.bundle.time_link_ms:g} ms"
                 print(f"| {label} " + row(data, method, result, time.perf_counter() - t0),
                       flush=True)
 

@@ -127,15 +127,22 @@ TIMESTAMP_JITTER_OPTION = typer.Option(
     metavar="MS",
     help="with a time option on, each camera's timestamps.csv stamps its frames at "
     "t_f + offset + a Gaussian error of sigma MS ms (board positions 1 s apart, a burst's "
-    "frame sets 1000/30 ms); "
+    "frame sets 1000/FPS ms, --frame-rate); "
     "ground_truth.yaml keeps the exact offsets.",
     rich_help_panel=IMPERFECTIONS_PANEL,
 )
 BURST_OPTION = typer.Option(
     metavar="N",
     help="a continuous recording: each board position held for N consecutive frame sets at "
-    "30 fps, the board moving along one trajectory through them (with --motion), as a video "
-    "kept whole around each pose; timestamps.csv says so (positions 1 s apart).",
+    "--frame-rate (30 fps), the board moving along one trajectory through them (with "
+    "--motion), as a video kept whole around each pose; timestamps.csv says so (positions "
+    "1 s apart).",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
+FRAME_RATE_OPTION = typer.Option(
+    metavar="FPS",
+    help="the recording's frame rate: a --burst's consecutive frame sets are 1/FPS s apart "
+    "(e.g. 6 for USB webcams; default 30, a D435i's).",
     rich_help_panel=IMPERFECTIONS_PANEL,
 )
 ACCELERATION_OPTION = typer.Option(
@@ -232,6 +239,7 @@ def synth(
     timestamp_jitter_ms: Annotated[float, TIMESTAMP_JITTER_OPTION] = 0.5,
     burst: Annotated[int, BURST_OPTION] = 1,
     acceleration: Annotated[tuple[float, float], ACCELERATION_OPTION] = (0.0, 0.0),
+    frame_rate: Annotated[float, FRAME_RATE_OPTION] = 30.0,
 ) -> None:
     """Render a synthetic RGB-D rig with ground truth (dataset folder + ground_truth.yaml).
 
@@ -270,6 +278,7 @@ def synth(
         timestamp_jitter_ms=timestamp_jitter_ms,
         burst=burst,
         acceleration=acceleration,
+        frame_rate=frame_rate,
     )
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:

@@ -511,13 +511,15 @@ class BundleConfig(BaseModel):
         "spread, and the sigmas claim several times the error (race, 0.1 m/s, global "
         "shutter: RMS error/sigma 0.15)"
     )
-    time_link_ms: float = Field(
-        100.0, ge=0, description="frame sets of a continuous recording no further apart than "
+    time_link_ms: Annotated[float, Field(ge=0)] | Literal["auto"] = Field(
+        "auto", description="frame sets of a continuous recording no further apart than "
         "this (ms, from the timestamps) are tied by a motion prior (the board's twist changes "
         "smoothly: white-noise acceleration, its scale estimated from the data; rgbd_calib/"
         "solve/time_model.py MotionPrior): consecutive frames then measure the board's "
         "motion, which makes clock offsets with a global shutter and a readout between "
-        "synchronised cameras observable; 0: never"
+        "synchronised cameras observable; 0: never; auto: 1.5 frame periods of the "
+        "recording (its median gap between frame sets, counting gaps up to 200 ms, a 5 fps "
+        "camera's), at least 100 ms (rgbd_calib/solve/runs.py link_window_ms)"
     )
     max_sets: int = Field(
         150, ge=0, description="a continuous recording (runs of frame sets time_link_ms "

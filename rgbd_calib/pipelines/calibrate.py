@@ -59,7 +59,7 @@ from ..solve.ladder import (
 )
 from ..solve.pose import DROP_ADVICE, BoardObservation, RejectedView, board_poses, pose_edges
 from ..solve.posegraph import PoseGraphResult, calibrate_pose_graph
-from ..solve.runs import SetSelection, select_sets
+from ..solve.runs import SetSelection, link_window_ms, select_sets
 from ..solve.selfcal import SelfCalibration
 from ..solve.stillness import SetMotion, board_motion
 from ..solve.time_model import capture_offsets, set_times_ms
@@ -122,7 +122,8 @@ def calibrate(
     cache_dir = Path(cache_dir) if cache_dir is not None else None
     config = config or CalibrationConfig()
     n_images = sum(len(fs.color) for fs in dataset.frame_sets())
-    run = _Run(dataset, board, config, cache_dir, fixed_cameras, progress, {}, n_images)
+    run = _with_link_window(_Run(dataset, board, config, cache_dir, fixed_cameras, progress,
+                                 {}, n_images))
     # 1. markers in every colour image (cached, in parallel)
     with timed(run.timings, "detection"):
         detections = _detect(run, dataset, "detecting markers", "detections.json")
@@ -393,6 +394,19 @@ def _set_ms(run: _Run) -> dict[str, float]:
     """Each frame set's time on the reference camera's clock (ms; from timestamps.csv)."""
     return set_times_ms({c: run.dataset.timestamps_ms(c) for c in run.rig.names},
                         run.rig.reference)
+
+
+def _with_link_window(run: _Run) -> _Run:
+    """The run with ``bundle.time_link_ms`` as a number (``auto``: from the recording's frame
+    period, :func:`~rgbd_calib.solve.runs.link_window_ms`), so the stages and
+    ``config_resolved.yaml`` use and show one window."""
+    bundle = run.config.bundle
+    if bundle.time_link_ms != "auto":
+        return run
+    link_ms = round(link_window_ms("auto", _set_ms(run)), 1)
+    config = run.config.model_copy(
+        update={"bundle": bundle.model_copy(update={"time_link_ms": link_ms})})
+    return replace(run, config=config)
 
 
 def _thinned(run: _Run, views: _Views) -> tuple[_Run, _Views]:

@@ -44,7 +44,7 @@ from .bundle_factors import (
     with_parameters,
 )
 from .posegraph import sigmas_from_covariance
-from .runs import RunCorrelation, recording_runs, run_inflation
+from .runs import RunCorrelation, link_window_ms, recording_runs, run_inflation
 from .time_model import (
     READOUT_INIT_MS,
     MotionPrior,
@@ -399,6 +399,7 @@ def _factor_layout(problem: BundleProblem) -> tuple[
         prior_intr = {c: gtsam.noiseModel.Diagonal.Sigmas(
             intrinsics_prior_sigmas(intrinsics[c], names, config)) for c in intr_key}
     timing = {}
+    link_ms = link_window_ms(config.time_link_ms, problem.set_ms or {})
     if config.time == "refine":
         if intrinsics is None:
             raise CalibrationError("the time model needs the rig's camera models")
@@ -408,9 +409,9 @@ def _factor_layout(problem: BundleProblem) -> tuple[
                                   for c in cams},
                   "capture_ms": dict(problem.capture_ms or {}),
                   "heights": {c: intrinsics[c].height for c in cams if c in intrinsics},
-                  "links": motion_links(problem.set_ms or {}, views, config.time_link_ms)}
+                  "links": motion_links(problem.set_ms or {}, views, link_ms)}
         kept = [m for m in kept if m.camera in intrinsics]
-    timing["runs"] = recording_runs(problem.set_ms or {}, views, config.time_link_ms)
+    timing["runs"] = recording_runs(problem.set_ms or {}, views, link_ms)
     layout = _FactorLayout(config, problem.K, cam_key, view_key, intr_key, intrinsics, names,
                            x0, prior_intr, fixed, problem.relative_poses, tuple(moving), refine,
                            problem.reference, cams, views, **timing)

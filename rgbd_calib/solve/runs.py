@@ -27,6 +27,14 @@ from dataclasses import dataclass
 import numpy as np
 
 MIN_PAIRS = 20  # common marker pairs a camera needs before its correlation is trusted
+# time_link_ms auto: consecutive frame sets are linked when at most LINK_PERIODS frame periods
+# apart, never below LINK_MIN_MS (the fixed window before auto existed, so a 30 fps recording
+# links exactly as it did, a dropped frame's gap included); the frame period is the median gap
+# between consecutive sets among gaps up to MAX_FRAME_PERIOD_MS (a 5 fps camera's: slower
+# recordings are separate poses, not a trajectory)
+LINK_PERIODS = 1.5
+LINK_MIN_MS = 100.0
+MAX_FRAME_PERIOD_MS = 200.0
 
 
 @dataclass(frozen=True)
@@ -37,6 +45,27 @@ class RunCorrelation:
     rho: float
     pairs: int
     factor: float
+
+
+def frame_period_ms(set_ms: Mapping[str, float]) -> float | None:
+    """The recording's frame period (ms): the median gap between frame sets consecutive in
+    ``set_ms`` (each set's time, ms) among the gaps up to :data:`MAX_FRAME_PERIOD_MS`; None
+    without two such gaps (separate poses, or no timestamps)."""
+    times = np.sort(np.fromiter(set_ms.values(), float, len(set_ms)))
+    gaps = np.diff(times)
+    gaps = gaps[(gaps > 0.0) & (gaps <= MAX_FRAME_PERIOD_MS)]
+    return float(np.median(gaps)) if len(gaps) >= 2 else None
+
+
+def link_window_ms(setting: float | str, set_ms: Mapping[str, float]) -> float:
+    """``bundle.time_link_ms`` as a number: a number as given; ``"auto"``
+    :data:`LINK_PERIODS` frame periods of the recording (:func:`frame_period_ms`), at least
+    :data:`LINK_MIN_MS`; :data:`LINK_MIN_MS` when the sets show no frame period (nothing to
+    link then, or the stretches of a 30 fps recording)."""
+    if setting != "auto":
+        return float(setting)
+    period = frame_period_ms(set_ms)
+    return LINK_MIN_MS if period is None else max(LINK_MIN_MS, LINK_PERIODS * period)
 
 
 def recording_runs(set_ms: Mapping[str, float], views: Collection[str],

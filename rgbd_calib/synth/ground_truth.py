@@ -20,7 +20,7 @@ from .timing import SynthTiming, row_time_s
 
 # listed only when a time setting is on
 TIME_PARAMS = ("motion", "sync_offset_ms", "rolling_shutter_ms", "timestamp_jitter_ms", "burst",
-               "acceleration")
+               "acceleration", "frame_rate")
 # listed only when a depth error beyond depth_bias is on
 DEPTH_ERROR_PARAMS = ("depth_disparity_offset_px", "depth_disparity_field_px",
                       "depth_pose_error")

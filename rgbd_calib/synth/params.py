@@ -66,10 +66,12 @@ class SynthParams:
     # ground_truth.yaml stays exact
     timestamp_jitter_ms: float = 0.5
     # a continuous recording: each board position held for `burst` consecutive frame sets at
-    # 30 fps, the board moving along one trajectory with the constant linear and angular
+    # `frame_rate` fps, the board moving along one trajectory with the constant linear and angular
     # acceleration `acceleration` (m/s^2, deg/s^2; seeded directions) (docs/synthetic.md)
     burst: int = 1
     acceleration: tuple[float, float] = (0.0, 0.0)
+    # the recording's frame rate (fps): a burst's consecutive frame sets are 1/frame_rate apart
+    frame_rate: float = 30.0
 
     @property
     def depth_errors(self) -> bool:
@@ -81,9 +83,9 @@ class SynthParams:
     @property
     def timed(self) -> bool:
         """Whether any of the time settings is on (the render then has a ``time:`` truth)."""
-        return self.burst > 1 or any(x != 0 for x in (*self.motion, self.sync_offset_ms,
-                                                      self.rolling_shutter_ms,
-                                                      *self.acceleration))
+        return self.burst > 1 or self.frame_rate != 30.0 or any(
+            x != 0 for x in (*self.motion, self.sync_offset_ms, self.rolling_shutter_ms,
+                             *self.acceleration))
 
 
 def check_params(params: SynthParams) -> None:
@@ -125,6 +127,9 @@ def check_params(params: SynthParams) -> None:
     if not (1 <= params.burst <= 30):
         raise ConfigError(f"--burst {params.burst}: give 1-30 consecutive frame sets per "
                           "board position")
+    if not (1 <= params.frame_rate <= 120):
+        raise ConfigError(f"--frame-rate {params.frame_rate}: give a recording's frame rate of "
+                          "1-120 fps")
     accel_mps2, accel_dps2 = params.acceleration
     if not (0 <= accel_mps2 <= 30 and 0 <= accel_dps2 <= 3000):
         raise ConfigError(f"--acceleration {accel_mps2} {accel_dps2}: give 0-30 m/s^2 and "

@@ -15,16 +15,17 @@ so the middle of the image is at ``t_f + offset_c``; the (global-shutter) depth 
 as a whole at ``t_f + offset_c``.
 
 A continuous recording (``params.burst`` > 1) holds each sampled board position for ``burst``
-consecutive frame sets, 1000 / 30 ms apart, the board moving along one trajectory through them:
-constant linear acceleration ``a`` and angular acceleration ``alpha`` (about the turn's own
-axis) per position, so set ``f``'s twist is the trajectory's at ``t_f``, and within the set
-``T_ref_board(t_f + tau) = [Exp_SO3(w_f tau + alpha tau^2 / 2) R_f | p_f + v_f tau +
-a tau^2 / 2]`` (exact: the axis is fixed). The sampled pose is the board's at the middle of its
-burst. Without acceleration (the default) the twist is constant over the burst.
+consecutive frame sets, ``1000 / params.frame_rate`` ms apart (30 fps unless given), the board
+moving along one trajectory through them: constant linear acceleration ``a`` and angular
+acceleration ``alpha`` (about the turn's own axis) per position, so set ``f``'s twist is the
+trajectory's at ``t_f``, and within the set ``T_ref_board(t_f + tau) = [Exp_SO3(w_f tau + alpha
+tau^2 / 2) R_f | p_f + v_f tau + a tau^2 / 2]`` (exact: the axis is fixed). The sampled pose is
+the board's at the middle of its burst. Without acceleration (the default) the twist is
+constant over the burst.
 
 A timed render also writes each camera's ``timestamps.csv`` (docs/formats.md), as a recording
 has: camera ``c``'s colour frame of set ``f`` is stamped ``t_f + offset_c + jitter`` ms, where
-position ``j``'s ``k``-th set is at ``t_f = j * POSITION_PERIOD_MS + k * FRAME_PERIOD_MS``
+position ``j``'s ``k``-th set is at ``t_f = j * POSITION_PERIOD_MS + k * frame_period_ms``
 (a new position each second, close-up positions continuing the count) and the jitter is
 Gaussian with sigma ``params.timestamp_jitter_ms`` (:func:`draw_timestamps_ms`): the stamps'
 error, not the truth.
@@ -45,7 +46,6 @@ MOTION_STREAM = 0x7157  # rng stream of the board twists (seed, stream)
 SYNC_STREAM = 0x5C0C  # rng stream of the cameras' clock offsets (seed, stream)
 STAMP_STREAM = 0x57A4  # rng stream of the timestamps' jitter (seed, stream)
 ACCEL_STREAM = 0xACCE  # rng stream of the board's accelerations (seed, stream)
-FRAME_PERIOD_MS = 1000.0 / 30.0  # consecutive frame sets of a burst, at 30 fps
 POSITION_PERIOD_MS = 1000.0  # one board position (burst) per second
 
 
@@ -54,8 +54,8 @@ class SynthTiming:
     """The time truth of a render: per camera (rig order) its clock offset and colour readout
     (seconds), per frame set the board's twist in the reference frame (``v_mps`` and
     ``w_radps``, each ``(F, 3)``), its accelerations (``a_mps2``, ``alpha_radps2``, ``(F, 3)``,
-    zero unless ``params.acceleration``), the set's nominal time ``t_ms`` (F,) and ``burst``,
-    the consecutive sets per board position."""
+    zero unless ``params.acceleration``), the set's nominal time ``t_ms`` (F,), ``burst``,
+    the consecutive sets per board position, and ``frame_period_ms``, their spacing."""
 
     offset_s: tuple[float, ...]
     readout_s: tuple[float, ...]
@@ -65,6 +65,7 @@ class SynthTiming:
     alpha_radps2: np.ndarray
     t_ms: np.ndarray
     burst: int = 1
+    frame_period_ms: float = 1000.0 / 30.0
 
     def moving(self, frame: int) -> bool:
         """Whether the board moves during frame set ``frame``."""
@@ -83,7 +84,7 @@ class SynthTiming:
     def burst_s(self, frame: int) -> float:
         """Frame set ``frame``'s time after the middle of its burst (s)."""
         k = frame % self.burst
-        return (k - (self.burst - 1) / 2.0) * FRAME_PERIOD_MS / 1000.0
+        return (k - (self.burst - 1) / 2.0) * self.frame_period_ms / 1000.0
 
 
 def draw_timing(rig: SynthRig, n_positions: int, seed: int, params: SynthParams) -> SynthTiming:
@@ -101,6 +102,7 @@ def draw_timing(rig: SynthRig, n_positions: int, seed: int, params: SynthParams)
     speed_mps, rate_dps = params.motion
     accel_mps2, accel_dps2 = params.acceleration
     burst = params.burst
+    period_ms = 1000.0 / params.frame_rate
     units = np.random.default_rng([seed, MOTION_STREAM]).normal(size=(n_positions, 2, 3))
     units /= np.linalg.norm(units, axis=2, keepdims=True)
     unit_offsets = np.random.default_rng([seed, SYNC_STREAM]).uniform(-1, 1, len(rig.cameras))
@@ -114,16 +116,16 @@ def draw_timing(rig: SynthRig, n_positions: int, seed: int, params: SynthParams)
         a = a_unit / np.linalg.norm(a_unit, axis=1, keepdims=True) * accel_mps2
         sign = rng.choice([-1.0, 1.0], size=n_positions)
         alpha = units[:, 1] * (sign * np.radians(accel_dps2))[:, None]
-    s = (np.arange(burst) - (burst - 1) / 2.0) * FRAME_PERIOD_MS / 1000.0  # (burst,)
+    s = (np.arange(burst) - (burst - 1) / 2.0) * period_ms / 1000.0  # (burst,)
     rep = np.repeat(np.arange(n_positions), burst)
     s_f = np.tile(s, n_positions)
     v = units[rep, 0] * speed_mps + a[rep] * s_f[:, None]
     w = units[rep, 1] * np.radians(rate_dps) + alpha[rep] * s_f[:, None]
-    t_ms = rep * POSITION_PERIOD_MS + np.tile(np.arange(burst), n_positions) * FRAME_PERIOD_MS
+    t_ms = rep * POSITION_PERIOD_MS + np.tile(np.arange(burst), n_positions) * period_ms
     return SynthTiming(
         tuple(float(u) * params.sync_offset_ms / 1000.0 for u in unit_offsets),
         (params.rolling_shutter_ms / 1000.0,) * n,
-        v, w, a[rep], alpha[rep], t_ms, burst,
+        v, w, a[rep], alpha[rep], t_ms, burst, period_ms,
     )
 
 
