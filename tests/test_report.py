@@ -342,7 +342,7 @@ def test_depth_pairs_show_error_maps_and_warnings(runs):
 def test_depth_scale_advice_only_when_significant(runs):
     """Issue 33: a clean rig's scale estimates scatter within their sigmas (0.9958-0.9996 at
     0.4-0.9 %): no advice. With depth models the model's choice decides (the scale term kept
-    by the evidence), without them a factor more than 3 sigmas from 1."""
+    by the evidence) when more than 3 sigmas from 1, without them the factor likewise."""
     report = _load(runs[0])
     a, b = list(report["cameras"])[:2]
     report.pop("depth_models", None)
@@ -359,6 +359,12 @@ def test_depth_scale_advice_only_when_significant(runs):
     assert codes["depth_scale"]["cameras"] == [a]
     assert "depth_model.yaml" in codes["depth_scale"]["advice"] and "1.0050" in codes[
         "depth_scale"]["advice"]
+    # every term free (depth.model_terms: all): the scale is there whether needed or not, and
+    # only one more than 3 sigmas from 1 is advice
+    report["depth_models"][a] = {**model, "terms": ["scale", "offset"],
+                                 "parameters": {"scale": 1.005, "d0": 0.1},
+                                 "sigmas": {"scale": 0.003, "d0": 0.02}}
+    assert "depth_scale" not in {w["code"] for w in finalize_report(report)["warnings"]}
 
 
 def test_rebuild_reads_a_report_from_before_rmse_final(runs, tmp_path):

@@ -670,6 +670,16 @@ class DepthConfig(BaseModel, extra="forbid"):
         "divided by the depth-scale factor alone, as before the model (for comparison: "
         "docs/depth.md, 'Fused cloud against the true surfaces').",
     )
+    model_terms: Literal["all", "evidence"] = Field(
+        "all",
+        description="all: a camera whose depth needs a model (the ladder accepts a first "
+        "step; a clean camera keeps the identity) gets every term of the depth model free: "
+        "over a board's depth range the terms trade with each other, and one left out biases "
+        "the rest and the depth beyond the board (five renders: parameters within 3 sigma of "
+        "the truth 365 of 393 -> 465 of 467, the worst camera's fused-cloud bias lower on 4 "
+        "of 5; docs/depth.md, 'Every term once a camera needs any'); evidence: only the terms "
+        "the ladder accepted.",
+    )
     # overlap
     overlap_voxel_m: float = Field(
         0.05, gt=0, description="Voxel size of the clouds used to measure overlap."

@@ -10,7 +10,8 @@ residual is measured minus predicted, its sigma the depth noise (the D435 model 
 report's board-plane residuals are the corrected points' signed distances to the plane
 (:func:`plane_residuals_m`).
 
-Which terms are free is chosen by evidence, as the self-calibration does for lens and board:
+Whether a camera needs a model, and which terms, is chosen by evidence, as the self-calibration
+does for lens and board:
 forward selection over :data:`LADDER` (the stereo law: scale and disparity offset together;
 the offset's gradients; its curvature; the depth-to-colour pose), at each step adding the first
 step in that order whose Wald statistic ``theta_t^T C_t^-1 theta_t`` exceeds its threshold
@@ -23,7 +24,12 @@ both: +2.0 +- 2.8 mm; docs/depth.md), keeping both extrapolates with an honest, 
 model-based one), so that what is common to one view (its board pose error, depth noise
 correlated over neighbouring pixels) counts once per view, not once per pixel; its sigmas are
 the model's.
-A clean camera keeps the identity."""
+A clean camera keeps the identity. A camera the ladder gives any term gets every term
+(``depth.model_terms: all``, the default): over the board's range the terms trade with each
+other (scale with offset, the gradients with the pose's tilt), so one left out because its
+test fell short biases the others, and with them the depth beyond the board; all of them free
+give unbiased parameters with honest, larger sigmas (docs/depth.md). ``evidence`` keeps only
+the terms the ladder accepted."""
 
 from __future__ import annotations
 
@@ -354,6 +360,8 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     # free (the terms it left out are there on a real camera, only too small to show here)
     law = (current if current.names == PARAMETERS
            else _solve(current.model, samples, PARAMETERS, config.scale_huber_k))
+    if chosen and config.model_terms == "all":  # the camera needs a model: all of it
+        chosen, current = [t for t in TERMS], law
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
     z = samples.z_measured
     model = DepthModel(

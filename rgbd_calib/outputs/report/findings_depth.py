@@ -207,8 +207,9 @@ def board_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]
 
 def depth_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     """A camera whose depth reads long or short by more than :data:`DEPTH_SCALE_TOL`, and
-    significantly so: its depth model chose the scale term (``depth_models``), or, in a report
-    without one, its factor is more than 3 sigmas from 1."""
+    significantly so: its depth model's scale (``depth_models``; a camera whose model has
+    every term free has the scale whether it is needed or not), or, in a report without one,
+    its factor, more than 3 sigmas from 1."""
     if any(w["code"] == "board_scale" for w in earlier):
         return []  # one board finding instead of every camera's depth blamed
     out = []
@@ -235,7 +236,8 @@ def _significant_scale(cam: dict[str, Any], model: dict[str, Any] | None
     if model is not None:
         if "scale" not in model.get("terms", []):
             return None, True
-        return float(model["parameters"]["scale"]), True
+        f, sigma = float(model["parameters"]["scale"]), (model.get("sigmas") or {}).get("scale")
+        return (None if sigma and abs(f - 1.0) <= 3.0 * sigma else f), True
     f, sigma = cam.get("depth_scale_factor"), cam.get("depth_scale_sigma")
     if f is None or (sigma and abs(f - 1.0) <= 3.0 * sigma):
         return None, False
