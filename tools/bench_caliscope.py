@@ -73,7 +73,8 @@ def convert(work: Path) -> Path:
 
 
 def split(converted: Path, work: Path, parity: int | None) -> Path:
-    """A view of ``converted`` with the sets of even (0) or odd (1) sync index (symlinks)."""
+    """A view of ``converted`` with the sets of even (0) or odd (1) sync index (symlinks), each
+    camera's ``timestamps.csv`` with it (its rows of other sets are not read)."""
     name = {0: "even", 1: "odd", None: "all"}[parity]
     out = work / name
     if out.exists():
@@ -82,6 +83,8 @@ def split(converted: Path, work: Path, parity: int | None) -> Path:
     shutil.copy(converted / "rig.yaml", out / "rig.yaml")
     for cam in sorted(p for p in converted.iterdir() if p.is_dir()):
         (out / cam.name / "color").mkdir(parents=True)
+        if (cam / "timestamps.csv").is_file():
+            shutil.copy(cam / "timestamps.csv", out / cam.name / "timestamps.csv")
         for img in sorted((cam / "color").iterdir()):
             if parity is None or int(img.stem) % 2 == parity:
                 (out / cam.name / "color" / img.name).symlink_to(img)

@@ -45,14 +45,18 @@ def capture_time(report: dict[str, Any], earlier: list[Finding]) -> list[Finding
     camera's offset is anchored by timestamps: the clocks' scale is then a gauge of the images
     (docs/conventions.md 'Time'): offsets, readouts and speeds are known only up to a common
     factor (the extrinsics are not affected), and a global shutter loses most of what a moving
-    board's views measure. Else an info."""
+    board's views measure, and only the offsets' wide prior keeps the per-set motions from
+    taking up other misfit (docs/accuracy.md, the Caliscope webcams). Else an info."""
     time = (report.get("bundle") or {}).get("time")
     if not time:
         return []
     anchored = bool(time["anchored_by_timestamps"])
     scale = ("" if anchored else
              " No timestamps.csv anchors the clocks: offsets, readouts and speeds are known only "
-             "up to a common scale factor (the extrinsics are not affected).")
+             "up to a common scale factor, and only a wide prior holds the offsets, so the "
+             "frame sets' motions can also take up a lens or corner misfit (real 6 fps webcams: "
+             "held-out corners 3-6x worse than with --time fixed); keep timestamps.csv, or "
+             "compare with --time fixed if the board was held still.")
     return [finding(
         "info" if anchored else "warning",
         "capture_time",
