@@ -90,17 +90,17 @@ def test_a_clean_camera_keeps_the_identity(seed):
 
 
 def test_a_camera_that_needs_a_model_gets_every_term():
-    """``depth.model_terms: all`` (the default): the ladder's evidence decides that the camera
-    needs a model; once it does, every term is free (unbiased parameters with their own, larger
-    sigmas), and the tests still say which terms the evidence alone accepted. ``evidence``
+    """``depth.model_terms: all``: the ladder's evidence decides that the camera needs a model;
+    once it does, every term is free (unbiased parameters with their own, larger sigmas), and
+    the tests still say which terms the evidence alone accepted. ``evidence`` (the default)
     keeps those only. A clean camera keeps the identity either way."""
     from rgbd_calib.core.config import DepthConfig
     from rgbd_calib.core.depth_model import PARAMETERS, TERMS
 
     truth = identity_model(INTR).with_values({"scale": 1.005, "d0": 0.12, "dx": 0.04})
     samples = _samples(truth, 6)
-    every = fit_depth_model("cam", samples, INTR)
-    some = fit_depth_model("cam", samples, INTR, DepthConfig(model_terms="evidence"))
+    every = fit_depth_model("cam", samples, INTR, DepthConfig(model_terms="all"))
+    some = fit_depth_model("cam", samples, INTR)
     assert every.model.terms == tuple(TERMS) and set(every.model.sigmas) == set(PARAMETERS)
     assert set(some.model.terms) < set(TERMS)
     assert [t.kept for t in every.tests] == [t.kept for t in some.tests]
@@ -108,7 +108,8 @@ def test_a_camera_that_needs_a_model_gets_every_term():
         assert abs(every.model.value(p) - truth.value(p)) < 3.5 * every.model.sigmas[p], p
         if p in some.model.sigmas:
             assert every.model.sigmas[p] >= some.model.sigmas[p] * 0.99, p
-    clean = fit_depth_model("cam", _samples(identity_model(INTR), 1), INTR)
+    clean = fit_depth_model("cam", _samples(identity_model(INTR), 1), INTR,
+                            DepthConfig(model_terms="all"))
     assert clean.model.is_identity
 
 

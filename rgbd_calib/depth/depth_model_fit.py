@@ -24,12 +24,12 @@ both: +2.0 +- 2.8 mm; docs/depth.md), keeping both extrapolates with an honest, 
 model-based one), so that what is common to one view (its board pose error, depth noise
 correlated over neighbouring pixels) counts once per view, not once per pixel; its sigmas are
 the model's.
-A clean camera keeps the identity. A camera the ladder gives any term gets every term
-(``depth.model_terms: all``, the default): over the board's range the terms trade with each
-other (scale with offset, the gradients with the pose's tilt), so one left out because its
-test fell short biases the others, and with them the depth beyond the board; all of them free
-give unbiased parameters with honest, larger sigmas (docs/depth.md). ``evidence`` keeps only
-the terms the ladder accepted."""
+A clean camera keeps the identity. With ``depth.model_terms: all`` a camera the ladder gives
+any term gets every term: over the board's range the terms trade with each other (scale with
+offset, the gradients with the pose's tilt), so one left out because its test fell short
+biases the others, and with them the depth beyond the board; all of them free give unbiased
+parameters with larger sigmas, which on a short recording are too loose to apply
+(docs/depth.md). ``evidence`` (the default) keeps only the terms the ladder accepted."""
 
 from __future__ import annotations
 
