@@ -18,6 +18,7 @@ from pathlib import Path
 
 from rich.console import Console
 
+from ..core.depth_model import TERMS
 from ..core.progress import Progress
 
 console = Console(stderr=True)
@@ -203,8 +204,6 @@ def depth_model_line(fits: dict, unmodelled: dict | None = None) -> str:
     """'depth model: every term for left0, left1, right0 offset, 5 identity, none for right3;
     board-plane bias within 0.4 mm after the model (3.1 mm before), noise 5.2 mm' from the
     depth stage's fits and the cameras with depth it had no model for."""
-    from ..core.depth_model import TERMS
-
     every = [c for c, f in sorted(fits.items()) if f.model.terms == tuple(TERMS)]
     named = ([f"every term for {', '.join(every)}"] if every else []) + [
         f"{c} {'+'.join(f.model.terms)}" for c, f in sorted(fits.items())

@@ -228,11 +228,11 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             # 2.17 mm against 0.34 with the scale alone; docs/depth.md, 'Weak board data'). So
             # the pairs register the clouds divided by the depth-scale factor, as before the
             # models; fused.ply and the checks keep the models.
-            with timed(timings, "clouds"):
-                scale_jobs = [(c, T, scales[c].factor if c in scales else corr)
-                              for c, T, corr in jobs if c in models and c in clouds]
-                rebuilt, _ = static_clouds(dataset, scale_jobs, T_ref_board or {}, board,
-                                           config, workers, None, scheduler)
+            with timed(timings, "clouds"):  # a camera with a model has its scale estimate
+                rebuilt, _ = static_clouds(dataset, [(c, T_ref_cam[c], scales[c].factor)
+                                                     for c in models if c in clouds],
+                                           T_ref_board or {}, board, config, workers, None,
+                                           scheduler)
             registering = {**clouds, **rebuilt}
         with timed(timings, "registration"):
             intrinsics = {c: dataset.rig.cameras[c] for c in registering}
