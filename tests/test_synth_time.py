@@ -270,7 +270,8 @@ def test_a_still_board_renders_as_without_time(tmp_path):
     "args, option",
     [(["--motion", "5", "0"], "--motion"), (["--motion", "0.3", "-1"], "--motion"),
      (["--sync-offset-ms", "-2"], "--sync-offset-ms"),
-     (["--rolling-shutter-ms", "250"], "--rolling-shutter-ms")],
+     (["--rolling-shutter-ms", "250"], "--rolling-shutter-ms"),
+     (["--frame-rate", "0"], "--frame-rate")],
 )
 def test_cli_time_options_are_checked(tmp_path, args, option):
     result = CliRunner().invoke(app, ["synth", str(tmp_path / "s"), "--frames", "1", *args])
