@@ -92,15 +92,15 @@ def test_a_clean_camera_keeps_the_identity(seed):
 def test_a_camera_that_needs_a_model_gets_every_term():
     """``depth.model_terms: all``: the ladder's evidence decides that the camera needs a model;
     once it does, every term is free (unbiased parameters with their own, larger sigmas), and
-    the tests still say which terms the evidence alone accepted. ``evidence`` (the default)
-    keeps those only. A clean camera keeps the identity either way."""
+    the tests still say which terms the evidence alone accepted. ``evidence`` keeps those
+    only. A clean camera keeps the identity either way."""
     from rgbd_calib.core.config import DepthConfig
     from rgbd_calib.core.depth_model import PARAMETERS, TERMS
 
     truth = identity_model(INTR).with_values({"scale": 1.005, "d0": 0.12, "dx": 0.04})
     samples = _samples(truth, 6)
     every = fit_depth_model("cam", samples, INTR, DepthConfig(model_terms="all"))
-    some = fit_depth_model("cam", samples, INTR)
+    some = fit_depth_model("cam", samples, INTR, DepthConfig(model_terms="evidence"))
     assert every.model.terms == tuple(TERMS) and set(every.model.sigmas) == set(PARAMETERS)
     assert set(some.model.terms) < set(TERMS)
     assert [t.kept for t in every.tests] == [t.kept for t in some.tests]
@@ -111,6 +111,23 @@ def test_a_camera_that_needs_a_model_gets_every_term():
     clean = fit_depth_model("cam", _samples(identity_model(INTR), 1), INTR,
                             DepthConfig(model_terms="all"))
     assert clean.model.is_identity
+
+
+@pytest.mark.parametrize("n_views", [30, 17, 16, 8])
+def test_auto_frees_every_term_where_the_views_can_judge_them(n_views):
+    """``depth.model_terms: auto`` (the default): a camera that needs a model gets every term
+    when its views are at least the 13 parameters and 4 more (the clustered covariance can
+    judge them), the ladder's terms with fewer (on 8 frame sets every term put a race's
+    scene 20-100 mm off: docs/depth.md)."""
+    from rgbd_calib.core.config import DepthConfig
+    from rgbd_calib.core.depth_model import TERMS
+
+    truth = identity_model(INTR).with_values({"scale": 1.005, "d0": 0.12, "dx": 0.04})
+    samples = _samples(truth, 6, n_views)
+    auto = fit_depth_model("cam", samples, INTR)
+    ladder = fit_depth_model("cam", samples, INTR, DepthConfig(model_terms="evidence"))
+    assert ladder.model.terms and set(ladder.model.terms) < set(TERMS)
+    assert auto.model.terms == (tuple(TERMS) if n_views >= 17 else ladder.model.terms)
 
 
 @pytest.mark.parametrize("seed", [4, 5])

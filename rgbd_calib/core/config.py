@@ -670,16 +670,18 @@ class DepthConfig(BaseModel, extra="forbid"):
         "divided by the depth-scale factor alone, as before the model (for comparison: "
         "docs/depth.md, 'Fused cloud against the true surfaces').",
     )
-    model_terms: Literal["evidence", "all"] = Field(
-        "evidence",
-        description="evidence: the terms the ladder accepted; all: a camera whose depth needs "
-        "a model (the ladder accepts a first step; a clean camera keeps the identity) gets "
-        "every term free. Over a board's depth range the terms trade with each other and one "
-        "left out biases the rest: with 24-40 frame sets all gave parameters within 3 sigma "
-        "(567 of 572 against 453 of 487) and a lower worst-camera bias on 5 of 6 renders, but "
-        "with 8 frame sets its 13 parameters are so loosely held that the clouds it corrects "
-        "lie 10-75 mm off the board's extrinsics (docs/depth.md, 'Every term once a camera "
-        "needs any'), hence not the default.",
+    model_terms: Literal["auto", "evidence", "all"] = Field(
+        "auto",
+        description="Which terms a camera whose depth needs a model gets (the ladder decides "
+        "the need: a clean camera keeps the identity). evidence: the terms the ladder "
+        "accepted; all: every term free; auto: every term where the camera's board views can "
+        "judge all 13 parameters (at least 17 views), the ladder's terms otherwise. Over a "
+        "board's depth range the terms trade with each other and one left out biases the "
+        "rest, most beyond the board: on eight renders of 24-40 frame sets every term gave "
+        "the lower worst-camera fused-cloud bias on seven and parameters within 3 sigma "
+        "(1 of 9 renders worse); with 8 frame sets its 13 parameters are so loosely held that "
+        "the scene lies 20-100 mm off (RMS) against 1-3 mm with the ladder's terms "
+        "(docs/depth.md, 'Every term where the views can judge them').",
     )
     # overlap
     overlap_voxel_m: float = Field(

@@ -24,12 +24,14 @@ both: +2.0 +- 2.8 mm; docs/depth.md), keeping both extrapolates with an honest, 
 model-based one), so that what is common to one view (its board pose error, depth noise
 correlated over neighbouring pixels) counts once per view, not once per pixel; its sigmas are
 the model's.
-A clean camera keeps the identity. With ``depth.model_terms: all`` a camera the ladder gives
-any term gets every term: over the board's range the terms trade with each other (scale with
-offset, the gradients with the pose's tilt), so one left out because its test fell short
-biases the others, and with them the depth beyond the board; all of them free give unbiased
-parameters with larger sigmas, which on a short recording are too loose to apply
-(docs/depth.md). ``evidence`` (the default) keeps only the terms the ladder accepted."""
+A clean camera keeps the identity. A camera the ladder gives any term gets every term with
+``depth.model_terms: all``, and with ``auto`` (the default) where its views can judge all of
+them (:data:`MIN_CLUSTER_DOF` views beyond the 13 parameters): over the board's range the
+terms trade with each other (scale with offset, the gradients with the pose's tilt), so one
+left out because its test fell short biases the others, and with them the depth beyond the
+board; all of them free give unbiased parameters with larger sigmas, which on a short
+recording are too loose to apply (race, 8 sets: the scene 20-100 mm off; docs/depth.md).
+``evidence`` keeps only the terms the ladder accepted, as ``auto`` does with fewer views."""
 
 from __future__ import annotations
 
@@ -360,7 +362,10 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     # free (the terms it left out are there on a real camera, only too small to show here)
     law = (current if current.names == PARAMETERS
            else _solve(current.model, samples, PARAMETERS, config.scale_huber_k))
-    if chosen and config.model_terms == "all":  # the camera needs a model: all of it
+    # the camera needs a model: all of it, where the views can judge every term (the
+    # clustered covariance needs MIN_CLUSTER_DOF views beyond the parameters)
+    judged = n_views - len(PARAMETERS) >= MIN_CLUSTER_DOF
+    if chosen and (config.model_terms == "all" or (config.model_terms == "auto" and judged)):
         chosen, current = [t for t in TERMS], law
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
     z = samples.z_measured
