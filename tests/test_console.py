@@ -87,3 +87,21 @@ def test_a_change_is_a_percentage_only_of_a_prior_that_is_a_base():
     assert change_text(0.0, -12.5, "px") == "-12.5 px"
     assert percent_of_prior(-0.33, 0.033) == 10.0
     assert percent_of_prior(None, 1.0) is None
+
+
+def test_the_depth_model_line_names_a_camera_with_too_few_views_for_every_term():
+    """``depth.model_terms: auto``: every term from 17 board views; a camera with fewer that
+    kept the ladder's terms says how many views it had, one with enough does not."""
+    from types import SimpleNamespace
+
+    from rgbd_calib.cli.console import depth_model_line
+    from rgbd_calib.core.depth_model import TERMS
+
+    def fit(terms, views):
+        return SimpleNamespace(model=SimpleNamespace(terms=tuple(terms)), n_views=views,
+                               bands=[(1.0, 1.5, 900, 4.0, 0.2, 6.0, 2.1, 1.5)])
+
+    line = depth_model_line({"a": fit(TERMS, 30), "b": fit(("scale", "offset"), 15),
+                             "c": fit(("scale", "offset"), 20), "d": fit((), 30)})
+    assert line.startswith("depth model: every term for a, b scale+offset (15 board views, "
+                           "17 free every term), c scale+offset, 1 identity;"), line

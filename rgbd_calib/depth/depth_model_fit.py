@@ -56,6 +56,7 @@ P_FALSE_TERM = 1e-3  # chance that a term a clean camera does not need passes it
 MAX_PIXELS_PER_VIEW = 1500  # board pixels sampled per view (evenly)
 GN_ITERATIONS = 8
 MIN_CLUSTER_DOF = 4  # views beyond the parameters for the clustered (F) test
+EVERY_TERM_MIN_VIEWS = len(PARAMETERS) + MIN_CLUSTER_DOF  # depth.model_terms auto: every term
 # central-difference steps per parameter, in the model's units (scale, px, deg, mm)
 STEP = {"scale": 1e-5, "d0": 1e-3, "dx": 1e-3, "dy": 1e-3, "dxx": 1e-3, "dxy": 1e-3,
         "dyy": 1e-3, "rx": 1e-3, "ry": 1e-3, "rz": 1e-3, "tx": 1e-2, "ty": 1e-2, "tz": 1e-2}
@@ -364,7 +365,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
            else _solve(current.model, samples, PARAMETERS, config.scale_huber_k))
     # the camera needs a model: all of it, where the views can judge every term (the
     # clustered covariance needs MIN_CLUSTER_DOF views beyond the parameters)
-    judged = n_views - len(PARAMETERS) >= MIN_CLUSTER_DOF
+    judged = n_views >= EVERY_TERM_MIN_VIEWS
     if chosen and (config.model_terms == "all" or (config.model_terms == "auto" and judged)):
         chosen, current = [t for t in TERMS], law
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
