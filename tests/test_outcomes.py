@@ -342,7 +342,12 @@ def _venv_ready() -> str | None:
         return f"{sys.prefix} is not tools/run.sh's environment of this checkout (stamp)"
     if not (Path(sys.prefix) / "bin" / "rgbd-calib").is_file():
         return "no rgbd-calib entry point in this environment"
-    ldconfig = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True, check=False)
+    # as tools/run.sh: ldconfig from the PATH, else /sbin's (a PATH without sbin is common)
+    found = shutil.which("ldconfig") or ("/sbin/ldconfig" if Path("/sbin/ldconfig").is_file()
+                                         else None)
+    if found is None:
+        return "no ldconfig to look for libusb-1.0-0 with"
+    ldconfig = subprocess.run([found, "-p"], capture_output=True, text=True, check=False)
     if "libusb-1.0.so.0" not in ldconfig.stdout:
         return "libusb-1.0-0 missing (tools/run.sh would install it)"
     return None

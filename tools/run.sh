@@ -15,7 +15,9 @@ ROOT=$(pwd)
 VENV="${RGBD_CALIB_VENV:-$ROOT/.venv}"
 case "$VENV" in /*) ;; *) VENV="$ROOT/$VENV" ;; esac  # a relative one: from the repository
 
-need_libusb() { ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; }
+# ldconfig lives in /sbin, which a user's (or a CI job's) PATH may leave out
+LDCONFIG="$(command -v ldconfig || echo /sbin/ldconfig)"
+need_libusb() { ! "$LDCONFIG" -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; }
 if need_libusb; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     echo "installing libusb-1.0-0 (needed by open3d and pyrealsense2) ..." >&2
