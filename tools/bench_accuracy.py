@@ -1186,4 +1186,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from toolmain import run_tool
+
+    run_tool(main)

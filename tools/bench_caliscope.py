@@ -247,4 +247,6 @@ def _codes(result) -> list[str]:
 
 
 if __name__ == "__main__":
-    main()
+    from toolmain import run_tool
+
+    run_tool(main)

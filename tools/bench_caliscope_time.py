@@ -72,4 +72,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from toolmain import run_tool
+
+    run_tool(main)

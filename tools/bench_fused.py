@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from toolmain import ToolError
 
 from rgbd_calib.core.depth_model import PARAMETERS
 from rgbd_calib.core.geometry import invert_transform, transform_points
@@ -78,7 +79,8 @@ def _cli(args: list[str], log: Path) -> float:
         done = subprocess.run([sys.executable, "-m", "rgbd_calib.cli", *args], stdout=f,
                               stderr=subprocess.STDOUT)
     if done.returncode != 0:
-        raise RuntimeError(f"rgbd-calib {' '.join(args)} failed; see {log}")
+        raise ToolError(f"rgbd-calib {' '.join(args)} failed (exit {done.returncode}); "
+                        f"see {log}")
     return time.perf_counter() - t0
 
 
@@ -346,4 +348,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from toolmain import run_tool
+
+    run_tool(main)

@@ -51,6 +51,7 @@ from typing import Any
 
 import cv2
 import psutil
+from toolmain import ToolError
 
 from rgbd_calib.core.config import CalibrationConfig
 from rgbd_calib.core.parallel import process_context
@@ -198,7 +199,7 @@ def end_to_end(path: Path, workers: int, keep: Path | None = None) -> dict[str, 
     maxrss_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
     if code != 0:
         tail = (out_root / "calibrate.log").read_text()[-2000:]
-        raise RuntimeError(f"calibrate failed with exit {code}:\n{tail}")
+        raise ToolError(f"calibrate failed with exit {code}:\n{tail}")
     report = json.loads((out / "report.json").read_text())
     row = {
         "workers": workers,
@@ -514,4 +515,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from toolmain import run_tool
+
+    run_tool(main)

@@ -163,4 +163,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from toolmain import run_tool
+
+    run_tool(main)

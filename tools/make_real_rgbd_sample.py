@@ -46,7 +46,6 @@ import argparse
 import hashlib
 import math
 import shutil
-import sys
 import tarfile
 import tempfile
 from dataclasses import dataclass
@@ -412,4 +411,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from toolmain import run_tool
+
+    run_tool(main)
