@@ -130,6 +130,16 @@ def test_auto_frees_every_term_where_the_views_can_judge_them(n_views):
     assert auto.model.terms == (tuple(TERMS) if n_views >= 17 else ladder.model.terms)
 
 
+def test_the_report_says_how_many_views_a_model_was_fitted_on():
+    """report.json ``depth_models.<camera>.n_views`` (1.17): why a camera kept the ladder's
+    terms under ``auto`` is read there, as on the console."""
+    from rgbd_calib.outputs.report.build import _depth_model_entry
+
+    truth = identity_model(INTR).with_values({"scale": 1.005, "d0": 0.12})
+    entry = _depth_model_entry(fit_depth_model("cam", _samples(truth, 4, 12), INTR))
+    assert entry["n_views"] == 12 and entry["terms"] and len(entry["terms"]) < 5
+
+
 @pytest.mark.parametrize("seed", [4, 5])
 def test_scale_and_disparity_offset_are_found_within_their_sigmas(seed):
     truth = identity_model(INTR).with_values({"scale": 1.005, "d0": 0.12})

@@ -365,6 +365,9 @@ def test_depth_scale_advice_only_when_significant(runs):
                                  "parameters": {"scale": 1.005, "d0": 0.1},
                                  "sigmas": {"scale": 0.003, "d0": 0.02}}
     assert "depth_scale" not in {w["code"] for w in finalize_report(report)["warnings"]}
+    # 1.17: the views the model was fitted on
+    report["depth_models"][a]["n_views"] = 12
+    assert validate_report(finalize_report(report)) == []
 
 
 def test_rebuild_reads_a_report_from_before_rmse_final(runs, tmp_path):

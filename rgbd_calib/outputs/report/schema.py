@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.16"
+REPORT_SCHEMA_VERSION = "1.17"
 
 
 class ReportError(RgbdCalibError):
@@ -277,6 +277,7 @@ REPORT_SCHEMA: dict[str, Any] = {
                          "median_after_mm": N, "p90_before_mm": N, "p90_after_mm": N,
                          "noise_mm": N}),
         "beyond_board?": {"board_max_m": N, "cloud_p90_m": N, "fraction": N, "sigma_mm": N},
+        "n_views?": INT,
     }),
     "fused_agreement?": {
         "pairs": ListOf({"cam_a": S, "cam_b": S, "after": SURFACE_DISTANCES,
