@@ -97,11 +97,13 @@ def test_the_depth_model_line_names_a_camera_with_too_few_views_for_every_term()
     from rgbd_calib.cli.console import depth_model_line
     from rgbd_calib.core.depth_model import TERMS
 
-    def fit(terms, views):
+    def fit(terms, views, few=False):
         return SimpleNamespace(model=SimpleNamespace(terms=tuple(terms)), n_views=views,
+                               too_few_views=few,
                                bands=[(1.0, 1.5, 900, 4.0, 0.2, 6.0, 2.1, 1.5)])
 
-    line = depth_model_line({"a": fit(TERMS, 30), "b": fit(("scale", "offset"), 15),
-                             "c": fit(("scale", "offset"), 20), "d": fit((), 30)})
+    line = depth_model_line({"a": fit(TERMS, 30), "b": fit(("scale", "offset"), 15, True),
+                             "c": fit(("scale", "offset"), 20), "d": fit((), 30),
+                             "e": fit(("scale", "offset"), 15)})
     assert line.startswith("depth model: every term for a, b scale+offset (15 board views, "
-                           "17 free every term), c scale+offset, 1 identity;"), line
+                           "17 free every term), c scale+offset, e scale+offset, 1 identity;"), line

@@ -128,6 +128,7 @@ def test_auto_frees_every_term_where_the_views_can_judge_them(n_views):
     ladder = fit_depth_model("cam", samples, INTR, DepthConfig(model_terms="evidence"))
     assert ladder.model.terms and set(ladder.model.terms) < set(TERMS)
     assert auto.model.terms == (tuple(TERMS) if n_views >= 17 else ladder.model.terms)
+    assert auto.too_few_views == (n_views < 17) and not ladder.too_few_views
 
 
 def test_the_report_says_how_many_views_a_model_was_fitted_on():

@@ -203,14 +203,14 @@ def fused_line(agreement) -> str | None:
 def depth_model_line(fits: dict, unmodelled: dict | None = None) -> str:
     """'depth model: every term for left0, left1, right0 offset, 5 identity, none for right3;
     board-plane bias within 0.4 mm after the model (3.1 mm before), noise 5.2 mm' from the
-    depth stage's fits and the cameras with depth it had no model for. A camera with some
-    terms and too few views for every term (``depth.model_terms: auto``) says so."""
+    depth stage's fits and the cameras with depth it had no model for. A camera that kept the
+    ladder's terms for want of views (``depth.model_terms: auto``, ``too_few_views``) says so."""
     from ..depth.depth_model_fit import EVERY_TERM_MIN_VIEWS  # open3d: not at CLI start
     every = [c for c, f in sorted(fits.items()) if f.model.terms == tuple(TERMS)]
     named = ([f"every term for {', '.join(every)}"] if every else []) + [
         f"{c} {'+'.join(f.model.terms)}" + (
             f" ({f.n_views} board views, {EVERY_TERM_MIN_VIEWS} free every term)"
-            if f.n_views < EVERY_TERM_MIN_VIEWS else "")
+            if f.too_few_views else "")
         for c, f in sorted(fits.items()) if f.model.terms and c not in every]
     clean = sum(1 for f in fits.values() if not f.model.terms)
     parts = named + ([f"{clean} identity"] if clean else [])

@@ -155,6 +155,8 @@ class DepthModelFit:
     n_samples: int
     sigma_factor: float  # sqrt(chi2 / dof) of the chosen fit: the noise model's accuracy
     n_unseen_views: int = 0  # of n_views: the board where the camera did not detect it
+    # depth.model_terms auto kept the ladder's terms because n_views < EVERY_TERM_MIN_VIEWS
+    too_few_views: bool = False
     # the fit with every term free whatever the ladder chose: what the data say of the depth
     # beyond the board (correction_sigma_mm); not written to files
     law_model: DepthModel | None = None
@@ -366,6 +368,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     # the camera needs a model: all of it, where the views can judge every term (the
     # clustered covariance needs MIN_CLUSTER_DOF views beyond the parameters)
     judged = n_views >= EVERY_TERM_MIN_VIEWS
+    too_few_views = bool(chosen) and config.model_terms == "auto" and not judged
     if chosen and (config.model_terms == "all" or (config.model_terms == "auto" and judged)):
         chosen, current = [t for t in TERMS], law
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
@@ -384,7 +387,8 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     return DepthModelFit(camera, model, tuple(tests[t] for t in LADDER if t in tests),
                          _bands(before, after, z, samples.sigma_m), n_views, len(z),
                          float(math.sqrt(current.chi2 / current.dof)),
-                         law_model=law.model, law_names=law.names, law_cov=law.cov)
+                         law_model=law.model, law_names=law.names, law_cov=law.cov,
+                         too_few_views=too_few_views)
 
 
 def _image_coverage(pixels: np.ndarray, intr: CameraIntrinsics, cells: int = 8) -> float:
