@@ -447,6 +447,38 @@ def test_depth_that_confirms_the_board_result_is_an_info_not_a_warning(runs, tmp
     assert _load(copy)["pairs"][0]["agrees"] is True
 
 
+def test_depth_unused_sums_up_alike_pairs_and_names_the_depth_models_beyond_the_scale():
+    """Rejected pairs that differ only in their numbers read once with their count and the
+    moves' range (an 8-camera ring gave 16 such sentences), and calibrate's warning says why
+    the pairs could not help when depth models found errors beyond the scale: they register
+    the depth divided by the scale alone (docs/depth.md, 'Weak board data'); a depth-only
+    refinement (it registers model-corrected clouds) does not say so."""
+    from rgbd_calib.outputs.report.findings_depth import depth_unused
+
+    def moved(a, b, mm):
+        return {"cam_a": a, "cam_b": b, "accepted": False, "correction_mm": mm,
+                "reason": f"ICP moved {mm:.2f} mm / 0.100 deg from the board's extrinsics, "
+                          f"beyond their uncertainty and the pair's (chi2 {10 * mm:.0f} > "
+                          "22.46, 6 dof): a wrong local minimum or a depth error"}
+
+    pairs = [moved("c0", "c1", 5.2), moved("c1", "c2", 44.3), moved("c0", "c2", 9.0),
+             {"cam_a": "c2", "cam_b": "c3", "accepted": False, "correction_mm": 0.1,
+              "reason": "fitness 0.20 < 0.3"}]
+    report = {"depth": {"status": "fallback"}, "timings_s": {"depth": 1.0}, "pairs": pairs,
+              "depth_models": {"c0": {"terms": ["scale"]}, "c1": {"terms": ["scale", "offset"]},
+                               "c2": {"terms": ["scale", "offset", "pose"]}, "c3": {}}}
+    (f,) = depth_unused(report, [])
+    assert f["severity"] == "warning" and f["code"] == "depth_unused"
+    assert ("3 pairs: ICP moved 5.2-44.3 mm from the board's extrinsics, beyond their "
+            "uncertainty and the pair's: a wrong local minimum or a depth error; fitness 0.20 "
+            "< 0.3)") in f["message"]
+    assert "depth models of c1, c2 found errors beyond the scale" in f["message"]
+    assert "hold the board where the cameras' views overlap" in f["advice"]
+    report["depth_models"] = {"c0": {"terms": ["scale"]}}
+    (f,) = depth_unused(report, [])
+    assert "depth models" not in f["message"] and "hold the board" not in f["advice"]
+
+
 def test_edge_figure_draws_a_rig_without_edge_residuals():
     """Only the reference calibrated (no edge residual anywhere): the log-scaled residual
     panels say "no data" instead of raising (it stopped report.html being written)."""

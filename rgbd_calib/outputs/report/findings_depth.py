@@ -4,6 +4,7 @@ cameras' depth scale; and those of a depth-only refinement (``rgbd-calib refine`
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from typing import Any
 
@@ -125,19 +126,63 @@ def depth_unused(report: dict[str, Any], earlier: list[Finding]) -> list[Finding
             f"extrinsics are {start}.",
             "",
         )]
-    reasons = sorted({str(p["reason"]).split(";")[0] for p in pairs if p["reason"]})
+    reasons = rejection_reasons(pairs)
     why = (f"all {len(pairs)} camera pairs were rejected ({'; '.join(reasons[:3])}"
            f"{'; ...' if len(reasons) > 3 else ''})" if pairs
            else (report.get("depth") or {}).get("reason")
            or "no camera pair overlapped under the board extrinsics")
+    modelled = [] if is_depth_only(report) else beyond_scale(report, pairs)
+    because = (f". The pairs register each camera's depth divided by its scale alone, and the "
+               f"depth models of {', '.join(modelled)} found errors beyond the scale (a "
+               "disparity offset or the depth sensor's pose), which move the surfaces the "
+               "pairs register by millimetres beyond the board's depths"
+               if modelled else "")
     return [finding(
         "warning",
         "depth_unused",
         [],
-        f"Depth refinement added nothing: {why}; the extrinsics are {start}.",
+        f"Depth refinement added nothing: {why}; the extrinsics are {start}{because}.",
         f"{start[0].upper()}{start[1:]} stands on its own; see the pairs table for each "
-        "pair's reason.",
+        "pair's reason" + ("; for depth that helps, hold the board where the cameras' views "
+                           "overlap, near and far (docs/depth.md, 'Weak board data')"
+                           if modelled else "") + ".",
     )]
+
+
+def rejection_reasons(pairs: list[dict[str, Any]]) -> list[str]:
+    """The rejected pairs' reasons (the first clause of each), alike ones (equal but for their
+    numbers) once with their count, the commonest first; a group of moves says their range."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for p in pairs:
+        if p.get("reason"):
+            first = str(p["reason"]).split(";")[0]
+            groups.setdefault(re.sub(r"\d+(\.\d+)?", "#", first), []).append(p)
+    out = []
+    for _, group in sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[0])):
+        first = str(group[0]["reason"]).split(";")[0]
+        if len(group) == 1:
+            out.append(first)
+            continue
+        mm = [float(p["correction_mm"]) for p in group if p.get("correction_mm") is not None]
+        if first.startswith("ICP moved") and "extrinsics, beyond" in first and mm:
+            # consistent_with_board's reason, the moves' range instead of one pair's numbers
+            tail = first.split("): ", 1)[1] if "): " in first else ""
+            out.append(f"{len(group)} pairs: ICP moved {min(mm):.1f}-{max(mm):.1f} mm from the "
+                       f"board's extrinsics, beyond their uncertainty and the pair's"
+                       + (f": {tail}" if tail else ""))
+        else:
+            out.append(f"{len(group)} pairs like: {first}")
+    return out
+
+
+def beyond_scale(report: dict[str, Any], pairs: list[dict[str, Any]]) -> list[str]:
+    """The cameras of ``pairs`` whose depth model (report.json ``depth_models``) has a term
+    beyond the scale: the depth calibrate's pairs register (divided by the scale alone) is off
+    by it."""
+    models = report.get("depth_models") or {}
+    cams = {c for p in pairs for c in (p["cam_a"], p["cam_b"])}
+    return sorted(c for c in cams
+                  if any(t != "scale" for t in (models.get(c) or {}).get("terms") or ()))
 
 
 def common_depth_scale(factors: dict[str, tuple[float, float]]) -> float | None:
