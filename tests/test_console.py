@@ -90,7 +90,7 @@ def test_a_change_is_a_percentage_only_of_a_prior_that_is_a_base():
 
 
 def test_the_depth_model_line_names_a_camera_with_too_few_views_for_every_term():
-    """``depth.model_terms: auto``: every term from 17 board views; a camera with fewer that
+    """``depth.model_terms: auto``: every term from 15 board views; a camera with fewer that
     kept the ladder's terms says how many views it had, one with enough does not."""
     from types import SimpleNamespace
 
@@ -102,8 +102,8 @@ def test_the_depth_model_line_names_a_camera_with_too_few_views_for_every_term()
                                too_few_views=few,
                                bands=[(1.0, 1.5, 900, 4.0, 0.2, 6.0, 2.1, 1.5)])
 
-    line = depth_model_line({"a": fit(TERMS, 30), "b": fit(("scale", "offset"), 15, True),
+    line = depth_model_line({"a": fit(TERMS, 30), "b": fit(("scale", "offset"), 13, True),
                              "c": fit(("scale", "offset"), 20), "d": fit((), 30),
-                             "e": fit(("scale", "offset"), 15)})
-    assert line.startswith("depth model: every term for a, b scale+offset (15 board views, "
-                           "17 free every term), c scale+offset, e scale+offset, 1 identity;"), line
+                             "e": fit(("scale", "offset"), 13)})
+    assert line.startswith("depth model: every term for a, b scale+offset (13 board views, "
+                           "15 free every term), c scale+offset, e scale+offset, 1 identity;"), line

@@ -675,7 +675,7 @@ class DepthConfig(BaseModel, extra="forbid"):
         description="Which terms a camera whose depth needs a model gets (the ladder decides "
         "the need: a clean camera keeps the identity). evidence: the terms the ladder "
         "accepted; all: every term free; auto: every term where the camera's board views can "
-        "judge all 13 parameters (at least 17 views), the ladder's terms otherwise. Over a "
+        "judge all 13 parameters (at least 15 views), the ladder's terms otherwise. Over a "
         "board's depth range the terms trade with each other and one left out biases the "
         "rest, most beyond the board: on eight renders of 24-40 frame sets every term gave "
         "the lower worst-camera fused-cloud bias on seven (the eighth worse) and 99 % of the "
