@@ -57,9 +57,10 @@ MAX_PIXELS_PER_VIEW = 1500  # board pixels sampled per view (evenly)
 GN_ITERATIONS = 8
 MIN_CLUSTER_DOF = 4  # views beyond the parameters for the clustered (F) test
 # depth.model_terms auto: every term from two views beyond the parameters (the every-term fit's
-# clustered covariance then has a view to spare). Measured on 10 cameras of 15-16 views over
-# four renders: every term nearer the true surfaces on 7 (the ladder's up to 8.5 mm off
-# where the board never was), further on 2; at 12-14 views mixed (docs/depth.md)
+# clustered covariance then has a view to spare). Measured on 11 cameras of 15-16 views over
+# five renders: every term nearer the true surfaces on 7 (the ladder's up to 8.5 mm off
+# where the board never was), the same on 2, further on 2; at 12-14 views mixed
+# (docs/depth.md, 'From 15 views')
 EVERY_TERM_MIN_VIEWS = len(PARAMETERS) + 2
 # central-difference steps per parameter, in the model's units (scale, px, deg, mm)
 STEP = {"scale": 1e-5, "d0": 1e-3, "dx": 1e-3, "dy": 1e-3, "dxx": 1e-3, "dxy": 1e-3,
