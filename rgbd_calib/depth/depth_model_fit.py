@@ -26,10 +26,10 @@ correlated over neighbouring pixels) counts once per view, not once per pixel; i
 the model's.
 A clean camera keeps the identity. A camera the ladder gives any term gets every term with
 ``depth.model_terms: all``, and with ``auto`` (the default) where its views can judge all of
-them (:data:`MIN_CLUSTER_DOF` views beyond the 13 parameters): over the board's range the
-terms trade with each other (scale with offset, the gradients with the pose's tilt), so one
-left out because its test fell short biases the others, and with them the depth beyond the
-board; all of them free give unbiased parameters with larger sigmas, which on a short
+them (:data:`EVERY_TERM_MIN_VIEWS`: two views beyond the 13 parameters): over the board's
+range the terms trade with each other (scale with offset, the gradients with the pose's tilt),
+so one left out because its test fell short biases the others, and with them the depth beyond
+the board; all of them free give unbiased parameters with larger sigmas, which on a short
 recording are too loose to apply (race, 8 sets: the scene 20-100 mm off; docs/depth.md).
 ``evidence`` keeps only the terms the ladder accepted, as ``auto`` does with fewer views."""
 
@@ -370,8 +370,8 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     # free (the terms it left out are there on a real camera, only too small to show here)
     law = (current if current.names == PARAMETERS
            else _solve(current.model, samples, PARAMETERS, config.scale_huber_k))
-    # the camera needs a model: all of it, where the views can judge every term (the
-    # clustered covariance needs MIN_CLUSTER_DOF views beyond the parameters)
+    # the camera needs a model: all of it, where the views can judge every term
+    # (EVERY_TERM_MIN_VIEWS)
     judged = n_views >= EVERY_TERM_MIN_VIEWS
     too_few_views = bool(chosen) and config.model_terms == "auto" and not judged
     if chosen and (config.model_terms == "all" or (config.model_terms == "auto" and judged)):
