@@ -56,6 +56,7 @@ def test_tiny_overlap_is_rejected_with_a_reason(scene):
     patch = a.select(np.linalg.norm(a.points - centre, axis=1) < 0.05)
     reg = D.register_pair(patch, scene["b"], _nudge(CAM_A), CAM_B, "colored-icp")
     assert not reg.accepted and "correspondences" in reg.reason
+    assert reg.rejected_by[0] == "correspondences"
 
 
 @pytest.mark.parametrize("method", REGISTRATION_METHODS)
@@ -65,6 +66,8 @@ def test_single_untextured_plane_is_rejected_as_degenerate(method):
     b = scene_cloud("b", CAM_B, (FLOOR,), rng, textured=False)
     reg = D.register_pair(a, b, _nudge(CAM_A), CAM_B, method)
     assert not reg.accepted and "poorly conditioned" in reg.reason
+    assert "conditioning" in reg.rejected_by and reg.to_dict()["rejected_by"] == list(
+        reg.rejected_by)
 
 
 def test_an_exception_inside_one_pair_rejects_only_that_pair(scene, monkeypatch):
@@ -81,6 +84,7 @@ def test_an_exception_inside_one_pair_rejects_only_that_pair(scene, monkeypatch)
     monkeypatch.setattr(D, "_colored_icp_call", flaky)
     reg = D.register_pair(scene["a"], scene["b"], _nudge(CAM_A), CAM_B, "colored-icp")
     assert not reg.accepted and "No correspondences found" in reg.reason
+    assert reg.rejected_by == ("failed",)
     # anything else a pair raises is caught one level up, in the stage
     monkeypatch.setattr(S, "register_pair", lambda *a, **k: 1 / 0)
     reg = S._register_safely(scene["a"], scene["b"], CAM_A, CAM_B, "colored-icp",
@@ -162,3 +166,28 @@ def test_calibrate_falls_back_when_the_joint_solve_fails(line_board_only, monkey
     assert any("not used: the joint solve with the depth pairs failed" in p["reason"]
                for p in result.depth.pairs)
     _assert_board_result(result, board_only, rig)
+
+
+def test_a_pair_against_the_board_and_an_unused_pair_say_their_kind():
+    """The stage's own rejections carry their kind (``rejected_by``) like register_pair's: a
+    move beyond the board's uncertainty and the pair's (``beyond_extrinsics``), and a pair
+    accepted but left out of the solve (``not_used``); the report's findings read the kind."""
+    from dataclasses import replace
+
+    base = D.failed_registration("a", "b", "colored-icp", invert_transform(CAM_B) @ CAM_A,
+                                 "placeholder")
+    moved = base.T_b_a.copy()
+    moved[:3, 3] += [0.02, 0.0, 0.0]  # 20 mm
+    tight = np.diag([1e8] * 3 + [1e8] * 3)  # the pair's own sigma: 0.1 mm / 0.006 deg
+    reg = replace(base, T_b_a=moved, information=tight, accepted=True, reason=None,
+                  rejected_by=(), correction_mm=20.0)
+    board = {c: np.diag([1e-8] * 3 + [1e-8] * 3) for c in ("a", "b")}  # 0.1 mm
+    out = S.consistent_with_board(reg, board, {"a": CAM_A, "b": CAM_B}, DepthConfig())
+    assert not out.accepted and out.rejected_by == ("beyond_extrinsics",)
+    assert out.to_dict()["rejected_by"] == ["beyond_extrinsics"]
+    # within the board's uncertainty (1 m sigma): kept as it was
+    loose = {c: np.eye(6) for c in ("a", "b")}
+    assert S.consistent_with_board(reg, loose, {"a": CAM_A, "b": CAM_B}, DepthConfig()) is reg
+    depth = S.DepthRefinement("colored-icp", {}, {}, [reg.to_dict()], [], {})
+    (pair,) = depth.with_fallback("the joint solve failed").pairs
+    assert not pair["accepted"] and pair["rejected_by"] == ["not_used"]

@@ -71,6 +71,7 @@ def test_a_pair_that_does_not_move_is_rejected(realisations):
     again = D.register_pair(a, b, T_ref_a, CAM_B, "colored-icp")
     assert not again.accepted and "no significant improvement" in again.reason
     assert again.agrees and not reg.agrees  # a confirmation, not a failure (report: info)
+    assert again.rejected_by == ("not_significant",) and reg.rejected_by == ()
     assert again.improvement_chi2 < 12.59
     assert reg.improvement_chi2 > 100  # the 10 mm / 0.5 deg start was a real improvement
 
@@ -82,6 +83,7 @@ def test_residuals_far_above_the_noise_model_are_rejected(realisations):
     b = replace(b, sigma_z=b.sigma_z / 5)
     reg = D.register_pair(a, b, nudge(CAM_A), CAM_B, "colored-icp")
     assert not reg.accepted and "D435 noise model" in reg.reason
+    assert "residuals" in reg.rejected_by
     assert reg.normalised_rms > 3.0
     d = reg.to_dict()
     assert d["accepted"] is False and d["normalised_rms"] == reg.normalised_rms

@@ -457,13 +457,14 @@ def test_depth_unused_sums_up_alike_pairs_and_names_the_depth_models_beyond_the_
 
     def moved(a, b, mm):
         return {"cam_a": a, "cam_b": b, "accepted": False, "correction_mm": mm,
+                "rejected_by": ["beyond_extrinsics"],
                 "reason": f"ICP moved {mm:.2f} mm / 0.100 deg from the board's extrinsics, "
                           f"beyond their uncertainty and the pair's (chi2 {10 * mm:.0f} > "
                           "22.46, 6 dof): a wrong local minimum or a depth error"}
 
     pairs = [moved("c0", "c1", 5.2), moved("c1", "c2", 44.3), moved("c0", "c2", 9.0),
              {"cam_a": "c2", "cam_b": "c3", "accepted": False, "correction_mm": 0.1,
-              "reason": "fitness 0.20 < 0.3"}]
+              "rejected_by": ["fitness"], "reason": "fitness 0.20 < 0.3"}]
     report = {"depth": {"status": "fallback"}, "timings_s": {"depth": 1.0}, "pairs": pairs,
               "depth_models": {"c0": {"terms": ["scale"]}, "c1": {"terms": ["scale", "offset"]},
                                "c2": {"terms": ["scale", "offset", "pose"]}, "c3": {}}}
@@ -477,6 +478,49 @@ def test_depth_unused_sums_up_alike_pairs_and_names_the_depth_models_beyond_the_
     report["depth_models"] = {"c0": {"terms": ["scale"]}}
     (f,) = depth_unused(report, [])
     assert "depth models" not in f["message"] and "hold the board" not in f["advice"]
+
+
+def test_pairs_name_the_kind_of_each_rejection_and_older_reports_get_it_from_their_reasons():
+    """``pairs[].rejected_by`` (schema 1.18): the findings read the kind, not the wording; a
+    report written before it gets the kinds from its reasons' clauses, one per clause."""
+    from rgbd_calib.depth.registration import REJECTION_KINDS
+    from rgbd_calib.outputs.report.build import kinds_from_reason, pair_entry
+    from rgbd_calib.outputs.report.findings_depth import confirming_pairs
+
+    older = {
+        "fitness 0.20 < 0.3; point-to-plane RMSE 9.1 mm > 5.0 mm": ["fitness", "rmse"],
+        "12 correspondences < 300; 3 surface patches of 0.2 m < 8: too few to estimate the "
+        "pair's uncertainty": ["correspondences", "patches"],
+        "poorly conditioned overlap (0.0012 < 0.01): the common surfaces leave a direction "
+        "unconstrained (e.g. a single plane)": ["conditioning"],
+        "no significant improvement on the current extrinsics: ICP moved 0.10 mm / 0.002 deg, "
+        "chi2 1.2 < 12.6 (6 dof) under its own uncertainty": ["not_significant"],
+        "ICP moved 5.20 mm / 0.100 deg from the board's extrinsics, beyond their uncertainty "
+        "and the pair's (chi2 52 > 22.46, 6 dof): a wrong local minimum or a depth error":
+            ["beyond_extrinsics"],
+        "moved 612 mm / 4.0 deg from the check's estimate (a fix's limit: 100 mm / 10 deg): "
+        "another minimum": ["fix_reach"],
+        "not used: the joint solve failed (x; y)": ["not_used"],
+        "registration process died (MemoryError)": ["failed"],
+    }
+    for reason, kinds in older.items():
+        assert kinds_from_reason({"reason": reason}) == kinds
+        assert set(kinds) <= set(REJECTION_KINDS)
+    assert kinds_from_reason({"reason": None}) == []
+    # a pair of this version keeps its own kinds; one of before 1.18 gets them
+    entry = pair_entry({"cam_a": "a", "cam_b": "b", "accepted": False,
+                        "reason": "fitness 0.20 < 0.3", "rejected_by": ("fitness",)})
+    assert entry["rejected_by"] == ["fitness"]
+    entry = pair_entry({"cam_a": "a", "cam_b": "b", "accepted": False,
+                        "reason": next(iter(older))})
+    assert entry["rejected_by"] == ["fitness", "rmse"]
+    # a pair that contradicts the extrinsics is read by its kind, whatever its wording
+    agree = {"cam_a": "a", "cam_b": "b", "accepted": False, "agrees": True,
+             "reason": "no significant improvement", "rejected_by": ["not_significant"]}
+    against = {"cam_a": "b", "cam_b": "c", "accepted": False, "agrees": False,
+               "reason": "reworded", "rejected_by": ["beyond_extrinsics"]}
+    assert confirming_pairs([agree]) == [agree]
+    assert confirming_pairs([agree, against]) == []
 
 
 def test_edge_figure_draws_a_rig_without_edge_residuals():

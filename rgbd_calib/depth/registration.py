@@ -66,6 +66,25 @@ class PairOverlap:
         return dict(self.__dict__)
 
 
+# Why a pair is rejected, one kind per test (``PairRegistration.rejected_by``; report.json
+# ``pairs[].rejected_by``, schema 1.18), so that readers act on the kind, not the wording:
+REJECTION_KINDS = (
+    "correspondences",  # too few correspondences at the finest level
+    "fitness",  # too small a fraction of a's points near b's surface
+    "rmse",  # point-to-plane RMSE beyond the limit
+    "residuals",  # residuals beyond the depth noise model
+    "conditioning",  # a direction the common surfaces leave unconstrained
+    "patches",  # too few surface patches to estimate the pair's uncertainty
+    "correction",  # moved beyond the limit from the initial guess
+    "not_significant",  # fits, but its move is within its own uncertainty (``agrees``)
+    "information",  # the information matrix is not finite
+    "failed",  # the registration could not run or failed (its reason says how)
+    "beyond_extrinsics",  # moved beyond the board's uncertainty and the pair's
+    "fix_reach",  # refine --fix-others: moved beyond a fix's reach from check's estimate
+    "not_used",  # accepted, then left out of the joint solve (the stage's fallback)
+)
+
+
 @dataclass(frozen=True)
 class PairRegistration:
     """Result of registering camera a's static cloud to camera b's.
@@ -105,6 +124,7 @@ class PairRegistration:
     # registered cleanly, and rejected only because ICP's move is within the pair's own
     # uncertainty: the depth agrees with the extrinsics it started from (a confirmation)
     agrees: bool = False
+    rejected_by: tuple[str, ...] = ()  # the REJECTION_KINDS of ``reason``'s clauses, in order
 
     @property
     def covariance(self) -> np.ndarray:
@@ -147,6 +167,7 @@ class PairRegistration:
             "n_patches": self.n_patches,
             "start": self.start,
             "agrees": self.agrees,
+            "rejected_by": list(self.rejected_by),
         }
 
 
@@ -415,12 +436,13 @@ def register_pair(
         correction_deg=fit.correction_deg,
         correction_mm=fit.correction_mm,
         accepted=not reasons,
-        reason="; ".join(reasons) or None,
+        reason="; ".join(text for _, text in reasons) or None,
         time_s=time.perf_counter() - t_start,
         normalised_rms=fit.normalised_rms,
         improvement_chi2=fit.improvement_chi2,
         n_patches=fit.n_patches,
         agrees=bool(agrees),
+        rejected_by=tuple(kind for kind, _ in reasons),
     )
 
 
@@ -499,47 +521,55 @@ def _finest_fit(src: VoxelLevel, tgt: VoxelLevel, T: np.ndarray, T_b_a0: np.ndar
 
 
 def _verdict(fit: _Fit, clouds: tuple[CameraCloud, CameraCloud], config: DepthConfig,
-             free_scale: tuple[bool, bool]) -> tuple[list[str], bool]:
-    """Why a pair is rejected (empty: accepted), and whether it agrees with the extrinsics it
-    started from (it fits, and only its move is not significant)."""
+             free_scale: tuple[bool, bool]) -> tuple[list[tuple[str, str]], bool]:
+    """Why a pair is rejected, as ``(kind, sentence)`` (:data:`REJECTION_KINDS`; empty:
+    accepted), and whether it agrees with the extrinsics it started from (it fits, and only
+    its move is not significant)."""
     n_corr, fitness, rmse_after = fit.n_correspondences, fit.fitness, fit.rmse_after_mm
     noise_rms, cond, improvement = fit.normalised_rms, fit.conditioning, fit.improvement_chi2
     corr_deg, corr_mm = fit.correction_deg, fit.correction_mm
     reasons = []
     if n_corr < config.min_correspondences:
-        reasons.append(f"{n_corr} correspondences < {config.min_correspondences}")
+        reasons.append(("correspondences",
+                        f"{n_corr} correspondences < {config.min_correspondences}"))
     if fitness < config.min_fitness:
-        reasons.append(f"fitness {fitness:.2f} < {config.min_fitness}")
+        reasons.append(("fitness", f"fitness {fitness:.2f} < {config.min_fitness}"))
     if not rmse_after <= config.max_rmse_mm:
-        reasons.append(f"point-to-plane RMSE {rmse_after:.1f} mm > {config.max_rmse_mm} mm")
+        reasons.append(("rmse", f"point-to-plane RMSE {rmse_after:.1f} mm > "
+                                f"{config.max_rmse_mm} mm"))
     if n_corr and not noise_rms <= config.max_normalised_rms:
-        reasons.append(
+        reasons.append((
+            "residuals",
             f"residuals {noise_rms:.1f}x the {_noise_name(*clouds)} noise model (limit "
             f"{config.max_normalised_rms}x): the surfaces do not fit (a wrong local minimum, "
-            "a moving scene or a depth error)")
+            "a moving scene or a depth error)"))
     if cond < config.min_conditioning:
-        reasons.append(
+        reasons.append((
+            "conditioning",
             f"poorly conditioned overlap ({cond:.3g} < {config.min_conditioning}): "
             "the common surfaces leave a direction unconstrained (e.g. a single plane)"
-        )
+        ))
     if n_corr and fit.n_patches < config.min_patches:
-        reasons.append(f"{fit.n_patches} surface patches of {config.information_patch_m} m "
-                       f"< {config.min_patches}: too few to estimate the pair's uncertainty")
+        reasons.append(("patches", f"{fit.n_patches} surface patches of "
+                        f"{config.information_patch_m} m < {config.min_patches}: too few to "
+                        "estimate the pair's uncertainty"))
     if corr_mm > 1000.0 * config.max_correction_m or corr_deg > config.max_correction_deg:
-        reasons.append(
+        reasons.append((
+            "correction",
             f"moved {corr_mm:.0f} mm / {corr_deg:.1f} deg from the initial guess (limit "
             f"{1000.0 * config.max_correction_m:.0f} mm / {config.max_correction_deg} deg)"
-        )
+        ))
     agrees = not reasons and not improvement >= config.min_improvement_chi2
     if agrees:
-        reasons.append(
+        reasons.append((
+            "not_significant",
             f"no significant improvement on the current extrinsics: ICP moved "
             f"{corr_mm:.2f} mm / {corr_deg:.3f} deg, chi2 {improvement:.1f} < "
             f"{config.min_improvement_chi2} (6 dof) under its own uncertainty"
             + (" (depth scale unknown: a move a depth-scale error explains does not count)"
-               if any(free_scale) else ""))
+               if any(free_scale) else "")))
     if not np.all(np.isfinite(fit.information)):
-        reasons.append("information matrix not finite")
+        reasons.append(("information", "information matrix not finite"))
         agrees = False
     return reasons, agrees
 
@@ -568,7 +598,7 @@ def failed_registration(cam_a: str, cam_b: str, method: str, T_b_a_initial: np.n
         information=np.zeros((6, 6)), information_frame=INFORMATION_FRAME, fitness=0.0,
         inlier_rmse_mm=nan, rmse_before_mm=nan, rmse_after_mm=nan, conditioning=0.0,
         n_correspondences=0, correction_deg=0.0, correction_mm=0.0, accepted=False,
-        reason=reason,
+        reason=reason, rejected_by=("failed",),
         time_s=0.0 if t_start is None else time.perf_counter() - t_start,
     )
 

@@ -118,7 +118,8 @@ class DepthRefinement:
     def with_fallback(self, reason: str) -> DepthRefinement:
         """This measurement with every pair unused: the solve keeps the board result."""
         pairs = [p if not p.get("accepted") else
-                 {**p, "accepted": False, "reason": f"not used: {reason}"} for p in self.pairs]
+                 {**p, "accepted": False, "reason": f"not used: {reason}",
+                  "rejected_by": ["not_used"]} for p in self.pairs]
         return replace(self, pairs=pairs, relative_poses=[], fallback=reason)
 
     def depth_scale_dict(self) -> dict[str, dict[str, float]]:
@@ -511,7 +512,7 @@ def consistent_with_board(reg: PairRegistration, board_covariance: dict[str, np.
         return reg
     if chi2 <= config.max_board_chi2:
         return reg
-    return replace(reg, accepted=False, reason=(
+    return replace(reg, accepted=False, rejected_by=("beyond_extrinsics",), reason=(
         f"ICP moved {reg.correction_mm:.2f} mm / {reg.correction_deg:.3f} deg from the board's "
         f"extrinsics, beyond their uncertainty and the pair's (chi2 {chi2:.0f} > "
         f"{config.max_board_chi2}, 6 dof): a wrong local minimum or a depth error"))

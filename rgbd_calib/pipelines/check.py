@@ -419,7 +419,7 @@ def _within_fix_reach(r: PairRegistration) -> PairRegistration:
     586 mm on race seed 0) and is rejected, not weighed."""
     mm, deg = FIX_REACH
     if r.accepted and (r.correction_mm > mm or r.correction_deg > deg):
-        return replace(r, accepted=False, reason=(
+        return replace(r, accepted=False, rejected_by=("fix_reach",), reason=(
             f"moved {r.correction_mm:.0f} mm / {r.correction_deg:.1f} deg from the check's "
             f"estimate (a fix's limit: {mm:.0f} mm / {deg:.0f} deg): another minimum"))
     return r

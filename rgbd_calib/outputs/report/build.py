@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import math
+import re
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -610,7 +611,41 @@ def pair_entry(pair: dict[str, Any]) -> dict[str, Any]:
     out["cam_a"], out["cam_b"] = str(pair["cam_a"]), str(pair["cam_b"])
     if "agrees" not in pair:
         out["agrees"] = agrees_from_reason(pair)
+    if "rejected_by" not in pair:
+        out["rejected_by"] = kinds_from_reason(pair)
+    else:
+        out["rejected_by"] = [str(k) for k in pair["rejected_by"] or ()]
     return out
+
+
+# A reason clause's first words -> its kind (rgbd_calib.depth.registration.REJECTION_KINDS),
+# for pairs written before schema 1.18 named the kind; anything else is a failed registration.
+_CLAUSE_KINDS = (
+    (r"\d+ correspondences <", "correspondences"),
+    (r"fitness ", "fitness"),
+    (r"point-to-plane RMSE", "rmse"),
+    (r"residuals ", "residuals"),
+    (r"poorly conditioned", "conditioning"),
+    (r"\d+ surface patches", "patches"),
+    (r"moved .* from the initial guess", "correction"),
+    (r"moved .* from the check's estimate", "fix_reach"),
+    (r"no significant improvement", "not_significant"),
+    (r"information matrix not finite", "information"),
+    (r"ICP moved .* beyond their uncertainty", "beyond_extrinsics"),
+)
+
+
+def kinds_from_reason(pair: dict[str, Any]) -> list[str]:
+    """``pairs[].rejected_by`` of a pair written before schema 1.18, from its ``reason``'s
+    clauses (an accepted pair: none)."""
+    reason = str(pair.get("reason") or "")
+    if not reason:
+        return []
+    if reason.startswith("not used:"):
+        return ["not_used"]
+    kinds = [next((k for pattern, k in _CLAUSE_KINDS if re.match(pattern, clause.strip())),
+                  "failed") for clause in reason.split(";")]
+    return list(dict.fromkeys(kinds))
 
 
 def agrees_from_reason(pair: dict[str, Any]) -> bool:

@@ -84,8 +84,7 @@ def _disagrees(pair: dict[str, Any]) -> bool:
     ``--init``'s) uncertainty and its own
     (:func:`rgbd_calib.depth.stage.consistent_with_board`), or it was accepted and then not
     used (the joint solve failed or moved a camera too far)."""
-    reason = str(pair.get("reason") or "")
-    return reason.startswith("not used:") or "beyond their uncertainty" in reason
+    return bool({"beyond_extrinsics", "not_used"} & set(pair.get("rejected_by") or ()))
 
 
 def confirming_pairs(pairs: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -150,26 +149,25 @@ def depth_unused(report: dict[str, Any], earlier: list[Finding]) -> list[Finding
 
 
 def rejection_reasons(pairs: list[dict[str, Any]]) -> list[str]:
-    """The rejected pairs' reasons (the first clause of each), alike ones (equal but for their
-    numbers) once with their count, the commonest first; a group of moves says their range."""
-    groups: dict[str, list[dict[str, Any]]] = {}
+    """The rejected pairs' reasons (the first clause of each), alike ones (of one kind,
+    ``pairs[].rejected_by``, and equal but for their numbers) once with their count, the
+    commonest first; a group of moves beyond the extrinsics says the moves' range."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for p in pairs:
         if p.get("reason"):
             first = str(p["reason"]).split(";")[0]
-            groups.setdefault(re.sub(r"\d+(\.\d+)?", "#", first), []).append(p)
+            kinds = p.get("rejected_by") or ["?"]
+            groups.setdefault((kinds[0], re.sub(r"\d+(\.\d+)?", "#", first)), []).append(p)
     out = []
-    for _, group in sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[0])):
+    for (kind, _), group in sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[0])):
         first = str(group[0]["reason"]).split(";")[0]
+        mm = [float(p["correction_mm"]) for p in group if p.get("correction_mm") is not None]
         if len(group) == 1:
             out.append(first)
-            continue
-        mm = [float(p["correction_mm"]) for p in group if p.get("correction_mm") is not None]
-        if first.startswith("ICP moved") and "extrinsics, beyond" in first and mm:
-            # consistent_with_board's reason, the moves' range instead of one pair's numbers
-            tail = first.split("): ", 1)[1] if "): " in first else ""
+        elif kind == "beyond_extrinsics" and mm:
             out.append(f"{len(group)} pairs: ICP moved {min(mm):.1f}-{max(mm):.1f} mm from the "
-                       f"board's extrinsics, beyond their uncertainty and the pair's"
-                       + (f": {tail}" if tail else ""))
+                       "board's extrinsics, beyond their uncertainty and the pair's: a wrong "
+                       "local minimum or a depth error")
         else:
             out.append(f"{len(group)} pairs like: {first}")
     return out

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from ...core.progress import Progress
-from .build import agrees_from_reason, finalize_report
+from .build import agrees_from_reason, finalize_report, kinds_from_reason
 from .html import write_report_html
 from .schema import REPORT_SCHEMA_VERSION, ReportError, validate_report
 from .storage import VIEWS_INLINE_MAX, load_report, write_report_json
@@ -64,6 +64,7 @@ def _refinalize(report: dict[str, Any], path: Path) -> dict[str, Any]:
             if isinstance(pair, dict):
                 pair.setdefault("rmse_final_mm", None)
                 pair.setdefault("agrees", agrees_from_reason(pair))  # 1.9
+                pair.setdefault("rejected_by", kinds_from_reason(pair))  # 1.18
         if isinstance(report.get("pose_graph"), dict):  # 1.2 added it
             report["pose_graph"].setdefault("model_error", [])
         report = finalize_report(report)

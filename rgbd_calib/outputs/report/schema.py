@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.17"
+REPORT_SCHEMA_VERSION = "1.18"
 
 
 class ReportError(RgbdCalibError):
@@ -171,6 +171,7 @@ PAIR_SCHEMA: dict[str, Any] = {
     "accepted": Nullable(B),
     "reason": Nullable(S),
     "agrees": Nullable(B),
+    "rejected_by": Nullable(ListOf(S)),
     "error_map": Nullable(
         {"width": INT, "height": INT, "cols": INT, "rows": INT, "values_mm": ListOf(Nullable(N))}
     ),
