@@ -107,3 +107,27 @@ def test_the_depth_model_line_names_a_camera_with_too_few_views_for_every_term()
                              "e": fit(("scale", "offset"), 13)})
     assert line.startswith("depth model: every term for a, b scale+offset (13 board views, "
                            "15 free every term), c scale+offset, e scale+offset, 1 identity;"), line
+
+
+def test_the_depth_registration_line_says_what_the_pairs_did_and_how_they_were_weighed():
+    """calibrate's console line on the depth pairs: used with their variance factor (the
+    pairs' covariance x the factor: at least depth.pair_variance_floor), not used and why
+    (markup in the reason escaped), not needed, or nothing."""
+    from rgbd_calib.cli.console import depth_registration_line
+    from rgbd_calib.depth.stage import DepthRefinement
+    from rgbd_calib.solve.bundle import RelativePose
+
+    pair = {"cam_a": "a", "cam_b": "b", "accepted": True, "reason": None, "rejected_by": []}
+    import numpy as np
+
+    rel = RelativePose("a", "b", np.eye(4), np.eye(6))
+    used = DepthRefinement("colored-icp", {}, {}, [pair, {**pair, "accepted": False}], [rel],
+                           {}, pair_variance_factor=4.37)
+    line = depth_registration_line(used)
+    assert line.startswith("depth registration: 1 of 2 camera pairs used") and "x4.37" in line
+    fallback = DepthRefinement("colored-icp", {}, {}, [], [], {},
+                               fallback="[red] in a reason is not markup")
+    assert "\\[red] in a reason" in depth_registration_line(fallback)
+    assert depth_registration_line(DepthRefinement("colored-icp", {}, {}, [], [], {},
+                                                   note="the board constrains every camera"))
+    assert depth_registration_line(DepthRefinement("colored-icp", {}, {}, [], [], {})) is None

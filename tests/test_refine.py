@@ -4,6 +4,7 @@ Ground truth from the synthetic renders (D435 noise model, s = 0.08 px, B = 50 m
 blur 0.6 px, noise 2 DN)."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -59,8 +60,11 @@ def test_pairs_are_reported_and_joined(refined_small_race):
         assert p["accepted"] or p["reason"]
         if p["accepted"]:
             assert np.isfinite(p["rmse_final_mm"]) and p["rmse_final_mm"] < 20
-    # the joint graph used the accepted pairs (one relative-pose factor each)
+    # the joint graph used the accepted pairs (one relative-pose factor each), weighed by
+    # their variance factor against the board (never trusted beyond their information)
     assert len(result.depth.relative_poses) == sum(p["accepted"] for p in pairs)
+    assert result.depth.pair_variance_factor >= 1.0
+    assert result.depth.status_dict()["pair_variance_factor"] == result.depth.pair_variance_factor
 
 
 def test_refine_command_recovers_a_perturbed_calibration(biased_race, tmp_path):
@@ -272,6 +276,42 @@ def test_relative_pose_redundancy_sums_to_the_graph_redundancy():
                                      [RelativePose("c0", "ref", T, W),
                                       RelativePose("c0", "ref", T, 4 * W)])
     np.testing.assert_allclose(r2, [6 * 4 / 5, 6 * 1 / 5], atol=1e-6)
+
+
+def test_the_bundle_gives_each_relative_pose_its_chi2_and_redundancy():
+    """``BundleResult.relative_pose_fit`` (from the whole graph's marginals, what calibrate's
+    joint solve weighs its depth pairs by) equals the pose graph's own redundancy numbers
+    (:func:`relative_pose_redundancy`) on a graph of relative poses alone, and its held
+    factors (``variance_components.updated_factor``) recover pairs drawn 2x wider than they
+    claim: a factor of ~4."""
+    from rgbd_calib.core.config import BundleConfig
+    from rgbd_calib.solve.bundle import BundleProblem, bundle_adjust, relative_pose_redundancy
+    from rgbd_calib.solve.variance_components import updated_factor
+
+    rng = np.random.default_rng(5)
+    T_true, T_init, priors, pairs = _pose_graph_case(rng, 2.0)
+    K = {c: np.eye(3) for c in T_init}
+    res = bundle_adjust(BundleProblem([], K, "ref", T_init, {}, BundleConfig(),
+                                      relative_poses=priors + pairs))
+    fit = np.array(res.relative_pose_fit)
+    chi2_f, r = relative_pose_redundancy("ref", res.T_ref_cam, priors + pairs)
+    np.testing.assert_allclose(fit[:, 1], r, atol=1e-3)
+    np.testing.assert_allclose(fit[:, 0], chi2_f, rtol=1e-3)
+    assert fit[:, 1].sum() == pytest.approx(6 * (len(priors) + len(pairs)) - 6 * 7, abs=1e-3)
+    # the pairs' factor, the priors held at their (honest) model: iterate as calibrate does
+    factor = 1.0
+    for _ in range(20):
+        scaled = [replace(p, information=p.information / factor) for p in pairs]
+        res = bundle_adjust(BundleProblem([], K, "ref", T_init, {}, BundleConfig(),
+                                          relative_poses=priors + scaled))
+        part = np.array(res.relative_pose_fit)[len(priors):]
+        new = updated_factor(factor, part[:, 0], part[:, 1])
+        if abs(new / factor - 1) < 0.01:
+            break
+        factor = new
+    assert 0.6 * 4 <= factor <= 1.5 * 4, factor
+    assert updated_factor(2.0, np.array([0.1]), np.array([0.5])) == 2.0  # too little redundancy
+    assert updated_factor(2.0, np.array([1.0]), np.array([6.0])) == 1.0  # never below 1
 
 
 @pytest.mark.parametrize("k", [1.0, 2.0])

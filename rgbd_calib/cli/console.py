@@ -15,8 +15,10 @@ import statistics
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 
 from ..core.depth_model import TERMS
 from ..core.progress import Progress
@@ -157,8 +159,6 @@ def print_verdict(out: Path) -> None:
     last the path of ``report.html``."""
     import json
 
-    from rich.markup import escape
-
     report = json.loads((Path(out) / "report.json").read_text())
     extras = [n for n in ("fused.ply", "rig_refined.yaml", "board_refined.yaml")
               if (Path(out) / n).exists()]
@@ -200,6 +200,33 @@ def fused_line(agreement) -> str | None:
     return text + (f"; off beyond the noise: {', '.join(off)}" if off else "")
 
 
+def depth_registration_line(depth: Any) -> str | None:
+    """What the depth pairs did to the extrinsics, one line (markup), from the depth stage's
+    :class:`~rgbd_calib.depth.stage.DepthRefinement`: confirmed the board result, not used
+    and why, not needed, or used with their variance factor; None when nothing was
+    registered."""
+    from ..outputs.report.findings import confirming_pairs
+
+    pairs = depth.pairs
+    agree = len(confirming_pairs(pairs))
+    if depth.fallback is not None and agree:
+        return (f"depth registration: {agree} of {len(pairs)} camera pairs agree with the "
+                "board result within their own uncertainty; nothing to correct, the "
+                "extrinsics are the board result")
+    if depth.fallback is not None:
+        return (f"[yellow]depth refinement not used[/]: {escape(depth.fallback)}; the "
+                "extrinsics are the board result")
+    if depth.note is not None:
+        return f"depth registration: {escape(depth.note)}"
+    if depth.used:
+        factor = depth.pair_variance_factor
+        return (f"depth registration: {len(depth.relative_poses)} of {len(pairs)} camera "
+                "pairs used with the board's corners for the weakly held cameras"
+                + (f" (their covariance x{factor:.2f}: variance factor from their residuals, "
+                   "at least depth.pair_variance_floor)" if factor is not None else ""))
+    return None
+
+
 def depth_model_line(fits: dict, unmodelled: dict | None = None) -> str:
     """'depth model: every term for left0, left1, right0 offset, 5 identity, none for right3;
     board-plane bias within 0.4 mm after the model (3.1 mm before), noise 5.2 mm' from the
@@ -236,7 +263,6 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
     from ..outputs.report.findings import (
         board_scale_sentence,
         common_depth_scale,
-        confirming_pairs,
         glue_sentence,
         time_sentence,
     )
@@ -297,17 +323,8 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
             f"{s['offset_mm'][1]:.2f} mm, {s['rotation_deg']:.3f} deg, "
             f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
         )
-    pairs = result.depth.pairs if result.depth is not None else []
-    agree = len(confirming_pairs(pairs))
-    if result.depth is not None and result.depth.fallback is not None and agree:
-        console.print(f"depth registration: {agree} of {len(pairs)} camera pairs "
-                      "agree with the board result within their own uncertainty; nothing to "
-                      "correct, the extrinsics are the board result")
-    elif result.depth is not None and result.depth.fallback is not None:
-        console.print(f"[yellow]depth refinement not used[/]: {result.depth.fallback}; "
-                      "the extrinsics are the board result")
-    elif result.depth is not None and result.depth.note is not None:
-        console.print(f"depth registration: {result.depth.note}")
+    if result.depth is not None and (line := depth_registration_line(result.depth)):
+        console.print(line, highlight=False)
     if result.depth is not None and result.depth.agreement is not None:
         if line := fused_line(result.depth.agreement):
             console.print(line, highlight=False, soft_wrap=True)

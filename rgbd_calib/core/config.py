@@ -841,7 +841,19 @@ class DepthConfig(BaseModel, extra="forbid"):
         "variance-component estimation; never below 1), until the factors settle. Colored "
         "ICP's pairs carry a systematic error their noise model does not admit (docs/depth.md, "
         "refine (issue 14): factor 3.6-4.4 on the synthetic race); this weighs them by what "
-        "their disagreement shows. 1: one plain solve, the pairs at their model information.",
+        "their disagreement shows. 1: one plain solve, the pairs at their model information. "
+        "calibrate: the same for its joint solve of the board's corners and the pairs (the "
+        "pairs' factor alone, from pair_variance_floor up).",
+    )
+    pair_variance_floor: float = Field(
+        4.0,
+        ge=1.0,
+        description="calibrate: the least factor the accepted pairs' covariance is multiplied "
+        "by in the joint solve with the board's corners (variance-component estimation raises "
+        "it when the pairs disagree with the board or each other beyond it). The pairs are "
+        "registered only where the board is weak, so the board cannot show their bias there; "
+        "measured against the truth, accepted pairs claim ~2x too small a sigma (factor 4-5; "
+        "docs/depth.md, 'The pairs' factor in calibrate'). 1: the pairs at their information.",
     )
     max_board_chi2: float = Field(
         22.46,

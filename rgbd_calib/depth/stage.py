@@ -103,12 +103,15 @@ class DepthRefinement:
     def status_dict(self) -> dict[str, Any]:
         """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason``, the
         cameras the board constrained weakly (those depth was registered for) and, when some
-        camera with depth got no depth model, ``unmodelled`` (camera -> why)."""
+        camera with depth got no depth model, ``unmodelled`` (camera -> why), and when the
+        pairs were weighed in a solve, their ``pair_variance_factor``."""
         status = ("fallback" if self.fallback else "skipped" if self.note
                   else "used" if self.relative_poses else "none")
         return {"status": status, "reason": self.fallback or self.note,
                 "weak_cameras": dict(self.weak_cameras or {})} | (
-                    {"unmodelled": dict(self.unmodelled)} if self.unmodelled else {})
+                    {"unmodelled": dict(self.unmodelled)} if self.unmodelled else {}) | (
+                    {"pair_variance_factor": self.pair_variance_factor}
+                    if self.pair_variance_factor is not None else {})
 
     @property
     def used(self) -> bool:

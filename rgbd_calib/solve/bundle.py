@@ -127,6 +127,9 @@ class BundleResult:
     # consecutive frames of a continuous recording: per camera the correlation of their corner
     # errors and the variance factor applied to its sigmas (rgbd_calib/solve/runs.py)
     run_correlation: dict[str, RunCorrelation] = field(default_factory=dict)
+    # per relative pose of the problem, in its order: its whitened chi-square at the solution
+    # and its redundancy number (:func:`relative_pose_fit`); (0, 0) for one not in the solve
+    relative_pose_fit: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -577,7 +580,30 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
                         board_model, face_models,
                         _inflated(_with_prior(clock, layout) if clock is not None
                                   else _time_model(layout, values, marginals), runs),
-                        runs)
+                        runs, relative_pose_fit(layout.relative_poses, layout.cam_key,
+                                                solution.connected, values, marginals))
+
+
+def relative_pose_fit(relative_poses: Sequence[RelativePose], cam_key: dict[str, int],
+                      connected: set[str], values: gtsam.Values, marginals: gtsam.Marginals,
+                      ) -> tuple[tuple[float, float], ...]:
+    """Per relative pose: ``(e^T W e, r)``, its whitened chi-square at ``values`` and its
+    redundancy number ``r = 6 - tr(A_f Sigma_ab A_f^T)`` (``A_f`` its whitened Jacobian,
+    ``Sigma_ab`` the joint marginal of its two cameras from ``marginals``: the whole graph's,
+    corners included; Foerstner 1979), the share of the graph's redundancy its residual
+    carries; (0, 0) for one between cameras not both in ``connected``. A variance factor of
+    the relative poses is ``sum chi2 / sum r`` (:mod:`rgbd_calib.solve.variance_components`)."""
+    out = []
+    for rel in relative_poses:
+        if rel.cam_a not in connected or rel.cam_b not in connected:
+            out.append((0.0, 0.0))
+            continue
+        factor = rel.factor(cam_key)
+        A, _ = factor.linearize(values).jacobian()
+        keys = gtsam.KeyVector([cam_key[rel.cam_b], cam_key[rel.cam_a]])
+        cov = marginals.jointMarginalCovariance(keys).fullMatrix()
+        out.append((2.0 * factor.error(values), 6.0 - float(np.trace(A @ cov @ A.T))))
+    return tuple(out)
 
 
 def _stencil_keys(p: _FactorLayout, stencil: tuple[tuple[str, float], ...],

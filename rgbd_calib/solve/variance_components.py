@@ -13,10 +13,21 @@ from .bundle import BundleProblem, RelativePose, bundle_adjust, relative_pose_re
 MIN_GROUP_REDUNDANCY = 1.0  # of a variance component: below it, its factor is not estimated
 
 
+def updated_factor(factor: float, chi2: np.ndarray, redundancy: np.ndarray) -> float:
+    """One step of variance-component estimation for a group solved at variance factor
+    ``factor`` with per-factor whitened ``chi2`` and ``redundancy`` numbers: ``factor`` times
+    its chi-square over its redundancy, never below 1; ``factor`` itself when the group
+    carries less than :data:`MIN_GROUP_REDUNDANCY` of the redundancy."""
+    r = float(np.sum(redundancy))
+    if r < MIN_GROUP_REDUNDANCY:
+        return factor
+    return max(1.0, factor * float(np.sum(chi2)) / r)
+
+
 def solve_variance_components(K: dict[str, np.ndarray], reference: str,
                               T_init: dict[str, np.ndarray],
                               groups: dict[str, list[RelativePose]], max_iterations: int = 20,
-                              tolerance: float = 1e-3):
+                              tolerance: float = 1e-3, held: frozenset[str] = frozenset()):
     """The pose graph of ``groups`` of relative poses (e.g. ``initial``: the priors holding
     each camera to its start, ``pairs``: the depth pairs) with ``reference`` held, each group's
     covariance scaled by a variance factor estimated from its own residuals: ``(result,
@@ -29,7 +40,9 @@ def solve_variance_components(K: dict[str, np.ndarray], reference: str,
     and the graph is solved again, until every factor changes by less than ``tolerance`` (relative)
     or after ``max_iterations`` solves (1: the plain solve). A factor is never below 1 (a
     group is never trusted beyond its model) and is left as it is for a group carrying less
-    than :data:`MIN_GROUP_REDUNDANCY` of the redundancy (nothing to estimate it from).
+    than :data:`MIN_GROUP_REDUNDANCY` of the redundancy (nothing to estimate it from). The
+    groups in ``held`` keep factor 1: their covariance is taken as known (e.g. a board
+    solve's own honest marginals, against which the pairs are judged).
     A systematic error of the pairs (colored ICP's, docs/depth.md "refine (issue 14)") shows
     as their disagreement with the priors and the other pairs, and weighs them down by it."""
     factors = {g: 1.0 for g in groups}
@@ -45,9 +58,8 @@ def solve_variance_components(K: dict[str, np.ndarray], reference: str,
         for g, rs in scaled.items():
             part = slice(start, start + len(rs))
             start += len(rs)
-            r_g = float(np.sum(redundancy[part]))
-            new[g] = (max(1.0, factors[g] * float(np.sum(chi2_f[part])) / r_g)
-                      if r_g >= MIN_GROUP_REDUNDANCY else factors[g])
+            new[g] = (factors[g] if g in held else
+                      updated_factor(factors[g], chi2_f[part], redundancy[part]))
         if solve == n_solves - 1 or all(abs(new[g] / factors[g] - 1.0) < tolerance
                                          for g in groups):
             break  # the result was solved with ``factors``

@@ -295,7 +295,7 @@ REPORT_SCHEMA: dict[str, Any] = {
     "pairs": ListOf(PAIR_SCHEMA),
     "timings_s": MapOf("<stage>", N),
     "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S),
-               "unmodelled?": MapOf("<camera>", S)},
+               "unmodelled?": MapOf("<camera>", S), "pair_variance_factor?": N},
     "refine?": {
         "init": S,
         "registration": S,
