@@ -263,7 +263,8 @@ def test_relative_pose_redundancy_sums_to_the_graph_redundancy():
     """Redundancy numbers (Foerstner): over all factors they sum to observations minus
     unknowns, and two priors on one camera split its 6 by their weights (r_1 = tr(W_2 (W_1 +
     W_2)^-1), 6 x 1/5 for a prior 4x tighter in information)."""
-    from rgbd_calib.solve.bundle import RelativePose, relative_pose_redundancy
+    from rgbd_calib.solve.bundle import RelativePose
+    from rgbd_calib.solve.variance_components import relative_pose_redundancy
 
     rng = np.random.default_rng(2)
     T_true, T_init, priors, pairs = _pose_graph_case(rng, 1.0)
@@ -285,8 +286,8 @@ def test_the_bundle_gives_each_relative_pose_its_chi2_and_redundancy():
     factors (``variance_components.updated_factor``) recover pairs drawn 2x wider than they
     claim: a factor of ~4."""
     from rgbd_calib.core.config import BundleConfig
-    from rgbd_calib.solve.bundle import BundleProblem, bundle_adjust, relative_pose_redundancy
-    from rgbd_calib.solve.variance_components import updated_factor
+    from rgbd_calib.solve.bundle import BundleProblem, bundle_adjust
+    from rgbd_calib.solve.variance_components import relative_pose_redundancy, updated_factor
 
     rng = np.random.default_rng(5)
     T_true, T_init, priors, pairs = _pose_graph_case(rng, 2.0)

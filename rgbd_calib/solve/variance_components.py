@@ -5,10 +5,11 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import gtsam
 import numpy as np
 
 from ..core.config import BundleConfig
-from .bundle import BundleProblem, RelativePose, bundle_adjust, relative_pose_redundancy
+from .bundle import BundleProblem, RelativePose, bundle_adjust
 
 MIN_GROUP_REDUNDANCY = 1.0  # of a variance component: below it, its factor is not estimated
 
@@ -36,7 +37,7 @@ def solve_variance_components(K: dict[str, np.ndarray], reference: str,
 
     Variance-component estimation (Helmert; Foerstner 1979): at the solution, a group's factor
     is multiplied by ``sum_g e^T W e / r_g``, its chi-square over its redundancy ``r_g = n_g -
-    tr(A_g (A^T A)^-1 A_g^T)`` (:func:`rgbd_calib.solve.bundle.relative_pose_redundancy`),
+    tr(A_g (A^T A)^-1 A_g^T)`` (:func:`relative_pose_redundancy`),
     and the graph is solved again, until every factor changes by less than ``tolerance`` (relative)
     or after ``max_iterations`` solves (1: the plain solve). A factor is never below 1 (a
     group is never trusted beyond its model) and is left as it is for a group carrying less
@@ -65,3 +66,40 @@ def solve_variance_components(K: dict[str, np.ndarray], reference: str,
             break  # the result was solved with ``factors``
         factors = new
     return res, factors
+
+
+def relative_pose_redundancy(reference: str, T_ref_cam: dict[str, np.ndarray],
+                             relative_poses: list[RelativePose],
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Per relative pose of a pose graph with ``reference`` held, linearised at ``T_ref_cam``
+    (camera -> 4x4, m): its whitened chi-square ``e^T W e`` and its redundancy number
+    ``r = 6 - tr(A_f (A^T A)^+ A_f^T)`` (``A`` the whitened Jacobian of the graph without the
+    reference's columns, ``A_f`` the rows of that factor; Foerstner 1979), the share of the
+    graph's redundancy its residual carries. A pose with a camera not in ``T_ref_cam`` (cut
+    off from the reference: not in the solve) gets 0 for both. Arrays follow
+    ``relative_poses``."""
+    used = [i for i, r in enumerate(relative_poses)
+            if r.cam_a in T_ref_cam and r.cam_b in T_ref_cam]
+    chi2_f, redundancy = np.zeros(len(relative_poses)), np.zeros(len(relative_poses))
+    if not used:
+        return chi2_f, redundancy
+    cams = sorted({reference} | {c for i in used for c in (relative_poses[i].cam_a,
+                                                          relative_poses[i].cam_b)})
+    key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
+    graph = gtsam.NonlinearFactorGraph()
+    for i in used:
+        graph.add(relative_poses[i].factor(key))
+    values = gtsam.Values()
+    ordering = gtsam.Ordering()
+    for c in cams:
+        values.insert(key[c], gtsam.Pose3(T_ref_cam[c]))
+        ordering.push_back(key[c])
+    A, b = graph.linearize(values).jacobian(ordering)
+    k = cams.index(reference)  # held: its columns go
+    A = np.delete(A, np.s_[6 * k:6 * k + 6], axis=1)
+    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    U = U[:, s > s.max() * 1e-12] if s.size else U  # rank-revealing: a free direction adds 0
+    h = np.sum(U**2, axis=1)  # the hat matrix's diagonal
+    chi2_f[used] = np.sum(np.reshape(b, (len(used), 6)) ** 2, axis=1)
+    redundancy[used] = 6.0 - np.sum(np.reshape(h, (len(used), 6)), axis=1)
+    return chi2_f, redundancy
