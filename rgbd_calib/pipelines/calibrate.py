@@ -63,7 +63,7 @@ from ..solve.runs import SetSelection, link_window_ms, select_sets
 from ..solve.selfcal import SelfCalibration
 from ..solve.stillness import SetMotion, board_motion
 from ..solve.time_model import capture_offsets, set_times_ms
-from ..solve.variance_components import updated_factor
+from ..solve.variance_components import estimate_factors
 from ..sources.cache import open_dataset
 
 # detections with the refined lens: at most this many passes, another one while some
@@ -365,25 +365,24 @@ def _joint_solve(run: _Run, pg: PoseGraphResult, solved: _Solved,
     depth = solved.depth
     problem = replace(solved.problem, T_ref_cam=T_ref_cam,
                       T_ref_board=solved.bundle.T_ref_board)
-    floor = run.config.depth.pair_variance_floor
-    factor = floor
+
+    def solve(factors: dict[str, float]):
+        joint = bundle_sound_first(replace(problem, relative_poses=[
+            replace(r, information=r.information / factors["pairs"])
+            for r in depth.relative_poses]), pg.model_error)
+        fit = np.array(joint.relative_pose_fit).reshape(-1, 2)
+        return joint, {"pairs": (fit[:, 0], fit[:, 1])}
+
     try:
         with timed(run.timings, "joint"):
-            n_solves = max(1, run.config.depth.variance_component_iterations)
-            for solve in range(n_solves):
-                joint = bundle_sound_first(replace(problem, relative_poses=[
-                    replace(r, information=r.information / factor)
-                    for r in depth.relative_poses]), pg.model_error)
-                fit = np.array(joint.relative_pose_fit).reshape(-1, 2)
-                new = max(floor, updated_factor(factor, fit[:, 0], fit[:, 1]))
-                if solve == n_solves - 1 or abs(new / factor - 1.0) < PAIR_FACTOR_TOLERANCE:
-                    break  # solved with ``factor``
-                factor = new
+            joint, factors = estimate_factors(
+                solve, {"pairs": run.config.depth.pair_variance_floor},
+                run.config.depth.variance_component_iterations, PAIR_FACTOR_TOLERANCE)
     except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
         return replace(solved, depth=depth.with_fallback(
             f"the joint solve with the depth pairs failed "
             f"({type(exc).__name__}: {exc})".replace("\n", " ")))
-    depth = replace(depth, pair_variance_factor=factor)
+    depth = replace(depth, pair_variance_factor=factors["pairs"])
     joint_cameras, joint_factors = model_error_sigmas(cameras_from_solve(joint), joint, pg,
                                                       solved.problem.config)
     beyond = moved_beyond_board(solved.cameras, joint_cameras)

@@ -651,9 +651,7 @@ def kinds_from_reason(pair: dict[str, Any]) -> list[str]:
 def agrees_from_reason(pair: dict[str, Any]) -> bool:
     """``pairs[].agrees`` of a pair written before schema 1.9, from its ``reason``: the
     significance test (:func:`rgbd_calib.depth.registration.register_pair`) is its only reason."""
-    reason = pair.get("reason") or ""
-    return (pair.get("accepted") is False and ";" not in reason
-            and reason.startswith("no significant improvement"))
+    return pair.get("accepted") is False and kinds_from_reason(pair) == ["not_significant"]
 
 
 def error_map(
