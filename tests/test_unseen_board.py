@@ -192,3 +192,28 @@ def test_a_camera_with_depth_but_no_board_view_is_named(tiny_dataset):
     assert "uncorrected" in found[0]["message"]
     assert depth_unmodelled({"depth": {"status": "none", "reason": None,
                                        "weak_cameras": {}}}, []) == []
+
+
+def test_each_depth_view_gets_the_covariance_of_the_pose_its_plane_came_from():
+    """:func:`view_pose_covariances`: a view the camera detected, its own PnP covariance
+    moved from the board's body frame into the camera frame (the corners fix the board in the
+    camera); the board it did not detect, its extrinsics' covariance plus the time model's
+    uncertainty at its capture on each axis; a view with neither is left out (exact)."""
+    from types import SimpleNamespace
+
+    from rgbd_calib.core.geometry import adjoint, make_transform, rotvec_to_matrix
+    from rgbd_calib.depth.stage import view_pose_covariances
+
+    T = make_transform(rotvec_to_matrix([0.1, -0.4, 0.2]), [0.3, -0.1, 1.4])
+    pnp = np.diag([1e-6, 2e-6, 3e-6, 4e-8, 5e-8, 6e-8])
+    obs = [SimpleNamespace(camera="a", frame="000001", T_cam_board=T, covariance=pnp)]
+    ext = np.diag([1e-7] * 3 + [1e-8] * 3)
+    cov = view_pose_covariances(obs, {"a": {"000001": T}},
+                                {"a": {"000002": T}, "b": {"000002": T, "000003": T}},
+                                {"a": ext, "b": None}, {"a": {"000002": 2e-4},
+                                                        "b": {"000002": 1e-4}})
+    assert np.allclose(cov["a"]["000001"], adjoint(T) @ pnp @ adjoint(T).T)
+    assert not np.allclose(cov["a"]["000001"], pnp)  # the frame matters: a lever of 1.4 m
+    assert np.allclose(cov["a"]["000002"], ext + np.diag([0] * 3 + [4e-8] * 3))
+    assert np.allclose(cov["b"]["000002"], np.diag([0] * 3 + [1e-8] * 3))
+    assert "000003" not in cov["b"]  # the reference's extrinsics and a still board: exact

@@ -662,6 +662,14 @@ class DepthConfig(BaseModel, extra="forbid"):
     model_unseen_max_frames: int = Field(
         40, ge=0, description="Such views per camera read for the depth model, sampled evenly."
     )
+    model_plane_uncertainty: bool = Field(
+        True,
+        description="The depth model takes each view's board plane as uncertain as the pose "
+        "it came from (a view the camera detected: its own PnP covariance; the board it did "
+        "not detect: its extrinsics' covariance and the time model's at its capture), each "
+        "plane's error a random effect of the view; false: every plane exact, as before "
+        "(docs/depth.md, 'The board's planes as uncertain as their poses').",
+    )
     model: Literal["auto", "none"] = Field(
         "auto",
         description="auto: each camera's depth model (scale, disparity-offset field, "

@@ -23,7 +23,10 @@ both: +2.0 +- 2.8 mm; docs/depth.md), keeping both extrapolates with an honest, 
 ``C`` is the cluster-robust (sandwich) covariance with the views as clusters (never below the
 model-based one), so that what is common to one view (its board pose error, depth noise
 correlated over neighbouring pixels) counts once per view, not once per pixel; its sigmas are
-the model's.
+the model's. Each view's board pose error is also in the model, where the caller knows the
+pose's covariance (:func:`board_samples`' ``pose_covariance``): the plane's error is a random
+effect of the view, so the model-based covariance sees it too, which the sandwich of a few views
+cannot (``_solve``; docs/depth.md, "The board's planes as uncertain as their poses").
 A clean camera keeps the identity. A camera the ladder gives any term gets every term with
 ``depth.model_terms: all``, and with ``auto`` (the default) where its views can judge all of
 them (:data:`EVERY_TERM_MIN_VIEWS`: two views beyond the 13 parameters): over the board's
@@ -46,6 +49,7 @@ from scipy.stats import f as f_dist
 from ..core.camera import CameraIntrinsics
 from ..core.config import DepthConfig
 from ..core.depth_model import PARAMETERS, TERMS, DepthModel, identity_model
+from ..core.geometry import skew
 from .clouds import BoardFacePixels, face_sigma_z
 from .noise import depth_noise
 
@@ -82,6 +86,10 @@ class BoardSamples:
     view: np.ndarray
     frames: tuple[str, ...]
     pixels: np.ndarray  # (N,2) u, v
+    # per view the covariance (3x3, 1/m^2) of the error of its face plane in inverse depth,
+    # ``delta(1/z) = u . (x, y, 1)`` (:func:`plane_covariance`; zeros: the plane taken as
+    # exact); None: every plane taken as exact
+    plane_cov: np.ndarray | None = None
 
     @property
     def sigma_m(self) -> np.ndarray:
@@ -89,10 +97,30 @@ class BoardSamples:
         return self.sigma_z * np.abs(np.sum(self.normal * self.rays, axis=1))
 
 
+def plane_covariance(normal: np.ndarray, distance_m: float,
+                     pose_covariance: np.ndarray) -> np.ndarray:
+    """Covariance (3x3, 1/m^2) of a face plane's error in inverse depth from the covariance of
+    the board pose it came from (6x6 ``[rot rad, trans m]``, a left perturbation in the
+    camera frame: ``p -> p + omega x p + v``). The plane ``n . p = d`` seen along a ray
+    ``(x, y, 1)`` is at ``1/z = n . ray / d``; the perturbation moves ``n`` by ``omega x n`` and
+    ``d`` by ``n . v``, so ``delta(1/z) = u . ray`` with ``u = delta_n / d - n delta_d / d^2``,
+    linear in the pose error: ``u = M xi``, covariance ``M C M^T``."""
+    n = np.asarray(normal, dtype=float)
+    d = float(distance_m)
+    M = np.hstack([-skew(n) / d, -np.outer(n, n) / d**2])
+    cov = M @ np.asarray(pose_covariance, dtype=float) @ M.T
+    return 0.5 * (cov + cov.T)
+
+
 def board_samples(intr: CameraIntrinsics, faces: list[tuple[str, BoardFacePixels]],
-                  config: DepthConfig | None = None) -> BoardSamples | None:
+                  config: DepthConfig | None = None,
+                  pose_covariance: dict[str, np.ndarray] | None = None) -> BoardSamples | None:
     """The depth pixels of the board ``faces`` (:func:`~.clouds.board_faces`: one camera's
-    views), at most :data:`MAX_PIXELS_PER_VIEW` per view, sampled evenly; None without any."""
+    views), at most :data:`MAX_PIXELS_PER_VIEW` per view, sampled evenly; None without any.
+    ``pose_covariance`` (frame -> the 6x6 covariance of the view's board pose in the camera
+    frame, as :func:`plane_covariance` takes it) gives each view's plane its uncertainty: the
+    fit then takes each plane's error as a random effect of the view (``_solve``); a view
+    without one, or no ``pose_covariance``, keeps its plane exact."""
     config = config or DepthConfig()
     noise = depth_noise(intr, config)
     parts, frames = [], []
@@ -108,8 +136,15 @@ def board_samples(intr: CameraIntrinsics, faces: list[tuple[str, BoardFacePixels
     if not parts:
         return None
     cols = [np.concatenate([p[i] for p in parts]) for i in range(7)]
+    plane_cov = None
+    if pose_covariance:
+        plane_cov = np.zeros((len(frames), 3, 3))
+        for v, (frame, face) in enumerate(faces):
+            if frame in pose_covariance:
+                plane_cov[v] = plane_covariance(face.normal, face.distance_m,
+                                                pose_covariance[frame])
     return BoardSamples(cols[0], cols[1], cols[2], cols[3], cols[4], cols[5].astype(int),
-                        tuple(frames), cols[6])
+                        tuple(frames), cols[6], plane_cov)
 
 
 def plane_residuals_m(model: DepthModel, s: BoardSamples) -> np.ndarray:
@@ -118,14 +153,19 @@ def plane_residuals_m(model: DepthModel, s: BoardSamples) -> np.ndarray:
     return np.sum(s.normal * p, axis=1) - s.distance_m
 
 
-def predicted_depth_m(model: DepthModel, s: BoardSamples) -> np.ndarray:
+def predicted_depth_m(model: DepthModel, s: BoardSamples,
+                      inverse_offset: np.ndarray | float = 0.0) -> np.ndarray:
     """What each board pixel should have measured under ``model``: the true depth where the
     pixel's ray, moved by the model's pose, meets the face plane (``z = (d - n.t) / (n.R ray)``),
     through :meth:`DepthModel.measured_depth`. A function of the plane alone: fitting measured
     minus predicted keeps the noise out of the regressors (no errors-in-variables bias, which
-    the corrected-point distance has: its Jacobian holds the noisy depth squared)."""
+    the corrected-point distance has: its Jacobian holds the noisy depth squared).
+    ``inverse_offset`` (1/m, per pixel) moves the plane: ``1/z`` plus it (a view's plane error,
+    ``_solve``)."""
     T = model.T_true_measured()
-    z = (s.distance_m - s.normal @ T[:3, 3]) / np.sum(s.normal * (s.rays @ T[:3, :3].T), axis=1)
+    inv = np.sum(s.normal * (s.rays @ T[:3, :3].T), axis=1) / (s.distance_m - s.normal @ T[:3, 3])
+    inv = inv + inverse_offset
+    z = np.divide(1.0, inv, out=np.full_like(inv, -1.0), where=inv > 0)
     return model.measured_depth(s.rays[:, 0], s.rays[:, 1], z)
 
 
@@ -251,53 +291,126 @@ class _Solve:
 def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: float) -> _Solve:
     """Gauss-Newton with Huber IRLS for the parameters ``names`` (the others held at ``base``),
     and the covariance: the upper envelope of the sandwich ``H^-1 (sum_views g_v g_v^T) H^-1``
-    of the views' score vectors and the model-based ``H^-1 max(chi2/dof, 1)``."""
-    sigma = s.sigma_z
+    of the views' score vectors and the model-based ``H^-1 max(chi2/dof, 1)``.
 
-    def residual(m: DepthModel) -> np.ndarray:
-        pred = predicted_depth_m(m, s)
+    A view whose plane has a covariance (``s.plane_cov``) gets its plane error ``u_v`` (3
+    values, inverse depth: ``delta(1/z) = u_v . (x, y, 1)``) as a random effect: estimated
+    with it, under the prior ``N(0, plane_cov_v)``, and marginalised out of ``H`` and the
+    scores (Schur complement per view). A plane's error is a plane in inverse depth, the form
+    the scale, offset, gradients and depth-to-colour pose take within one view, so it reaches
+    all of them but the curvature; without it the board pose counts as exact and a few views
+    whose poses are off by 0.5-1 mm (the board where the camera did not detect it, placed by
+    the extrinsics and the time model) make terms of it (race seed 382; docs/depth.md)."""
+    sigma = s.sigma_z
+    n_views = len(s.frames)
+    prior = _plane_priors(s)
+    prior_sigma = {v: np.sqrt(np.maximum(np.diag(s.plane_cov[v]), 1e-30)) for v in prior}
+    planes = np.zeros((n_views, 3))
+
+    members = [np.flatnonzero(s.view == v) for v in range(n_views)] if prior else []
+
+    def residual(m: DepthModel, offset: np.ndarray | float) -> np.ndarray:
+        pred = predicted_depth_m(m, s, offset)
         return np.where(pred > 0, s.z_measured - pred, np.nan)
 
-    model = base
-    J = np.zeros((len(sigma), len(names)))
-    for _ in range(GN_ITERATIONS):
-        r = residual(model) / sigma
+    def offsets(u: np.ndarray) -> np.ndarray | float:
+        return np.sum(u[s.view] * s.rays, axis=1) if prior else 0.0
+
+    def weighted(m: DepthModel, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        r = residual(m, offsets(u)) / sigma
         ok = np.isfinite(r)
         w = np.where(ok, _huber(np.where(ok, r, 0.0), huber_k), 0.0)
-        r = np.where(ok, r, 0.0)
-        if not names:
-            break
+        return np.where(ok, r, 0.0), w, ok
+
+    def jacobians(m: DepthModel, u: np.ndarray, ok: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+        J = np.zeros((len(sigma), len(names)))
+        offset = offsets(u)
         for j, p in enumerate(names):
             h = STEP[p]
-            up = residual(model.with_values({p: model.value(p) + h}))
-            dn = residual(model.with_values({p: model.value(p) - h}))
+            up = residual(m.with_values({p: m.value(p) + h}), offset)
+            dn = residual(m.with_values({p: m.value(p) - h}), offset)
             J[:, j] = np.where(ok, (up - dn) / (2 * h) / sigma, 0.0)
-        H = J.T @ (w[:, None] * J)
-        step = np.linalg.lstsq(H, -(J.T @ (w * r)), rcond=None)[0]
+        if not prior:
+            return J, None
+        h = PLANE_STEP  # the constant of the plane: 1/z itself
+        g = (residual(m, offset + h) - residual(m, offset - h)) / (2 * h) / sigma
+        return J, np.where(ok, g, 0.0)[:, None] * s.rays
+
+    model = base
+    for _ in range(GN_ITERATIONS):
+        r, w, ok = weighted(model, planes)
+        J, B = jacobians(model, planes, ok)
+        H, g, views = _reduced(J, B, r, w, members, prior, planes)
+        step = np.linalg.lstsq(H, -g, rcond=None)[0] if names else np.zeros(0)
+        moved = 0.0  # the planes' largest step in their prior sigmas
+        for v, (Hpp_inv, Hmp, gp) in views.items():
+            du = -Hpp_inv @ (gp + Hmp.T @ step)
+            planes[v] += du
+            moved = max(moved, float(np.max(np.abs(du) / prior_sigma[v])))
         model = model.with_values({p: model.value(p) + d for p, d in zip(names, step)})
-        if np.all(np.abs(step) < 1e-3 * np.array([STEP[p] for p in names])):
+        if (np.all(np.abs(step) < 1e-3 * np.array([STEP[p] for p in names]))
+                and moved < 1e-3):
             break
-    r = residual(model) / sigma
-    ok = np.isfinite(r)
-    w = np.where(ok, _huber(np.where(ok, r, 0.0), huber_k), 0.0)
-    r = np.where(ok, r, 0.0)
+    r, w, ok = weighted(model, planes)
     dof = max(int(np.count_nonzero(ok)) - len(names), 1)
-    chi2 = float(np.sum(w * r * r))
+    chi2 = float(np.sum(w * r * r)) + sum(float(planes[v] @ P @ planes[v])
+                                          for v, P in prior.items())
     if not names:
         return _Solve(model, names, np.zeros((0, 0)), chi2, dof)
-    H = J.T @ (w[:, None] * J)
+    J, B = jacobians(model, planes, ok)
+    H, _, views = _reduced(J, B, r, w, members, prior, planes)
     Hinv = np.linalg.pinv(H)
-    g = J * (w * r)[:, None]
-    G = np.zeros((len(s.frames), len(names)))
-    np.add.at(G, s.view, g)
-    n_v = len(s.frames)
-    sandwich = Hinv @ (G.T @ G) @ Hinv * (n_v / max(n_v - 1, 1))
+    G = np.zeros((n_views, len(names)))
+    np.add.at(G, s.view, J * (w * r)[:, None])
+    for v, (Hpp_inv, Hmp, gp) in views.items():  # each view's score with its plane profiled
+        G[v] -= Hmp @ Hpp_inv @ gp
+    sandwich = Hinv @ (G.T @ G) @ Hinv * (n_views / max(n_views - 1, 1))
     model_based = Hinv * max(chi2 / dof, 1.0)
     # the smallest covariance at or above both in every direction: the sandwich of a few views
     # is singular in some directions, the model-based one blind to errors shared by a view
     e, V = np.linalg.eigh(sandwich - model_based)
     cov = model_based + (V * np.maximum(e, 0.0)) @ V.T
     return _Solve(model, names, cov, chi2, dof)
+
+
+PLANE_STEP = 1e-5  # 1/m: the central-difference step of a plane's inverse-depth error
+
+
+def _plane_priors(s: BoardSamples) -> dict[int, np.ndarray]:
+    """view -> the information (inverse covariance) of its plane error, for the views whose
+    plane has a covariance (a singular one, e.g. a pose known exactly along some direction,
+    through the pseudo-inverse plus a tiny ridge)."""
+    if s.plane_cov is None:
+        return {}
+    out = {}
+    for v, C in enumerate(s.plane_cov):
+        scale = float(np.trace(C))
+        if scale > 0:
+            out[v] = np.linalg.inv(C + 1e-9 * scale * np.eye(3))
+    return out
+
+
+def _reduced(J: np.ndarray, B: np.ndarray | None, r: np.ndarray, w: np.ndarray,
+             members: list[np.ndarray], prior: dict[int, np.ndarray], planes: np.ndarray,
+             ) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[np.ndarray, ...]]]:
+    """The normal equations of the model's parameters with each random-effect view's plane
+    marginalised (Schur complement): ``H``, the gradient ``g`` and per such view
+    ``(Hpp^-1, Hmp, gp)`` to recover its plane's step (``members``: each view's samples)."""
+    H = J.T @ (w[:, None] * J)
+    g = J.T @ (w * r)
+    views = {}
+    for v, P in prior.items():
+        m = members[v]
+        Bv, wv = B[m], w[m]
+        Hpp = Bv.T @ (wv[:, None] * Bv) + P
+        Hmp = J[m].T @ (wv[:, None] * Bv)
+        gp = Bv.T @ (wv * r[m]) + P @ planes[v]
+        Hpp_inv = np.linalg.inv(Hpp)
+        H -= Hmp @ Hpp_inv @ Hmp.T
+        g -= Hmp @ Hpp_inv @ gp
+        views[v] = (Hpp_inv, Hmp, gp)
+    return H, g, views
 
 
 def _params(step: tuple[str, ...]) -> tuple[str, ...]:

@@ -164,6 +164,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                   depth_scales: dict[str, float | DepthModel] | None = None,
                   scheduler: str | None = None,
                   unseen_views: dict[str, dict[str, np.ndarray]] | None = None,
+                  pose_covariance: dict[str, dict[str, np.ndarray]] | None = None,
                   ) -> DepthRefinement:
     """Run steps 1-4 for every calibrated camera that has depth.
 
@@ -171,7 +172,9 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     scale); ``T_ref_board`` maps frame -> board pose (for masking the board). Both may be
     None (refinement of an existing calibration without a board in view). ``unseen_views``
     (:func:`unseen_board_views`, same form) are the board where the camera did not detect it,
-    for its depth model only.
+    for its depth model only; ``pose_covariance`` (camera -> frame -> 6x6:
+    :func:`view_pose_covariances`) the uncertainty of each of those board poses, which the
+    depth model takes into account (``depth.model_plane_uncertainty``).
 
     With ``board_covariance`` (camera -> 6x6 marginal of the board solve) only pairs with a
     camera the board constrains weakly (:func:`weak_cameras`) are registered, and nothing but
@@ -195,7 +198,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     timings: dict[str, float] = {}
     with timed(timings, "depth_scale"):
         scales, models, unmodelled = _board_depth(dataset, cams, board, board_views, config,
-                                                  progress, unseen_views)
+                                                  progress, unseen_views, pose_covariance)
         unmodelled = {c: why for c, why in unmodelled.items() if c not in (depth_scales or {})}
 
     no_pair = method != "none" and weak is not None and not weak
@@ -275,6 +278,7 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                  board_views: dict[str, dict[str, np.ndarray]] | None, config: DepthConfig,
                  progress: Progress | None,
                  unseen_views: dict[str, dict[str, np.ndarray]] | None = None,
+                 pose_covariance: dict[str, dict[str, np.ndarray]] | None = None,
                  ) -> tuple[dict[str, DepthScaleEstimate], dict[str, DepthModelFit],
                             dict[str, str]]:
     """Per camera with board views: its depth scale (:func:`estimate_depth_scale`) and its
@@ -305,7 +309,9 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
             far = (board_faces(dataset, c, (unseen_views or {}).get(c, {}), board,
                                unseen_config, detected=False)
                    if config.model == "auto" and config.model_unseen_max_frames else [])
-            samples = (board_samples(dataset.rig.cameras[c], faces + far, config)
+            samples = (board_samples(dataset.rig.cameras[c], faces + far, config,
+                                     (pose_covariance or {}).get(c)
+                                     if config.model_plane_uncertainty else None)
                        if config.model == "auto" else None)
             if samples is not None:
                 models[c] = replace(fit_depth_model(c, samples, dataset.rig.cameras[c], config),
@@ -345,6 +351,38 @@ def unseen_board_views(T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, 
             pts = corners @ T_cb[:3, :3].T + T_cb[:3, 3]
             if np.any(in_view(intr, pts, 0.0, config.min_range_m, config.max_range_m)):
                 out.setdefault(c, {})[frame] = T_cb
+    return out
+
+
+def view_pose_covariances(observations, seen: dict[str, dict[str, np.ndarray]],
+                          unseen: dict[str, dict[str, np.ndarray]],
+                          camera_covariance: dict[str, np.ndarray | None],
+                          capture_sigma_m: dict[str, dict[str, float]] | None = None,
+                          ) -> dict[str, dict[str, np.ndarray]]:
+    """camera -> frame -> the covariance (6x6 ``[rot rad, trans m]``, a left perturbation in
+    the camera frame) of the board pose each depth view of the camera uses (``seen``:
+    :func:`board_views_per_camera`; ``unseen``: :func:`unseen_board_views`). A view the camera
+    detected: its own PnP covariance (``observations``), since its corners fix the board in
+    the camera whatever the extrinsics. The board it did not detect comes through its
+    extrinsics: their covariance (``camera_covariance``, body frame of ``T_ref_cam``, which is
+    the camera frame of ``T_cam_board``), plus, with a time model, the board's uncertainty at
+    the camera's capture (``capture_sigma_m``: camera -> frame -> m, on each axis)."""
+    own = {(o.camera, o.frame): o for o in observations}
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for c, views in seen.items():
+        for frame in views:
+            o = own.get((c, frame))
+            if o is not None and o.covariance is not None:
+                A = adjoint(o.T_cam_board)
+                out.setdefault(c, {})[frame] = A @ np.asarray(o.covariance, dtype=float) @ A.T
+    for c, views in unseen.items():
+        C = camera_covariance.get(c)
+        for frame in views:
+            cov = np.zeros((6, 6)) if C is None else np.array(C, dtype=float)
+            s = (capture_sigma_m or {}).get(c, {}).get(frame, 0.0)
+            cov[3:, 3:] += s**2 * np.eye(3)
+            if np.trace(cov) > 0:
+                out.setdefault(c, {})[frame] = cov
     return out
 
 

@@ -36,6 +36,7 @@ from ..depth.stage import (
     measure_depth,
     moved_beyond_board,
     unseen_board_views,
+    view_pose_covariances,
 )
 from ..detect.markers import MarkerDetections
 from ..detect.probe import dictionary_family, probe_targets
@@ -289,16 +290,20 @@ def _depth(run: _Run, pg: PoseGraphResult, solved: _Solved,
     T_ref_cam = {c: e.T_ref_cam for c, e in cameras.items()}
     with timed(run.timings, "depth"):
         board = _depth_board(run.board, bundle)
-        at_capture = _boards_at_capture(bundle, board, T_ref_cam)
+        at_capture, capture_sigma = _boards_at_capture(bundle, board, T_ref_cam)
         views = board_views_per_camera(solved.views.observations, T_ref_cam, bundle.T_ref_board,
                                        at_capture)
         unseen = unseen_board_views(T_ref_cam, bundle.T_ref_board, views, board, dataset,
                                     run.config.depth, at_capture)
+        covariance = {c: e.covariance for c, e in cameras.items()}
         depth = measure_depth(dataset, board, T_ref_cam, views,
                               bundle.T_ref_board, refine, run.config.depth, run.progress,
-                              board_covariance={c: e.covariance for c, e in cameras.items()},
+                              board_covariance=covariance,
                               workers=run.config.workers, scheduler=run.config.scheduler,
-                              unseen_views=unseen)
+                              unseen_views=unseen,
+                              pose_covariance=view_pose_covariances(
+                                  solved.views.observations, views, unseen, covariance,
+                                  capture_sigma))
     solved = replace(solved, depth=depth, board_only=board_only)
     if depth.used:
         solved = _joint_solve(run, pg, solved, T_ref_cam)
@@ -314,22 +319,26 @@ def _depth(run: _Run, pg: PoseGraphResult, solved: _Solved,
 
 
 def _boards_at_capture(bundle: BundleResult, board: Board, T_ref_cam: dict[str, np.ndarray],
-                       ) -> dict[str, dict[str, np.ndarray]] | None:
+                       ) -> tuple[dict[str, dict[str, np.ndarray]] | None,
+                                  dict[str, dict[str, float]] | None]:
     """camera -> set -> the board pose at that camera's capture by the time model, for the
     depth stage (its depth pixels must meet the face where it was when the camera saw it); the
     sets where the twist's uncertainty moves the board's outermost point by more than
-    ``MAX_CAPTURE_POSE_SIGMA_MM`` are left out. None without a time model: the board is taken as
-    still and the cameras as synchronised, as the solve did."""
+    ``MAX_CAPTURE_POSE_SIGMA_MM`` are left out. Second, the same sets' that uncertainty (m).
+    None, None without a time model: the board is taken as still and the cameras as
+    synchronised, as the solve did."""
     if bundle.time is None:
-        return None
+        return None, None
     lever = float(np.linalg.norm(target_corners(board), axis=1).max())
     out: dict[str, dict[str, np.ndarray]] = {}
+    sigma: dict[str, dict[str, float]] = {}
     for c in T_ref_cam:
         for v, T in bundle.T_ref_board.items():
             moved = bundle.time.board_at_capture(c, v, T, lever)
             if moved is not None and moved[1] <= MAX_CAPTURE_POSE_SIGMA_MM:
                 out.setdefault(c, {})[v] = moved[0]
-    return out
+                sigma.setdefault(c, {})[v] = moved[1] * 1e-3
+    return out, sigma
 
 
 def _depth_board(board: Board, bundle: BundleResult) -> Board:

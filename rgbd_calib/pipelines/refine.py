@@ -130,9 +130,13 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics,
                 if c in T_init and c not in given and frame in T_ref_board:
                     views.setdefault(c, {})[frame] = (invert_transform(T_init[c])
                                                       @ T_ref_board[frame])
+    # the board poses come through the starting extrinsics: their covariance is each view's
+    pose_covariance = {c: {f: init.cameras[c].covariance for f in frames}
+                       for c, frames in (views or {}).items()
+                       if init.cameras[c].covariance is not None}
     depth = measure_depth(dataset, board, T_init, views, T_ref_board, method, config,
                           progress, workers=workers, depth_scales=depth_scales,
-                          scheduler=scheduler)
+                          scheduler=scheduler, pose_covariance=pose_covariance)
     if not depth.used:
         return init, finish_pairs(depth, T_init, config)
     priors = initial_pose_priors(init, T_init)
