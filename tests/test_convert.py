@@ -364,26 +364,40 @@ needs_real_bag = pytest.mark.skipif(
     not REAL_BAG.is_file(), reason=shared_data_missing("realsense-d435-single-frame"))
 
 
+def play_real_bag(use):
+    """``use(profile, frames)`` on the recording's frame set as librealsense's own playback
+    gives it. The playback of this one-frame file sometimes delivers nothing on a loaded
+    machine (the suite's other worker playing it too): up to three playbacks, each waited on
+    30 s."""
+    for _attempt in range(3):
+        pipe = rs.pipeline()
+        cfg = rs.config()
+        cfg.enable_device_from_file(str(REAL_BAG), repeat_playback=False)
+        profile = pipe.start(cfg)
+        profile.get_device().as_playback().set_real_time(False)
+        try:
+            ok, frames = pipe.try_wait_for_frames(30000)
+            if ok:
+                return use(profile, frames)
+        finally:
+            pipe.stop()
+    pytest.fail("librealsense played back no frame set of the recording in 3 tries")
+
+
 def _real_frameset():
     """librealsense's own view of the recording: raw depth, rs.align result, calibration."""
-    pipe = rs.pipeline()
-    cfg = rs.config()
-    cfg.enable_device_from_file(str(REAL_BAG), repeat_playback=False)
-    profile = pipe.start(cfg)
-    profile.get_device().as_playback().set_real_time(False)
-    try:
-        ok, frames = pipe.try_wait_for_frames(30000)  # playback is slow on a loaded machine
-        assert ok
+
+    def use(profile, frames):
         color_p = profile.get_stream(rs.stream.color).as_video_stream_profile()
         depth_p = profile.get_stream(rs.stream.depth).as_video_stream_profile()
-        ci, di = color_p.get_intrinsics(), depth_p.get_intrinsics()
-        ex = depth_p.get_extrinsics_to(color_p)
         raw = np.asanyarray(frames.get_depth_frame().get_data()).copy()
         aligned = np.asanyarray(
             rs.align(rs.stream.color).process(frames).get_depth_frame().get_data()
         ).copy()
-    finally:
-        pipe.stop()
+        return (color_p.get_intrinsics(), depth_p.get_intrinsics(),
+                depth_p.get_extrinsics_to(color_p), raw, aligned)
+
+    ci, di, ex, raw, aligned = play_real_bag(use)
     color = CameraIntrinsics(ci.width, ci.height, ci.fx, ci.fy, ci.ppx, ci.ppy)
     depth = CameraIntrinsics(di.width, di.height, di.fx, di.fy, di.ppx, di.ppy)
     return raw, aligned, color, depth, ex

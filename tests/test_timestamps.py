@@ -23,6 +23,7 @@ from test_convert import (
     _ros_cameras,
     _times,
     needs_real_bag,
+    play_real_bag,
     synth_rig,  # noqa: F401 - the module fixture the recordings are made of
     write_ros_bag,
     write_sdk_db3,
@@ -106,18 +107,12 @@ def test_ros_bag_keeps_the_header_stamps(synth_rig, tmp_path):  # noqa: F811
 def test_real_bag_timestamp_is_librealsenses(tmp_path):
     """The shared D435 recording: the converted frame's time is the colour frame's
     timestamp as librealsense's own playback gives it."""
-    pipe, cfg = rs.pipeline(), rs.config()
-    cfg.enable_device_from_file(str(REAL_BAG), repeat_playback=False)
-    profile = pipe.start(cfg)
-    profile.get_device().as_playback().set_real_time(False)
-    try:
-        ok, frames = pipe.try_wait_for_frames(30000)
-        assert ok
+    def use(_profile, frames):
         color = frames.get_color_frame()
-        t_ms = float(color.get_timestamp())
-        domain = str(color.get_frame_timestamp_domain()).split(".")[-1]
-    finally:
-        pipe.stop()
+        return (float(color.get_timestamp()),
+                str(color.get_frame_timestamp_domain()).split(".")[-1])
+
+    t_ms, domain = play_real_bag(use)
     report = convert([REAL_BAG], tmp_path / "out")
     (serial,) = report.cameras
     got = FolderDataset(tmp_path / "out").timestamps_ms(serial)
