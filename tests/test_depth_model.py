@@ -291,3 +291,24 @@ def test_a_real_depth_error_is_still_found_on_uncertain_planes():
     for p in ("scale", "d0"):
         assert abs(fit.model.value(p) - truth.value(p)) < 3 * fit.model.sigmas[p], (p, fit)
         assert fit.model.sigmas[p] > exact.model.sigmas[p], p
+
+
+def test_a_view_whose_pose_covariance_is_not_finite_keeps_its_plane_exact():
+    """A PnP covariance of inf or NaN (a degenerate view) must not break the fit: that view's
+    plane counts as exact, as with no covariance."""
+    from dataclasses import replace
+
+    from rgbd_calib.depth.depth_model_fit import plane_covariance
+
+    s, cov = _posed_samples(identity_model(INTR), 3, 8, 0.05, 0.8)
+    planes = np.array([plane_covariance(s.normal[s.view == v][0], s.distance_m[s.view == v][0],
+                                        cov[f]) for v, f in enumerate(s.frames)])
+    held = planes.copy()
+    held[0] = 0.0
+    expected = fit_depth_model("cam", replace(s, plane_cov=held), INTR)
+    for bad in (np.inf, np.nan):
+        broken = planes.copy()
+        broken[0] = bad
+        fit = fit_depth_model("cam", replace(s, plane_cov=broken), INTR)
+        assert fit.model.terms == expected.model.terms
+        assert [t.wald for t in fit.tests] == pytest.approx([t.wald for t in expected.tests])

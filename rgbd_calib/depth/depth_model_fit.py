@@ -379,14 +379,15 @@ PLANE_STEP = 1e-5  # 1/m: the central-difference step of a plane's inverse-depth
 
 def _plane_priors(s: BoardSamples) -> dict[int, np.ndarray]:
     """view -> the information (inverse covariance) of its plane error, for the views whose
-    plane has a covariance (a singular one, e.g. a pose known exactly along some direction,
-    through the pseudo-inverse plus a tiny ridge)."""
+    plane has a usable covariance (a singular one, e.g. a pose known exactly along some
+    direction, through its inverse with a tiny ridge; a non-finite one leaves the plane
+    exact)."""
     if s.plane_cov is None:
         return {}
     out = {}
     for v, C in enumerate(s.plane_cov):
         scale = float(np.trace(C))
-        if scale > 0:
+        if scale > 0 and np.all(np.isfinite(C)):  # a pose without a usable covariance: exact
             out[v] = np.linalg.inv(C + 1e-9 * scale * np.eye(3))
     return out
 
