@@ -304,7 +304,8 @@ def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: f
     sigma = s.sigma_z
     n_views = len(s.frames)
     prior = _plane_priors(s)
-    prior_sigma = {v: np.sqrt(np.maximum(np.diag(s.plane_cov[v]), 1e-30)) for v in prior}
+    prior_sigma = {v: np.sqrt(np.diag(s.plane_cov[v]) + 1e-9 * np.trace(s.plane_cov[v]))
+                   for v in prior}  # as _plane_priors' ridge: no zero sigma
     planes = np.zeros((n_views, 3))
 
     members = [np.flatnonzero(s.view == v) for v in range(n_views)] if prior else []
