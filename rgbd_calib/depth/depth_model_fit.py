@@ -359,7 +359,7 @@ def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: f
                                           for v, P in prior.items())
     if not names:
         return _Solve(model, names, np.zeros((0, 0)), chi2, dof)
-    J, B = jacobians(model, planes, ok)
+    # the last iteration's Jacobians (a step before the solution, as always): no second pass
     H, _, views = _reduced(J, B, r, w, members, prior, planes)
     Hinv = np.linalg.pinv(H)
     G = np.zeros((n_views, len(names)))
