@@ -7,7 +7,6 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import TypeVar
 
-import gtsam
 import numpy as np
 
 from ..core.config import BundleConfig
@@ -63,13 +62,14 @@ def solve_variance_components(K: dict[str, np.ndarray], reference: str,
 
     Variance-component estimation (:func:`estimate_factors`, every factor from 1): at the
     solution, a group's factor is multiplied by ``sum_g e^T W e / r_g``, its chi-square over
-    its redundancy ``r_g = n_g - tr(A_g (A^T A)^-1 A_g^T)`` (:func:`relative_pose_redundancy`),
-    and the graph is solved again, until every factor changes by less than ``tolerance``
-    (relative) or after ``max_iterations`` solves (1: the plain solve). A factor is never
-    below 1 (a group is never trusted beyond its model) and is left as it is for a group
-    carrying less than :data:`MIN_GROUP_REDUNDANCY` of the redundancy (nothing to estimate it
-    from). A systematic error of the pairs (colored ICP's, docs/depth.md "refine (issue 14)")
-    shows as their disagreement with the priors and the other pairs, and weighs them down by
+    its redundancy ``r_g = n_g - tr(A_g Sigma A_g^T)`` (the bundle's
+    :func:`~rgbd_calib.solve.bundle.relative_pose_fit`), and the graph is solved again,
+    until every factor changes by less than ``tolerance`` (relative) or after
+    ``max_iterations`` solves (1: the plain solve). A factor is never below 1 (a group is
+    never trusted beyond its model) and is left as it is for a group carrying less than
+    :data:`MIN_GROUP_REDUNDANCY` of the redundancy (nothing to estimate it from). A
+    systematic error of the pairs (colored ICP's, docs/depth.md "refine (issue 14)") shows
+    as their disagreement with the priors and the other pairs, and weighs them down by
     it."""
 
     def solve(factors: dict[str, float]):
@@ -77,7 +77,8 @@ def solve_variance_components(K: dict[str, np.ndarray], reference: str,
                 for g, rs in groups.items() for r in rs]
         res = bundle_adjust(BundleProblem([], K, reference, T_init, {}, BundleConfig(),
                                           relative_poses=flat))
-        chi2_f, redundancy = relative_pose_redundancy(reference, res.T_ref_cam, flat)
+        fit = np.array(res.relative_pose_fit).reshape(-1, 2)
+        chi2_f, redundancy = fit[:, 0], fit[:, 1]
         fits, start = {}, 0
         for g, rs in groups.items():
             part = slice(start, start + len(rs))
@@ -86,40 +87,3 @@ def solve_variance_components(K: dict[str, np.ndarray], reference: str,
         return res, fits
 
     return estimate_factors(solve, dict.fromkeys(groups, 1.0), max_iterations, tolerance)
-
-
-def relative_pose_redundancy(reference: str, T_ref_cam: dict[str, np.ndarray],
-                             relative_poses: list[RelativePose],
-                             ) -> tuple[np.ndarray, np.ndarray]:
-    """Per relative pose of a pose graph with ``reference`` held, linearised at ``T_ref_cam``
-    (camera -> 4x4, m): its whitened chi-square ``e^T W e`` and its redundancy number
-    ``r = 6 - tr(A_f (A^T A)^+ A_f^T)`` (``A`` the whitened Jacobian of the graph without the
-    reference's columns, ``A_f`` the rows of that factor; Foerstner 1979), the share of the
-    graph's redundancy its residual carries. A pose with a camera not in ``T_ref_cam`` (cut
-    off from the reference: not in the solve) gets 0 for both. Arrays follow
-    ``relative_poses``."""
-    used = [i for i, r in enumerate(relative_poses)
-            if r.cam_a in T_ref_cam and r.cam_b in T_ref_cam]
-    chi2_f, redundancy = np.zeros(len(relative_poses)), np.zeros(len(relative_poses))
-    if not used:
-        return chi2_f, redundancy
-    cams = sorted({reference} | {c for i in used for c in (relative_poses[i].cam_a,
-                                                          relative_poses[i].cam_b)})
-    key = {c: gtsam.symbol("c", i) for i, c in enumerate(cams)}
-    graph = gtsam.NonlinearFactorGraph()
-    for i in used:
-        graph.add(relative_poses[i].factor(key))
-    values = gtsam.Values()
-    ordering = gtsam.Ordering()
-    for c in cams:
-        values.insert(key[c], gtsam.Pose3(T_ref_cam[c]))
-        ordering.push_back(key[c])
-    A, b = graph.linearize(values).jacobian(ordering)
-    k = cams.index(reference)  # held: its columns go
-    A = np.delete(A, np.s_[6 * k:6 * k + 6], axis=1)
-    U, s, _ = np.linalg.svd(A, full_matrices=False)
-    U = U[:, s > s.max() * 1e-12] if s.size else U  # rank-revealing: a free direction adds 0
-    h = np.sum(U**2, axis=1)  # the hat matrix's diagonal
-    chi2_f[used] = np.sum(np.reshape(b, (len(used), 6)) ** 2, axis=1)
-    redundancy[used] = 6.0 - np.sum(np.reshape(h, (len(used), 6)), axis=1)
-    return chi2_f, redundancy
