@@ -173,3 +173,24 @@ def test_refined_intrinsics_uncertainty_covers_the_error_it_causes():
     rms_without = float(np.sqrt(np.mean(np.square(without))))
     assert 0.7 <= rms_with <= 2.0, (rms_with, rms_without)
     assert rms_without > 5.0 * rms_with, (rms_with, rms_without)
+
+
+def test_a_pairs_bias_floor_caps_its_information_and_keeps_what_it_leaves_out():
+    """``with_bias_floor``: (W^-1 + B)^-1 for a full-rank pair; a pair whose information
+    leaves directions out (an unknown depth scale) keeps them out, and however many points a
+    pair has, its information stays below the bias's B^-1."""
+    with_bias_floor = DI.with_bias_floor
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(6, 6))
+    W = A @ A.T * 1e8
+    sd, smm = 0.007, 0.3
+    B = np.diag([np.radians(sd) ** 2] * 3 + [(smm * 1e-3) ** 2] * 3)
+    np.testing.assert_allclose(with_bias_floor(W, sd, smm),
+                               np.linalg.inv(np.linalg.inv(W) + B), rtol=1e-6)
+    U = np.linalg.qr(rng.normal(size=(6, 6)))[0]
+    singular = U[:, :4] @ np.diag([1e12, 1e10, 1e8, 1e6]) @ U[:, :4].T
+    capped = with_bias_floor(singular, sd, smm)
+    np.testing.assert_allclose(capped @ U[:, 4:], 0.0, atol=1e-6 * np.abs(capped).max())
+    assert np.linalg.eigvalsh(np.linalg.inv(B) - capped).min() > -1e-6 * np.linalg.inv(B).max()
+    assert np.linalg.eigvalsh(capped).min() > -1e-6 * np.abs(capped).max()
+    np.testing.assert_array_equal(with_bias_floor(W, 0.0, smm), W)

@@ -863,6 +863,19 @@ class DepthConfig(BaseModel, extra="forbid"):
         "measured against the truth, accepted pairs claim ~2x too small a sigma (factor 4-5; "
         "docs/depth.md, 'The pairs' factor in calibrate'). 1: the pairs at their information.",
     )
+    pair_bias_sigma_mm: float = Field(
+        0.3,
+        ge=0.0,
+        description="calibrate: a bias of every accepted depth pair (1 sigma per axis, mm) "
+        "added to its covariance, after pair_variance_floor, in the joint solve with the "
+        "board's corners: colored ICP's error that does not shrink with the pair's points "
+        "(accepted pairs on true depth: median error 0.5 mm, i.e. 0.3 mm per axis; "
+        "docs/depth.md, 'A bias floor for the pairs'). It keeps a pair from pulling a camera the "
+        "board holds to a few tenths of a mm. 0: none.",
+    )
+    pair_bias_sigma_deg: float = Field(
+        0.007, ge=0.0, description="Same, rotation (deg per axis; median error 0.011 deg)."
+    )
     max_board_chi2: float = Field(
         22.46,
         gt=0,

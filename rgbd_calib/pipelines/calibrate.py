@@ -28,6 +28,7 @@ from ..core.config import BundleConfig, CalibrationConfig
 from ..core.errors import CalibrationError
 from ..core.progress import Progress, start, timed
 from ..depth.clouds import target_corners
+from ..depth.information import with_bias_floor
 from ..depth.stage import (
     DepthRefinement,
     board_views_per_camera,
@@ -364,7 +365,10 @@ def _joint_solve(run: _Run, pg: PoseGraphResult, solved: _Solved,
     the factor times the pairs' chi-square over their redundancy in it (:func:`~rgbd_calib.
     solve.bundle.relative_pose_fit`: variance-component estimation; the corners' sigma is
     estimated as always), never below the floor, until it changes by less than
-    :data:`PAIR_FACTOR_TOLERANCE` or after ``depth.variance_component_iterations`` solves.
+    :data:`PAIR_FACTOR_TOLERANCE` or after ``depth.variance_component_iterations`` solves;
+    each pair's covariance also gains the bias ``depth.pair_bias_sigma_mm`` / ``_deg``
+    (:func:`~rgbd_calib.depth.information.with_bias_floor`: colored ICP's error that does not
+    shrink with its points).
     Colored ICP's pairs carry a bias their information does not show, and where the board is
     weak (the only cameras they are registered for) it cannot show it either: weighed by
     their information alone, short recordings came out up to 4 sigma off, 0.2 mm cameras
@@ -375,9 +379,12 @@ def _joint_solve(run: _Run, pg: PoseGraphResult, solved: _Solved,
     problem = replace(solved.problem, T_ref_cam=T_ref_cam,
                       T_ref_board=solved.bundle.T_ref_board)
 
+    cfg = run.config.depth
+
     def solve(factors: dict[str, float]):
         joint = bundle_sound_first(replace(problem, relative_poses=[
-            replace(r, information=r.information / factors["pairs"])
+            replace(r, information=with_bias_floor(r.information / factors["pairs"],
+                                             cfg.pair_bias_sigma_deg, cfg.pair_bias_sigma_mm))
             for r in depth.relative_poses]), pg.model_error)
         fit = np.array(joint.relative_pose_fit).reshape(-1, 2)
         return joint, {"pairs": (fit[:, 0], fit[:, 1])}
