@@ -383,8 +383,8 @@ def _joint_solve(run: _Run, pg: PoseGraphResult, solved: _Solved,
 
     def solve(factors: dict[str, float]):
         joint = bundle_sound_first(replace(problem, relative_poses=[
-            replace(r, information=with_bias_floor(r.information / factors["pairs"],
-                                             cfg.pair_bias_sigma_deg, cfg.pair_bias_sigma_mm))
+            replace(r, information=with_bias_floor(
+                r.information / factors["pairs"], cfg.pair_bias_sigma_deg, cfg.pair_bias_sigma_mm))
             for r in depth.relative_poses]), pg.model_error)
         fit = np.array(joint.relative_pose_fit).reshape(-1, 2)
         return joint, {"pairs": (fit[:, 0], fit[:, 1])}
