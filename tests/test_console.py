@@ -3,6 +3,8 @@ how many more the report holds (:func:`rgbd_calib.cli.console.verdict_lines`).""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from rgbd_calib.cli.console import CONSOLE_FINDINGS, verdict_lines
 from rgbd_calib.outputs.report.findings_base import actionable, finding
 
@@ -125,6 +127,10 @@ def test_the_depth_registration_line_says_what_the_pairs_did_and_how_they_were_w
                            {}, pair_variance_factor=4.37)
     line = depth_registration_line(used)
     assert line.startswith("depth registration: 1 of 2 camera pairs used") and "x4.37" in line
+    biased = depth_registration_line(replace(used, pair_bias_sigma=(0.3, 0.007)))
+    assert "x4.37" in biased and "plus a 0.3 mm / 0.007 deg bias" in biased
+    assert used.status_dict()["pair_variance_factor"] == 4.37
+    assert replace(used, pair_bias_sigma=(0.3, 0.007)).status_dict()["pair_bias_sigma_mm"] == 0.3
     fallback = DepthRefinement("colored-icp", {}, {}, [], [], {},
                                fallback="[red] in a reason is not markup")
     assert "\\[red] in a reason" in depth_registration_line(fallback)

@@ -219,11 +219,13 @@ def depth_registration_line(depth: Any) -> str | None:
     if depth.note is not None:
         return f"depth registration: {escape(depth.note)}"
     if depth.used:
-        factor = depth.pair_variance_factor
+        factor, bias = depth.pair_variance_factor, depth.pair_bias_sigma
+        plus = (f", plus a {bias[0]:g} mm / {bias[1]:g} deg bias" if bias is not None
+                and bias[0] > 0 and bias[1] > 0 else "")
         return (f"depth registration: {len(depth.relative_poses)} of {len(pairs)} camera "
                 "pairs used with the board's corners for the weakly held cameras"
                 + (f" (their covariance x{factor:.2f}: variance factor from their residuals, "
-                   "at least depth.pair_variance_floor)" if factor is not None else ""))
+                   f"at least depth.pair_variance_floor{plus})" if factor is not None else ""))
     return None
 
 

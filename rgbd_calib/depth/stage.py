@@ -91,6 +91,8 @@ class DepthRefinement:
     scale_source: dict[str, str] = field(default_factory=dict)  # board / given / unknown
     # refine: the pairs' variance factor of the joint solve (solve_variance_components)
     pair_variance_factor: float | None = None
+    # calibrate: the bias (mm, deg per axis) added to each pair's covariance in that solve
+    pair_bias_sigma: tuple[float, float] | None = None
     # camera -> its depth model chosen by evidence from the board (the clouds are corrected)
     depth_models: dict[str, DepthModelFit] = field(default_factory=dict)
     # the overlapping pairs' surface distances at the final extrinsics (measure_agreement)
@@ -104,14 +106,18 @@ class DepthRefinement:
         """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason``, the
         cameras the board constrained weakly (those depth was registered for) and, when some
         camera with depth got no depth model, ``unmodelled`` (camera -> why), and when the
-        pairs were weighed in a solve, their ``pair_variance_factor``."""
+        pairs were weighed in a solve, their ``pair_variance_factor`` (and in calibrate the
+        bias added to their covariance, ``pair_bias_sigma_mm`` / ``_deg``)."""
         status = ("fallback" if self.fallback else "skipped" if self.note
                   else "used" if self.relative_poses else "none")
         return {"status": status, "reason": self.fallback or self.note,
                 "weak_cameras": dict(self.weak_cameras or {})} | (
                     {"unmodelled": dict(self.unmodelled)} if self.unmodelled else {}) | (
                     {"pair_variance_factor": self.pair_variance_factor}
-                    if self.pair_variance_factor is not None else {})
+                    if self.pair_variance_factor is not None else {}) | (
+                    {"pair_bias_sigma_mm": self.pair_bias_sigma[0],
+                     "pair_bias_sigma_deg": self.pair_bias_sigma[1]}
+                    if self.pair_bias_sigma is not None else {})
 
     @property
     def used(self) -> bool:

@@ -398,7 +398,8 @@ def _joint_solve(run: _Run, pg: PoseGraphResult, solved: _Solved,
         return replace(solved, depth=depth.with_fallback(
             f"the joint solve with the depth pairs failed "
             f"({type(exc).__name__}: {exc})".replace("\n", " ")))
-    depth = replace(depth, pair_variance_factor=factors["pairs"])
+    depth = replace(depth, pair_variance_factor=factors["pairs"],
+                    pair_bias_sigma=(cfg.pair_bias_sigma_mm, cfg.pair_bias_sigma_deg))
     joint_cameras, joint_factors = model_error_sigmas(cameras_from_solve(joint), joint, pg,
                                                       solved.problem.config)
     beyond = moved_beyond_board(solved.cameras, joint_cameras)

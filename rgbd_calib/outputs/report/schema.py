@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.18"
+REPORT_SCHEMA_VERSION = "1.19"
 
 
 class ReportError(RgbdCalibError):
@@ -295,7 +295,8 @@ REPORT_SCHEMA: dict[str, Any] = {
     "pairs": ListOf(PAIR_SCHEMA),
     "timings_s": MapOf("<stage>", N),
     "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S),
-               "unmodelled?": MapOf("<camera>", S), "pair_variance_factor?": N},
+               "unmodelled?": MapOf("<camera>", S), "pair_variance_factor?": N,
+               "pair_bias_sigma_mm?": N, "pair_bias_sigma_deg?": N},
     "refine?": {
         "init": S,
         "registration": S,
