@@ -10,7 +10,8 @@ of that cache is moved outward by it (each corner by the offset along the outwar
 its two edges) and the render calibrated again from the copy. Printed per offset: the worst
 camera's error against ground_truth.yaml, the mean over the non-reference cameras of each
 one's 6-dof chi-square of its error under its covariance over 6 (1 when the covariance is
-honest), the corners' a-posteriori sigma and the model the self-calibration chose.
+honest), the corners' a-posteriori sigma, the model the self-calibration chose and the range
+over cameras of the edge offset the bundle's residuals read (``bundle.edge_offset``).
 """
 
 from __future__ import annotations
@@ -73,8 +74,11 @@ def measure(render: Path, cache: Path) -> dict[str, object]:
         xi = tangent_error(cam.T_ref_cam, gt.T_ref_cam[name])
         chi2.append(float(xi @ np.linalg.solve(cam.covariance, xi)))
     chosen = res.self_calibration.chosen.name if res.self_calibration is not None else "-"
+    read = [e.offset_px for e in res.bundle.edge_offset.values()]
     return {"worst_mm": max(errors), "chi2_over_6": float(np.mean(chi2)) / 6,
-            "corner_sigma_px": res.bundle.pixel_sigma_estimated, "model": chosen}
+            "corner_sigma_px": res.bundle.pixel_sigma_estimated, "model": chosen,
+            "edge_offsets": read,
+            "edge_offset_px": f"{min(read):+.4f}..{max(read):+.4f} px" if read else "-"}
 
 
 def main() -> None:
@@ -93,7 +97,7 @@ def main() -> None:
         row = measure(args.render, target)
         print(f"edge offset {offset:+.3f} px: worst {row['worst_mm']:.3f} mm, chi2/6 "
               f"{row['chi2_over_6']:.2f}, corner sigma {row['corner_sigma_px']:.3f} px, "
-              f"model {row['model']}", flush=True)
+              f"model {row['model']}, edge offset read {row['edge_offset_px']}", flush=True)
 
 
 if __name__ == "__main__":

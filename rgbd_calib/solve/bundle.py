@@ -43,6 +43,7 @@ from .bundle_factors import (
     view_factor_intrinsics,
     with_parameters,
 )
+from .edge_offset import EdgeOffset, edge_offsets, marker_outward_px
 from .posegraph import sigmas_from_covariance
 from .runs import RunCorrelation, link_window_ms, recording_runs, run_inflation
 from .time_model import (
@@ -130,6 +131,8 @@ class BundleResult:
     # per relative pose of the problem, in its order: its whitened chi-square at the solution
     # and its redundancy number (:func:`relative_pose_fit`); (0, 0) for one not in the solve
     relative_pose_fit: tuple[tuple[float, float], ...] = ()
+    # per camera: the edge offset its corner residuals read (:mod:`rgbd_calib.solve.edge_offset`)
+    edge_offset: dict[str, EdgeOffset] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -581,7 +584,18 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
                         _inflated(_with_prior(clock, layout) if clock is not None
                                   else _time_model(layout, values, marginals), runs),
                         runs, relative_pose_fit(layout.relative_poses, layout.cam_key,
-                                                solution.connected, values, marginals))
+                                                solution.connected, values, marginals),
+                        _edge_offsets(layout, solution))
+
+
+def _edge_offsets(layout: _FactorLayout, solution: _Solution) -> dict[str, EdgeOffset]:
+    """Per camera the edge offset its markers' residuals at the solution read
+    (:func:`~rgbd_calib.solve.edge_offset.edge_offsets`)."""
+    if not solution.active:
+        return {}
+    res = layout.marker_residuals(solution.groups, len(solution.active), solution.values)
+    measured = np.array([m.corners_px for m in solution.active], dtype=float)
+    return edge_offsets([m.camera for m in solution.active], marker_outward_px(measured, res))
 
 
 def relative_pose_fit(relative_poses: Sequence[RelativePose], cam_key: dict[str, int],

@@ -591,6 +591,8 @@ def _bundle_entry(bundle: BundleResult) -> dict[str, Any]:
     }
     if bundle.time is not None:
         entry["time"] = bundle.time.to_dict()
+    if bundle.edge_offset:  # what the corner residuals read of each detector's edge offset
+        entry["edge_offset"] = {c: e.to_dict() for c, e in sorted(bundle.edge_offset.items())}
     if bundle.run_correlation:  # consecutive frames: their sigmas' variance factors
         entry["run_correlation"] = {c: {"rho": r.rho, "pairs": r.pairs, "factor": r.factor}
                                     for c, r in sorted(bundle.run_correlation.items())}

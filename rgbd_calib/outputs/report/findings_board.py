@@ -14,6 +14,8 @@ from .schema import (
     CORNER_REGIONS,
     COVERAGE_MIN,
     DISTANCE_SPREAD_MIN,
+    EDGE_OFFSET_MIN_PX,
+    EDGE_OFFSET_SIGMAS,
     GLUE_MIN_DEG,
     GLUE_MIN_MM,
     GLUE_SIGMAS,
@@ -243,3 +245,31 @@ def board_tilt(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
             + ".",
         )
     ]
+
+
+def edge_offset(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """Cameras whose markers read larger or smaller than the board's geometry
+    (``bundle.edge_offset``): a detector edge offset (ink spread, blur, the camera's
+    sharpening) that no model holds, which biases every board pose of the camera."""
+    offsets = (report.get("bundle") or {}).get("edge_offset") or {}
+    off = [(c, e) for c, e in sorted(offsets.items())
+           if abs(e["offset_px"]) >= EDGE_OFFSET_MIN_PX
+           and abs(e["offset_px"]) >= EDGE_OFFSET_SIGMAS * e["sigma_px"]]
+    if not off:
+        return []
+    return [
+        finding(
+            "warning",
+            "edge_offset",
+            [c for c, _ in off],
+            "The markers read larger (+) or smaller (-) than the board's geometry, per edge: "
+            + ", ".join(f"{c} {e['offset_px']:+.3f} px (+-{e['sigma_px']:.3f}, "
+                        f"{e['markers']} markers)" for c, e in off)
+            + ". Nothing models such an edge offset yet: it moves the extrinsics by about 18 mm "
+            "per px on the race and ring renders and their sigmas do not include it.",
+            "Expect the named cameras' extrinsics off by roughly 18 mm x the offset (docs/"
+            "accuracy.md, 'A detector's edge offset'); sharpen the focus, turn the camera's "
+            "sharpening down, or print the board with less ink spread, and calibrate again.",
+        )
+    ]
+

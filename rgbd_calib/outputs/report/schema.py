@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.19"
+REPORT_SCHEMA_VERSION = "1.20"
 
 
 class ReportError(RgbdCalibError):
@@ -49,6 +49,11 @@ MARKER_MIN_PX = 0.3  # ... and above this: check that marker on the board
 COVERAGE_MIN = 0.35  # fraction of the image the board's views covered
 DISTANCE_SPREAD_MIN = 1.3  # max/min board distance over a camera's views
 TILT_SPREAD_MIN_DEG = 20.0  # range of board tilts seen by a camera
+# edge_offset: a camera whose markers read at least this much larger or smaller per edge (px),
+# by at least EDGE_OFFSET_SIGMAS standard errors; ~18 mm of extrinsics per px on the race and
+# ring renders (docs/accuracy.md, "A detector's edge offset"), so 0.02 px is ~0.4 mm
+EDGE_OFFSET_MIN_PX = 0.02
+EDGE_OFFSET_SIGMAS = 5.0
 PAIR_RMSE_MAX_MM = 15.0  # point-to-plane RMSE after ICP above this: depth itself is off
 # the joint extrinsics fit a pair worse than its own ICP did by more than this: the pair and
 # the rest of the calibration disagree (depth noise alone gives ~5 mm at 2 m on a D435)
@@ -326,6 +331,7 @@ REPORT_SCHEMA: dict[str, Any] = {
             "motion_prior?": {"q_mps": N, "q_dps": N},
         },
         "run_correlation?": MapOf("<camera>", {"rho": N, "pairs": INT, "factor": N}),
+        "edge_offset?": MapOf("<camera>", {"offset_px": N, "sigma_px": N, "markers": INT}),
         "self_calibration?": {
             "chosen": S,
             "board": B,
