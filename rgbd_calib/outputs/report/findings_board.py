@@ -272,4 +272,3 @@ def edge_offset(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]
             "sharpening down, or print the board with less ink spread, and calibrate again.",
         )
     ]
-
