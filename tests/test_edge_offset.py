@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 
+import numpy as np
 import pytest
 from conftest import REPO
 
@@ -23,8 +24,6 @@ OFFSET_PX = 0.1  # within what issue 16 measured between cameras of one print
 
 def _quads(rng, n):
     """``n`` perspective-ish marker quads of 10-20 px, corners in either order."""
-    import numpy as np
-
     out = []
     for _ in range(n):
         c, s, a = rng.uniform(50, 500, 2), rng.uniform(10, 20), rng.uniform(0, np.pi)
@@ -72,8 +71,6 @@ def test_the_report_names_a_camera_whose_markers_read_off_by_an_edge_offset():
 def test_each_marker_edge_moves_outward_by_the_offset():
     """A square marker's corners move diagonally outward, each edge by exactly the offset,
     whatever the corner order's orientation."""
-    import numpy as np
-
     quad = np.array([[[10.0, 10.0], [20.0, 10.0], [20.0, 20.0], [10.0, 20.0]]])
     for q in (quad, quad[:, ::-1]):
         out = shifted_outward(q, 0.5)

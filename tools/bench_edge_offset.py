@@ -28,6 +28,7 @@ from rgbd_calib import CalibrationConfig, FolderDataset, calibrate
 from rgbd_calib.core.geometry import transform_error
 from rgbd_calib.depth.information import tangent_error
 from rgbd_calib.model.board import thesis_board
+from rgbd_calib.solve.edge_offset import corner_normal_sums
 from rgbd_calib.synth.render import load_ground_truth
 
 DETECTIONS = "detections.json"
@@ -36,17 +37,7 @@ DETECTIONS = "detections.json"
 def shifted_outward(corners: np.ndarray, offset_px: float) -> np.ndarray:
     """Marker quads ``(N, 4, 2)`` with every edge moved outward by ``offset_px``: each corner
     by the offset along the outward unit normals of its two edges (exact for a square)."""
-    out = corners.copy()
-    for m, quad in enumerate(corners):
-        centre = quad.mean(axis=0)
-        normals = []
-        for i in range(4):  # edge i runs from corner i to corner i + 1
-            a, b = quad[i], quad[(i + 1) % 4]
-            n = np.array([b[1] - a[1], a[0] - b[0]]) / np.linalg.norm(b - a)
-            normals.append(n if n @ ((a + b) / 2 - centre) > 0 else -n)
-        for i in range(4):  # corner i lies on edges i - 1 and i
-            out[m, i] = quad[i] + offset_px * (normals[i - 1] + normals[i])
-    return out
+    return corners + offset_px * corner_normal_sums(corners)
 
 
 def write_offset_cache(source: Path, target: Path, offset_px: float) -> None:

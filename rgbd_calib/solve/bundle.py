@@ -558,7 +558,10 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
     marginals = gtsam.Marginals(marg_graph, values)
     out_cam, cov, s_rot, s_trans = _camera_marginals(layout.cams, values, layout.cam_key,
                                                      layout.fixed, marginals)
-    runs = _run_correlation(layout, solution)
+    # the corner residuals at the solution, once: the runs' correlation and the edge offsets
+    corner_res = (layout.marker_residuals(solution.groups, len(solution.active), values)
+                  if solution.active else np.zeros((0, 4, 2)))
+    runs = _run_correlation(layout, solution, corner_res)
     for c, r in runs.items():
         if c in cov:
             cov[c] = cov[c] * r.factor
@@ -585,17 +588,17 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
                                   else _time_model(layout, values, marginals), runs),
                         runs, relative_pose_fit(layout.relative_poses, layout.cam_key,
                                                 solution.connected, values, marginals),
-                        _edge_offsets(layout, solution))
+                        _edge_offsets(solution, corner_res))
 
 
-def _edge_offsets(layout: _FactorLayout, solution: _Solution) -> dict[str, EdgeOffset]:
-    """Per camera the edge offset its markers' residuals at the solution read
-    (:func:`~rgbd_calib.solve.edge_offset.edge_offsets`)."""
+def _edge_offsets(solution: _Solution, corner_res: np.ndarray) -> dict[str, EdgeOffset]:
+    """Per camera the edge offset its markers' residuals ``corner_res`` (n, 4, 2) at the
+    solution read (:func:`~rgbd_calib.solve.edge_offset.edge_offsets`)."""
     if not solution.active:
         return {}
-    res = layout.marker_residuals(solution.groups, len(solution.active), solution.values)
     measured = np.array([m.corners_px for m in solution.active], dtype=float)
-    return edge_offsets([m.camera for m in solution.active], marker_outward_px(measured, res))
+    return edge_offsets([m.camera for m in solution.active],
+                        marker_outward_px(measured, corner_res))
 
 
 def relative_pose_fit(relative_poses: Sequence[RelativePose], cam_key: dict[str, int],
@@ -628,14 +631,15 @@ def _stencil_keys(p: _FactorLayout, stencil: tuple[tuple[str, float], ...],
     return tuple((p.twist_key[u], c) for u, c in stencil)
 
 
-def _run_correlation(layout: _FactorLayout, solution: _Solution) -> dict[str, RunCorrelation]:
-    """:func:`~rgbd_calib.solve.runs.run_inflation` of the solution's corner residuals over
-    the layout's runs of consecutive frames (empty without runs)."""
+def _run_correlation(layout: _FactorLayout, solution: _Solution, corner_res: np.ndarray,
+                     ) -> dict[str, RunCorrelation]:
+    """:func:`~rgbd_calib.solve.runs.run_inflation` of the solution's corner residuals
+    ``corner_res`` (n, 4, 2) over the layout's runs of consecutive frames (empty without
+    runs)."""
     if not layout.runs:
         return {}
-    res = layout.marker_residuals(solution.groups, len(solution.active), solution.values)
     return run_inflation(layout.runs, {(m.camera, m.view, m.marker_id): r
-                                       for m, r in zip(solution.active, res)})
+                                       for m, r in zip(solution.active, corner_res)})
 
 
 def _inflated(clock: TimeModel | None, runs: dict[str, RunCorrelation]) -> TimeModel | None:

@@ -31,18 +31,29 @@ class EdgeOffset:
         return {"offset_px": self.offset_px, "sigma_px": self.sigma_px, "markers": self.markers}
 
 
-def outward_bisectors(quads: np.ndarray) -> np.ndarray:
-    """Unit vectors ``(n, 4, 2)`` along each corner's outward bisector: the sum of the outward
-    normals of its two edges (corner ``i`` lies on the edges ``i-1 -> i`` and ``i -> i+1``),
-    outward meaning away from the quad's centre, whatever the corners' order."""
+def outward_normals(quads: np.ndarray) -> np.ndarray:
+    """Unit outward normals ``(n, 4, 2)`` of each quad's edges (edge ``i``: corner ``i`` ->
+    ``i+1``), outward meaning away from the quad's centre, whatever the corners' order."""
     q = np.asarray(quads, dtype=float)
-    edge = np.roll(q, -1, axis=1) - q  # edge i: corner i -> i + 1
+    edge = np.roll(q, -1, axis=1) - q
     normal = np.stack([edge[..., 1], -edge[..., 0]], axis=-1)
     normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
     mid = (q + np.roll(q, -1, axis=1)) / 2 - q.mean(axis=1, keepdims=True)
-    normal *= np.where(np.sum(normal * mid, axis=-1, keepdims=True) < 0, -1.0, 1.0)
-    bisector = normal + np.roll(normal, 1, axis=1)  # edges i - 1 and i
-    return bisector / np.maximum(np.linalg.norm(bisector, axis=-1, keepdims=True), 1e-12)
+    return normal * np.where(np.sum(normal * mid, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+
+
+def corner_normal_sums(quads: np.ndarray) -> np.ndarray:
+    """Per corner ``(n, 4, 2)`` the sum of the outward normals of its two edges (corner ``i``
+    lies on the edges ``i-1 -> i`` and ``i -> i+1``): where an edge offset of 1 px moves it."""
+    normal = outward_normals(quads)
+    return normal + np.roll(normal, 1, axis=1)
+
+
+def outward_bisectors(quads: np.ndarray) -> np.ndarray:
+    """Unit vectors ``(n, 4, 2)`` along each corner's outward bisector
+    (:func:`corner_normal_sums` normalised)."""
+    s = corner_normal_sums(quads)
+    return s / np.maximum(np.linalg.norm(s, axis=-1, keepdims=True), 1e-12)
 
 
 def marker_outward_px(measured: np.ndarray, residuals: np.ndarray) -> np.ndarray:
