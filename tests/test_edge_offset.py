@@ -37,8 +37,6 @@ def test_the_residuals_read_the_edge_offset_with_an_honest_sigma():
     """``edge_offsets`` recovers an offset put into the measured corners from the residuals
     (``predicted - measured``), within 3 of its standard errors over seeds, leaves an outlier
     marker out, and gives nothing for a camera with one marker."""
-    import numpy as np
-
     from rgbd_calib.solve.edge_offset import edge_offsets, marker_outward_px
 
     z = []
