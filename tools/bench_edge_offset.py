@@ -74,9 +74,13 @@ def measure(render: Path, cache: Path) -> dict[str, object]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("render", type=Path)
-    parser.add_argument("--offsets", type=float, nargs="+", default=[0.0, 0.05, 0.1])
-    parser.add_argument("--work", type=Path, default=None)
+    parser.add_argument("render", type=Path,
+                        help="a render of `rgbd-calib synth` (with ground_truth.yaml)")
+    parser.add_argument("--offsets", type=float, nargs="+", default=[0.0, 0.05, 0.1],
+                        help="edge offsets to put into the detections, px per edge "
+                        "(default: 0 0.05 0.1)")
+    parser.add_argument("--work", type=Path, default=None,
+                        help="folder for the detection caches (default: a new temporary one)")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="edge_offset_"))
     base = work / "cache"
@@ -92,4 +96,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from toolmain import run_tool
+
+    run_tool(main)
