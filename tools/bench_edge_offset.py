@@ -1,17 +1,21 @@
-"""What a detector's edge offset does to the extrinsics (a finding, not a feature yet).
+"""What a detector's edge offset does to the extrinsics, with and without its model.
 
     python tools/bench_edge_offset.py RENDER [--offsets 0 0.05 0.1] [--work DIR]
+                                             [--edge-offset auto off]
 
 On real prints the edge fit sees every marker larger by +0.05 to +0.16 px per edge, by camera
 (its imaging: blur, sharpening, compression; docs/accuracy.md, "Corners on real photos"). The
 renderer has no such offset, so it is put into the detections: the render is calibrated once
 (``--refine none``) to fill a detection cache, then for each offset every marker edge in a copy
 of that cache is moved outward by it (each corner by the offset along the outward normals of
-its two edges) and the render calibrated again from the copy. Printed per offset: the worst
+its two edges) and the render calibrated again from the copy, once per ``bundle.edge_offset``
+mode (``auto``: the offset modelled, the default; ``off``: read only). Printed per offset and
+mode: the worst
 camera's error against ground_truth.yaml, the mean over the non-reference cameras of each
 one's 6-dof chi-square of its error under its covariance over 6 (1 when the covariance is
 honest), the corners' a-posteriori sigma, the model the self-calibration chose and the range
-over cameras of the edge offset the bundle's residuals read (``bundle.edge_offset``).
+over cameras of the edge offset the bundle estimated (``bundle.edge_offset``: what it took out
+of the corners plus what the residuals still read).
 """
 
 from __future__ import annotations
@@ -52,10 +56,12 @@ def write_offset_cache(source: Path, target: Path, offset_px: float) -> None:
     (target / DETECTIONS).write_text(json.dumps(data))
 
 
-def measure(render: Path, cache: Path) -> dict[str, object]:
-    """Calibrate ``render`` from ``cache``; its errors against the truth."""
-    res = calibrate(FolderDataset(render), thesis_board(), CalibrationConfig(refine="none"),
-                    cache_dir=cache)
+def measure(render: Path, cache: Path, mode: str = "auto") -> dict[str, object]:
+    """Calibrate ``render`` from ``cache`` with ``bundle.edge_offset: mode``; its errors
+    against the truth."""
+    config = CalibrationConfig.model_validate({"refine": "none",
+                                               "bundle": {"edge_offset": mode}})
+    res = calibrate(FolderDataset(render), thesis_board(), config, cache_dir=cache)
     gt = load_ground_truth(render)
     errors, chi2 = [], []
     for name, cam in res.extrinsics.cameras.items():
@@ -66,9 +72,10 @@ def measure(render: Path, cache: Path) -> dict[str, object]:
         chi2.append(float(xi @ np.linalg.solve(cam.covariance, xi)))
     chosen = res.self_calibration.chosen.name if res.self_calibration is not None else "-"
     read = [e.offset_px for e in res.bundle.edge_offset.values()]
+    applied = sum(1 for e in res.bundle.edge_offset.values() if e.applied_px)
     return {"worst_mm": max(errors), "chi2_over_6": float(np.mean(chi2)) / 6,
             "corner_sigma_px": res.bundle.pixel_sigma_estimated, "model": chosen,
-            "edge_offsets": read,
+            "edge_offsets": read, "modelled": applied,
             "edge_offset_px": f"{min(read):+.4f}..{max(read):+.4f} px" if read else "-"}
 
 
@@ -79,6 +86,9 @@ def main() -> None:
     parser.add_argument("--offsets", type=float, nargs="+", default=[0.0, 0.05, 0.1],
                         help="edge offsets to put into the detections, px per edge "
                         "(default: 0 0.05 0.1)")
+    parser.add_argument("--edge-offset", nargs="+", choices=["auto", "off"],
+                        default=["auto", "off"],
+                        help="bundle.edge_offset modes to calibrate with (default: both)")
     parser.add_argument("--work", type=Path, default=None,
                         help="folder for the detection caches (default: a new temporary one)")
     args = parser.parse_args()
@@ -89,10 +99,12 @@ def main() -> None:
         target = work / f"offset_{offset:g}"
         shutil.rmtree(target, ignore_errors=True)
         write_offset_cache(base, target, offset)
-        row = measure(args.render, target)
-        print(f"edge offset {offset:+.3f} px: worst {row['worst_mm']:.3f} mm, chi2/6 "
-              f"{row['chi2_over_6']:.2f}, corner sigma {row['corner_sigma_px']:.3f} px, "
-              f"model {row['model']}, edge offset read {row['edge_offset_px']}", flush=True)
+        for mode in args.edge_offset:
+            row = measure(args.render, target, mode)
+            print(f"edge offset {offset:+.3f} px, {mode}: worst {row['worst_mm']:.3f} mm, "
+                  f"chi2/6 {row['chi2_over_6']:.2f}, corner sigma "
+                  f"{row['corner_sigma_px']:.3f} px, model {row['model']}, edge offset "
+                  f"{row['edge_offset_px']} ({row['modelled']} cameras modelled)", flush=True)
 
 
 if __name__ == "__main__":

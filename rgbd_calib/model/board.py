@@ -181,6 +181,14 @@ class Board:
         """Every ArUco marker id printed on the board."""
         return printed_markers(self)[0]
 
+    def saddle_quads(self, ids) -> np.ndarray:
+        """Per measurement id ``(N,)`` whether its 4 points are a ChArUco square's saddle
+        corners (True) rather than an ArUco marker's edge-fitted corners (False)."""
+        ids = np.asarray(ids)
+        if self.sheets:
+            return ids >= CHARUCO_ID_BASE
+        return np.full(ids.shape, self.charuco is not None)
+
     def faces_of(self, ids) -> np.ndarray:
         """Face labels ``(N,)`` of the given marker ids."""
         return np.array([self.faces[self.index_of[int(i)]] for i in ids], dtype=int)

@@ -52,6 +52,7 @@ from ..solve.bundle import BundleProblem, BundleResult
 from ..solve.intrinsics_init import InitialIntrinsics, initialise_intrinsics
 from ..solve.ladder import (
     bundle_sound_first,
+    edge_offset_modelled,
     lens_moved,
     marker_measurements,
     model_error_sigmas,
@@ -238,6 +239,11 @@ def _bundle(run: _Run, pg: PoseGraphResult, views: _Views) -> _Solved:
                     else _refines_distortion(config.bundle))
     if lens_refined and (ladder is not None or run.board.charuco is None):
         solved = _redetect(run, pg, solved)
+    if config.bundle.edge_offset == "auto":  # the detector's edge offset, where it is read
+        with timed(run.timings, "bundle"):
+            bundle, problem = edge_offset_modelled(solved.problem, solved.bundle,
+                                                   pg.model_error)
+        solved = replace(solved, bundle=bundle, problem=problem)
     bundle = solved.bundle
     cameras, factors = model_error_sigmas(cameras_from_solve(bundle), bundle, pg,
                                           solved.problem.config)

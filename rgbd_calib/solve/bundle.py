@@ -43,7 +43,7 @@ from .bundle_factors import (
     view_factor_intrinsics,
     with_parameters,
 )
-from .edge_offset import EdgeOffset, edge_offsets, marker_outward_px
+from .edge_offset import EdgeOffset, measurements_without_offset, read_offsets
 from .posegraph import sigmas_from_covariance
 from .runs import RunCorrelation, link_window_ms, recording_runs, run_inflation
 from .time_model import (
@@ -79,6 +79,7 @@ class MarkerMeasurement:
     object_points: np.ndarray  # (4,3) board frame, metres
     face: int = 1  # +1 front, -1 back: a back marker moves with the back sheet (board refine);
     #               a multi-face target's face label (its face's pose moves it)
+    edge_fitted: bool = True  # an ArUco marker's corners (False: a ChArUco square's saddles)
 
 
 @dataclass(frozen=True)
@@ -159,6 +160,9 @@ class BundleProblem:
     # the time model: each frame set's nominal time (ms, from timestamps): consecutive sets
     # of a continuous recording are tied by the motion prior (time_model.motion_links)
     set_ms: dict[str, float] | None = None
+    # per camera its detector's edge offset (px per edge), taken out of its edge-fitted
+    # corners before the solve (rgbd_calib/solve/edge_offset.py; estimated by ladder.py)
+    edge_offset: dict[str, float] | None = None
 
 
 def intrinsics_vector(base: CameraIntrinsics, names: tuple[str, ...]) -> np.ndarray:
@@ -252,7 +256,14 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
     (:func:`~rgbd_calib.solve.time_model.timed_view_factor`): per camera a Vector 2
     ``[offset_ms, readout_ms]`` under ``time_priors`` (the reference's offset held at 0),
     per view a twist under the ``time_twist_sigma_*`` prior, each view's ``capture_ms`` (its
-    timestamps' offset) added to its camera's offset; ``result.time`` holds the estimates."""
+    timestamps' offset) added to its camera's offset; ``result.time`` holds the estimates.
+
+    ``edge_offset`` (camera -> px per edge) is taken out of each camera's edge-fitted corners
+    first (:func:`~rgbd_calib.solve.edge_offset.without_offset`); ``result.edge_offset`` reads
+    what is left in the residuals, on top of it."""
+    if problem.edge_offset:
+        problem = replace(problem, measurements=measurements_without_offset(
+            problem.measurements, problem.edge_offset))
     # the variables, their keys and priors; the measurements with initialised ends
     layout, kept, board_model, face_models = _factor_layout(problem)
     values = _initial_values(layout, problem.T_ref_cam, problem.T_ref_board)
@@ -311,6 +322,7 @@ class _FactorLayout:
     links: tuple[tuple[str, str, float], ...] = ()  # (set, next set, dt_s): motion prior
     runs: tuple[tuple[str, ...], ...] = ()  # the continuous stretches (runs.recording_runs)
     motion_prior: MotionPrior = MotionPrior()  # its scale (estimated from the data)
+    edge_offset: dict[str, float] = field(default_factory=dict)  # taken out of the corners
 
     @property
     def timed(self) -> bool:
@@ -420,7 +432,8 @@ def _factor_layout(problem: BundleProblem) -> tuple[
     timing["runs"] = recording_runs(problem.set_ms or {}, views, link_ms)
     layout = _FactorLayout(config, problem.K, cam_key, view_key, intr_key, intrinsics, names,
                            x0, prior_intr, fixed, problem.relative_poses, tuple(moving), refine,
-                           problem.reference, cams, views, **timing)
+                           problem.reference, cams, views, **timing,
+                           edge_offset=dict(problem.edge_offset or {}))
     return layout, kept, board_model, face_models
 
 
@@ -588,17 +601,7 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
                                   else _time_model(layout, values, marginals), runs),
                         runs, relative_pose_fit(layout.relative_poses, layout.cam_key,
                                                 solution.connected, values, marginals),
-                        _edge_offsets(solution, corner_res))
-
-
-def _edge_offsets(solution: _Solution, corner_res: np.ndarray) -> dict[str, EdgeOffset]:
-    """Per camera the edge offset its markers' residuals ``corner_res`` (n, 4, 2) at the
-    solution read (:func:`~rgbd_calib.solve.edge_offset.edge_offsets`)."""
-    if not solution.active:
-        return {}
-    measured = np.array([m.corners_px for m in solution.active], dtype=float)
-    return edge_offsets([m.camera for m in solution.active],
-                        marker_outward_px(measured, corner_res))
+                        read_offsets(solution.active, corner_res, layout.edge_offset))
 
 
 def relative_pose_fit(relative_poses: Sequence[RelativePose], cam_key: dict[str, int],

@@ -1,4 +1,5 @@
-"""A detector's edge offset read from the bundle's corner residuals (pure maths, numpy only).
+"""A detector's edge offset: read from the bundle's corner residuals, then modelled (pure
+maths, numpy only).
 
 A detector that sees every marker edge ``d`` px outside where it is (the edge fit on real
 prints: +0.05..+0.16 px by camera, its imaging's blur and sharpening; docs/accuracy.md,
@@ -6,29 +7,52 @@ prints: +0.05..+0.16 px by camera, its imaging's blur and sharpening; docs/accur
 ``d sqrt(2)`` along the corner's outward bisector for a square marker. The bundle predicts the
 printed corners, and the poses absorb little of such a pattern (a +0.1 px offset leaves
 +0.136 px of the 0.141 along the bisectors in the residuals of a race render), so each
-camera's mean outward residual over its markers, over ``sqrt(2)``, reads its offset. Nothing
-models the offset yet: this measures it, so the report can name it (``edge_offset``)."""
+camera's mean outward residual over its markers, over ``sqrt(2)``, reads its offset
+(:func:`edge_offsets`).
+
+The model: per camera one offset ``d`` (px per edge), taken out of its edge-fitted corners
+before the solve (:func:`without_offset`; a ChArUco square's saddle corners are not edge-fitted
+and keep theirs). It is estimated by a fixed-point iteration on the residuals (what the poses
+absorb, ~4 %, is read again next round) and kept only for a camera whose reading is
+significant (:func:`significant`): a clean camera keeps ``d = 0``."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 MAD_CUT = 5.0  # markers farther than this many robust sigmas from the median are left out
+# a camera's offset is modelled when its reading is at least this many standard errors and
+# this large (px per edge: ~0.2 mm of extrinsics on the race and ring renders, below their
+# sigmas; a clean render reads <= 0.003)
+APPLY_SIGMAS = 5.0
+APPLY_MIN_PX = 0.01
+CONVERGED_PX = 0.002  # the iteration stops when no modelled camera's reading moves more
+ITERATIONS = 4  # at most this many re-solves (each takes the residual ~25x closer)
 
 
 @dataclass(frozen=True)
 class EdgeOffset:
     """One camera's edge offset (px per edge; positive: its markers look larger than the
-    board's geometry) with its standard error over ``markers`` markers."""
+    board's geometry) with its standard error over ``markers`` markers; ``applied_px`` of it
+    is modelled (taken out of the corners before the solve), the rest is in the residuals."""
 
     offset_px: float
     sigma_px: float
     markers: int
+    applied_px: float = 0.0
+
+    @property
+    def residual_px(self) -> float:
+        """What the residuals still read: the offset no model holds."""
+        return self.offset_px - self.applied_px
 
     def to_dict(self) -> dict[str, float | int]:
-        return {"offset_px": self.offset_px, "sigma_px": self.sigma_px, "markers": self.markers}
+        return {"offset_px": self.offset_px, "sigma_px": self.sigma_px, "markers": self.markers,
+                "applied_px": self.applied_px}
 
 
 def outward_normals(quads: np.ndarray) -> np.ndarray:
@@ -49,6 +73,20 @@ def corner_normal_sums(quads: np.ndarray) -> np.ndarray:
     return normal + np.roll(normal, 1, axis=1)
 
 
+def without_offset(quads: np.ndarray, offset_px: float) -> np.ndarray:
+    """Marker quads ``(n, 4, 2)`` with an edge offset of ``offset_px`` taken out: every edge
+    moved inward by it (each corner along its :func:`corner_normal_sums`)."""
+    q = np.asarray(quads, dtype=float)
+    return q - offset_px * corner_normal_sums(q) if offset_px else q
+
+
+def significant(offsets: dict[str, EdgeOffset]) -> dict[str, float]:
+    """The cameras whose reading supports the model (at least :data:`APPLY_SIGMAS` standard
+    errors and :data:`APPLY_MIN_PX`), each with the offset to take out."""
+    return {c: e.offset_px for c, e in offsets.items()
+            if abs(e.offset_px) >= max(APPLY_MIN_PX, APPLY_SIGMAS * e.sigma_px)}
+
+
 def outward_bisectors(quads: np.ndarray) -> np.ndarray:
     """Unit vectors ``(n, 4, 2)`` along each corner's outward bisector
     (:func:`corner_normal_sums` normalised)."""
@@ -65,11 +103,14 @@ def marker_outward_px(measured: np.ndarray, residuals: np.ndarray) -> np.ndarray
                    axis=1)
 
 
-def edge_offsets(cameras: list[str], outward_px: np.ndarray) -> dict[str, EdgeOffset]:
+def edge_offsets(cameras: list[str], outward_px: np.ndarray,
+                 applied: dict[str, float] | None = None) -> dict[str, EdgeOffset]:
     """Per camera (``cameras[i]`` is marker ``i``'s): its edge offset, the robust mean of its
     markers' outward residuals (markers beyond :data:`MAD_CUT` robust sigmas of the median left
-    out: an outlier marker is not an offset) over ``sqrt(2)``, with its standard error.
+    out: an outlier marker is not an offset) over ``sqrt(2)``, with its standard error, plus
+    what ``applied`` (camera -> px) had already taken out of its corners.
     Cameras with fewer than 2 markers get none."""
+    applied = applied or {}
     out: dict[str, EdgeOffset] = {}
     names = np.asarray(cameras)
     values = np.asarray(outward_px, dtype=float)
@@ -85,5 +126,28 @@ def edge_offsets(cameras: list[str], outward_px: np.ndarray) -> dict[str, EdgeOf
         if r.size < 2:
             continue
         se = float(np.std(r, ddof=1) / np.sqrt(r.size))
-        out[str(cam)] = EdgeOffset(float(np.mean(r)) / np.sqrt(2.0), se / np.sqrt(2.0), int(r.size))
+        done = float(applied.get(str(cam), 0.0))
+        out[str(cam)] = EdgeOffset(done + float(np.mean(r)) / np.sqrt(2.0), se / np.sqrt(2.0),
+                                   int(r.size), done)
     return out
+
+
+def measurements_without_offset(measurements: Sequence[Any],
+                                offset: dict[str, float]) -> list[Any]:
+    """The bundle's marker measurements (``camera``, ``corners_px`` (4, 2), ``edge_fitted``)
+    with each camera's ``offset`` taken out of its edge-fitted corners (:func:`without_offset`)."""
+    return [replace(m, corners_px=without_offset(m.corners_px[None], offset[m.camera])[0])
+            if m.edge_fitted and offset.get(m.camera) else m for m in measurements]
+
+
+def read_offsets(measurements: Sequence[Any], corner_res: np.ndarray,
+                 applied: dict[str, float]) -> dict[str, EdgeOffset]:
+    """Per camera the edge offset its edge-fitted markers' residuals ``corner_res``
+    (n, 4, 2, ``predicted - measured``, one per measurement) read on top of what was
+    ``applied`` (:func:`edge_offsets`)."""
+    fitted = [i for i, m in enumerate(measurements) if m.edge_fitted]
+    if not fitted:
+        return {}
+    measured = np.array([measurements[i].corners_px for i in fitted], dtype=float)
+    return edge_offsets([measurements[i].camera for i in fitted],
+                        marker_outward_px(measured, np.asarray(corner_res)[fitted]), applied)

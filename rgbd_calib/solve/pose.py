@@ -26,7 +26,7 @@ from ..core.camera import CameraIntrinsics
 from ..core.config import CalibrationConfig, PoseConfig
 from ..core.geometry import make_transform, rotation_angle_deg, rotvec_to_matrix, skew
 from ..detect.markers import MarkerDetections
-from ..model.board import CHARUCO_ID_BASE, Board
+from ..model.board import Board
 from ..model.results import PoseEdge
 from ..model.rig import Rig
 
@@ -399,8 +399,7 @@ def _too_few(board: Board, ids: np.ndarray, obj: np.ndarray, config: PoseConfig)
     pose, or "" when they are enough: ``min_markers`` ArUco markers, or, on a ChArUco target,
     ``min_charuco_corners`` distinct points (its saddle-corner quads' corners, each ArUco
     marker of a mixed target counting its 4)."""
-    quad = (ids >= CHARUCO_ID_BASE if board.sheets
-            else np.full(len(ids), board.charuco is not None))
+    quad = board.saddle_quads(ids)
     n_markers = int((~quad).sum())
     if n_markers >= config.min_markers:
         return ""

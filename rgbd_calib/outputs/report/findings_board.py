@@ -250,25 +250,47 @@ def board_tilt(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
 def edge_offset(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     """Cameras whose markers read larger or smaller than the board's geometry
     (``bundle.edge_offset``): a detector edge offset (ink spread, blur, the camera's
-    sharpening) that no model holds, which biases every board pose of the camera."""
+    sharpening). Taken out of the corners (``applied_px``), it is named as information; what
+    no model holds (``bundle.edge_offset: off``, or a reading too weak to model) biases every
+    board pose of the camera: a warning."""
     offsets = (report.get("bundle") or {}).get("edge_offset") or {}
-    off = [(c, e) for c, e in sorted(offsets.items())
-           if abs(e["offset_px"]) >= EDGE_OFFSET_MIN_PX
-           and abs(e["offset_px"]) >= EDGE_OFFSET_SIGMAS * e["sigma_px"]]
-    if not off:
-        return []
-    return [
-        finding(
+
+    def listed(rows: list[tuple[str, dict[str, Any]]], key: str) -> str:
+        return ", ".join(f"{c} {e[key]:+.3f} px (+-{e['sigma_px']:.3f}, {e['markers']} markers)"
+                         for c, e in rows)
+
+    modelled = [(c, e) for c, e in sorted(offsets.items()) if e.get("applied_px")]
+    off = [(c, {**e, "residual": e["offset_px"] - e.get("applied_px", 0.0)})
+           for c, e in sorted(offsets.items())]
+    off = [(c, e) for c, e in off if abs(e["residual"]) >= EDGE_OFFSET_MIN_PX
+           and abs(e["residual"]) >= EDGE_OFFSET_SIGMAS * e["sigma_px"]]
+    out = []
+    if modelled:
+        out.append(finding(
+            "info",
+            "edge_offset",
+            [c for c, _ in modelled],
+            "The markers read larger (+) or smaller (-) than the board's geometry, per edge: "
+            + listed(modelled, "offset_px")
+            + ". Modelled: taken out of these cameras' corners before the solve (bundle."
+            "edge_offset: auto); unmodelled it would have moved their extrinsics by about "
+            "18 mm per px.",
+            "Nothing to do for the extrinsics. An offset above 0.1 px usually means blur or "
+            "in-camera sharpening: sharpen the focus or turn the sharpening down for the "
+            "next recording.",
+        ))
+    if off:
+        out.append(finding(
             "warning",
             "edge_offset",
             [c for c, _ in off],
-            "The markers read larger (+) or smaller (-) than the board's geometry, per edge: "
-            + ", ".join(f"{c} {e['offset_px']:+.3f} px (+-{e['sigma_px']:.3f}, "
-                        f"{e['markers']} markers)" for c, e in off)
-            + ". Nothing models such an edge offset yet: it moves the extrinsics by about 18 mm "
-            "per px on the race and ring renders and their sigmas do not include it.",
-            "Expect the named cameras' extrinsics off by roughly 18 mm x the offset (docs/"
-            "accuracy.md, 'A detector's edge offset'); sharpen the focus, turn the camera's "
-            "sharpening down, or print the board with less ink spread, and calibrate again.",
-        )
-    ]
+            "The markers read larger (+) or smaller (-) than the board's geometry, per edge, "
+            "beyond any model: " + listed(off, "residual")
+            + ". Such an edge offset moves the extrinsics by about 18 mm per px on the race "
+            "and ring renders and their sigmas do not include it.",
+            "Set bundle.edge_offset: auto (the default) to model it, or expect the named "
+            "cameras' extrinsics off by roughly 18 mm x the offset (docs/accuracy.md, 'A "
+            "detector's edge offset'); sharpen the focus, turn the camera's sharpening down, "
+            "or print the board with less ink spread, and calibrate again.",
+        ))
+    return out

@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.20"
+REPORT_SCHEMA_VERSION = "1.21"
 
 
 class ReportError(RgbdCalibError):
@@ -331,7 +331,8 @@ REPORT_SCHEMA: dict[str, Any] = {
             "motion_prior?": {"q_mps": N, "q_dps": N},
         },
         "run_correlation?": MapOf("<camera>", {"rho": N, "pairs": INT, "factor": N}),
-        "edge_offset?": MapOf("<camera>", {"offset_px": N, "sigma_px": N, "markers": INT}),
+        "edge_offset?": MapOf("<camera>", {"offset_px": N, "sigma_px": N, "markers": INT,
+                                           "applied_px?": N}),
         "self_calibration?": {
             "chosen": S,
             "board": B,
