@@ -137,3 +137,15 @@ def test_the_depth_registration_line_says_what_the_pairs_did_and_how_they_were_w
     assert depth_registration_line(DepthRefinement("colored-icp", {}, {}, [], [], {},
                                                    note="the board constrains every camera"))
     assert depth_registration_line(DepthRefinement("colored-icp", {}, {}, [], [], {})) is None
+
+
+def test_the_edge_offset_line_names_only_the_modelled_cameras():
+    from rgbd_calib.cli.console import edge_offset_line
+    from rgbd_calib.solve.edge_offset import EdgeOffset
+
+    offsets = {"b": EdgeOffset(0.101, 0.001, 300, 0.1), "a": EdgeOffset(0.052, 0.001, 200, 0.05),
+               "clean": EdgeOffset(0.002, 0.001, 300)}
+    line = edge_offset_line(offsets)
+    assert line is not None and "a, b read +0.052..+0.101 px per edge" in line, line
+    assert "clean" not in line and "taken out of their corners" in line
+    assert edge_offset_line({"clean": offsets["clean"]}) is None and edge_offset_line({}) is None

@@ -15,13 +15,16 @@ import statistics
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.markup import escape
 
 from ..core.depth_model import TERMS
 from ..core.progress import Progress
+
+if TYPE_CHECKING:
+    from ..solve.edge_offset import EdgeOffset
 
 console = Console(stderr=True)
 
@@ -315,6 +318,8 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
                       + ("" if clock.anchored else
                          " (no timestamps: known up to a common scale factor)"),
                       highlight=False, soft_wrap=True)
+    if result.bundle is not None and (line := edge_offset_line(result.bundle.edge_offset)):
+        console.print(line, highlight=False, soft_wrap=True)
     board = board_refined_entry(result).get("refined")
     if board and board["held"]:
         console.print(f"[yellow]board not refined[/]: {board['held']}")
@@ -513,3 +518,15 @@ def cli_record(
     for note in report.notes:
         console.print(f"[yellow]note:[/] {note}", highlight=False)
     return report
+
+
+def edge_offset_line(offsets: dict[str, EdgeOffset]) -> str | None:
+    """The console line of the detectors' edge offsets the bundle modelled (None: none)."""
+    modelled = {c: e.offset_px for c, e in sorted(offsets.items()) if e.applied_px}
+    if not modelled:
+        return None
+    lo, hi = min(modelled.values()), max(modelled.values())
+    span = f"{lo:+.3f} px" if len(modelled) == 1 else f"{lo:+.3f}..{hi:+.3f} px"
+    return (f"edge offset: the markers of {', '.join(modelled)} read {span} per edge off the "
+            "board's geometry (blur, sharpening or ink spread); taken out of their corners "
+            "(bundle.edge_offset)")

@@ -8,8 +8,9 @@ One call per stage (:func:`calibrate`)::
         consecutive sets: rgbd_calib.solve.runs] -> pose graph (initialisation from the
         co-visibility spanning tree, robust solve, marginals: rgbd_calib.solve.posegraph) ->
         bundle adjustment with self-calibration (rgbd_calib.solve.ladder) [-> detection again
-        with the refined lens] -> depth (rgbd_calib.depth.stage) -> joint solve -> checks -> result
-        (extrinsics + uncertainty)
+        with the refined lens] [-> the detectors' edge offsets taken out of the corners,
+        solved again: rgbd_calib.solve.edge_offset] -> depth (rgbd_calib.depth.stage) -> joint
+        solve -> checks -> result (extrinsics + uncertainty)
 
 No file is written here except the detection cache; :mod:`rgbd_calib.outputs.writer` writes results.
 """

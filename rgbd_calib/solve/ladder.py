@@ -6,8 +6,10 @@ self-calibration ladder's solves and the model-error sigmas.
 (which model next, is it better) are :mod:`rgbd_calib.solve.selfcal`'s. Every solve is one
 :class:`~rgbd_calib.solve.bundle.BundleProblem` built by :func:`bundle_problem` and solved by
 :func:`bundle_sound_first`; a caller re-solves it with ``dataclasses.replace`` (re-detected
-corners, depth pairs). :func:`model_error_sigmas` makes the result's uncertainty honest when
-the pose graph found cameras with a model error.
+corners, depth pairs). :func:`edge_offset_modelled` solves it again with each camera's
+detector edge offset taken out of its corners where the residuals read one.
+:func:`model_error_sigmas` makes the result's uncertainty honest when the pose graph found
+cameras with a model error.
 """
 
 from __future__ import annotations
