@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from conftest import REPO
 
 from rgbd_calib.core.camera import CameraIntrinsics
 from rgbd_calib.core.errors import ConfigError
@@ -21,6 +22,7 @@ from rgbd_calib.core.geometry import (
     transform_points,
 )
 from rgbd_calib.model.board import BACK, FRONT, board_from_grid, thesis_board
+from rgbd_calib.model.board_file import load_board
 from rgbd_calib.model.rig import load_rig
 from rgbd_calib.synth.render import (
     CLOSEUP_TARGETS,
@@ -279,6 +281,7 @@ def test_board_print_conventions():
 # --------------------------------------------------------------------------- synthesize
 GRID_BOARD = dict(dictionary="DICT_4X4_50", rows=3, cols=3, marker_length=0.09, separation=0.02,
                   thickness=0.006, front_first_id=0, back_first_id=9)  # fmt: skip
+INK_MM = 0.5  # --ink-spread of the "ink" set
 IMPERFECT = dict(distortion=(0.1, -0.2, 1e-3, -1e-3, 0.05), intrinsics_error=(2.0, 3.0),
                  glue=(3.0, -2.0, 1.0), thickness_error_mm=0.5, print_scale=0.995)  # fmt: skip
 
@@ -307,6 +310,7 @@ def ring_sets(tmp_path_factory):
             "imperfect": IMPERFECT,
             "imperfect-truth": dict(IMPERFECT, rig_distortion="truth"),
             "imperfect-closeups": dict(IMPERFECT, closeups=2),
+            "ink": dict(ink_spread_mm=INK_MM),
         }.items()
     }  # fmt: skip
 
@@ -373,11 +377,73 @@ def test_imperfection_settings_are_checked():
     for bad in (dict(distortion=(0.1, 0.2)), dict(rig_distortion="factory"),
                 dict(intrinsics_error=(-1.0, 0.0)), dict(print_scale=0.0),
                 dict(distortion=(-2.0, 0.0, 0.0, 0.0, 0.0)),
-                dict(board_volume=0.0), dict(closeups=-1)):  # fmt: skip
+                dict(board_volume=0.0), dict(closeups=-1), dict(ink_spread_mm=0.8)):  # fmt: skip
         with pytest.raises(ConfigError):
             make_rig("ring", 0, SynthParams(resolution=(640, 360), cameras=2, **bad))
     with pytest.raises(ConfigError, match="thickness"):
         board_print(thesis_board(), SynthParams(thickness_error_mm=-7.0))
+    charuco = load_board(REPO / "configs" / "board_charuco_a3.yaml")
+    with pytest.raises(ConfigError, match="ink-spread"):
+        board_print(charuco, SynthParams(ink_spread_mm=0.1))
+
+
+def test_ink_spread_moves_each_ink_edge_by_its_reach():
+    """The print's reflectance: a marker's outline lies ``w`` outside the board file's edge
+    (inside for a thin print), a white bit's edge ``w`` inside it, the geometry unchanged."""
+    board = board_from_grid(**GRID_BOARD)
+    x0, _, y0, _ = board.panel
+    c = board.corners[board.faces == FRONT][0][:, :2]
+    left, y_mid = c[:, 0].min(), c[:, 1].mean()
+    xs = np.linspace(left - 2e-3, left + 2e-3, 4001)
+
+    def outline(w):
+        printed = replace(board_print(board, SynthParams()), ink_spread_m=w)
+        refl = _BoardModel(board, printed).reflectance(np.zeros(len(xs), int), xs - x0,
+                                                       np.full(len(xs), y_mid - y0))
+        return xs[np.argmax(refl < refl.max())]
+
+    for w in (0.0, 3e-4, -3e-4):
+        assert outline(w) == pytest.approx(left - w, abs=2e-6), w
+    # a white bit: the fraction of paper over the marker's inside shrinks with the spread
+    u = np.linspace(0, 1, 301)
+    uu, vv = np.meshgrid(left + u * (c[:, 0].max() - left), c[:, 1].min() + u * (c[:, 1].max()
+                         - c[:, 1].min()))  # fmt: skip
+    paper = []
+    for w in (0.0, 1e-3):
+        printed = replace(board_print(board, SynthParams()), ink_spread_m=w)
+        refl = _BoardModel(board, printed).reflectance(np.zeros(uu.size, int), uu.ravel() - x0,
+                                                       vv.ravel() - y0)
+        paper.append(np.mean(refl == refl.max()))
+    assert 0 < paper[1] < paper[0], paper
+
+
+def test_an_ink_spread_print_looks_larger_by_the_spread_and_records_it(ring_sets):
+    """The detected markers of the ``ink`` set lie outside those of the default set by 0.4-1.0
+    of the spread's projection (the edge fit sees 0.55-0.63 on the race, docs/synthetic.md),
+    and ground_truth.yaml holds the spread."""
+    from rgbd_calib.detect.markers import detect_markers
+    from rgbd_calib.solve.edge_offset import outward_bisectors
+
+    ink, plain = ring_sets["ink"].path, ring_sets["default"].path
+    gt = load_ground_truth(ink)
+    assert gt.ink_spread_mm == INK_MM and load_ground_truth(plain).ink_spread_mm == 0.0
+    board = board_from_grid(**GRID_BOARD)
+    ratios = []
+    for frame, T_ref_board in gt.T_ref_board.items():
+        for name, K in gt.intrinsics.items():
+            a, b = (detect_markers(cv2.imread(str(p / name / "color" / f"{frame}.png")), board)
+                    for p in (plain, ink))
+            T = invert_transform(gt.T_ref_cam[name]) @ T_ref_board
+            for k, i in enumerate(b.ids):
+                if int(i) not in a.ids:
+                    continue
+                ca = a.corners_px[list(a.ids).index(int(i))]
+                P = board.object_points(np.array([i]))[0]
+                out = P + INK_MM * 1e-3 * np.sign(P - P.mean(axis=0)) * [1, 1, 0]
+                pa, pt = (K.project(transform_points(T, X)) for X in (P, out))
+                bis = outward_bisectors(pa[None])[0]
+                ratios.append(np.sum((b.corners_px[k] - ca) * bis) / np.sum((pt - pa) * bis))
+    assert len(ratios) >= 12 and 0.4 < np.median(ratios) < 1.0, (len(ratios), np.median(ratios))
 
 
 def test_distortion_keeps_the_board_poses(ring_sets):

@@ -97,6 +97,12 @@ PRINT_SCALE_OPTION = typer.Option(
     "the board origin), e.g. 0.995; the board file stays nominal.",
     rich_help_panel=IMPERFECTIONS_PANEL,
 )
+INK_SPREAD_OPTION = typer.Option(
+    metavar="MM",
+    help="the printer's ink spreads MM beyond the board file's black edges (both faces; "
+    "negative: thinner): every marker looks larger by MM per edge, e.g. 0.1; ArUco boards.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
 FACE_ERROR_OPTION = typer.Option(
     metavar="MM DEG",
     help="multi-face target (a cube, an L): every face but the first moved off its "
@@ -229,6 +235,7 @@ def synth(
     glue: Annotated[tuple[float, float, float], GLUE_OPTION] = (0.0, 0.0, 0.0),
     thickness_error: Annotated[float, THICKNESS_ERROR_OPTION] = 0.0,
     print_scale: Annotated[float, PRINT_SCALE_OPTION] = 1.0,
+    ink_spread: Annotated[float, INK_SPREAD_OPTION] = 0.0,
     face_error: Annotated[tuple[float, float], FACE_ERROR_OPTION] = (0.0, 0.0),
     board_volume: Annotated[float, BOARD_VOLUME_OPTION] = 1.0,
     closeups: Annotated[int, CLOSEUPS_OPTION] = 0,
@@ -268,6 +275,7 @@ def synth(
         glue=glue,
         thickness_error_mm=thickness_error,
         print_scale=print_scale,
+        ink_spread_mm=ink_spread,
         face_error=face_error,
         board_volume=board_volume,
         closeups=closeups,

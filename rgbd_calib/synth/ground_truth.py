@@ -63,6 +63,8 @@ def write_ground_truth(
                 "T_front_back": printed.T_front_back,
                 "print_scale": printed.print_scale,
                 "thickness_m": printed.thickness_m,
+                **({"ink_spread_mm": printed.ink_spread_m * 1000.0}
+                   if printed.ink_spread_m else {}),
                 **({"T_board_face": {s.label: printed.face_poses.get(s.label,
                                                                      s.T_board_face)
                                      for s in board.sheets}} if board.sheets else {}),
@@ -161,6 +163,7 @@ class GroundTruth:
     board_a_mps2: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> a (ref)
     board_alpha_radps2: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> alpha
     depth_model: dict[str, DepthModel] = field(default_factory=dict)  # camera -> true model
+    ink_spread_mm: float = 0.0  # --ink-spread: the print's ink beyond the file's edges
 
     def T_ref_board_at(self, frame: str, tau_s: float) -> np.ndarray:
         """The board pose (4x4, metres, reference frame) ``tau_s`` seconds after frame set
@@ -182,7 +185,7 @@ class GroundTruth:
         """The physical board of this set, for the board file ``board`` it was rendered with."""
         thickness = board.thickness if self.thickness_m is None else self.thickness_m
         return BoardPrint(thickness, self.print_scale, self.T_front_back,
-                          dict(self.T_board_face))
+                          dict(self.T_board_face), self.ink_spread_mm / 1000.0)
 
 
 def load_ground_truth(path: Path) -> GroundTruth:
@@ -233,6 +236,7 @@ def load_ground_truth(path: Path) -> GroundTruth:
         per_frame("alpha_radps2"),
         {str(k): DepthModel.from_dict(v, f"{path}: depth_model.{k}")
          for k, v in (data.get("depth_model") or {}).items()},
+        float(board.get("ink_spread_mm", 0.0)),
     )
 
 

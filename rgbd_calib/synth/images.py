@@ -139,12 +139,19 @@ class _BoardModel:
             k = min(2, len(ids))
             _, cand = self.trees[face].query(xy, k=k)
             cand = cand.reshape(len(sel), k)
+            spread = self.printed.ink_spread_m if self.printed is not None else 0.0
             for j in range(k):
                 c = corners[cand[:, j]]
                 e1, e3 = c[:, 1] - c[:, 0], c[:, 3] - c[:, 0]
                 d = xy - c[:, 0]
                 u = np.einsum("ij,ij->i", d, e1) / np.einsum("ij,ij->i", e1, e1)
                 v = np.einsum("ij,ij->i", d, e3) / np.einsum("ij,ij->i", e3, e3)
+                if spread:
+                    ink = _spread_ink(u, v, np.linalg.norm(e1, axis=1),
+                                      np.linalg.norm(e3, axis=1), spread, cand[:, j],
+                                      [self.cells[int(i)] for i in ids])
+                    out[sel[ink >= 0]] = np.where(ink[ink >= 0] > 0, INK_BLACK, PAPER_WHITE)
+                    continue
                 inside = (u >= 0) & (u < 1) & (v >= 0) & (v < 1)
                 for m in np.unique(cand[inside, j]):
                     pick = inside & (cand[:, j] == m)
@@ -170,6 +177,44 @@ class _BoardModel:
         black[inside] = self.black_squares[row[inside], col[inside]]
         out[black] = INK_BLACK
         return out
+
+
+def _spread_ink(u: np.ndarray, v: np.ndarray, side_u: np.ndarray, side_v: np.ndarray,
+                spread: float, marker: np.ndarray, cells: list[np.ndarray]) -> np.ndarray:
+    """Per board point at ``(u, v)`` in its candidate ``marker``'s unit square (sides
+    ``side_u`` / ``side_v`` m): 1 where the ink spread ``spread`` (m; negative: thinner) makes
+    it ink, 0 paper, -1 not within the spread marker. Ink within ``|spread|`` of a black cell
+    (a disc's reach, sampled on 8 directions); the marker's outline is black, so its outside
+    within ``spread`` of the square is ink."""
+    du, dv = abs(spread) / side_u, abs(spread) / side_v
+    out = np.full(len(u), -1)
+    near = (u >= -du) & (u < 1 + du) & (v >= -dv) & (v < 1 + dv)
+    gap = np.hypot(np.maximum(np.maximum(-u, u - 1), 0) * side_u,
+                   np.maximum(np.maximum(-v, v - 1), 0) * side_v)
+    diag = np.sqrt(0.5)
+    offsets = [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1),
+               (diag, diag), (diag, -diag), (-diag, diag), (-diag, -diag)]
+    for m in np.unique(marker[near]):
+        pick = np.nonzero(near & (marker == m))[0]
+        grid = cells[int(m)]
+        n = grid.shape[0]
+        black = []
+        for ou, ov in offsets:
+            uu = np.clip(u[pick] + ou * du[pick], 0, 1 - 1e-9)
+            vv = np.clip(v[pick] + ov * dv[pick], 0, 1 - 1e-9)
+            black.append(grid[(vv * n).astype(int), (uu * n).astype(int)] <= 127)
+        black = np.array(black)
+        inside = gap[pick] == 0
+        if spread > 0:  # ink where any sample within reach is black; outside: the outline's
+            ink = np.where(inside, black.any(axis=0), gap[pick] <= spread)
+        else:  # paper eats into the ink: black only where every sample within reach is,
+            #   the outline's edge included
+            inner = ((u[pick] >= du[pick]) & (u[pick] < 1 - du[pick])
+                     & (v[pick] >= dv[pick]) & (v[pick] < 1 - dv[pick]))
+            ink = inner & black.all(axis=0)
+        keep = inside | (spread > 0)
+        out[pick[keep]] = ink[keep].astype(int)
+    return out
 
 
 @dataclass

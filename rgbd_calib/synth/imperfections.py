@@ -158,6 +158,9 @@ class BoardPrint:
     # a multi-face target: the true pose T_board_face of each face (label -> 4x4, metres);
     # empty: every face where the board file puts it
     face_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    # how far the ink spreads beyond the file's black edges (m, on the board; the markers'
+    # corners stay where :meth:`corners` puts them: the print, not the geometry, is off)
+    ink_spread_m: float = 0.0
 
     @property
     def is_nominal(self) -> bool:
@@ -200,8 +203,19 @@ def face_perturbation(label: int, mm: float, deg: float) -> np.ndarray:
 
 
 def board_print(board: Board, params: SynthParams) -> BoardPrint:
-    """The :class:`BoardPrint` of ``params.glue``, ``thickness_error_mm`` and ``print_scale``
-    (a double-sided board), or of ``params.face_error`` (a multi-face target)."""
+    """The :class:`BoardPrint` of ``params.glue``, ``thickness_error_mm``, ``print_scale`` and
+    ``ink_spread_mm`` (a double-sided board), or of ``params.face_error`` (a multi-face
+    target)."""
+    printed = _board_print(board, params)
+    if params.ink_spread_mm == 0:
+        return printed
+    if board.sheets or board.charuco is not None:
+        raise ConfigError("--ink-spread renders an ArUco board's markers; this board is "
+                          f"{board.board_type}: leave --ink-spread out")
+    return replace(printed, ink_spread_m=params.ink_spread_mm / 1000.0)
+
+
+def _board_print(board: Board, params: SynthParams) -> BoardPrint:
     if board.sheets:
         if (tuple(params.glue) != (0, 0, 0) or params.thickness_error_mm != 0
                 or params.print_scale != 1.0):

@@ -46,6 +46,9 @@ class SynthParams:
     glue: tuple[float, float, float] = (0.0, 0.0, 0.0)  # back sheet: dx mm, dy mm, rot deg
     thickness_error_mm: float = 0.0  # true panel thickness minus the board file's
     print_scale: float = 1.0  # printed size / board file size, both faces
+    # the printer's ink spreads this far beyond the file's black edges (mm; negative: thinner),
+    # both faces: every marker edge that much outward, each white bit that much smaller
+    ink_spread_mm: float = 0.0
     # multi-face target: every face but the reference one off its board-file pose by this
     # shift (mm) and turn (deg), each in a seeded direction of its own (a hand-built cube)
     face_error: tuple[float, float] = (0.0, 0.0)
@@ -105,6 +108,9 @@ def check_params(params: SynthParams) -> None:
         )
     if not (0.5 < params.print_scale < 2.0):
         raise ConfigError(f"--print-scale {params.print_scale}: expected a factor near 1")
+    if not (-0.5 <= params.ink_spread_mm <= 0.5):
+        raise ConfigError(f"--ink-spread {params.ink_spread_mm}: give an ink spread of -0.5 to "
+                          "0.5 mm (a laser print spreads ~0.05-0.1 mm)")
     if not (0.1 <= params.board_volume <= 5.0):
         raise ConfigError(f"--board-volume {params.board_volume}: expected a factor in 0.1-5 "
                           "of the layout's board volume")
