@@ -133,6 +133,7 @@ class ViewResult:
     tangent: dict[str, np.ndarray] = field(default_factory=dict)
     error: dict[str, np.ndarray] = field(default_factory=dict)  # method -> (N,4,2) px
     edge_set: np.ndarray | None = None  # (N,4) True where the edge fit set the compared corner
+    size_px: np.ndarray | None = None  # (N,) each compared marker's mean corner-to-centre px
     markers: dict[str, int] = field(default_factory=dict)  # found per method
     edge_markers_partial: int = 0  # markers with 1-3 corners set by the edge fit
     edge_markers_none: int = 0  # markers with no corner set by the edge fit
@@ -195,6 +196,7 @@ def measure_view(
             predicted[i] = p
     keep = sorted(predicted)
     pred = np.array([predicted[i] for i in keep]).reshape(-1, 4, 2)
+    out.size_px = np.linalg.norm(pred - pred.mean(axis=1, keepdims=True), axis=-1).mean(axis=1)
     for m, d in dets.items():
         rows = [int(np.nonzero(d.ids == i)[0][0]) for i in keep]
         measured = d.corners_px[rows].reshape(-1, 4, 2)
@@ -327,6 +329,36 @@ def summarise(views: list[ViewResult], methods: tuple[str, ...]) -> dict:
     return out
 
 
+def size_fit(views: list[ViewResult], method: str, marker_length_m: float) -> dict:
+    """Per camera: its markers' normal bias (mean over their corners, px) fitted to a constant
+    plus an ink spread times the marker's px per metre (``2 size / marker length``): a bias
+    constant in px (the imaging) against one that grows with the marker's size in the image
+    (as a print's ink spread would), each with its standard error; markers beyond 5 robust
+    sigmas of the camera's median left out."""
+    out = {}
+    for cam in sorted({v.camera for v in views}):
+        vs = [v for v in views if v.camera == cam and method in v.normal and v.size_px is not None]
+        if not vs:
+            continue
+        n = np.concatenate([v.normal[method].mean(axis=1) for v in vs])
+        g = 2 * np.concatenate([v.size_px for v in vs]) / marker_length_m
+        ok = np.isfinite(n) & np.isfinite(g)
+        n, g = n[ok], g[ok]
+        mad = 1.4826 * np.median(np.abs(n - np.median(n)))
+        k = np.abs(n - np.median(n)) <= 5 * mad if mad > 0 else np.ones(n.size, bool)
+        n, g = n[k], g[k]
+        if n.size < 4:
+            continue
+        A = np.column_stack([np.ones_like(g), g])
+        x = np.linalg.lstsq(A, n, rcond=None)[0]
+        se = np.sqrt(np.diag(np.linalg.inv(A.T @ A)) * np.sum((n - A @ x) ** 2) / (n.size - 2))
+        out[cam] = {"markers": int(n.size), "constant_px": float(x[0]),
+                    "constant_se_px": float(se[0]), "spread_mm": 1000 * float(x[1]),
+                    "spread_se_mm": 1000 * float(se[1]),
+                    "size_px_median": float(np.median(g) * marker_length_m / 2)}
+    return out
+
+
 def _rows(methods: tuple[str, ...]) -> tuple[str, ...]:
     """The table's rows: each method, and "edges:set" (only the corners the edge fit set;
     the pose stage drops a marker with any other, ``PoseConfig.use_unrefined_corners``)."""
@@ -402,6 +434,9 @@ def main() -> None:
     ap.add_argument("--radius", type=float, default=RADIUS_SQUARES,
                     help="saddles within this many squares of a marker fit its homography")
     ap.add_argument("--json", type=Path, help="write the summary here")
+    ap.add_argument("--by-size", action="store_true",
+                    help="also fit each camera's edge-fit bias to a constant plus an ink spread "
+                    "growing with the marker's size in the image")
     args = ap.parse_args()
     methods = tuple(args.methods.split(","))
     t0 = time.perf_counter()
@@ -416,6 +451,15 @@ def main() -> None:
     print("|---|---|---|---|")
     for m, e in summary["every_frame"].items():
         print(f"| {m} | {e['frames']} | {e['kept']} | {e['too_few_kept_by_another']} |")
+    if args.by_size and "edges" in methods:
+        length = marker_board(load_board(BOARD)).marker_length
+        summary["by_size"] = size_fit(views, "edges", length)
+        print("\n| camera | markers | median size (px) | constant (px) | ink spread (mm) |")
+        print("|---|---|---|---|---|")
+        for c, e in summary["by_size"].items():
+            print(f"| {c} | {e['markers']} | {e['size_px_median']:.1f} | {e['constant_px']:+.3f} "
+                  f"+- {e['constant_se_px']:.3f} | {e['spread_mm']:+.3f} +- "
+                  f"{e['spread_se_mm']:.3f} |")
     print(f"\n{len(views)} views, {time.perf_counter() - t0:.0f} s")
     if args.json:
         args.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
