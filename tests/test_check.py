@@ -471,3 +471,32 @@ def test_a_fix_the_evidence_does_not_confirm_is_check_not_refined():
               "pairs": pairs}
     found = refit_failed(report, [])
     assert [f["cameras"] for f in found] == [["c1"]] and why in found[0]["message"]
+
+
+def test_the_calibrations_edge_offsets_are_taken_out_of_the_checked_board(tmp_path):
+    """check measures the board as the calibration did: the detector edge offsets it modelled
+    (report.json ``bundle.edge_offset.<camera>.applied_px``) come out of the ArUco corners
+    (a ChArUco square's saddles keep theirs); a calibration without them changes nothing."""
+    from conftest import REPO
+
+    from rgbd_calib.detect.markers import MarkerDetections
+    from rgbd_calib.model.board import thesis_board
+    from rgbd_calib.model.board_file import load_board
+    from rgbd_calib.model.calib_folder import load_edge_offsets
+    from rgbd_calib.pipelines.check import without_edge_offsets
+
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps({"bundle": {"edge_offset": {
+        "a": {"offset_px": 0.1, "sigma_px": 0.001, "markers": 50, "applied_px": 0.1},
+        "b": {"offset_px": 0.004, "sigma_px": 0.001, "markers": 50, "applied_px": 0.0},
+        "c": {"offset_px": 0.05, "sigma_px": 0.001, "markers": 50}}}}))  # schema 1.20
+    assert load_edge_offsets(report) == {"a": 0.1}
+    assert load_edge_offsets(tmp_path / "none.json") == {}
+    square = np.array([[[10.0, 10.0], [20.0, 10.0], [20.0, 20.0], [10.0, 20.0]]])
+    det = MarkerDetections(np.array([3]), square.copy(), np.ones((1, 4), bool))
+    out = without_edge_offsets({("a", "f0"): det, ("b", "f0"): det}, thesis_board(), {"a": 0.1})
+    np.testing.assert_allclose(out[("a", "f0")].corners_px[0].min(axis=0), [10.1, 10.1])
+    assert out[("b", "f0")] is det
+    charuco = load_board(REPO / "configs" / "board_charuco_a3.yaml")
+    kept = without_edge_offsets({("a", "f0"): det}, charuco, {"a": 0.1})
+    np.testing.assert_array_equal(kept[("a", "f0")].corners_px, square)

@@ -150,15 +150,18 @@ TOLERANCE_DEG_OPTION = typer.Option("--tolerance-deg", help="Same, turn (deg).")
 
 def _run_check(ds, calib, scales, method, tolerance_mm, tolerance_deg, scheduler=None,
                depth_config=None, calib_dir: Path | None = None):
-    """check, the board (evidence where in view) the calibration's in ``calib_dir``."""
-    from ..model.calib_folder import calibration_board
+    """check, the board (evidence where in view) and its detector edge offsets the
+    calibration's in ``calib_dir``."""
+    from ..model.calib_folder import calibration_board, load_edge_offsets
     from ..pipelines.check import check
     from ..solve.moved import Tolerance
 
     board, where = calibration_board(calib_dir or Path("."), ds.path)
+    offsets = load_edge_offsets((calib_dir or Path(".")) / "report.json")
     with stage_progress() as progress:
         run = check(ds, calib, method, depth_config, Tolerance(tolerance_mm, tolerance_deg),
-                    scales, progress=progress, scheduler=scheduler, board=board)
+                    scales, progress=progress, scheduler=scheduler, board=board,
+                    edge_offsets=offsets)
     used = run.result.board.get("frame_sets", 0)
     console.print(f"board: {where}; " + (f"seen by two cameras or more in {used} frame sets: "
                   "evidence beside the depth" if used else "not seen by two cameras in one "

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +46,7 @@ class EarlierCalibration:
     depth_scales: dict[str, float | DepthModel]  # depth model, else report.json's factor
     T_ref_board: dict[str, np.ndarray]
     board_cameras: dict[str, list[str]]
+    edge_offsets: dict[str, float] = field(default_factory=dict)  # camera -> modelled px
 
 
 def load_calibration(calib: str | os.PathLike) -> EarlierCalibration:
@@ -57,7 +58,24 @@ def load_calibration(calib: str | os.PathLike) -> EarlierCalibration:
                           "extrinsics.yaml")
     report = path.parent / "report.json"
     return EarlierCalibration(path, load_extrinsics(path, check_redundant=True),
-                              load_depth_corrections(path.parent), *load_board_views(report))
+                              load_depth_corrections(path.parent), *load_board_views(report),
+                              load_edge_offsets(report))
+
+
+def load_edge_offsets(report_json: Path) -> dict[str, float]:
+    """camera -> the detector edge offset (px per edge) a calibration modelled, from its
+    ``report.json`` (``bundle.edge_offset.<camera>.applied_px``, schema 1.21; cameras without
+    one are left out); empty when the file does not exist or has none."""
+    if not Path(report_json).is_file():
+        return {}
+    try:
+        offsets = (json.loads(Path(report_json).read_text()).get("bundle") or {}).get(
+            "edge_offset") or {}
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{report_json}: not a readable report.json ({exc}); remove it or "
+                           "repair it") from exc
+    return {str(c): float(e["applied_px"]) for c, e in offsets.items()
+            if isinstance(e, dict) and e.get("applied_px")}
 
 
 def load_depth_scales(report_json: Path) -> dict[str, float]:

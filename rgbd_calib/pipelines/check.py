@@ -41,12 +41,14 @@ from ..core.progress import Progress, start
 from ..depth.clouds import CameraCloud
 from ..depth.registration import PairRegistration, find_overlapping_pairs
 from ..depth.stage import register_pairs, static_clouds
+from ..detect.markers import MarkerDetections
 from ..detect.run import detect_dataset
 from ..model.board import Board
 from ..model.calib_folder import calibration_board, load_calibration, with_refined_intrinsics
 from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics
 from ..solve.bundle import RelativePose
+from ..solve.edge_offset import without_offset
 from ..solve.moved import (
     MOVED_CHI2,
     BoardLink,
@@ -136,7 +138,7 @@ def board_links(observations: list[BoardObservation], cameras: set[str],
 
 def board_evidence(dataset: FolderDataset, board: Board, cameras: set[str], calib: Extrinsics,
                    workers: int | None = None, progress: Progress | None = None,
-                   scheduler: str | None = None,
+                   scheduler: str | None = None, edge_offsets: dict[str, float] | None = None,
                    ) -> tuple[list[BoardLink], dict[str, Any], dict[str, np.ndarray]]:
     """The board in the checked frames: markers detected in every colour image
     (:func:`~rgbd_calib.detect.run.detect_dataset`, default settings, no cache), a PnP pose
@@ -145,10 +147,15 @@ def board_evidence(dataset: FolderDataset, board: Board, cameras: set[str], cali
     more, views per camera); and per frame where the board was (reference frame, through the
     calibration; the medoid of the cameras' views, so one knocked camera does not misplace it),
     for masking it out of the static clouds: a board waved through a few frames is not
-    scene, and its remnants in a temporal median bias the depth pairs."""
+    scene, and its remnants in a temporal median bias the depth pairs.
+
+    ``edge_offsets`` (camera -> px per edge: the detector edge offsets the calibration
+    modelled, ``bundle.edge_offset``) are taken out of the markers' corners first, so that the
+    PnP poses are measured as the calibration's were (a 0.1 px offset is ~1.7 mm)."""
     n_images = len(dataset.frames) * len(dataset.cameras)
     detections = detect_dataset(dataset, board, DetectionConfig(), None, workers,
                                 start(progress, "detecting the board", n_images), scheduler)
+    detections = without_edge_offsets(detections, board, edge_offsets or {})
     observations, _ = board_poses(detections, board, dataset.rig, PoseConfig())
     links = board_links(observations, cameras)
     per_camera = dict(Counter(k.camera for k in links))
@@ -163,7 +170,26 @@ def board_evidence(dataset: FolderDataset, board: Board, cameras: set[str], cali
         placed[f] = poses[int(np.argmin(cost))]
     return links, {"views": len(observations), "frame_sets": len({k.frame for k in links}),
                    "views_used": per_camera, "model_error_px": MODEL_ERROR_PX,
-                   "masked_frames": len(placed)}, placed
+                   "masked_frames": len(placed),
+                   **({"edge_offsets_px": dict(sorted(edge_offsets.items()))}
+                      if edge_offsets else {})}, placed
+
+
+def without_edge_offsets(detections: dict[tuple[str, str], MarkerDetections], board: Board,
+                         offsets: dict[str, float]) -> dict[tuple[str, str], MarkerDetections]:
+    """``detections`` ((camera, frame) -> markers) with each camera's edge offset taken out of
+    its ArUco markers' corners (:func:`~rgbd_calib.solve.edge_offset.without_offset`; a
+    ChArUco square's saddle corners keep theirs)."""
+    out = {}
+    for key, det in detections.items():
+        d = offsets.get(key[0], 0.0)
+        if d and len(det.ids):
+            fitted = ~board.saddle_quads(det.ids)
+            corners = np.array(det.corners_px, dtype=float)
+            corners[fitted] = without_offset(corners[fitted], d)
+            det = replace(det, corners_px=corners)
+        out[key] = det
+    return out
 
 
 def check_rig(clouds: dict[str, CameraCloud], calib: Extrinsics,
@@ -240,7 +266,8 @@ def check(dataset: FolderDataset | str | os.PathLike, calib: Extrinsics | str | 
           tolerance: Tolerance = Tolerance(),
           depth_scales: dict[str, float | DepthModel] | None = None,
           workers: int | None = None, progress: Progress | None = None,
-          scheduler: str | None = None, board: Board | None = None) -> CheckRun:
+          scheduler: str | None = None, board: Board | None = None,
+          edge_offsets: dict[str, float] | None = None) -> CheckRun:
     """Has a camera moved since the calibration ``calib``? As ``rgbd-calib check`` decides it.
 
     ``dataset``: a :class:`FolderDataset` or a dataset folder's path (one or a few frame sets
@@ -249,7 +276,8 @@ def check(dataset: FolderDataset | str | os.PathLike, calib: Extrinsics | str | 
     then, as the command does, the dataset is read with the intrinsics of its
     ``rig_refined.yaml``, the depth corrections beside it are used (unless ``depth_scales`` is
     given) and, without ``board``, the board is the calibration's
-    (:func:`~rgbd_calib.model.calib_folder.calibration_board`). Returns the
+    (:func:`~rgbd_calib.model.calib_folder.calibration_board`), and its modelled detector edge
+    offsets are taken out of the board's corners (unless ``edge_offsets`` is given). Returns the
     :class:`CheckRun`: ``moved``, ``unknown`` and ``result`` (per camera its status, move and
     sigma; ``result.to_dict()`` is check.json's content). See :func:`check_dataset`."""
     dataset = open_dataset(dataset)
@@ -258,11 +286,12 @@ def check(dataset: FolderDataset | str | os.PathLike, calib: Extrinsics | str | 
         dataset = dataset.with_rig(with_refined_intrinsics(dataset.rig,
                                                            earlier.path.parent)[0])
         depth_scales = earlier.depth_scales if depth_scales is None else depth_scales
+        edge_offsets = earlier.edge_offsets if edge_offsets is None else edge_offsets
         calib = earlier.extrinsics
         if board is None:
             board = calibration_board(earlier.path.parent, dataset.path)[0]
     return check_dataset(dataset, calib, depth_scales, method, config, tolerance, workers,
-                         progress, scheduler, board)
+                         progress, scheduler, board, edge_offsets)
 
 
 def check_dataset(dataset: FolderDataset, calib: Extrinsics,
@@ -270,13 +299,15 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
                   method: RegistrationMethod = "colored-icp",
                   config: DepthConfig | None = None, tolerance: Tolerance = Tolerance(),
                   workers: int | None = None, progress: Progress | None = None,
-                  scheduler: str | None = None, board: Board | None = None) -> CheckRun:
+                  scheduler: str | None = None, board: Board | None = None,
+                  edge_offsets: dict[str, float] | None = None) -> CheckRun:
     """Check ``dataset`` (one or a few frame sets of the rig as it is now; anything in view is
     scene) against ``calib``: a static cloud per calibrated camera with
     depth (its ``depth_scales`` entry: the calibration's depth model or factor), the pairs
     that overlap under the calibration (with a wider overlap search, 0.15 m, than
     calibrate's: a knocked camera's cloud lies centimetres off), with ``board`` the board's
-    poses (:func:`board_evidence`), then :func:`check_rig`."""
+    poses (:func:`board_evidence`, ``edge_offsets`` taken out of its corners), then
+    :func:`check_rig`."""
     config = config or DepthConfig()
     scales = depth_scales or {}
     links: list[BoardLink] = []
@@ -285,7 +316,7 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
     if board is not None:
         t0 = time.perf_counter()
         links, summary, placed = board_evidence(dataset, board, set(calib.cameras) & set(
-            dataset.cameras), calib, workers, progress, scheduler)
+            dataset.cameras), calib, workers, progress, scheduler, edge_offsets)
         summary = {"used": bool(links), **summary, "time_s": time.perf_counter() - t0}
     cams = [c for c in dataset.cameras if c in calib.cameras and dataset.has_depth(c)]
     clouds, skipped = static_clouds(
