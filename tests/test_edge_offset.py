@@ -83,6 +83,16 @@ def test_the_report_names_a_modelled_offset_as_information_and_an_unmodelled_one
         ("info", ["big", "half"]), ("warning", ["half"])], found
     assert "+0.030 px" in found[1]["message"]  # what no model holds
     assert edge_offset({"bundle": {}}, []) == [] and edge_offset({}, []) == []
+    sized = {"bundle": {"edge_offset": {
+        "ink": {"offset_px": 0.1, "sigma_px": 0.001, "markers": 300, "applied_px": 0.1,
+                "size_mm": 0.4, "size_sigma_mm": 0.02, "size_effect_px": 0.046},
+        "faint": {"offset_px": 0.1, "sigma_px": 0.001, "markers": 300, "applied_px": 0.1,
+                  "size_mm": 0.15, "size_sigma_mm": 0.015, "size_effect_px": 0.017},  # 1/z
+        "noisy": {"offset_px": 0.1, "sigma_px": 0.001, "markers": 300, "applied_px": 0.1,
+                  "size_mm": 0.4, "size_sigma_mm": 0.1, "size_effect_px": 0.05}}}}
+    found = edge_offset(sized, [])
+    assert [(f["severity"], f["code"], f["cameras"]) for f in found] == [
+        ("info", "edge_offset", ["faint", "ink", "noisy"]), ("warning", "edge_size", ["ink"])]
 
 
 def test_taking_an_offset_out_undoes_it_and_only_a_significant_reading_is_modelled():

@@ -54,6 +54,10 @@ TILT_SPREAD_MIN_DEG = 20.0  # range of board tilts seen by a camera
 # ring renders (docs/accuracy.md, "A detector's edge offset"), so 0.02 px is ~0.4 mm
 EDGE_OFFSET_MIN_PX = 0.02
 EDGE_OFFSET_SIGMAS = 5.0
+# edge_size: a camera whose markers' edge bias grows with their size beyond the modelled offset
+# (bundle.edge_offset.<camera>.size_mm) by at least EDGE_OFFSET_SIGMAS standard errors, its
+# near markers reading at least this much more than its far ones (px per edge)
+EDGE_SIZE_MIN_PX = 0.02
 PAIR_RMSE_MAX_MM = 15.0  # point-to-plane RMSE after ICP above this: depth itself is off
 # the joint extrinsics fit a pair worse than its own ICP did by more than this: the pair and
 # the rest of the calibration disagree (depth noise alone gives ~5 mm at 2 m on a D435)
@@ -332,7 +336,8 @@ REPORT_SCHEMA: dict[str, Any] = {
         },
         "run_correlation?": MapOf("<camera>", {"rho": N, "pairs": INT, "factor": N}),
         "edge_offset?": MapOf("<camera>", {"offset_px": N, "sigma_px": N, "markers": INT,
-                                           "applied_px?": N}),
+                                           "applied_px?": N, "size_mm?": N,
+                                           "size_sigma_mm?": N, "size_effect_px?": N}),
         "self_calibration?": {
             "chosen": S,
             "board": B,
