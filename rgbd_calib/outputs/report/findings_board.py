@@ -253,7 +253,8 @@ def edge_offset(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]
     (``bundle.edge_offset``): a detector edge offset (ink spread, blur, the camera's
     sharpening). Taken out of the corners (``applied_px``), it is named as information; what
     no model holds (``bundle.edge_offset: off``, or a reading too weak to model) biases every
-    board pose of the camera: a warning."""
+    board pose of the camera: a warning; so does what grows with the markers' size beyond the
+    offset (``size_mm``, ``size_effect_px``): the warning ``edge_size``."""
     offsets = (report.get("bundle") or {}).get("edge_offset") or {}
 
     def listed(rows: list[tuple[str, dict[str, Any]]], key: str) -> str:
