@@ -10,12 +10,11 @@ renderer has no such offset, so it is put into the detections: the render is cal
 of that cache is moved outward by it (each corner by the offset along the outward normals of
 its two edges) and the render calibrated again from the copy, once per ``bundle.edge_offset``
 mode (``auto``: the offset modelled, the default; ``off``: read only). Printed per offset and
-mode: the worst
-camera's error against ground_truth.yaml, the mean over the non-reference cameras of each
-one's 6-dof chi-square of its error under its covariance over 6 (1 when the covariance is
-honest), the corners' a-posteriori sigma, the model the self-calibration chose and the range
-over cameras of the edge offset the bundle estimated (``bundle.edge_offset``: what it took out
-of the corners plus what the residuals still read).
+mode: the worst camera's error against ground_truth.yaml, the mean over the non-reference
+cameras of each one's 6-dof chi-square of its error under its covariance over 6 (1 when the
+covariance is honest), the corners' a-posteriori sigma, the model the self-calibration chose
+and the range over cameras of the edge offset the bundle estimated (``bundle.edge_offset``:
+what it took out of the corners plus what the residuals still read).
 """
 
 from __future__ import annotations
@@ -32,7 +31,7 @@ from rgbd_calib import CalibrationConfig, FolderDataset, calibrate
 from rgbd_calib.core.geometry import transform_error
 from rgbd_calib.depth.information import tangent_error
 from rgbd_calib.model.board import thesis_board
-from rgbd_calib.solve.edge_offset import corner_normal_sums
+from rgbd_calib.solve.edge_offset import without_offset
 from rgbd_calib.synth.render import load_ground_truth
 
 DETECTIONS = "detections.json"
@@ -40,8 +39,10 @@ DETECTIONS = "detections.json"
 
 def shifted_outward(corners: np.ndarray, offset_px: float) -> np.ndarray:
     """Marker quads ``(N, 4, 2)`` with every edge moved outward by ``offset_px``: each corner
-    by the offset along the outward unit normals of its two edges (exact for a square)."""
-    return corners + offset_px * corner_normal_sums(corners)
+    by the offset along the outward unit normals of its two edges (exact for a square); the
+    inverse of the bundle's own correction, :func:`~rgbd_calib.solve.edge_offset.
+    without_offset`."""
+    return without_offset(corners, -offset_px)
 
 
 def write_offset_cache(source: Path, target: Path, offset_px: float) -> None:

@@ -140,6 +140,7 @@ class _BoardModel:
             _, cand = self.trees[face].query(xy, k=k)
             cand = cand.reshape(len(sel), k)
             spread = self.printed.ink_spread_m if self.printed is not None else 0.0
+            grids = [self.cells[int(i)] for i in ids] if spread else []
             for j in range(k):
                 c = corners[cand[:, j]]
                 e1, e3 = c[:, 1] - c[:, 0], c[:, 3] - c[:, 0]
@@ -149,7 +150,7 @@ class _BoardModel:
                 if spread:
                     ink = _spread_ink(u, v, np.linalg.norm(e1, axis=1),
                                       np.linalg.norm(e3, axis=1), spread, cand[:, j],
-                                      [self.cells[int(i)] for i in ids])
+                                      grids)
                     out[sel[ink >= 0]] = np.where(ink[ink >= 0] > 0, INK_BLACK, PAPER_WHITE)
                     continue
                 inside = (u >= 0) & (u < 1) & (v >= 0) & (v < 1)
