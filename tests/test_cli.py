@@ -145,6 +145,12 @@ def test_synth_and_board_commands(tmp_path):
     assert code == 2 and "unknown layout" in text
     code, text = run("synth", tmp_path / "s", "--resolution", "big")
     assert code != 0 and "WIDTHxHEIGHT" in text
+    code, text = run("synth", tmp_path / "s", "--ink-spread", "0.8")
+    assert code == 2 and "--ink-spread 0.8" in text and len(text.strip().splitlines()) == 1
+    code, text = run("synth", tmp_path / "s", "--ink-spread", "0.1", "--board",
+                     CONFIGS / "board_charuco_a3.yaml")
+    assert code == 2 and "leave --ink-spread out" in text
+    assert not (tmp_path / "s").exists()
     code, text = run("board", CONFIGS / "board_thesis.yaml", "--out", tmp_path / "b",
                      "--dpi", "50")
     assert code == 0 and (tmp_path / "b" / "board.pdf").exists()
