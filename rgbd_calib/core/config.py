@@ -492,6 +492,14 @@ class BundleConfig(BaseModel):
         "it fits the corners better than its parameters cost (BIC) and better than the "
         "board; a still board or synchronised cameras keep the timeless model",
     )
+    corner_noise: Literal["marker", "independent"] = Field(
+        "independent",
+        description="the corners' noise model. marker: each marker's centre and shape weighed "
+        "apart, both sigmas estimated from the residuals and the bundle solved again at them "
+        "(an edge-fitted marker's corners err together in shape: its centre errs ~2x less "
+        "than independent corners would; rgbd_calib/solve/corner_noise.py); independent: "
+        "every corner at one sigma",
+    )
     edge_offset: Literal["auto", "off"] = Field(
         "auto",
         description="a detector that sees every marker edge a fraction of a pixel outside "

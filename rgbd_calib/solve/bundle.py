@@ -32,7 +32,7 @@ from .bundle_faces import (
     board_prior_sigmas,
     face_models_setup,
     face_prior_sigmas,
-    union_find,
+    reference_component,
 )
 from .bundle_factors import (
     face_transform,
@@ -43,6 +43,7 @@ from .bundle_factors import (
     view_factor_intrinsics,
     with_parameters,
 )
+from .corner_noise import CornerNoise, estimate_corner_noise
 from .edge_offset import EdgeOffset, measurements_without_offset, read_offsets
 from .posegraph import sigmas_from_covariance
 from .runs import RunCorrelation, link_window_ms, recording_runs, run_inflation
@@ -134,6 +135,9 @@ class BundleResult:
     relative_pose_fit: tuple[tuple[float, float], ...] = ()
     # per camera: the edge offset its corner residuals read (:mod:`rgbd_calib.solve.edge_offset`)
     edge_offset: dict[str, EdgeOffset] = field(default_factory=dict)
+    # the corners' centre and shape sigmas read from the residuals (solve/corner_noise.py);
+    # what the solve weighed them by with config.corner_noise == "marker"
+    corner_noise: CornerNoise | None = None
 
 
 @dataclass(frozen=True)
@@ -275,9 +279,13 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
     # the corner noise a posteriori (Foerstner's variance factor); with depth pairs, re-solve
     # with the corners at it, so that board and depth measurements are weighted against each
     # other by their real uncertainties
-    sigma_hat = solution.sigma_px(layout)
     config = layout.config
-    sigma_marg = max(sigma_hat, 1e-3) if config.estimate_sigma else config.pixel_sigma
+    if config.corner_noise == "marker" and solution.active:  # centre and shape weighed apart
+        ratio = _noise(layout, solution).centre_ratio
+        solution = _solve_at_sigma(layout, solution, CornerNoise(config.pixel_sigma, ratio),
+                                   params)
+    sigma_hat = solution.sigma_px(layout)
+    sigma_marg = _noise_a_posteriori(layout, solution, sigma_hat)
     clock = None
     if layout.timed and config.time_twist_prior_from_data:  # priors against the corners
         # the clocks from the solve with the wide prior, which barely pulls their scale
@@ -286,7 +294,7 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
             solution.values))
         layout, solution = _twist_prior_from_data(layout, solution, sigma_marg, params)
         sigma_hat = solution.sigma_px(layout)
-        sigma_marg = max(sigma_hat, 1e-3) if config.estimate_sigma else config.pixel_sigma
+        sigma_marg = _noise_a_posteriori(layout, solution, sigma_hat)
     if layout.relative_poses and config.estimate_sigma:
         solution = _solve_at_sigma(layout, solution, sigma_marg, params)
     # marginals of the plain Gaussian graph at the solution
@@ -347,8 +355,9 @@ class _FactorLayout:
         return {c for c in self.cams if values.exists(self.cam_key[c])}
 
     def reference_part(self, active: list[MarkerMeasurement], values: gtsam.Values):
-        """:func:`_reference_component`, keeping the face poses (the back sheet's)."""
-        out, sub = _reference_component(active, values, self.cam_key, self.view_key,
+        """:func:`~rgbd_calib.solve.bundle_faces.reference_component`, keeping the face poses
+        (the back sheet's)."""
+        out, sub = reference_component(active, values, self.cam_key, self.view_key,
                                         set(self.fixed), self.relative_poses, self.reference,
                                         self.intr_key)
         for key, _, _ in self.moving:
@@ -459,6 +468,28 @@ class _Solution:
         return float(np.sqrt(np.sum(4 * self.rms**2) / dof))
 
 
+def _noise(layout: _FactorLayout, solution: _Solution) -> CornerNoise:
+    """The corners' centre and shape sigmas a posteriori from ``solution``'s residuals."""
+    n = len(solution.active)
+    return estimate_corner_noise(
+        layout.marker_residuals(solution.groups, n, solution.values),
+        8 * n - _residual_dof(layout, n, solution.values))
+
+
+def _noise_a_posteriori(layout: _FactorLayout, solution: _Solution,
+                        sigma_hat: float) -> float | CornerNoise:
+    """The corner noise the marginals (and any later solve) take: the configured sigma without
+    ``estimate_sigma``; else the a-posteriori ``sigma_hat`` of every corner, or with
+    ``corner_noise: marker`` the centre and shape sigmas (:func:`_noise`)."""
+    config = layout.config
+    if not config.estimate_sigma:
+        return config.pixel_sigma
+    if config.corner_noise == "marker" and solution.active:
+        noise = _noise(layout, solution)
+        return replace(noise, sigma_px=max(noise.sigma_px, 1e-3))
+    return max(sigma_hat, 1e-3)
+
+
 def _solve_dropping_outliers(layout: _FactorLayout, kept: list[MarkerMeasurement],
                              values: gtsam.Values,
                              params: gtsam.LevenbergMarquardtParams) -> _Solution:
@@ -488,7 +519,7 @@ def _solve_dropping_outliers(layout: _FactorLayout, kept: list[MarkerMeasurement
     return _Solution(active, groups, connected, values, rms, graph, optimizer, outliers)
 
 
-def _solve_at_sigma(layout: _FactorLayout, solution: _Solution, sigma: float,
+def _solve_at_sigma(layout: _FactorLayout, solution: _Solution, sigma: float | CornerNoise,
                     params: gtsam.LevenbergMarquardtParams) -> _Solution:
     """``solution`` solved again with the corners at noise ``sigma`` (px)."""
     graph = _build_graph(layout, solution.groups, sigma, solution.connected)
@@ -502,7 +533,8 @@ TWIST_PRIOR_STEPS = 2  # expectation-maximisation steps of the twist prior's sca
 TWIST_FLOOR = TwistPrior(sigma_mps=0.005, sigma_dps=0.5)  # a board held still by hand
 
 
-def _twist_prior_from_data(layout: _FactorLayout, solution: _Solution, sigma: float,
+def _twist_prior_from_data(layout: _FactorLayout, solution: _Solution,
+                           sigma: float | CornerNoise,
                            params: gtsam.LevenbergMarquardtParams,
                            ) -> tuple[_FactorLayout, _Solution]:
     """The twist prior's scale estimated from the frame sets' twists (empirical Bayes), the
@@ -559,7 +591,8 @@ def _motion_prior_from_data(layout: _FactorLayout, values: gtsam.Values,
                                  MOTION_FLOOR.q_dps))
 
 
-def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_marg: float,
+def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float,
+            sigma_marg: float | CornerNoise,
             board_model: BoardModel | None, face_models: tuple[FaceModel, ...],
             clock: TimeModel | None = None) -> BundleResult:
     """The :class:`BundleResult` of ``solution``: marginals of the plain Gaussian graph at the
@@ -601,7 +634,9 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float, sigma_
                                   else _time_model(layout, values, marginals), runs),
                         runs, relative_pose_fit(layout.relative_poses, layout.cam_key,
                                                 solution.connected, values, marginals),
-                        read_offsets(solution.active, corner_res, layout.edge_offset))
+                        read_offsets(solution.active, corner_res, layout.edge_offset),
+                        estimate_corner_noise(corner_res, 8 * len(solution.active) - _residual_dof(
+                            layout, len(solution.active), values)) if solution.active else None)
 
 
 def relative_pose_fit(relative_poses: Sequence[RelativePose], cam_key: dict[str, int],
@@ -654,7 +689,7 @@ def _inflated(clock: TimeModel | None, runs: dict[str, RunCorrelation]) -> TimeM
                    sigma_readout_ms={c: s * k[c] for c, s in clock.sigma_readout_ms.items()})
 
 
-def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float,
+def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float | CornerNoise,
                  connected: set[str], robust: bool = True) -> gtsam.NonlinearFactorGraph:
     """The factor graph: one view factor per (camera, view) at corner noise ``sigma`` (px),
     robust per marker unless ``robust`` is off, the priors (fixed cameras, intrinsics, back
@@ -824,35 +859,6 @@ def _camera_marginals(cams: list[str], values: gtsam.Values, cam_key: dict[str, 
         cov[c] = C
         s_rot[c], s_trans[c] = sigmas_from_covariance(T, C)
     return out_cam, cov, s_rot, s_trans
-
-
-def _reference_component(active: list[MarkerMeasurement], values: gtsam.Values,
-                         cam_key: dict, view_key: dict, fixed: set[str],
-                         relative_poses, reference: str, intr_key: dict | None = None):
-    """Keep the measurements and values connected to the reference camera (a camera or view
-    cut off from it has no determined pose: its marginals would be singular); ``intr_key``
-    (camera -> intrinsics vector key) keeps the intrinsics of the kept cameras."""
-    find, union = union_find()
-    for camera, view in dict.fromkeys((m.camera, m.view) for m in active):
-        union("c:" + camera, "v:" + view)
-    for r in relative_poses:
-        union("c:" + r.cam_a, "c:" + r.cam_b)
-    for c in fixed:  # fixed cameras are tied to the reference frame by their priors
-        union("c:" + c, "c:" + reference)
-    root = find("c:" + reference)
-    cameras = {c for c in cam_key if find("c:" + c) == root}
-    kept = [m for m in active if m.camera in cameras]
-    sub = gtsam.Values()
-    for c, k in cam_key.items():
-        if values.exists(k) and find("c:" + c) == root:
-            sub.insert(k, values.atPose3(k))
-    for v, k in view_key.items():
-        if values.exists(k) and find("v:" + v) == root:
-            sub.insert(k, values.atPose3(k))
-    for c, k in (intr_key or {}).items():
-        if values.exists(k) and find("c:" + c) == root:
-            sub.insert(k, values.atVector(k))
-    return kept, sub
 
 
 def _marker_residuals(groups: list[_ViewGroup], n: int, values: gtsam.Values, cam_key: dict,

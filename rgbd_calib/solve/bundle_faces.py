@@ -1,6 +1,7 @@
 """The board self-calibration's models: the back sheet's pose (:class:`BoardModel`) and a
 multi-face target's faces (:class:`FaceModel`), which of them the bundle adjustment can
-estimate (or why each is held) and their priors. Used by :mod:`rgbd_calib.solve.bundle`."""
+estimate (or why each is held) and their priors; which cameras, views and faces the graph
+connects to the reference. Used by :mod:`rgbd_calib.solve.bundle`."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from collections import defaultdict
 from dataclasses import dataclass
 from typing import Any
 
+import gtsam
 import numpy as np
 
 from ..core.config import BundleConfig
@@ -152,6 +154,35 @@ def union_find():
         parent[find(a)] = find(b)
 
     return find, union
+
+
+def reference_component(active: list, values: gtsam.Values,
+                        cam_key: dict, view_key: dict, fixed: set[str],
+                        relative_poses, reference: str, intr_key: dict | None = None):
+    """Keep the measurements and values connected to the reference camera (a camera or view
+    cut off from it has no determined pose: its marginals would be singular); ``intr_key``
+    (camera -> intrinsics vector key) keeps the intrinsics of the kept cameras."""
+    find, union = union_find()
+    for camera, view in dict.fromkeys((m.camera, m.view) for m in active):
+        union("c:" + camera, "v:" + view)
+    for r in relative_poses:
+        union("c:" + r.cam_a, "c:" + r.cam_b)
+    for c in fixed:  # fixed cameras are tied to the reference frame by their priors
+        union("c:" + c, "c:" + reference)
+    root = find("c:" + reference)
+    cameras = {c for c in cam_key if find("c:" + c) == root}
+    kept = [m for m in active if m.camera in cameras]
+    sub = gtsam.Values()
+    for c, k in cam_key.items():
+        if values.exists(k) and find("c:" + c) == root:
+            sub.insert(k, values.atPose3(k))
+    for v, k in view_key.items():
+        if values.exists(k) and find("v:" + v) == root:
+            sub.insert(k, values.atPose3(k))
+    for c, k in (intr_key or {}).items():
+        if values.exists(k) and find("c:" + c) == root:
+            sub.insert(k, values.atVector(k))
+    return kept, sub
 
 
 def face_models_setup(measurements: list, config: BundleConfig,

@@ -20,6 +20,7 @@ from ..core.camera import (
     project_pinhole,
 )
 from ..core.geometry import adjoint, invert_transform, make_transform, move_rows
+from .corner_noise import CornerNoise
 
 
 def project_board(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
@@ -44,6 +45,12 @@ def project_board(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, K: np.ndarray,
     J_cam = pinhole_pose_jacobian(p, fx, fy)
     J_board = J_cam @ -adjoint(make_transform(R_cb, t_cb))
     return uv, J_cam, J_board
+
+
+def as_noise(sigma: float | CornerNoise) -> CornerNoise:
+    """A view factor's corner noise: a :class:`~rgbd_calib.solve.corner_noise.CornerNoise`, or
+    a sigma (px) every corner has independently."""
+    return sigma if isinstance(sigma, CornerNoise) else CornerNoise(float(sigma))
 
 
 def _robust_weight_loss(kind: str, k: float, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -114,7 +121,8 @@ def _face_jacobian(J_board: np.ndarray, rows: np.ndarray, X: np.ndarray,
 
 
 def view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.ndarray,
-                corners_px: np.ndarray, sigma: float, robust: str, robust_k: float,
+                corners_px: np.ndarray, sigma: float | CornerNoise, robust: str,
+                robust_k: float,
                 moving: list | None = None):
     """All markers of one camera view in one factor, each marker with its own robust kernel.
 
@@ -140,14 +148,15 @@ def view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.n
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
-    inv_sigma = 1.0 / sigma
+    noise = as_noise(sigma)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
         uv, J_cam, J_board = project_board(values.atPose3(key_cam).matrix(),
                                       values.atPose3(key_board).matrix(), K, P_b, H is not None)
-        r = ((uv - measured) * inv_sigma).reshape(n, 8)
-        return robust_rows(r, lambda: (J_cam.reshape(-1, 6) * inv_sigma,
-                                       J_board.reshape(-1, 6) * inv_sigma), H, robust, robust_k)
+        r = noise.whiten((uv - measured).reshape(n, 8))
+        return robust_rows(r, lambda: (noise.whiten_rows(J_cam.reshape(-1, 6)),
+                                       noise.whiten_rows(J_board.reshape(-1, 6))),
+                           H, robust, robust_k)
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), [key_cam, key_board], error)
 
@@ -214,7 +223,8 @@ def project_board_full(T_ref_cam: np.ndarray, T_ref_board: np.ndarray, intr: Cam
 
 def view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
                            base: CameraIntrinsics, names: tuple[str, ...],
-                           object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
+                           object_points: np.ndarray, corners_px: np.ndarray,
+                           sigma: float | CornerNoise,
                            robust: str, robust_k: float, moving: list | None = None):
     """:func:`view_factor` with the camera's intrinsics as a third variable: a vector of the
     parameters ``names`` (the rest of ``base`` held), the board points projected through the
@@ -227,7 +237,7 @@ def view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
     n = len(object_points)
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_b = np.asarray(object_points, dtype=float).reshape(-1, 3)
-    inv_sigma = 1.0 / sigma
+    noise = as_noise(sigma)
     padded, columns = refined_model(base, names)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None):
@@ -235,10 +245,10 @@ def view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
         uv, J_cam, J_board, J_intr = project_board_full(
             values.atPose3(key_cam).matrix(), values.atPose3(key_board).matrix(), intr,
             columns, P_b, H is not None)
-        r = ((uv - measured) * inv_sigma).reshape(n, 8)
-        return robust_rows(r, lambda: (J_cam.reshape(-1, 6) * inv_sigma,
-                                       J_board.reshape(-1, 6) * inv_sigma,
-                                       J_intr.reshape(-1, len(names)) * inv_sigma),
+        r = noise.whiten((uv - measured).reshape(n, 8))
+        return robust_rows(r, lambda: (noise.whiten_rows(J_cam.reshape(-1, 6)),
+                                       noise.whiten_rows(J_board.reshape(-1, 6)),
+                                       noise.whiten_rows(J_intr.reshape(-1, len(names)))),
                            H, robust, robust_k)
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n),
@@ -247,7 +257,8 @@ def view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
 
 def _view_factor_faces(key_cam: int, key_board: int, moving: list,
                        K: np.ndarray | None, intr: tuple, names: tuple[str, ...],
-                       object_points: np.ndarray, corners_px: np.ndarray, sigma: float,
+                       object_points: np.ndarray, corners_px: np.ndarray,
+                       sigma: float | CornerNoise,
                        robust: str, robust_k: float):
     """The view factor with face poses as variables (board self-calibration): ``moving`` lists
     ``(key, flags, A)`` per face seen, ``flags`` (n,) marking its markers, ``A`` the frame its
@@ -260,7 +271,7 @@ def _view_factor_faces(key_cam: int, key_board: int, moving: list,
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_file = np.asarray(object_points, dtype=float).reshape(-1, 3)
     faces = [(key, np.repeat(np.asarray(flags, dtype=bool), 4), A) for key, flags, A in moving]
-    inv_sigma = 1.0 / sigma
+    noise = as_noise(sigma)
     keys = [key_cam, key_board]
     if intr:
         key_intr, base = intr
@@ -279,13 +290,14 @@ def _view_factor_faces(key_cam: int, key_board: int, moving: list,
                                                        H is not None)
         else:
             uv, J_cam, J_board = project_board(T_cam, T_board, K, P_b, H is not None)
-        r = ((uv - measured) * inv_sigma).reshape(n, 8)
+        r = noise.whiten((uv - measured).reshape(n, 8))
 
         def blocks():
-            out = [J_cam.reshape(-1, 6) * inv_sigma, J_board.reshape(-1, 6) * inv_sigma]
+            out = [noise.whiten_rows(J_cam.reshape(-1, 6)),
+                   noise.whiten_rows(J_board.reshape(-1, 6))]
             if intr:
-                out.append(J_intr.reshape(-1, len(names)) * inv_sigma)
-            out += [_face_jacobian(J_board, rows, x, A).reshape(-1, 6) * inv_sigma
+                out.append(noise.whiten_rows(J_intr.reshape(-1, len(names))))
+            out += [noise.whiten_rows(_face_jacobian(J_board, rows, x, A).reshape(-1, 6))
                     for (_, rows, A), x in zip(faces, X)]
             return out
 

@@ -51,11 +51,13 @@ from ..core.camera import (
 )
 from ..core.geometry import move_rows, pose_after_twist
 from .bundle_factors import (
+    as_noise,
     face_transform,
     refined_model,
     robust_rows,
     with_parameters,
 )
+from .corner_noise import CornerNoise
 
 MS = 1e-3  # seconds per millisecond: the time parameters are in ms
 HELD_SIGMA = 1e-6  # sigma (ms) of a held time (the reference's offset, a global shutter): tighter
@@ -189,8 +191,8 @@ def _moved_point_jacobian(J_point_board: np.ndarray, rows: np.ndarray, P_b: np.n
 
 def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: int,
                       K: np.ndarray | None, height_px: int, object_points: np.ndarray,
-                      corners_px: np.ndarray, sigma: float, robust: str, robust_k: float,
-                      intr: tuple | None = None, names: tuple[str, ...] = (),
+                      corners_px: np.ndarray, sigma: float | CornerNoise, robust: str,
+                      robust_k: float, intr: tuple | None = None, names: tuple[str, ...] = (),
                       moving: list | None = None, known_ms: float = 0.0,
                       accel: tuple[tuple[int, float], ...] = ()):
     """All markers of one camera view in one factor, each corner predicted at its own time.
@@ -219,7 +221,7 @@ def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: in
     measured = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     P_file = np.asarray(object_points, dtype=float).reshape(-1, 3)
     s_row = row_fraction(measured[:, 1], height_px)
-    inv_sigma = 1.0 / sigma
+    noise = as_noise(sigma)
     faces = [(key, np.repeat(np.asarray(flags, dtype=bool), 4), A)
              for key, flags, A in (moving or [])]
     keys = [key_cam, key_board]
@@ -243,7 +245,7 @@ def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: in
                               values.atPose3(key_board).matrix(), values.atVector(key_twist),
                               values.atVector(key_time) + [known_ms, 0.0], model, P_b, s_row,
                               H is not None, columns, acc)
-        r = ((uv - measured) * inv_sigma).reshape(n, 8)
+        r = noise.whiten((uv - measured).reshape(n, 8))
 
         def blocks():
             J_cam, J_board, J_twist, J_time, J_pb = J[:5]
@@ -253,7 +255,7 @@ def timed_view_factor(key_cam: int, key_board: int, key_twist: int, key_time: in
             t_ms = values.atVector(key_time) + [known_ms, 0.0]
             J_acc = J_twist * (0.5 * MS * (t_ms[0] + t_ms[1] * s_row))[:, None, None]
             out += [J_twist + own * J_acc, J_time] + [c * J_acc for _, c in others]
-            return tuple(j.reshape(8 * n, -1) * inv_sigma for j in out)
+            return tuple(noise.whiten_rows(j.reshape(8 * n, -1)) for j in out)
 
         return robust_rows(r, blocks, H, robust, robust_k)
 

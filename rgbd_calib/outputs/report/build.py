@@ -593,6 +593,11 @@ def _bundle_entry(bundle: BundleResult) -> dict[str, Any]:
         entry["time"] = bundle.time.to_dict()
     if bundle.edge_offset:  # what the corner residuals read of each detector's edge offset
         entry["edge_offset"] = {c: e.to_dict() for c, e in sorted(bundle.edge_offset.items())}
+    if bundle.corner_noise is not None:  # the corners' centre and shape noise, read
+        n = bundle.corner_noise
+        entry["corner_noise"] = {"shape_sigma_px": n.sigma_px,
+                                 "centre_sigma_px": n.centre_sigma_px / 2,
+                                 "centre_ratio": n.centre_ratio}
     if bundle.run_correlation:  # consecutive frames: their sigmas' variance factors
         entry["run_correlation"] = {c: {"rho": r.rho, "pairs": r.pairs, "factor": r.factor}
                                     for c, r in sorted(bundle.run_correlation.items())}

@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.21"
+REPORT_SCHEMA_VERSION = "1.22"
 
 
 class ReportError(RgbdCalibError):
@@ -334,6 +334,7 @@ REPORT_SCHEMA: dict[str, Any] = {
             "linked_sets?": INT,
             "motion_prior?": {"q_mps": N, "q_dps": N},
         },
+        "corner_noise?": {"shape_sigma_px": N, "centre_sigma_px": N, "centre_ratio": N},
         "run_correlation?": MapOf("<camera>", {"rho": N, "pairs": INT, "factor": N}),
         "edge_offset?": MapOf("<camera>", {"offset_px": N, "sigma_px": N, "markers": INT,
                                            "applied_px?": N, "size_mm?": N,
