@@ -10,10 +10,16 @@ import numpy as np
 from test_bundle import K, perturb, scene
 
 from rgbd_calib.core.config import BundleConfig
+from rgbd_calib.core.geometry import make_transform, rotvec_to_matrix
 from rgbd_calib.depth.information import tangent_error
 from rgbd_calib.solve.bundle import BundleProblem, bundle_adjust
 from rgbd_calib.solve.bundle_factors import view_factor
-from rgbd_calib.solve.corner_noise import MIN_MARKERS, CornerNoise, estimate_corner_noise
+from rgbd_calib.solve.corner_noise import (
+    MIN_MARKERS,
+    CornerNoise,
+    estimate_corner_noise,
+    scale_covariance,
+)
 
 P_CENTRE = np.kron(np.full((4, 4), 0.25), np.eye(2))  # the corners' mean, broadcast
 
@@ -99,3 +105,32 @@ def test_the_marker_model_claims_honest_sigmas_where_one_sigma_per_corner_claims
     assert np.mean(chi_ind) < 0.5, chi_ind
     assert 0.5 < np.mean(chi_mk) < 1.8, chi_mk
     assert np.sqrt(np.mean(np.square(err_mk))) < 0.9 * np.sqrt(np.mean(np.square(err_ind)))
+
+
+def test_the_rig_scale_sigma_is_the_move_of_a_scaled_rig_along_one_direction():
+    T = make_transform(rotvec_to_matrix([0.3, -1.2, 0.4]), [1.7, -0.2, 2.4])
+    scaled = make_transform(T[:3, :3], T[:3, 3] * (1 + 20e-6))
+    xi = tangent_error(scaled, T)  # what a 20 ppm larger rig moves this camera by
+    C = scale_covariance(T, 20e-6)
+    assert np.linalg.matrix_rank(C, tol=1e-20) == 1
+    np.testing.assert_allclose(np.outer(xi, xi), C, atol=1e-16)
+
+
+def test_the_marker_model_adds_the_rig_scale_to_every_solved_cameras_covariance():
+    rng = np.random.default_rng(9)
+    truth, boards, meas = scene(rng, n_cams=3, n_views=6, sigma_px=0.0)
+    e = structured(rng, len(meas), 0.08, 0.02)
+    meas = [replace(m, corners_px=m.corners_px + d) for m, d in zip(meas, e)]
+    problem = BundleProblem(meas, dict.fromkeys(truth, K), "c0", truth, boards,
+                            BundleConfig(pixel_sigma=0.1, corner_noise="marker"))
+    with_scale = bundle_adjust(problem)
+    without = bundle_adjust(replace(problem, config=BundleConfig(
+        pixel_sigma=0.1, corner_noise="marker", scale_sigma_ppm=0.0)))
+    assert with_scale.scale_sigma_ppm == 25.0 and without.scale_sigma_ppm == 0.0
+    for c in ("c1", "c2"):
+        np.testing.assert_allclose(with_scale.covariance[c] - without.covariance[c],
+                                   scale_covariance(with_scale.T_ref_cam[c], 25e-6),
+                                   atol=1e-14)
+    assert not with_scale.covariance["c0"].any()
+    independent = bundle_adjust(replace(problem, config=BundleConfig(pixel_sigma=0.1)))
+    assert independent.scale_sigma_ppm == 0.0

@@ -500,6 +500,14 @@ class BundleConfig(BaseModel):
         "than independent corners would; rgbd_calib/solve/corner_noise.py); independent: "
         "every corner at one sigma",
     )
+    scale_sigma_ppm: float = Field(
+        25.0,
+        ge=0,
+        description="with corner_noise: marker, the rig's scale as the detector sees the board "
+        "is known to this (ppm of each camera's distance from the reference) and added to its "
+        "covariance: measured on renders, the detected board is 12-27 ppm larger than drawn, "
+        "an error no number of views averages out (docs/accuracy.md)",
+    )
     edge_offset: Literal["auto", "off"] = Field(
         "auto",
         description="a detector that sees every marker edge a fraction of a pixel outside "

@@ -43,7 +43,7 @@ from .bundle_factors import (
     view_factor_intrinsics,
     with_parameters,
 )
-from .corner_noise import CornerNoise, estimate_corner_noise
+from .corner_noise import CornerNoise, estimate_corner_noise, scale_covariance
 from .edge_offset import EdgeOffset, measurements_without_offset, read_offsets
 from .posegraph import sigmas_from_covariance
 from .runs import RunCorrelation, link_window_ms, recording_runs, run_inflation
@@ -138,6 +138,7 @@ class BundleResult:
     # the corners' centre and shape sigmas read from the residuals (solve/corner_noise.py);
     # what the solve weighed them by with config.corner_noise == "marker"
     corner_noise: CornerNoise | None = None
+    scale_sigma_ppm: float = 0.0  # the rig scale's sigma added to every camera's covariance
 
 
 @dataclass(frozen=True)
@@ -608,10 +609,14 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float,
     corner_res = (layout.marker_residuals(solution.groups, len(solution.active), values)
                   if solution.active else np.zeros((0, 4, 2)))
     runs = _run_correlation(layout, solution, corner_res)
-    for c, r in runs.items():
-        if c in cov:
-            cov[c] = cov[c] * r.factor
-            s_rot[c], s_trans[c] = sigmas_from_covariance(out_cam[c], cov[c])
+    scale_ppm = (layout.config.scale_sigma_ppm if layout.config.corner_noise == "marker"
+                 else 0.0)
+    for c in cov:
+        if c in runs:
+            cov[c] = cov[c] * runs[c].factor
+        if scale_ppm and c not in layout.fixed:
+            cov[c] = cov[c] + scale_covariance(out_cam[c], scale_ppm * 1e-6)
+        s_rot[c], s_trans[c] = sigmas_from_covariance(out_cam[c], cov[c])
     boards = {v: values.atPose3(layout.view_key[v]).matrix() for v in layout.views
               if values.exists(layout.view_key[v])}
     residuals = [(m.camera, m.view, m.marker_id, r)
@@ -636,7 +641,8 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float,
                                                 solution.connected, values, marginals),
                         read_offsets(solution.active, corner_res, layout.edge_offset),
                         estimate_corner_noise(corner_res, 8 * len(solution.active) - _residual_dof(
-                            layout, len(solution.active), values)) if solution.active else None)
+                            layout, len(solution.active), values)) if solution.active else None,
+                        scale_ppm)
 
 
 def relative_pose_fit(relative_poses: Sequence[RelativePose], cam_key: dict[str, int],

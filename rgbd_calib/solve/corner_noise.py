@@ -97,3 +97,13 @@ def estimate_corner_noise(residuals_px: np.ndarray, n_parameters: int) -> Corner
         return CornerNoise(max(float(sigma_c), 1e-9))
     ratio = float(np.clip(sigma_c / sigma_s, *RATIO_BOUNDS))
     return CornerNoise(float(sigma_s), ratio)
+
+
+def scale_covariance(T_ref_cam: np.ndarray, sigma: float) -> np.ndarray:
+    """The 6x6 covariance (body frame ``[rot, trans]``, GTSAM's right perturbation) a camera's
+    pose takes from the rig's scale known to a relative ``sigma``: the board is the metric
+    reference, and a board that the detector sees larger by ``s`` puts every camera at
+    ``(1 - s)`` times its distance from the reference, ``t -> (1 - s) t``. Rank one, along
+    ``[0, R^T t]``."""
+    j = np.concatenate([np.zeros(3), T_ref_cam[:3, :3].T @ T_ref_cam[:3, 3]])
+    return sigma**2 * np.outer(j, j)

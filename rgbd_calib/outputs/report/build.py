@@ -597,7 +597,8 @@ def _bundle_entry(bundle: BundleResult) -> dict[str, Any]:
         n = bundle.corner_noise
         entry["corner_noise"] = {"shape_sigma_px": n.sigma_px,
                                  "centre_sigma_px": n.centre_sigma_px / 2,
-                                 "centre_ratio": n.centre_ratio}
+                                 "centre_ratio": n.centre_ratio,
+                                 "scale_sigma_ppm": bundle.scale_sigma_ppm}
     if bundle.run_correlation:  # consecutive frames: their sigmas' variance factors
         entry["run_correlation"] = {c: {"rho": r.rho, "pairs": r.pairs, "factor": r.factor}
                                     for c, r in sorted(bundle.run_correlation.items())}
