@@ -18,8 +18,10 @@ from rgbd_calib.solve.corner_noise import (
     MIN_MARKERS,
     CornerNoise,
     estimate_corner_noise,
+    first_noise,
     scale_covariance,
 )
+from rgbd_calib.solve.ladder import held_corner_ratio
 
 P_CENTRE = np.kron(np.full((4, 4), 0.25), np.eye(2))  # the corners' mean, broadcast
 
@@ -134,3 +136,25 @@ def test_the_marker_model_adds_the_rig_scale_to_every_solved_cameras_covariance(
     assert not with_scale.covariance["c0"].any()
     independent = bundle_adjust(replace(problem, config=BundleConfig(pixel_sigma=0.1)))
     assert independent.scale_sigma_ppm == 0.0
+
+
+def test_a_held_ratio_solves_once_as_the_ratio_read_would():
+    """calibrate reads the centre-to-shape ratio in its first bundle adjustment and holds it
+    for the rest of the run (ladder.held_corner_ratio): solved at the held ratio, the same
+    cameras as the solve that read it."""
+    rng = np.random.default_rng(11)
+    truth, boards, meas = scene(rng, n_cams=3, n_views=8, sigma_px=0.0)
+    e = structured(rng, len(meas), 0.08, 0.02)
+    meas = [replace(m, corners_px=m.corners_px + d) for m, d in zip(meas, e)]
+    marker = BundleConfig(pixel_sigma=0.1, corner_noise="marker")
+    problem = BundleProblem(meas, dict.fromkeys(truth, K), "c0", truth, boards, marker)
+    read = bundle_adjust(problem)
+    held = held_corner_ratio(marker, read)
+    assert held.corner_centre_ratio == read.corner_noise.centre_ratio
+    assert first_noise(held) == CornerNoise(0.1, held.corner_centre_ratio)
+    assert first_noise(marker) == 0.1 and first_noise(BundleConfig()) == BundleConfig().pixel_sigma
+    again = bundle_adjust(replace(problem, config=held))
+    for c in ("c1", "c2"):
+        assert np.linalg.norm(tangent_error(again.T_ref_cam[c], read.T_ref_cam[c])) < 1e-7
+    assert held_corner_ratio(held, read) is held  # a ratio given is kept
+    assert held_corner_ratio(BundleConfig(), read) == BundleConfig()  # independent: none

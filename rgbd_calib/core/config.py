@@ -500,6 +500,13 @@ class BundleConfig(BaseModel):
         "than independent corners would; rgbd_calib/solve/corner_noise.py); independent: "
         "every corner at one sigma",
     )
+    corner_centre_ratio: float | None = Field(
+        None,
+        gt=0,
+        description="with corner_noise: marker, the markers' centre-to-shape sigma ratio; "
+        "None: read from a first solve (calibrate reads it once and holds it for the rest of "
+        "the run: the self-calibration's trials, the depth stage's joint solve)",
+    )
     scale_sigma_ppm: float = Field(
         25.0,
         ge=0,

@@ -43,7 +43,7 @@ from .bundle_factors import (
     view_factor_intrinsics,
     with_parameters,
 )
-from .corner_noise import CornerNoise, estimate_corner_noise, scale_covariance
+from .corner_noise import CornerNoise, estimate_corner_noise, first_noise, scale_covariance
 from .edge_offset import EdgeOffset, measurements_without_offset, read_offsets
 from .posegraph import sigmas_from_covariance
 from .runs import RunCorrelation, link_window_ms, recording_runs, run_inflation
@@ -135,10 +135,9 @@ class BundleResult:
     relative_pose_fit: tuple[tuple[float, float], ...] = ()
     # per camera: the edge offset its corner residuals read (:mod:`rgbd_calib.solve.edge_offset`)
     edge_offset: dict[str, EdgeOffset] = field(default_factory=dict)
-    # the corners' centre and shape sigmas read from the residuals (solve/corner_noise.py);
-    # what the solve weighed them by with config.corner_noise == "marker"
-    corner_noise: CornerNoise | None = None
-    scale_sigma_ppm: float = 0.0  # the rig scale's sigma added to every camera's covariance
+    # the corners' centre and shape noise read from the residuals; the rig scale's sigma (ppm)
+    corner_noise: CornerNoise | None = None  # in every covariance (config.corner_noise: marker)
+    scale_sigma_ppm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -265,7 +264,10 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
 
     ``edge_offset`` (camera -> px per edge) is taken out of each camera's edge-fitted corners
     first (:func:`~rgbd_calib.solve.edge_offset.without_offset`); ``result.edge_offset`` reads
-    what is left in the residuals, on top of it."""
+    what is left in the residuals, on top of it. ``config.corner_noise == "marker"`` weighs
+    each marker's centre and shape by their own sigmas (:mod:`~rgbd_calib.solve.corner_noise`;
+    ``corner_centre_ratio``, or read from a first solve, then solved again) and adds the rig's scale
+    (``config.scale_sigma_ppm``) to every camera's covariance."""
     if problem.edge_offset:
         problem = replace(problem, measurements=measurements_without_offset(
             problem.measurements, problem.edge_offset))
@@ -281,8 +283,8 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
     # with the corners at it, so that board and depth measurements are weighted against each
     # other by their real uncertainties
     config = layout.config
-    if config.corner_noise == "marker" and solution.active:  # centre and shape weighed apart
-        ratio = _noise(layout, solution).centre_ratio
+    if config.corner_noise == "marker" and solution.active and not config.corner_centre_ratio:
+        ratio = _noise(layout, solution).centre_ratio  # centre and shape weighed apart
         solution = _solve_at_sigma(layout, solution, CornerNoise(config.pixel_sigma, ratio),
                                    params)
     sigma_hat = solution.sigma_px(layout)
@@ -479,9 +481,8 @@ def _noise(layout: _FactorLayout, solution: _Solution) -> CornerNoise:
 
 def _noise_a_posteriori(layout: _FactorLayout, solution: _Solution,
                         sigma_hat: float) -> float | CornerNoise:
-    """The corner noise the marginals (and any later solve) take: the configured sigma without
-    ``estimate_sigma``; else the a-posteriori ``sigma_hat`` of every corner, or with
-    ``corner_noise: marker`` the centre and shape sigmas (:func:`_noise`)."""
+    """The corner noise of the marginals and later solves: ``pixel_sigma`` without
+    ``estimate_sigma``, else ``sigma_hat`` or (``corner_noise: marker``) :func:`_noise`."""
     config = layout.config
     if not config.estimate_sigma:
         return config.pixel_sigma
@@ -503,7 +504,7 @@ def _solve_dropping_outliers(layout: _FactorLayout, kept: list[MarkerMeasurement
     connected = layout.connected(values)
     for _ in range(3):
         groups = _group_views(active)
-        graph = _build_graph(layout, groups, config.pixel_sigma, connected)
+        graph = _build_graph(layout, groups, first_noise(config), connected)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
         rms = layout.marker_rms(groups, len(active), values)

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.config import BundleConfig
+
 MIN_MARKERS = 50  # fewer markers than this keep the independent model: too few to split
 RATIO_BOUNDS = (0.2, 2.0)  # the centre-to-shape sigma ratio an estimate is clipped to
 
@@ -107,3 +109,12 @@ def scale_covariance(T_ref_cam: np.ndarray, sigma: float) -> np.ndarray:
     ``[0, R^T t]``."""
     j = np.concatenate([np.zeros(3), T_ref_cam[:3, :3].T @ T_ref_cam[:3, 3]])
     return sigma**2 * np.outer(j, j)
+
+
+def first_noise(config: BundleConfig) -> float | CornerNoise:
+    """The corner noise a bundle adjustment's first solve takes: ``pixel_sigma`` for every
+    corner, or with ``corner_noise: marker`` and a known ``corner_centre_ratio`` both sigmas
+    at that ratio (the solve is then not repeated)."""
+    if config.corner_noise == "marker" and config.corner_centre_ratio:
+        return CornerNoise(config.pixel_sigma, config.corner_centre_ratio)
+    return config.pixel_sigma

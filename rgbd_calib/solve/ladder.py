@@ -336,10 +336,13 @@ def self_calibrated_bundle(
     if not selfcal.is_auto(config):
         result, problem = ladder.solve(config, pg.T_ref_cam, pg.T_ref_board,
                                        "refine" in (config.board, config.time))
-        return result, problem, None
+        return result, replace(problem, config=held_corner_ratio(problem.config, result)), None
     level = selfcal.base_level(config)
     result, problem = ladder.solve(_trial_config(level, config), pg.T_ref_cam, pg.T_ref_board,
                                    level.board or level.time)
+    given_ratio = config.corner_centre_ratio  # the run's later solves hold the one read first
+    config = held_corner_ratio(config, result)
+    problem = replace(problem, config=held_corner_ratio(problem.config, result))
     terms = selfcal.marker_terms(result.residuals_px, result.outliers, config.outlier_px)
     start_fit = selfcal.LevelFit(level, len(result.T_ref_cam), len(result.residuals_px),
                                  selfcal.rms_px(terms), reason="the starting model")
@@ -348,18 +351,33 @@ def self_calibrated_bundle(
     if chosen.fit.level.time:
         # at the configured tolerance, with the twist prior from the data: once, on the model
         # chosen (the prior's steps cost several solves; the comparisons do not need it); its
-        # config otherwise the trial's (priors a contradiction loosened stay loosened)
+        # config otherwise the trial's (priors a contradiction loosened stay loosened); the
+        # corners' centre-to-shape ratio read again (the timeless first solve's took motion
+        # for centre noise: 0.50 against 0.38 on a moving race)
         final = replace(problem, config=problem.config.model_copy(update={
                             "time_twist_prior_from_data": config.time_twist_prior_from_data,
                             "relative_error_tol": config.relative_error_tol,
-                            "max_iterations": config.max_iterations}),
+                            "max_iterations": config.max_iterations,
+                            "corner_centre_ratio": given_ratio}),
                         T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
                         T_ref_board={**problem.T_ref_board, **result.T_ref_board})
         try:
-            result, problem = bundle_sound_first(final, pg.model_error), final
+            result = bundle_sound_first(final, pg.model_error)
+            problem = replace(final, config=held_corner_ratio(final.config, result))
         except _SOLVE_ERRORS:
             pass  # the trial's solve stands
     return result, problem, selfcal.SelfCalibration(chosen.fit.level, fits)
+
+
+def held_corner_ratio(config: BundleConfig, result: BundleResult) -> BundleConfig:
+    """``config`` with ``corner_noise: marker``'s centre-to-shape ratio held at what
+    ``result`` read (unless given): the run's later solves (the ladder's trials, the edge
+    offset's, the depth stage's joint solve) weigh the corners alike without reading it again
+    in a solve of their own."""
+    if (config.corner_noise != "marker" or config.corner_centre_ratio
+            or result.corner_noise is None):
+        return config
+    return config.model_copy(update={"corner_centre_ratio": result.corner_noise.centre_ratio})
 
 
 # a timed level the ladder compares stops at this relative decrease of its error: along the
