@@ -15,8 +15,11 @@ translation of the marker moves) and the shape (the rest: 6 dimensions), each wi
 sigma. Its covariance ``sigma_shape^2 P_s + sigma_centre^2 P_c`` (``P`` the orthogonal
 projectors) is whitened by ``P_s / sigma_shape + P_c / sigma_centre``. With the two sigmas
 equal it is the independent model. :func:`estimate_corner_noise` reads both sigmas from a
-solve's corner residuals (variance components, as Foerstner's factor for one group).
-Pure numpy; used by :mod:`rgbd_calib.solve.bundle_factors` and :mod:`rgbd_calib.solve.bundle`.
+solve's corner residuals (variance components, as Foerstner's factor for one group);
+:func:`scale_covariance` is what no number of views averages out, the rig's scale as the
+detector sees the board. Pure numpy (and the bundle's config); used by
+:mod:`rgbd_calib.solve.bundle_factors`, :mod:`rgbd_calib.solve.bundle` and
+:mod:`rgbd_calib.solve.ladder`.
 """
 
 from __future__ import annotations
