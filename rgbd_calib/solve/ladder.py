@@ -346,8 +346,19 @@ def self_calibrated_bundle(
     terms = selfcal.marker_terms(result.residuals_px, result.outliers, config.outlier_px)
     start_fit = selfcal.LevelFit(level, len(result.T_ref_cam), len(result.residuals_px),
                                  selfcal.rms_px(terms), reason="the starting model")
-    chosen, fits = _climb(ladder, config, _Step(start_fit, result, problem, terms))
+    start_step = _Step(start_fit, result, problem, terms)
+    chosen, fits = _climb(ladder, config, start_step)
     result, problem = chosen.result, chosen.problem
+    if chosen is not start_step and not chosen.fit.level.time and config.corner_noise == \
+            "marker" and not given_ratio:  # the ratio read again on the richer model chosen
+        again = replace(problem, config=problem.config.model_copy(update={
+            "corner_centre_ratio": None}), T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
+            T_ref_board={**problem.T_ref_board, **result.T_ref_board})
+        try:
+            result = bundle_sound_first(again, pg.model_error)
+            problem = replace(again, config=held_corner_ratio(again.config, result))
+        except _SOLVE_ERRORS:
+            pass  # the trial's solve stands
     if chosen.fit.level.time:
         # at the configured tolerance, with the twist prior from the data: once, on the model
         # chosen (the prior's steps cost several solves; the comparisons do not need it); its
