@@ -471,12 +471,12 @@ class _Solution:
         return float(np.sqrt(np.sum(4 * self.rms**2) / dof))
 
 
-def _noise(layout: _FactorLayout, solution: _Solution) -> CornerNoise:
+def _noise(layout: _FactorLayout, solution: _Solution, corner_res=None) -> CornerNoise:
     """The corners' centre and shape sigmas a posteriori from ``solution``'s residuals."""
     n = len(solution.active)
     return estimate_corner_noise(
-        layout.marker_residuals(solution.groups, n, solution.values),
-        8 * n - _residual_dof(layout, n, solution.values))
+        layout.marker_residuals(solution.groups, n, solution.values) if corner_res is None
+        else corner_res, 8 * n - _residual_dof(layout, n, solution.values))
 
 
 def _noise_a_posteriori(layout: _FactorLayout, solution: _Solution,
@@ -641,8 +641,7 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float,
                         runs, relative_pose_fit(layout.relative_poses, layout.cam_key,
                                                 solution.connected, values, marginals),
                         read_offsets(solution.active, corner_res, layout.edge_offset),
-                        estimate_corner_noise(corner_res, 8 * len(solution.active) - _residual_dof(
-                            layout, len(solution.active), values)) if solution.active else None,
+                        _noise(layout, solution, corner_res) if solution.active else None,
                         scale_ppm)
 
 

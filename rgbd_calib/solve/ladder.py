@@ -349,35 +349,37 @@ def self_calibrated_bundle(
     start_step = _Step(start_fit, result, problem, terms)
     chosen, fits = _climb(ladder, config, start_step)
     result, problem = chosen.result, chosen.problem
-    if chosen is not start_step and not chosen.fit.level.time and config.corner_noise == \
-            "marker" and not given_ratio:  # the ratio read again on the richer model chosen
-        again = replace(problem, config=problem.config.model_copy(update={
-            "corner_centre_ratio": None}), T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
-            T_ref_board={**problem.T_ref_board, **result.T_ref_board})
-        try:
-            result = bundle_sound_first(again, pg.model_error)
-            problem = replace(again, config=held_corner_ratio(again.config, result))
-        except _SOLVE_ERRORS:
-            pass  # the trial's solve stands
     if chosen.fit.level.time:
         # at the configured tolerance, with the twist prior from the data: once, on the model
         # chosen (the prior's steps cost several solves; the comparisons do not need it); its
         # config otherwise the trial's (priors a contradiction loosened stay loosened); the
         # corners' centre-to-shape ratio read again (the timeless first solve's took motion
         # for centre noise: 0.50 against 0.38 on a moving race)
-        final = replace(problem, config=problem.config.model_copy(update={
-                            "time_twist_prior_from_data": config.time_twist_prior_from_data,
-                            "relative_error_tol": config.relative_error_tol,
-                            "max_iterations": config.max_iterations,
-                            "corner_centre_ratio": given_ratio}),
-                        T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
-                        T_ref_board={**problem.T_ref_board, **result.T_ref_board})
-        try:
-            result = bundle_sound_first(final, pg.model_error)
-            problem = replace(final, config=held_corner_ratio(final.config, result))
-        except _SOLVE_ERRORS:
-            pass  # the trial's solve stands
+        result, problem = _solved_again(problem, result, {
+            "time_twist_prior_from_data": config.time_twist_prior_from_data,
+            "relative_error_tol": config.relative_error_tol,
+            "max_iterations": config.max_iterations,
+            "corner_centre_ratio": given_ratio}, pg.model_error)
+    elif chosen is not start_step and config.corner_noise == "marker" and not given_ratio:
+        # the ratio read again on the richer model chosen
+        result, problem = _solved_again(problem, result, {"corner_centre_ratio": None},
+                                        pg.model_error)
     return result, problem, selfcal.SelfCalibration(chosen.fit.level, fits)
+
+
+def _solved_again(problem: BundleProblem, result: BundleResult, update: dict,
+                  model_error: Collection[str]) -> tuple[BundleResult, BundleProblem]:
+    """``problem`` solved once more from ``result``'s poses with ``update`` to its config, the
+    corners' ratio then held at what that solve read; ``(result, problem)`` when it fails (the
+    trial's solve stands)."""
+    again = replace(problem, config=problem.config.model_copy(update=update),
+                    T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
+                    T_ref_board={**problem.T_ref_board, **result.T_ref_board})
+    try:
+        solved = bundle_sound_first(again, model_error)
+    except _SOLVE_ERRORS:
+        return result, problem
+    return solved, replace(again, config=held_corner_ratio(again.config, solved))
 
 
 def held_corner_ratio(config: BundleConfig, result: BundleResult) -> BundleConfig:
