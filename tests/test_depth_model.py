@@ -131,6 +131,25 @@ def test_auto_frees_every_term_where_the_views_can_judge_them(n_views):
     assert auto.too_few_views == (n_views < 15) and not ladder.too_few_views
 
 
+@pytest.mark.parametrize("n_views", [3, 4, 5])
+def test_no_term_is_tried_on_as_many_parameters_as_views(n_views):
+    """The sandwich covariance of V views has rank V - 1 at most: a trial with as many
+    parameters as views is judged by the model-based covariance alone, which counts each
+    view's pixels as independent. Without the rule 3 views of a camera whose depth sensor sits
+    exactly where it should kept a depth-to-colour pose at a Wald statistic of 3e5-1.5e7
+    (seeds 1, 2; an untuned ring's clouds 31 and 47 mm off: docs/depth.md, 'Few board
+    views'); with it every model has fewer parameters than views and no pose."""
+    from rgbd_calib.depth.depth_model_fit import trial_fits_views
+
+    truth = identity_model(INTR).with_values({"scale": 1.005, "d0": 0.12, "dx": 0.08,
+                                              "dy": -0.06, "dyy": -0.05})
+    for seed in (1, 2):
+        fit = fit_depth_model("cam", _samples(truth, seed, n_views), INTR)
+        assert "scale" in fit.model.terms and "pose" not in fit.model.terms
+        assert trial_fits_views(len(fit.model.sigmas), n_views)
+    assert trial_fits_views(2, 3) and not trial_fits_views(3, 3)
+
+
 def test_the_report_says_how_many_views_a_model_was_fitted_on():
     """report.json ``depth_models.<camera>.n_views`` (1.17): why a camera kept the ladder's
     terms under ``auto`` is read there, as on the console."""
@@ -252,24 +271,26 @@ def _posed_samples(model: DepthModel, seed: int, n_views: int, rot_deg: float,
 
 
 def test_few_views_whose_board_poses_are_off_keep_the_identity_when_their_planes_are_uncertain():
-    """A clean camera of 6 views whose board planes are off by their poses' errors (0.05 deg,
+    """A clean camera of 8 views whose board planes are off by their poses' errors (0.05 deg,
     0.8 mm: the board a camera did not detect, placed through its extrinsics and the time
     model; race seed 382) gets terms it does not need when the planes count as exact; with
     each plane's error a random effect of its view (its pose's covariance,
-    :func:`board_samples`' ``pose_covariance``) it keeps the identity."""
+    :func:`board_samples`' ``pose_covariance``) it keeps the identity. (At 6 views the
+    exact planes' spurious term, the 6-parameter pose, is no longer tried at all:
+    test_no_term_is_tried_on_as_many_parameters_as_views.)"""
     from dataclasses import replace
 
     from rgbd_calib.depth.depth_model_fit import plane_covariance
 
     exact, uncertain = [], []
     for seed in range(8):
-        s, cov = _posed_samples(identity_model(INTR), seed, 6, 0.05, 0.8)
+        s, cov = _posed_samples(identity_model(INTR), seed, 8, 0.05, 0.8)
         exact.append(fit_depth_model("cam", s, INTR).model.terms)
         planes = np.array([plane_covariance(s.normal[s.view == v][0],
                                             s.distance_m[s.view == v][0], cov[f])
                            for v, f in enumerate(s.frames)])
         uncertain.append(fit_depth_model("cam", replace(s, plane_cov=planes), INTR).model.terms)
-    assert sum(bool(t) for t in exact) >= 3, exact  # 4 of 8 today
+    assert sum(bool(t) for t in exact) >= 2, exact  # 3 of 8 today (the pose)
     assert all(t == () for t in uncertain), uncertain
 
 

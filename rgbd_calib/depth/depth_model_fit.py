@@ -23,10 +23,17 @@ both: +2.0 +- 2.8 mm; docs/depth.md), keeping both extrapolates with an honest, 
 ``C`` is the cluster-robust (sandwich) covariance with the views as clusters (never below the
 model-based one), so that what is common to one view (its board pose error, depth noise
 correlated over neighbouring pixels) counts once per view, not once per pixel; its sigmas are
-the model's. Each view's board pose error is also in the model, where the caller knows the
-pose's covariance (:func:`board_samples`' ``pose_covariance``): the plane's error is a random
-effect of the view, so the model-based covariance sees it too, which the sandwich of a few views
-cannot (``_solve``; docs/depth.md, "The board's planes as uncertain as their poses").
+the model's. A step whose trial would have as many parameters as the camera has views is not
+tried (:func:`trial_fits_views`): the sandwich of ``V`` views' scores, which sum to zero at the
+solution, has rank ``V - 1`` at most, so in the directions beyond it only the model-based
+covariance speaks, and that one counts each view's thousand pixels as independent: an untuned
+ring whose cameras saw the board in 3 and 4 views kept the depth sensor's pose from them (tz 73
++- 81 mm) and its fused cloud lay 31 and 47 mm off the true surfaces; with the rule 10 and 5 mm
+(docs/depth.md, 'Few board views'). Each view's board pose error is also in the model, where the
+caller knows the pose's covariance (:func:`board_samples`' ``pose_covariance``): the plane's
+error is a random effect of the view, so the model-based covariance sees it too, which the
+sandwich of a few views cannot (``_solve``; docs/depth.md, "The board's planes as uncertain as
+their poses").
 A clean camera keeps the identity. A camera the ladder gives any term gets every term with
 ``depth.model_terms: all``, and with ``auto`` (the default) where its views can judge all of
 them (:data:`EVERY_TERM_MIN_VIEWS`: two views beyond the 13 parameters): over the board's
@@ -59,6 +66,7 @@ LADDER: tuple[tuple[str, ...], ...] = (("scale", "offset"), ("gradient",), ("cur
 P_FALSE_TERM = 1e-3  # chance that a term a clean camera does not need passes its test
 MAX_PIXELS_PER_VIEW = 1500  # board pixels sampled per view (evenly)
 GN_ITERATIONS = 8
+BACKTRACK = tuple(0.5**k for k in range(12))  # Gauss-Newton step fractions tried in turn
 MIN_CLUSTER_DOF = 4  # views beyond the parameters for the clustered (F) test
 # depth.model_terms auto: every term from two views beyond the parameters (the every-term fit's
 # clustered covariance then has a view to spare). Measured on 11 cameras of 15-16 views over
@@ -338,19 +346,43 @@ def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: f
         g = (residual(m, offset + h) - residual(m, offset - h)) / (2 * h) / sigma
         return J, np.where(ok, g, 0.0)[:, None] * s.rays
 
+    def cost(m: DepthModel, u: np.ndarray) -> tuple[float, int]:
+        """The Huber cost with the planes' priors, and how many samples it counts."""
+        r = residual(m, offsets(u)) / sigma
+        ok = np.isfinite(r)
+        a = np.abs(r[ok])
+        rho = np.where(a <= huber_k, 0.5 * a * a, huber_k * a - 0.5 * huber_k**2)
+        return (float(np.sum(rho)) + sum(0.5 * float(u[v] @ P @ u[v]) for v, P in prior.items()),
+                int(np.count_nonzero(ok)))
+
     model = base
     for _ in range(GN_ITERATIONS):
         r, w, ok = weighted(model, planes)
         J, B = jacobians(model, planes, ok)
         H, g, views = _reduced(J, B, r, w, members, prior, planes)
+        if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
+            break
         step = np.linalg.lstsq(H, -g, rcond=None)[0] if names else np.zeros(0)
-        moved = 0.0  # the planes' largest step in their prior sigmas
-        for v, (Hpp_inv, Hmp, gp) in views.items():
-            du = -Hpp_inv @ (gp + Hmp.T @ step)
-            planes[v] += du
-            moved = max(moved, float(np.max(np.abs(du) / prior_sigma[v])))
-        model = model.with_values({p: model.value(p) + d for p, d in zip(names, step)})
-        if (np.all(np.abs(step) < 1e-3 * np.array([STEP[p] for p in names]))
+        du = {v: -Hpp_inv @ (gp + Hmp.T @ step) for v, (Hpp_inv, Hmp, gp) in views.items()}
+        # the full Gauss-Newton step where it lowers the cost (always, on a well-posed fit);
+        # halved until it does where the parameters are barely held (a fit with as many
+        # parameters as views: the step along a near-null direction can leave the model's
+        # domain, every predicted depth negative)
+        before, counted = cost(model, planes)
+        for t in BACKTRACK:
+            m_t = model.with_values({p: model.value(p) + t * d for p, d in zip(names, step)})
+            u_t = planes.copy()
+            for v, d in du.items():
+                u_t[v] += t * d
+            after, n_t = cost(m_t, u_t)
+            if n_t >= counted and after <= before * (1 + 1e-9) + 1e-9:
+                break
+        else:
+            break  # no step lowers the cost: the solution
+        moved = max((float(np.max(np.abs(t * d) / prior_sigma[v])) for v, d in du.items()),
+                    default=0.0)  # the planes' largest step in their prior sigmas
+        model, planes = m_t, u_t
+        if (np.all(np.abs(t * step) < 1e-3 * np.array([STEP[p] for p in names]))
                 and moved < 1e-3):
             break
     r, w, ok = weighted(model, planes)
@@ -427,6 +459,13 @@ def _wald(solve: _Solve, step: tuple[str, ...]) -> float:
     return float(theta @ np.linalg.pinv(C) @ theta)
 
 
+def trial_fits_views(n_params: int, n_views: int) -> bool:
+    """Whether a trial of ``n_params`` parameters can be judged from ``n_views`` board views:
+    fewer parameters than views, so that its cluster-robust covariance can be full rank (the
+    module docstring)."""
+    return n_params < n_views
+
+
 def _threshold(step: tuple[str, ...], n_views: int, n_params: int) -> float:
     """What the Wald statistic of ``step`` must exceed: ``k F_{k, V - p}(1 - P)`` with ``V``
     views (the clusters) and ``p`` parameters in the trial (the small-sample law of a
@@ -471,6 +510,8 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
             if step[0] in chosen:
                 continue
             names = tuple(p for t in TERMS if t in chosen or t in step for p in TERMS[t])
+            if not trial_fits_views(len(names), n_views):
+                continue
             trial = _solve(current.model, samples, names, config.scale_huber_k)
             wald, thr = _wald(trial, step), _threshold(step, n_views, len(names))
             tests[step] = TermTest("+".join(step), wald, thr, False)
