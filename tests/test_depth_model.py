@@ -150,6 +150,34 @@ def test_no_term_is_tried_on_as_many_parameters_as_views(n_views):
     assert trial_fits_views(2, 3) and not trial_fits_views(3, 3)
 
 
+def test_a_gauss_newton_step_that_leaves_the_models_domain_is_halved(monkeypatch):
+    """A fit barely held by its views (every term on 3 views of a real camera: condition
+    number 2e21) took a first step of 0.5 in scale and 840 mm in the depth sensor's position,
+    after which every predicted depth was negative and the next solve raised an SVD error
+    out of calibrate. A step is now taken only where it lowers the Huber cost, halved until
+    it does: here the first step made 1e4 times too long comes back to the same solution."""
+    import rgbd_calib.depth.depth_model_fit as dmf
+    from rgbd_calib.core.depth_model import PARAMETERS
+
+    truth = identity_model(INTR).with_values({"scale": 1.005, "d0": 0.12, "dx": 0.04})
+    samples = _samples(truth, 6, 20)
+    names = ("scale", "d0", "dx", "dy")
+    plain = dmf._solve(identity_model(INTR), samples, names, 1.5)
+    lstsq, calls = np.linalg.lstsq, []
+
+    def overshooting(a, b, rcond=None):
+        x = lstsq(a, b, rcond=rcond)
+        calls.append(1)
+        return (x[0] * (1e4 if len(calls) == 1 else 1.0), *x[1:])
+
+    monkeypatch.setattr(dmf.np.linalg, "lstsq", overshooting)
+    pushed = dmf._solve(identity_model(INTR), samples, names, 1.5)
+    assert np.isfinite(pushed.chi2) and pushed.chi2 == pytest.approx(plain.chi2, rel=1e-6)
+    for p in names:
+        assert pushed.model.value(p) == pytest.approx(plain.model.value(p), abs=1e-3), p
+    assert set(names) <= set(PARAMETERS)
+
+
 def test_the_report_says_how_many_views_a_model_was_fitted_on():
     """report.json ``depth_models.<camera>.n_views`` (1.17): why a camera kept the ladder's
     terms under ``auto`` is read there, as on the console."""

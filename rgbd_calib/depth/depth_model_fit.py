@@ -66,7 +66,7 @@ LADDER: tuple[tuple[str, ...], ...] = (("scale", "offset"), ("gradient",), ("cur
 P_FALSE_TERM = 1e-3  # chance that a term a clean camera does not need passes its test
 MAX_PIXELS_PER_VIEW = 1500  # board pixels sampled per view (evenly)
 GN_ITERATIONS = 8
-BACKTRACK = tuple(0.5**k for k in range(12))  # Gauss-Newton step fractions tried in turn
+BACKTRACK = tuple(0.5**k for k in range(20))  # Gauss-Newton step fractions tried in turn
 MIN_CLUSTER_DOF = 4  # views beyond the parameters for the clustered (F) test
 # depth.model_terms auto: every term from two views beyond the parameters (the every-term fit's
 # clustered covariance then has a view to spare). Measured on 11 cameras of 15-16 views over
