@@ -170,6 +170,35 @@ def test_the_depth_beyond_the_board_is_known_worse_the_farther_and_reported(tiny
     assert depth_extrapolated({}, []) == []
 
 
+def test_a_camera_whose_far_depth_is_known_to_centimetres_is_a_warning_and_on_the_console():
+    """Beyond :data:`FAR_WARN_SIGMA_MM` (a centimetre, 1 sigma) ``depth_extrapolated`` is a
+    warning naming those cameras and their board views (an untuned ring's cameras of 3 and 4
+    views: +-88 / +-124 mm, their clouds 31 / 47 mm off, named only in an info before), the
+    others stay an info; the console's fused-cloud line names them too, also without pairs."""
+    from types import SimpleNamespace
+
+    from rgbd_calib.cli.console import fused_line
+    from rgbd_calib.depth.depth_model_fit import BeyondBoard
+    from rgbd_calib.outputs.report.findings_depth import depth_extrapolated
+
+    far = {"cam1": BeyondBoard("cam1", 2.28, 3.65, 0.67, 123.8),
+           "cam2": BeyondBoard("cam2", 2.5, 3.82, 0.82, 3.6),
+           "cam3": BeyondBoard("cam3", 2.3, 3.8, 0.92, 88.5),
+           "cam4": BeyondBoard("cam4", 2.3, 3.8, 0.10, 50.0)}  # its cloud mostly on the board
+    report = {"depth_models": {c: {"beyond_board": b.to_dict(), "n_views": n}
+                               for (c, b), n in zip(far.items(), (4, 11, 3, 9))}}
+    found = depth_extrapolated(report, [])
+    assert [(f["severity"], f["cameras"]) for f in found] == [
+        ("warning", ["cam1", "cam3"]), ("info", ["cam2"])]
+    assert "cam1's depth is known to +-124 mm (1 sigma) at 3.6 m" in found[0]["message"]
+    assert "from 4 board views" in found[0]["message"]
+    line = fused_line(None, far)
+    assert line.startswith("fused cloud: ") and "cam2" not in line and "cam4" not in line
+    assert line.index("+-124 mm (cam1 at 3.6 m)") < line.index("+-88 mm (cam3 at 3.8 m)")
+    pairs = SimpleNamespace(pairs=[], off_cameras=[], ambiguous=[])
+    assert fused_line(pairs, {"cam2": far["cam2"]}) is None
+
+
 def test_a_camera_with_depth_but_no_board_view_is_named(tiny_dataset):
     """A camera that has depth but no view of the board usable for it (here: given none) gets
     no depth model; the depth stage says so (``depth.unmodelled``), the report's finding

@@ -184,23 +184,38 @@ def _fixed(value: float, digits: int) -> str:
     return f"{round(float(value), digits) + 0.0:.{digits}f}"
 
 
-def fused_line(agreement) -> str | None:
+def fused_line(agreement, far: dict | None = None) -> str | None:
     """'fused cloud: cameras agree within 0.6 mm in their 9 overlaps (worst pair bias; 4.1 mm
     before the depth models), p90 7.2 mm where the depth noise predicts 6.8' from the depth
-    stage's :class:`~rgbd_calib.depth.agreement.FusedAgreement`; None without pairs."""
-    pairs = agreement.pairs
-    if not pairs:
+    stage's :class:`~rgbd_calib.depth.agreement.FusedAgreement` (None: no pairs), then the
+    cameras whose cloud beyond the board's depths is known to worse than a centimetre
+    (``far``: camera -> :class:`~rgbd_calib.depth.depth_model_fit.BeyondBoard`; the warning
+    ``depth_extrapolated``), which the overlaps cannot see when cameras err alike; None when
+    there is neither."""
+    from ..outputs.report.schema import FAR_FRACTION, FAR_WARN_SIGMA_MM
+
+    pairs = agreement.pairs if agreement is not None else []
+    uncertain = sorted(((c, b) for c, b in (far or {}).items()
+                        if b.fraction >= FAR_FRACTION and b.sigma_mm > FAR_WARN_SIGMA_MM),
+                       key=lambda cb: -cb[1].sigma_mm)
+    if not pairs and not uncertain:
         return None
-    worst, before = agreement.worst_bias_mm(), agreement.worst_bias_mm(before=True)
-    p90 = statistics.median(p.after.p90_mm for p in pairs)
-    noise = statistics.median(p.noise_p90_mm for p in pairs)
-    text = (f"fused cloud: cameras agree within {worst:.1f} mm in their {len(pairs)} overlaps "
-            "(worst pair bias")
-    if any(p.before is not None for p in pairs):
-        text += f"; {before:.1f} mm before the depth models"
-    text += f"), p90 {p90:.1f} mm where the depth noise predicts {noise:.1f}"
-    off = agreement.off_cameras + [f"{a} or {b}" for a, b in agreement.ambiguous]
-    return text + (f"; off beyond the noise: {', '.join(off)}" if off else "")
+    parts = []
+    if pairs:
+        worst, before = agreement.worst_bias_mm(), agreement.worst_bias_mm(before=True)
+        p90 = statistics.median(p.after.p90_mm for p in pairs)
+        noise = statistics.median(p.noise_p90_mm for p in pairs)
+        text = (f"cameras agree within {worst:.1f} mm in their {len(pairs)} overlaps "
+                "(worst pair bias")
+        if any(p.before is not None for p in pairs):
+            text += f"; {before:.1f} mm before the depth models"
+        text += f"), p90 {p90:.1f} mm where the depth noise predicts {noise:.1f}"
+        off = agreement.off_cameras + [f"{a} or {b}" for a, b in agreement.ambiguous]
+        parts.append(text + (f"; off beyond the noise: {', '.join(off)}" if off else ""))
+    if uncertain:
+        parts.append("[yellow]beyond the board known only to[/] " + ", ".join(
+            f"+-{b.sigma_mm:.0f} mm ({c} at {b.cloud_p90_m:.1f} m)" for c, b in uncertain))
+    return "fused cloud: " + "; ".join(parts)
 
 
 def depth_registration_line(depth: Any) -> str | None:
@@ -332,9 +347,9 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
         )
     if result.depth is not None and (line := depth_registration_line(result.depth)):
         console.print(line, highlight=False)
-    if result.depth is not None and result.depth.agreement is not None:
-        if line := fused_line(result.depth.agreement):
-            console.print(line, highlight=False, soft_wrap=True)
+    if result.depth is not None and (line := fused_line(result.depth.agreement,
+                                                         result.depth.beyond_board)):
+        console.print(line, highlight=False, soft_wrap=True)
     if result.depth is not None and (result.depth.depth_models or result.depth.unmodelled):
         console.print(depth_model_line(result.depth.depth_models, result.depth.unmodelled),
                       highlight=False, soft_wrap=True)

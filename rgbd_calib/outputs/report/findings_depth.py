@@ -17,6 +17,7 @@ from .schema import (
     DEPTH_SCALE_TOL,
     FAR_FRACTION,
     FAR_SIGMA_MM,
+    FAR_WARN_SIGMA_MM,
     PAIR_FINAL_EXCESS_MM,
     PAIR_FITNESS_MIN,
     PAIR_RMSE_MAX_MM,
@@ -287,26 +288,56 @@ def _significant_scale(cam: dict[str, Any], model: dict[str, Any] | None
     return float(f), False
 
 
+def far_cameras(report: dict[str, Any], above_mm: float = FAR_SIGMA_MM
+                ) -> list[tuple[str, dict[str, Any], int | None]]:
+    """``(camera, beyond_board, board views)`` of the cameras whose cloud lies largely
+    (:data:`FAR_FRACTION`) beyond the depths their model was fitted on, where their depth is
+    known to worse than ``above_mm`` (1 sigma; ``depth_models.<camera>.beyond_board``)."""
+    return [(c, m["beyond_board"], m.get("n_views"))
+            for c, m in (report.get("depth_models") or {}).items()
+            if m.get("beyond_board") and m["beyond_board"]["fraction"] >= FAR_FRACTION
+            and m["beyond_board"]["sigma_mm"] > above_mm]
+
+
 def depth_extrapolated(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     """Cameras whose cloud lies largely beyond the depths their model was fitted on, where
-    their depth is known to worse than :data:`FAR_SIGMA_MM` (``depth_models.<camera>.
-    beyond_board``): the far part of ``fused.ply`` is an extrapolation of the board."""
-    far = [(c, m["beyond_board"]) for c, m in (report.get("depth_models") or {}).items()
-           if m.get("beyond_board") and m["beyond_board"]["fraction"] >= FAR_FRACTION
-           and m["beyond_board"]["sigma_mm"] > FAR_SIGMA_MM]
-    if not far:
-        return []
-    return [finding(
-        "info", "depth_extrapolated", [c for c, _ in far],
-        "fused.ply lies beyond the board's depths, where each camera's depth model is an "
-        "extrapolation (points beyond the board's farthest depth; the depth's 1 sigma at the "
-        "cloud's 90th percentile): " + "; ".join(
-            f"{c} {100 * b['fraction']:.0f} % beyond {b['board_max_m']:.2f} m, "
-            f"+-{b['sigma_mm']:.1f} mm at {b['cloud_p90_m']:.1f} m" for c, b in far) + ".",
-        "The depth model is fitted where the board was and extrapolated beyond: hold the board "
-        "at those distances too (the cameras that detect it place it; depth.model_unseen_views "
-        "reads it where this camera cannot detect it), or count the far cloud that uncertain; "
-        "docs/depth.md.")]
+    their depth is known to worse than :data:`FAR_SIGMA_MM` (:func:`far_cameras`): the far
+    part of ``fused.ply`` is an extrapolation of the board. A warning for those known to
+    worse than :data:`FAR_WARN_SIGMA_MM` (their far cloud can be centimetres off the true
+    surfaces, and the overlaps cannot tell when two cameras err alike), an info for the
+    others."""
+    far = far_cameras(report)
+    uncertain = [f for f in far if f[1]["sigma_mm"] > FAR_WARN_SIGMA_MM]
+    rest = [f for f in far if f not in uncertain]
+    out = []
+    if uncertain:
+        out.append(finding(
+            "warning", "depth_extrapolated", [c for c, _, _ in uncertain],
+            "fused.ply beyond the board's depths can be centimetres off the true surfaces: "
+            + "; ".join(f"{c}'s depth is known to +-{b['sigma_mm']:.0f} mm (1 sigma) at "
+                        f"{b['cloud_p90_m']:.1f} m, {100 * b['fraction']:.0f} % of its cloud "
+                        f"beyond the board's {b['board_max_m']:.2f} m"
+                        + (f", from {n} board views" if n else "")
+                        for c, b, n in uncertain)
+            + ". The overlaps cannot see an error that overlapping cameras share.",
+            "Record again with the board held in front of these cameras in more poses (their "
+            "depth model frees every term from 15 views) and at the distances of their scene, "
+            "or leave their far points out of the fused cloud; docs/depth.md, 'Few board "
+            "views'."))
+    if rest:
+        out.append(finding(
+            "info", "depth_extrapolated", [c for c, _, _ in rest],
+            "fused.ply lies beyond the board's depths, where each camera's depth model is an "
+            "extrapolation (points beyond the board's farthest depth; the depth's 1 sigma at "
+            "the cloud's 90th percentile): " + "; ".join(
+                f"{c} {100 * b['fraction']:.0f} % beyond {b['board_max_m']:.2f} m, "
+                f"+-{b['sigma_mm']:.1f} mm at {b['cloud_p90_m']:.1f} m" for c, b, _ in rest)
+            + ".",
+            "The depth model is fitted where the board was and extrapolated beyond: hold the "
+            "board at those distances too (the cameras that detect it place it; "
+            "depth.model_unseen_views reads it where this camera cannot detect it), or count "
+            "the far cloud that uncertain; docs/depth.md."))
+    return out
 
 
 def depth_unmodelled(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:

@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.22"
+REPORT_SCHEMA_VERSION = "1.23"
 
 
 class ReportError(RgbdCalibError):
@@ -74,6 +74,10 @@ REFINE_MOVE_SIGMAS = 3.0  # refine: a camera moved by more than this many initia
 # depths, where its depth is known to worse than FAR_SIGMA_MM (1 sigma; the bound)
 FAR_FRACTION = 0.25
 FAR_SIGMA_MM = 1.0
+# ... and a warning where it is known to worse than this (1 sigma): a centimetre, where one
+# camera's surfaces stand visibly apart from another's (an untuned ring's cameras of 3 and 4
+# board views: +-88 and +-124 mm, their clouds 31 and 47 mm off; docs/depth.md)
+FAR_WARN_SIGMA_MM = 10.0
 INTRINSICS_SUPPORT_MAX = 0.5  # a refined parameter's sigma above this x its prior's: the
 # data added little to the rig.yaml value (few views, corners not reaching the image border)
 COVERAGE_GRID = (48, 27)  # sample points across, down, for the image coverage of a camera
