@@ -23,17 +23,19 @@ both: +2.0 +- 2.8 mm; docs/depth.md), keeping both extrapolates with an honest, 
 ``C`` is the cluster-robust (sandwich) covariance with the views as clusters (never below the
 model-based one), so that what is common to one view (its board pose error, depth noise
 correlated over neighbouring pixels) counts once per view, not once per pixel; its sigmas are
-the model's. A step whose trial would have as many parameters as the camera has views is not
-tried (:func:`trial_fits_views`): the sandwich of ``V`` views' scores, which sum to zero at the
-solution, has rank ``V - 1`` at most, so in the directions beyond it only the model-based
-covariance speaks, and that one counts each view's thousand pixels as independent: an untuned
-ring whose cameras saw the board in 3 and 4 views kept the depth sensor's pose from them (tz 73
-+- 81 mm) and its fused cloud lay 31 and 47 mm off the true surfaces; with the rule 10 and 5 mm
-(docs/depth.md, 'Few board views'). Each view's board pose error is also in the model, where the
-caller knows the pose's covariance (:func:`board_samples`' ``pose_covariance``): the plane's
-error is a random effect of the view, so the model-based covariance sees it too, which the
-sandwich of a few views cannot (``_solve``; docs/depth.md, "The board's planes as uncertain as
-their poses").
+the model's. A step of ``k`` parameters is tried only on more than ``k`` views
+(:func:`step_fits_views`): the sandwich of ``V`` views' scores, which sum to zero at the
+solution, has rank ``V - 1`` at most, so the step's ``k x k`` block of it is singular from
+``V = k`` views down, and the step is judged by the model-based covariance alone, which
+cannot see the model's misfit (a term the model lacks, taken up by the step's): 3 views of a
+camera whose depth sensor sat where it should, with a disparity curvature left out, kept the
+depth sensor's pose at a Wald statistic of 3e5; on an untuned ring two cameras of 3 and 4
+views kept it (tz 73 +- 81 mm) and their clouds lay 31 and 47 mm off the true surfaces, 3 and
+5 mm with the rule (docs/depth.md, 'Few board views'). Each view's board pose error is also
+in the model, where the caller knows the pose's covariance (:func:`board_samples`'
+``pose_covariance``): the plane's error is a random effect of the view, so the model-based
+covariance sees it too, which the sandwich of a few views cannot (``_solve``; docs/depth.md,
+"The board's planes as uncertain as their poses").
 A clean camera keeps the identity. A camera the ladder gives any term gets every term with
 ``depth.model_terms: all``, and with ``auto`` (the default) where its views can judge all of
 them (:data:`EVERY_TERM_MIN_VIEWS`: two views beyond the 13 parameters): over the board's
@@ -459,11 +461,11 @@ def _wald(solve: _Solve, step: tuple[str, ...]) -> float:
     return float(theta @ np.linalg.pinv(C) @ theta)
 
 
-def trial_fits_views(n_params: int, n_views: int) -> bool:
-    """Whether a trial of ``n_params`` parameters can be judged from ``n_views`` board views:
-    fewer parameters than views, so that its cluster-robust covariance can be full rank (the
-    module docstring)."""
-    return n_params < n_views
+def step_fits_views(n_step_params: int, n_views: int) -> bool:
+    """Whether a ladder step of ``n_step_params`` parameters can be judged from ``n_views``
+    board views: fewer parameters than views, so that the step's block of its cluster-robust
+    covariance can be full rank (the module docstring)."""
+    return n_step_params < n_views
 
 
 def _threshold(step: tuple[str, ...], n_views: int, n_params: int) -> float:
@@ -510,7 +512,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
             if step[0] in chosen:
                 continue
             names = tuple(p for t in TERMS if t in chosen or t in step for p in TERMS[t])
-            if not trial_fits_views(len(names), n_views):
+            if not step_fits_views(len(_params(step)), n_views):
                 continue
             trial = _solve(current.model, samples, names, config.scale_huber_k)
             wald, thr = _wald(trial, step), _threshold(step, n_views, len(names))
