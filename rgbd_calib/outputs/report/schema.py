@@ -290,7 +290,8 @@ REPORT_SCHEMA: dict[str, Any] = {
         "bands": ListOf({"z_min_m": N, "z_max_m": N, "n": INT, "median_before_mm": N,
                          "median_after_mm": N, "p90_before_mm": N, "p90_after_mm": N,
                          "noise_mm": N}),
-        "beyond_board?": {"board_max_m": N, "cloud_p90_m": N, "fraction": N, "sigma_mm": N},
+        "beyond_board?": {"board_max_m": N, "cloud_p90_m": N, "fraction": N, "sigma_mm": N,
+                           "model_gap_mm?": N},
         "n_views?": INT,
     }),
     "fused_agreement?": {
