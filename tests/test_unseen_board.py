@@ -104,6 +104,31 @@ def test_at_capture_poses_replace_the_sets_and_leave_out_the_unknown(tiny_datase
         assert frames[0] not in v and not set(v) & set(views.get(c, {}))
 
 
+def test_a_set_whose_board_at_the_capture_is_known_to_a_centimetre_counts_for_depth():
+    """The depth stage takes the board at each camera's capture (the time model's twist) for
+    every set where that pose is known to :data:`MAX_CAPTURE_POSE_SIGMA_MM` (10 mm), with that
+    uncertainty (m) for its plane's random effect, and leaves out the sets beyond: at 1 mm,
+    before the planes were uncertain, 6 of a moving race's 8 cameras got no depth model."""
+    from types import SimpleNamespace
+
+    from rgbd_calib.pipelines.calibrate import MAX_CAPTURE_POSE_SIGMA_MM, _boards_at_capture
+    from rgbd_calib.solve.time_model import TimeModel
+
+    assert MAX_CAPTURE_POSE_SIGMA_MM == 10.0
+    v = np.array([0.0, 0.0, 0.0, 0.3, 0.0, 0.0])
+    sigmas = {"slow": np.full(6, 0.0005), "mid": np.full(6, 0.03), "fast": np.full(6, 0.3)}
+    tm = TimeModel({"a": 0.0, "b": 16.0}, {"a": 0.0, "b": 0.1}, {"a": 0.0, "b": 0.0},
+                   {"a": 0.0, "b": 0.0}, {k: v for k in sigmas}, sigmas)
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, 1.5]
+    bundle = SimpleNamespace(time=tm, T_ref_board={k: T for k in sigmas})
+    poses, unc = _boards_at_capture(bundle, thesis_board(), {"a": np.eye(4), "b": np.eye(4)})
+    assert set(poses["a"]) == set(sigmas) and max(unc["a"].values()) == 0.0  # its own instant
+    assert set(poses["b"]) == {"slow", "mid"}  # 0.02 and 1.2 mm kept (1.2: not at 1 mm), 12 out
+    assert 1e-3 < unc["b"]["mid"] < 1e-2 and unc["b"]["slow"] < 1e-4
+    assert np.linalg.norm(poses["b"]["mid"][:3, 3] - T[:3, 3]) == pytest.approx(0.3 * 0.016)
+
+
 def test_the_board_at_a_cameras_capture_follows_the_sets_twist():
     """``TimeModel.board_at_capture``: the set's board moved by its twist to the camera's
     capture, the time synth exposes its depth image and its colour image's middle row
