@@ -160,22 +160,29 @@ def test_the_board_at_a_cameras_capture_follows_the_sets_twist():
     assert tm.board_at_capture("b", "t", T, 0.3) is None
 
 
-def test_the_depth_beyond_the_board_is_known_worse_the_farther_and_reported(tiny_dataset):
-    """``correction_sigma_mm`` grows beyond the board's depths (the stereo law extrapolated),
-    also for a camera that kept the identity; the finding ``depth_extrapolated`` names the
-    cameras with a quarter of their cloud beyond the board and their depth there known to worse
-    than 1 mm, and no other."""
+def _first_camera_fit(tiny_dataset):
+    """The depth model fit of the tiny dataset's first camera on the true board poses."""
     from rgbd_calib.depth.clouds import board_faces
-    from rgbd_calib.depth.depth_model_fit import beyond_board, board_samples, fit_depth_model
-    from rgbd_calib.outputs.report.findings_depth import depth_extrapolated
+    from rgbd_calib.depth.depth_model_fit import board_samples, fit_depth_model
 
     ds, gt, board, config = (FolderDataset(tiny_dataset), load_ground_truth(tiny_dataset),
                              thesis_board(), DepthConfig())
     c = ds.cameras[0]
     views = {f: invert_transform(gt.T_ref_cam[c]) @ T for f, T in gt.T_ref_board.items()}
     intr = ds.rig.cameras[c]
-    fit = fit_depth_model(c, board_samples(intr, board_faces(ds, c, views, board, config),
-                                           config), intr, config)
+    return fit_depth_model(c, board_samples(intr, board_faces(ds, c, views, board, config),
+                                            config), intr, config)
+
+
+def test_the_depth_beyond_the_board_is_known_worse_the_farther_and_reported(tiny_dataset):
+    """``correction_sigma_mm`` grows beyond the board's depths (the stereo law extrapolated),
+    also for a camera that kept the identity; the finding ``depth_extrapolated`` names the
+    cameras with a quarter of their cloud beyond the board and their depth there known to worse
+    than 1 mm, and no other."""
+    from rgbd_calib.depth.depth_model_fit import beyond_board
+    from rgbd_calib.outputs.report.findings_depth import depth_extrapolated
+
+    fit = _first_camera_fit(tiny_dataset)
     lo, hi = fit.model.depth_range_m
     near, far = fit.correction_sigma_mm(0.5 * (lo + hi)), fit.correction_sigma_mm(2.5 * hi)
     assert 0 < near < far
@@ -210,16 +217,9 @@ def test_the_far_depth_sigma_holds_the_applied_models_distance_from_the_every_te
     (the applied model is that fit) has no gap."""
     from dataclasses import replace
 
-    from rgbd_calib.depth.clouds import board_faces
-    from rgbd_calib.depth.depth_model_fit import beyond_board, board_samples, fit_depth_model
+    from rgbd_calib.depth.depth_model_fit import beyond_board
 
-    ds, gt, board, config = (FolderDataset(tiny_dataset), load_ground_truth(tiny_dataset),
-                             thesis_board(), DepthConfig())
-    c = ds.cameras[0]
-    views = {f: invert_transform(gt.T_ref_cam[c]) @ T for f, T in gt.T_ref_board.items()}
-    intr = ds.rig.cameras[c]
-    fit = fit_depth_model(c, board_samples(intr, board_faces(ds, c, views, board, config),
-                                           config), intr, config)
+    fit = _first_camera_fit(tiny_dataset)
     far_z = 2.5 * fit.model.depth_range_m[1]
     z, law_sigma = np.full(100, far_z), fit.correction_sigma_mm(far_z)
     law = replace(fit.law_model, depth_range_m=fit.model.depth_range_m,

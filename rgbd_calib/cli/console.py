@@ -192,11 +192,12 @@ def fused_line(agreement, far: dict | None = None) -> str | None:
     (``far``: camera -> :class:`~rgbd_calib.depth.depth_model_fit.BeyondBoard`; the warning
     ``depth_extrapolated``), which the overlaps cannot see when cameras err alike; None when
     there is neither."""
-    from ..outputs.report.schema import FAR_FRACTION, FAR_WARN_SIGMA_MM
+    from ..outputs.report.findings_depth import is_far
+    from ..outputs.report.schema import FAR_WARN_SIGMA_MM
 
     pairs = agreement.pairs if agreement is not None else []
     uncertain = sorted(((c, b) for c, b in (far or {}).items()
-                        if b.fraction >= FAR_FRACTION and b.sigma_mm > FAR_WARN_SIGMA_MM),
+                        if is_far(b.fraction, b.sigma_mm, FAR_WARN_SIGMA_MM)),
                        key=lambda cb: -cb[1].sigma_mm)
     if not pairs and not uncertain:
         return None

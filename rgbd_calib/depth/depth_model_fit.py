@@ -241,12 +241,10 @@ class DepthModelFit:
         sensor's ``tz`` with scale and offset) makes it the applied model's bias, which the
         every-term fit's sigma does not hold (a 5-view camera: -36 mm at 3.7 m against a
         sigma of 6.7 mm, its cloud 29 mm off; docs/depth.md, 'Few board views')."""
-        m = self.law_model
-        if m is None or not self.law_names:
+        if self.law_model is None or not self.law_names:
             return 0.0
-        ray, z = np.array([[0.0, 0.0, 1.0]]), np.array([float(z_measured_m)])
-        return float(1e3 * (self.model.correct_points(ray, z)[0, 2]
-                            - m.correct_points(ray, z)[0, 2]))
+        return 1e3 * (_centre_depth_m(self.model, z_measured_m)
+                      - _centre_depth_m(self.law_model, z_measured_m))
 
     def model_gap_sigma_mm(self, z_measured_m: float) -> float:
         """1 sigma (mm) of :meth:`model_gap_mm` where the applied model is right: the applied
@@ -273,17 +271,20 @@ class DepthModelFit:
         }
 
 
+def _centre_depth_m(model: DepthModel, z_measured_m: float) -> float:
+    """``model``'s true depth (m) for a measured depth on the image centre's ray."""
+    return float(model.correct_points(np.array([[0.0, 0.0, 1.0]]),
+                                      np.array([float(z_measured_m)]))[0, 2])
+
+
 def _centre_depth_sigma_mm(model: DepthModel, names: tuple[str, ...], cov: np.ndarray,
                            z_measured_m: float) -> float:
     """1 sigma (mm) of ``model``'s true depth for a measured depth on the image centre's ray,
     its parameters ``names`` of covariance ``cov`` propagated by central differences."""
-    ray, z = np.array([[0.0, 0.0, 1.0]]), np.array([float(z_measured_m)])
-
-    def depth(m: DepthModel) -> float:
-        return float(m.correct_points(ray, z)[0, 2])
-
-    J = np.array([(depth(model.with_values({p: model.value(p) + STEP[p]}))
-                   - depth(model.with_values({p: model.value(p) - STEP[p]}))) / (2 * STEP[p])
+    J = np.array([(_centre_depth_m(model.with_values({p: model.value(p) + STEP[p]}),
+                                   z_measured_m)
+                   - _centre_depth_m(model.with_values({p: model.value(p) - STEP[p]}),
+                                     z_measured_m)) / (2 * STEP[p])
                   for p in names])
     return float(1e3 * math.sqrt(max(float(J @ cov @ J), 0.0)))
 
@@ -395,14 +396,17 @@ def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: f
         g = (residual(m, offset + h) - residual(m, offset - h)) / (2 * h) / sigma
         return J, np.where(ok, g, 0.0)[:, None] * s.rays
 
-    def cost(m: DepthModel, u: np.ndarray) -> tuple[float, int]:
-        """The Huber cost with the planes' priors, and how many samples it counts."""
-        r = residual(m, offsets(u)) / sigma
-        ok = np.isfinite(r)
+    def cost(r: np.ndarray, ok: np.ndarray, u: np.ndarray) -> tuple[float, int]:
+        """The Huber cost of the whitened residuals ``r`` (``ok``: those that count) with the
+        planes' priors at ``u``, and how many samples it counts."""
         a = np.abs(r[ok])
         rho = np.where(a <= huber_k, 0.5 * a * a, huber_k * a - 0.5 * huber_k**2)
         return (float(np.sum(rho)) + sum(0.5 * float(u[v] @ P @ u[v]) for v, P in prior.items()),
                 int(np.count_nonzero(ok)))
+
+    def cost_at(m: DepthModel, u: np.ndarray) -> tuple[float, int]:
+        r = residual(m, offsets(u)) / sigma
+        return cost(r, np.isfinite(r), u)
 
     model = base
     for _ in range(GN_ITERATIONS):
@@ -417,13 +421,13 @@ def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: f
         # halved until it does where the parameters are barely held (a fit with as many
         # parameters as views: the step along a near-null direction can leave the model's
         # domain, every predicted depth negative)
-        before, counted = cost(model, planes)
+        before, counted = cost(r, ok, planes)
         for t in BACKTRACK:
             m_t = model.with_values({p: model.value(p) + t * d for p, d in zip(names, step)})
             u_t = planes.copy()
             for v, d in du.items():
                 u_t[v] += t * d
-            after, n_t = cost(m_t, u_t)
+            after, n_t = cost_at(m_t, u_t)
             if n_t >= counted and after <= before * (1 + 1e-9) + 1e-9:
                 break
         else:

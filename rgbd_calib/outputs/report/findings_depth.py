@@ -288,15 +288,23 @@ def _significant_scale(cam: dict[str, Any], model: dict[str, Any] | None
     return float(f), False
 
 
+def is_far(fraction: float, sigma_mm: float, above_mm: float = FAR_SIGMA_MM) -> bool:
+    """Whether a camera's cloud lies largely (``fraction`` of it, at least
+    :data:`FAR_FRACTION`) beyond the depths its model was fitted on, where its depth is known
+    to worse than ``above_mm`` (``sigma_mm``, 1 sigma): the rule of ``depth_extrapolated``
+    (``above_mm`` :data:`FAR_WARN_SIGMA_MM`: its warning, and the console's fused-cloud
+    line)."""
+    return fraction >= FAR_FRACTION and sigma_mm > above_mm
+
+
 def far_cameras(report: dict[str, Any], above_mm: float = FAR_SIGMA_MM
                 ) -> list[tuple[str, dict[str, Any], int | None]]:
-    """``(camera, beyond_board, board views)`` of the cameras whose cloud lies largely
-    (:data:`FAR_FRACTION`) beyond the depths their model was fitted on, where their depth is
-    known to worse than ``above_mm`` (1 sigma; ``depth_models.<camera>.beyond_board``)."""
+    """``(camera, beyond_board, board views)`` of the cameras :func:`is_far` by their
+    ``depth_models.<camera>.beyond_board``."""
     return [(c, m["beyond_board"], m.get("n_views"))
             for c, m in (report.get("depth_models") or {}).items()
-            if m.get("beyond_board") and m["beyond_board"]["fraction"] >= FAR_FRACTION
-            and m["beyond_board"]["sigma_mm"] > above_mm]
+            if m.get("beyond_board") and is_far(m["beyond_board"]["fraction"],
+                                                m["beyond_board"]["sigma_mm"], above_mm)]
 
 
 def depth_extrapolated(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
@@ -306,9 +314,8 @@ def depth_extrapolated(report: dict[str, Any], earlier: list[Finding]) -> list[F
     worse than :data:`FAR_WARN_SIGMA_MM` (their far cloud can be centimetres off the true
     surfaces, and the overlaps cannot tell when two cameras err alike), an info for the
     others."""
-    far = far_cameras(report)
-    uncertain = [f for f in far if f[1]["sigma_mm"] > FAR_WARN_SIGMA_MM]
-    rest = [f for f in far if f not in uncertain]
+    uncertain = far_cameras(report, FAR_WARN_SIGMA_MM)
+    rest = [f for f in far_cameras(report) if f not in uncertain]
     out = []
     if uncertain:
         out.append(finding(
