@@ -18,6 +18,31 @@ from rgbd_calib.outputs import writer as outputs
 @pytest.fixture(autouse=True)
 def _fresh_commit_record(monkeypatch):
     monkeypatch.setattr(interrupts, "_COMMITTED", [])
+    monkeypatch.setattr(interrupts, "_PENDING", [])
+
+
+def _default_sigint():
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("SIGINT is not at Python's default handler in this process")
+
+
+def _swallowed_ctrl_c():
+    """A real SIGINT that lands inside a weakref callback, as during a figure's garbage
+    collection: Python prints "Exception ignored" and goes on."""
+    import weakref
+
+    class Thing:
+        pass
+
+    def callback(_ref):
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(1000):  # the handler runs here, inside the callback
+            pass
+
+    thing = Thing()
+    ref = weakref.ref(thing, callback)
+    del thing
+    assert ref() is None
 
 
 def _earlier(out):
@@ -143,3 +168,50 @@ def test_ctrl_c_while_the_static_clouds_are_built_drops_the_cameras_not_started(
     with pytest.raises(KeyboardInterrupt):
         stage.static_clouds(None, jobs, {}, None, DepthConfig(), workers=2, tick=tick)
     assert len(started) <= 4, started  # the first two, and at most the two that followed
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_a_swallowed_ctrl_c_stops_the_next_stage_and_the_command(capsys):
+    """A Ctrl-C that a library swallowed does not let the command run on to exit 0: the next
+    stage does not begin, and the command ends as interrupted (130, the usual line)."""
+    from rgbd_calib.cli.commands import user_errors
+    from rgbd_calib.core.progress import timed
+
+    _default_sigint()
+    stages = []
+
+    @user_errors
+    def command():
+        with timed({}, "first"):
+            _swallowed_ctrl_c()
+            stages.append("first went on")
+        with timed({}, "second"):
+            stages.append("second")
+
+    with pytest.raises(typer.Exit) as exc:
+        command()
+    assert exc.value.exit_code == 130
+    assert stages == ["first went on"]
+    assert "interrupted: earlier results were left untouched" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+    @user_errors
+    def swallowed_at_the_end():
+        with timed({}, "only"):
+            _swallowed_ctrl_c()
+
+    with pytest.raises(typer.Exit) as exc:
+        swallowed_at_the_end()
+    assert exc.value.exit_code == 130
+
+
+def test_outside_a_command_a_caught_ctrl_c_is_not_raised_again():
+    """A library caller (a notebook) that catches the interrupt itself runs on unhindered."""
+    from rgbd_calib.core.progress import timed
+
+    _default_sigint()
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts.sigint_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+    with timed({}, "next"):
+        pass

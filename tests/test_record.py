@@ -14,6 +14,7 @@ import rgbd_calib.sources.record as record_module
 from rgbd_calib.cli.console import cli_record
 from rgbd_calib.core.camera import CameraIntrinsics
 from rgbd_calib.core.errors import DatasetError
+from rgbd_calib.core.interrupts import raise_if_interrupted, sigint_noted
 from rgbd_calib.model.board import thesis_board
 from rgbd_calib.model.dataset import FolderDataset
 from rgbd_calib.sources.record import CapturedFrame, record
@@ -144,6 +145,29 @@ def test_ctrl_c_midway_leaves_only_complete_sets(board, rng, tmp_path):
                 "000001.png",
             ]  # no temporary or half files
     assert all(s.stopped for s in source.streams.values())
+
+
+def test_ctrl_c_that_stops_a_recording_does_not_stop_the_command(board, rng, tmp_path):
+    """Under the command's Ctrl-C handler (the CLI's), a real SIGINT that ends an open-ended
+    recording is the recording's stop: the command goes on (writes its summary), it is not
+    taken for an interrupt a library swallowed."""
+    source = _fake_rig(board, rng)
+    stream = source.streams["B"]
+    real_wait = stream.wait
+
+    def wait_then_sigint(timeout_ms):
+        if stream.waits == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_wait(timeout_ms)
+
+    stream.wait = wait_then_sigint
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("SIGINT is not at Python's default handler in this process")
+    with sigint_noted():
+        report = record(tmp_path / "set", n_sets=None, mode=(640, 360, 30),
+                        device_source=source)
+        raise_if_interrupted()  # the next stage begins
+    assert report.interrupted and report.sets_written == 2
 
 
 def test_ctrl_c_during_the_renames_finishes_the_set(board, rng, tmp_path, monkeypatch):

@@ -135,8 +135,13 @@ def user_errors(fn):
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        from ..core.interrupts import raise_if_interrupted, sigint_noted
+
         try:
-            return fn(*args, **kwargs)
+            with sigint_noted():
+                result = fn(*args, **kwargs)
+            raise_if_interrupted()  # a Ctrl-C a library swallowed ("Exception ignored")
+            return result
         except RgbdCalibError as exc:
             error_line(" ".join(str(exc).split("\n")))
             raise typer.Exit(EXIT_INPUT) from None
@@ -151,8 +156,9 @@ def user_errors(fn):
         except KeyboardInterrupt:
             from rich.markup import escape
 
-            from ..core.interrupts import committed
+            from ..core.interrupts import committed, interrupt_handled
 
+            interrupt_handled()
             done = committed()
             if done:  # the Ctrl-C came after the results were in place: say so
                 message = ("[yellow]interrupted[/] after the results were written: "

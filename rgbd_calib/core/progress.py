@@ -13,6 +13,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Protocol
 
+from .interrupts import raise_if_interrupted
+
 Tick = Callable[[int], None]
 
 
@@ -33,7 +35,9 @@ def start(progress: Progress | None, label: str, total: int | None, done: int = 
 
 @contextmanager
 def timed(timings: dict[str, float], stage: str) -> Iterator[None]:
-    """Add the wall time (s) of the ``with`` block to ``timings[stage]``, also on an error."""
+    """Add the wall time (s) of the ``with`` block to ``timings[stage]``, also on an error.
+    A stage does not begin after a Ctrl-C that a library swallowed (:mod:`.interrupts`)."""
+    raise_if_interrupted()
     t0 = time.perf_counter()
     try:
         yield

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.errors import ConfigError, DatasetError
+from ..core.interrupts import interrupt_handled
 from ..model.dataset import FolderWriter
 from ..model.rig import CAMERA_NAME, Rig
 from .align import distortion_from_realsense
@@ -264,7 +265,8 @@ def record(
                     n: count_markers(f.color) if count_markers else -1 for n, f in frames.items()
                 }
                 status_callback(RecordStatus(writer.sets_written, stem, markers, spread))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # the way to stop an open-ended recording
+        interrupt_handled()
         interrupted = True
     finally:
         _stop_streams(streams)
