@@ -36,7 +36,7 @@ from ..core.parallel import executor
 from ..core.progress import Progress, Tick, start, timed
 from ..model.board import Board
 from ..model.dataset import FolderDataset
-from ..solve.bundle import RelativePose
+from ..solve.bundle_problem import RelativePose
 from .agreement import FusedAgreement, fused_agreement
 from .clouds import (
     CameraCloud,

@@ -49,7 +49,7 @@ from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics, cameras_from_solve
 from ..model.rig import Rig
 from ..solve import selfcal
-from ..solve.bundle import BundleProblem, BundleResult
+from ..solve.bundle_problem import BundleProblem, BundleResult
 from ..solve.intrinsics_init import InitialIntrinsics, initialise_intrinsics
 from ..solve.ladder import (
     bundle_sound_first,

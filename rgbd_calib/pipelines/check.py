@@ -47,7 +47,7 @@ from ..model.board import Board
 from ..model.calib_folder import calibration_board, load_calibration, with_refined_intrinsics
 from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics
-from ..solve.bundle import RelativePose
+from ..solve.bundle_problem import RelativePose
 from ..solve.edge_offset import without_offset
 from ..solve.moved import (
     MOVED_CHI2,

@@ -30,7 +30,7 @@ from ..model.board_file import load_board
 from ..model.calib_folder import load_calibration, with_refined_intrinsics
 from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics, cameras_from_solve
-from ..solve.bundle import RelativePose
+from ..solve.bundle_problem import RelativePose
 from ..solve.variance_components import solve_variance_components
 from ..sources.cache import open_dataset
 

@@ -27,7 +27,8 @@ from ..model.board import Board
 from ..model.results import CameraExtrinsics
 from ..model.rig import Rig
 from . import edge_offset, selfcal
-from .bundle import BundleProblem, BundleResult, MarkerMeasurement, bundle_adjust
+from .bundle import bundle_adjust
+from .bundle_problem import BundleProblem, BundleResult, MarkerMeasurement
 from .pose import BoardObservation
 from .posegraph import PoseGraphResult
 from .posegraph_init import robust_mean_pose

@@ -32,7 +32,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..core.geometry import covariance_sigmas, invert_transform, transform_error
 from ..model.results import CameraExtrinsics
-from .bundle import RelativePose
+from .bundle_problem import RelativePose
 
 Status = Literal["in_place", "moved", "unknown"]
 

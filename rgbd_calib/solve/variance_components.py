@@ -10,7 +10,8 @@ from typing import TypeVar
 import numpy as np
 
 from ..core.config import BundleConfig
-from .bundle import BundleProblem, RelativePose, bundle_adjust
+from .bundle import bundle_adjust
+from .bundle_problem import BundleProblem, RelativePose
 
 R = TypeVar("R")
 Fit = tuple[np.ndarray, np.ndarray]  # a group's whitened chi-squares and redundancy numbers

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from ...model.results import Extrinsics
     from ...model.rig import Rig
     from ...pipelines.calibrate import CalibrationResult
-    from ...solve.bundle import BundleResult
+    from ...solve.bundle_problem import BundleResult
     from ...solve.posegraph import PoseGraphResult
 
 FACE_NAMES = {1: "front", -1: "back", 0: "both"}
