@@ -242,6 +242,43 @@ def test_the_far_depth_sigma_holds_the_applied_models_distance_from_the_every_te
     assert beyond_board(noise, z).sigma_mm == pytest.approx(law_sigma)
 
 
+def test_the_far_depth_sigma_is_taken_where_the_clouds_far_points_lie_in_the_image(
+        tiny_dataset):
+    """With the cloud's rays the far sigma and the gap are those of the mean depth over the
+    rays of the cloud's points beyond the board, not of the centre's ray: a disparity
+    gradient the applied model got wrong moves nothing on the centre's ray, and the cloud's
+    far points lying on one side of the image (a ring camera's far wall) move by it."""
+    from dataclasses import replace
+
+    from rgbd_calib.depth.depth_model_fit import FAR_RAYS, beyond_board
+
+    fit = _first_camera_fit(tiny_dataset)
+    fit = replace(fit, law_cov=1e-4 * fit.law_cov)  # as from 10^4 times the tiny set's samples
+    lo, hi = fit.model.depth_range_m
+    far_z = 2.5 * hi
+    law = replace(fit.law_model, depth_range_m=fit.model.depth_range_m,
+                  sigmas=dict(zip(fit.law_names, np.sqrt(np.diag(fit.law_cov)))))
+    tilted = replace(fit, model=law.with_values({"dx": law.value("dx") + 0.3}),
+                     model_cov=fit.law_cov)
+    rng = np.random.default_rng(3)
+    n = 2000
+    # the far points on the image's right half (x > 0), the near tenth anywhere
+    x = np.where(np.arange(n) < n // 10, rng.uniform(-0.5, 0.5, n), rng.uniform(0.1, 0.5, n))
+    rays = np.column_stack([x, rng.uniform(-0.35, 0.35, n), np.ones(n)])
+    z = np.where(np.arange(n) < n // 10, 0.5 * (lo + hi), far_z)
+    centre = beyond_board(tilted, z)
+    over_image = beyond_board(tilted, z, rays)
+    assert abs(centre.model_gap_mm) < 1e-6  # x = 0: a gradient in x moves nothing there
+    far_rays = rays[n // 10:][np.linspace(0, n - n // 10 - 1, FAR_RAYS).astype(int)]
+    per_ray = [tilted.model_gap_mm(far_z, r[None]) for r in far_rays]
+    assert over_image.model_gap_mm == pytest.approx(np.mean(per_ray), rel=1e-3)
+    assert abs(over_image.model_gap_mm) > 3 * tilted.model_gap_sigma_mm(far_z, far_rays)
+    assert over_image.sigma_mm == pytest.approx(
+        max(abs(over_image.model_gap_mm), fit.correction_sigma_mm(far_z, far_rays)))
+    assert fit.correction_sigma_mm(far_z, np.array([[0.0, 0.0, 1.0]])) == pytest.approx(
+        fit.correction_sigma_mm(far_z))
+
+
 def test_a_camera_whose_far_depth_is_known_to_centimetres_is_a_warning_and_on_the_console():
     """Beyond :data:`FAR_WARN_SIGMA_MM` (a centimetre, 1 sigma) ``depth_extrapolated`` is a
     warning naming those cameras and their board views (an untuned ring's cameras of 3 and 4

@@ -222,37 +222,39 @@ class DepthModelFit:
     # ``sigmas``); None: none estimated (the identity)
     model_cov: np.ndarray | None = None
 
-    def correction_sigma_mm(self, z_measured_m: float) -> float:
+    def correction_sigma_mm(self, z_measured_m: float, rays: np.ndarray | None = None) -> float:
         """1 sigma (mm) of the true depth this camera's data give for a measured depth
-        ``z_measured_m`` on the image centre's ray: the covariance of the fit with every
-        term free propagated through :meth:`DepthModel.correct_points` (the depth along the
-        ray and the depth-to-colour pose). Beyond the board's depth range it grows fast (the
-        stereo law extrapolated; docs/depth.md)."""
+        ``z_measured_m``: the covariance of the fit with every term free propagated through
+        :meth:`DepthModel.correct_points` (the depth along the ray and the depth-to-colour
+        pose), on the image centre's ray, or of the mean over ``rays`` ((N,3), z = 1: where
+        the cloud lies, whose bias is what the sigma is for). Beyond the board's depth range
+        it grows fast (the stereo law extrapolated; docs/depth.md)."""
         if self.law_model is None or not self.law_names or self.law_cov is None:
             return 0.0
-        return _centre_depth_sigma_mm(self.law_model, self.law_names, self.law_cov,
-                                      z_measured_m)
+        return _depth_sigma_mm(self.law_model, self.law_names, self.law_cov, z_measured_m,
+                               rays)
 
-    def model_gap_mm(self, z_measured_m: float) -> float:
+    def model_gap_mm(self, z_measured_m: float, rays: np.ndarray | None = None) -> float:
         """The applied model's true depth minus the every-term fit's (mm) for a measured depth
-        ``z_measured_m`` on the image centre's ray: what the terms the applied model left out
-        would move there. Within the board's range it is small (both fit the board); beyond,
-        a left-out term that trades with the kept ones over the board's range (the depth
-        sensor's ``tz`` with scale and offset) makes it the applied model's bias, which the
-        every-term fit's sigma does not hold (a 5-view camera: -36 mm at 3.7 m against a
-        sigma of 6.7 mm, its cloud 29 mm off; docs/depth.md, 'Few board views')."""
+        ``z_measured_m`` on the image centre's ray (or their means over ``rays``): what the
+        terms the applied model left out would move there. Within the board's range it is
+        small (both fit the board); beyond, a left-out term that trades with the kept ones
+        over the board's range (the depth sensor's ``tz`` with scale and offset) makes it the
+        applied model's bias, which the every-term fit's sigma does not hold (a 5-view
+        camera: -36 mm at 3.7 m against a sigma of 6.7 mm, its cloud 29 mm off;
+        docs/depth.md, 'Few board views')."""
         if self.law_model is None or not self.law_names:
             return 0.0
-        return 1e3 * (_centre_depth_m(self.model, z_measured_m)
-                      - _centre_depth_m(self.law_model, z_measured_m))
+        return 1e3 * (_depth_m(self.model, z_measured_m, rays)
+                      - _depth_m(self.law_model, z_measured_m, rays))
 
-    def model_gap_sigma_mm(self, z_measured_m: float) -> float:
+    def model_gap_sigma_mm(self, z_measured_m: float, rays: np.ndarray | None = None) -> float:
         """1 sigma (mm) of :meth:`model_gap_mm` where the applied model is right: the applied
         model is then the efficient fit and the every-term fit's variance is its plus the
         gap's (Hausman), ``sqrt(sigma_all^2 - sigma_applied^2)``."""
-        law = self.correction_sigma_mm(z_measured_m)
+        law = self.correction_sigma_mm(z_measured_m, rays)
         names = tuple(self.model.sigmas)  # the order of ``model_cov``
-        own = (_centre_depth_sigma_mm(self.model, names, self.model_cov, z_measured_m)
+        own = (_depth_sigma_mm(self.model, names, self.model_cov, z_measured_m, rays)
                if names and self.model_cov is not None else 0.0)
         return math.sqrt(max(law * law - own * own, 0.0))
 
@@ -271,20 +273,25 @@ class DepthModelFit:
         }
 
 
-def _centre_depth_m(model: DepthModel, z_measured_m: float) -> float:
-    """``model``'s true depth (m) for a measured depth on the image centre's ray."""
-    return float(model.correct_points(np.array([[0.0, 0.0, 1.0]]),
-                                      np.array([float(z_measured_m)]))[0, 2])
+CENTRE_RAY = np.array([[0.0, 0.0, 1.0]])
+FAR_RAYS = 256  # of a cloud's points beyond the board: the rays its far sigma is taken over
 
 
-def _centre_depth_sigma_mm(model: DepthModel, names: tuple[str, ...], cov: np.ndarray,
-                           z_measured_m: float) -> float:
-    """1 sigma (mm) of ``model``'s true depth for a measured depth on the image centre's ray,
-    its parameters ``names`` of covariance ``cov`` propagated by central differences."""
-    J = np.array([(_centre_depth_m(model.with_values({p: model.value(p) + STEP[p]}),
-                                   z_measured_m)
-                   - _centre_depth_m(model.with_values({p: model.value(p) - STEP[p]}),
-                                     z_measured_m)) / (2 * STEP[p])
+def _depth_m(model: DepthModel, z_measured_m: float, rays: np.ndarray | None) -> float:
+    """``model``'s true depth (m) for a measured depth on the image centre's ray, or its mean
+    over ``rays`` ((N,3), z = 1)."""
+    r = CENTRE_RAY if rays is None else np.asarray(rays, dtype=float).reshape(-1, 3)
+    return float(np.mean(model.correct_points(r, np.full(len(r), float(z_measured_m)))[:, 2]))
+
+
+def _depth_sigma_mm(model: DepthModel, names: tuple[str, ...], cov: np.ndarray,
+                    z_measured_m: float, rays: np.ndarray | None) -> float:
+    """1 sigma (mm) of :func:`_depth_m`, ``model``'s parameters ``names`` of covariance
+    ``cov`` propagated by central differences."""
+    J = np.array([(_depth_m(model.with_values({p: model.value(p) + STEP[p]}), z_measured_m,
+                            rays)
+                   - _depth_m(model.with_values({p: model.value(p) - STEP[p]}), z_measured_m,
+                              rays)) / (2 * STEP[p])
                   for p in names])
     return float(1e3 * math.sqrt(max(float(J @ cov @ J), 0.0)))
 
@@ -317,17 +324,28 @@ class BeyondBoard:
                 "model_gap_mm": self.model_gap_mm}
 
 
-def beyond_board(fit: DepthModelFit, z_cloud_m: np.ndarray) -> BeyondBoard | None:
+def beyond_board(fit: DepthModelFit, z_cloud_m: np.ndarray,
+                 rays: np.ndarray | None = None) -> BeyondBoard | None:
     """:class:`BeyondBoard` of the camera's cloud depths ``z_cloud_m`` (m; None without a
-    depth range or points)."""
+    depth range or points). With the points' ``rays`` ((N,3), z = 1) the sigma and the gap
+    are taken over the rays of the points beyond the board (all points if none is; at most
+    :data:`FAR_RAYS`), of their mean: where the cloud's far part lies in the image; without,
+    on the image centre's ray, which misses what the gradients, curvature and pose tilt do
+    off the centre."""
     z = np.asarray(z_cloud_m, dtype=float)
-    z = z[np.isfinite(z) & (z > 0)]
+    ok = np.isfinite(z) & (z > 0)
+    z = z[ok]
     rng = fit.model.depth_range_m
     if rng is None or z.size == 0:
         return None
     p90 = float(np.percentile(z, 90))
-    gap, sigma = fit.model_gap_mm(p90), fit.correction_sigma_mm(p90)
-    if abs(gap) > GAP_SIGMAS * fit.model_gap_sigma_mm(p90):
+    far_rays = None
+    if rays is not None:
+        r = np.asarray(rays, dtype=float).reshape(-1, 3)[ok]
+        beyond = r[z > rng[1]] if np.any(z > rng[1]) else r
+        far_rays = beyond[np.linspace(0, len(beyond) - 1, min(FAR_RAYS, len(beyond))).astype(int)]
+    gap, sigma = fit.model_gap_mm(p90, far_rays), fit.correction_sigma_mm(p90, far_rays)
+    if abs(gap) > GAP_SIGMAS * fit.model_gap_sigma_mm(p90, far_rays):
         sigma = max(sigma, abs(gap))
     return BeyondBoard(fit.camera, float(rng[1]), p90, float(np.mean(z > rng[1])), sigma, gap)
 

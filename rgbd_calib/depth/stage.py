@@ -218,7 +218,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                                         workers, start(progress, "static clouds", len(cams)),
                                         scheduler)
     far = {c: b for c in models if c in clouds
-           if (b := beyond_board(models[c], clouds[c].points[:, 2])) is not None}
+           if (b := beyond_board(models[c], clouds[c].points[:, 2],
+                                 _rays(clouds[c].points))) is not None}
 
     if no_pair:
         # the clouds are still built: fused.ply and the report's cloud checks use them
@@ -566,6 +567,12 @@ def consistent_with_board(reg: PairRegistration, board_covariance: dict[str, np.
 
 
 BEYOND_BOARD_CHI2 = 16.81  # chi-square, 6 dof, 1 %
+
+
+def _rays(points: np.ndarray) -> np.ndarray:
+    """The rays (z = 1) through a cloud's points (camera frame, z > 0 where valid)."""
+    z = points[:, 2:3]
+    return points / np.where(z > 0, z, 1.0)
 
 
 def moved_beyond_board(board_only: dict[str, Any], joint: dict[str, Any]) -> dict[str, str]:

@@ -336,7 +336,8 @@ def depth_extrapolated(report: dict[str, Any], earlier: list[Finding]) -> list[F
             "info", "depth_extrapolated", [c for c, _, _ in rest],
             "fused.ply lies beyond the board's depths, where each camera's depth model is an "
             "extrapolation (points beyond the board's farthest depth; the depth's 1 sigma at "
-            "the cloud's 90th percentile): " + "; ".join(
+            "the cloud's 90th percentile, over the image where its far points lie): "
+            + "; ".join(
                 f"{c} {100 * b['fraction']:.0f} % beyond {b['board_max_m']:.2f} m, "
                 f"+-{b['sigma_mm']:.1f} mm at {b['cloud_p90_m']:.1f} m" for c, b, _ in rest)
             + ".",

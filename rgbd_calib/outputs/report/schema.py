@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.23"
+REPORT_SCHEMA_VERSION = "1.24"
 
 
 class ReportError(RgbdCalibError):
