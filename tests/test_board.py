@@ -105,6 +105,9 @@ grid: {rows: 2, cols: 3, marker_length: 0.05, separation: 0.01, front_first_id: 
     ("dictionary: DICT_4X4_50\nthickness: 0.005\nmarkers:\n  0: [[0,0.05,0],[0.05,0.05,0]]\n",
      "expected 4 corners"),
     ("[1, 2", "not valid YAML"),
+    (GRID % 6 + "print_scale_sigma: -0.001\n", "print_scale_sigma: must be positive"),
+    (GRID % 6 + "print_scale_sigma: 0.5\n", "give at most 0.05"),
+    (GRID % 6 + "print_scale_sigma: half a mm\n", "print_scale_sigma: expected a finite number"),
 ])
 def test_bad_boards_fail_with_one_line(text, message):
     with pytest.raises(BoardError, match=message) as err:
@@ -119,6 +122,28 @@ def test_explicit_form_round_trip(tmp_path):
     save_board(board, tmp_path / "b.yaml")
     again = load_board(tmp_path / "b.yaml")
     np.testing.assert_allclose(again.corners, board.corners)
+
+
+@pytest.mark.parametrize("path", [CONFIGS / "board_thesis.yaml",
+                                  CONFIGS / "board_charuco_a3.yaml",
+                                  CONFIGS / "board_cube.yaml"])
+def test_the_printed_sizes_sigma_is_read_and_written_for_every_board_form(path, tmp_path):
+    """``print_scale_sigma`` (how well the printed size is known, relative 1 sigma) is one
+    top-level key of every board form: unstated it is None (the file's lengths taken as
+    exact), stated it round-trips through save_board, and a refined board keeps it."""
+    from rgbd_calib.model.board import refined_board, refined_multiface
+
+    assert load_board(path).print_scale_sigma is None
+    data = yaml.safe_load(path.read_text())
+    data["print_scale_sigma"] = 0.0005
+    (tmp_path / path.name).write_text(yaml.safe_dump(data))
+    board = load_board(tmp_path / path.name)
+    assert board.print_scale_sigma == 0.0005
+    save_board(board, tmp_path / "again.yaml")
+    assert load_board(tmp_path / "again.yaml").print_scale_sigma == 0.0005
+    refined = (refined_multiface(board, {}) if board.sheets else
+               refined_board(board, np.eye(4)) if board.charuco is None else board)
+    assert refined.print_scale_sigma == 0.0005
 
 
 # ------------------------------------------------------------------------ multi-face targets
@@ -225,3 +250,10 @@ def test_concave_l_is_valid_and_faces_may_meet_at_an_edge(tmp_path):
     np.testing.assert_allclose(board.face_normal(2), [-1, 0, 0], atol=1e-12)
     assert board.sheets[2].board.charuco is not None and board.sheets[2].id_offset == 30000
     assert board.ids.max() < 30000 + 100 and len(board.face_labels) == 3
+
+
+def test_a_render_printed_at_its_files_size_says_its_board_is_exact(tiny_dataset):
+    """synth writes the board file as its user has it; printed at the file's size (no
+    --print-scale) that file is exact, and it says so (print_scale_sigma 0: no board_size
+    finding, no scale term in the sigmas)."""
+    assert load_board(tiny_dataset / "board.yaml").print_scale_sigma == 0.0

@@ -445,6 +445,10 @@ def test_pipeline_names_a_wrong_marker_length(tmp_path_factory, tmp_path):
     assert codes.count("board_scale") == 1 and "depth_scale" not in codes
     message = next(w["message"] for w in report["warnings"] if w["code"] == "board_scale")
     assert "32.0 mm" in message and "40.0 mm" in message, message
+    # the dataset's board file is the nominal one, as its user has it: no print_scale_sigma
+    from rgbd_calib.model.board_file import load_board
+
+    assert load_board(synth.path / "board.yaml").print_scale_sigma is None
 
 
 def test_board_scale_names_a_charuco_boards_square_and_marker():

@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import gtsam
 import numpy as np
+import pytest
 from test_bundle import K, perturb, scene
 
 from rgbd_calib.core.config import BundleConfig
@@ -158,3 +159,27 @@ def test_a_held_ratio_solves_once_as_the_ratio_read_would():
         assert np.linalg.norm(tangent_error(again.T_ref_cam[c], read.T_ref_cam[c])) < 1e-7
     assert held_corner_ratio(held, read) is held  # a ratio given is kept
     assert held_corner_ratio(BundleConfig(), read) == BundleConfig()  # independent: none
+
+
+def test_the_boards_printed_size_sigma_is_added_to_every_solved_cameras_covariance():
+    """A board file's print_scale_sigma (the printed size's relative 1 sigma) scales the whole
+    rig: it is added like the marker model's scale term, in quadrature with it, to every
+    camera but the reference; 0 (stated exact) or unstated adds nothing."""
+    rng = np.random.default_rng(9)
+    truth, boards, meas = scene(rng, n_cams=3, n_views=6, sigma_px=0.05)
+    problem = BundleProblem(meas, dict.fromkeys(truth, K), "c0", truth, boards,
+                            BundleConfig(pixel_sigma=0.1))
+    exact = bundle_adjust(problem)
+    printed = bundle_adjust(replace(problem, board_scale_sigma=0.002))
+    assert exact.scale_sigma_ppm == 0.0 and printed.scale_sigma_ppm == pytest.approx(2000.0)
+    for c in ("c1", "c2"):
+        np.testing.assert_allclose(printed.covariance[c] - exact.covariance[c],
+                                   scale_covariance(printed.T_ref_cam[c], 0.002), atol=1e-14)
+        # 0.2 % of the camera's distance from the reference, in quadrature with the corners'
+        d_mm = 1e3 * np.linalg.norm(printed.T_ref_cam[c][:3, 3])
+        assert printed.sigma_translation_mm[c] == pytest.approx(
+            np.hypot(exact.sigma_translation_mm[c], 0.002 * d_mm), rel=0.05)
+    assert not printed.covariance["c0"].any()
+    both = bundle_adjust(replace(problem, board_scale_sigma=0.0001, config=BundleConfig(
+        pixel_sigma=0.1, corner_noise="marker", corner_centre_ratio=0.4)))
+    assert both.scale_sigma_ppm == pytest.approx(np.hypot(25.0, 100.0))

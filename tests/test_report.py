@@ -684,3 +684,27 @@ def test_an_estimated_view_floor_is_an_info_that_says_its_size():
     assert "0.29 px" in found["message"] and "8.4x" in found["message"]
     for quiet in ({"model_error_px": 0.0, "misfit_ratio": 0.57, "edges": 40}, None, "absent"):
         assert view_model_error(report(quiet), []) == []
+
+
+def test_a_board_whose_printed_size_is_not_stated_is_named_with_what_a_print_error_costs():
+    """The info ``board_size``: the board file states no print_scale_sigma, so every
+    translation rests on its lengths being exact; it names the farthest camera and what a
+    0.1 % print error moves it by. A stated sigma (0 included: a render's exact board) or an
+    older report without the key says nothing."""
+    from rgbd_calib.outputs.report.findings import board_size
+
+    def report(sigma="absent"):
+        board = {"markers_seen": 10} if sigma == "absent" else {"print_scale_sigma": sigma}
+        return {"board": board, "cameras": {
+            "ref": {"calibrated": True, "translation_m": [0.0, 0.0, 0.0]},
+            "near": {"calibrated": True, "translation_m": [0.9, 0.0, 0.1]},
+            "far": {"calibrated": True, "translation_m": [1.5, 0.3, 2.4]},
+            "lost": {"calibrated": False, "translation_m": None}}}
+
+    found = board_size(report(None), [])
+    assert [(f["code"], f["severity"], f["cameras"]) for f in found] == [
+        ("board_size", "info", ["far"])]
+    assert "puts far 2.8 mm off (2.85 m from the reference)" in found[0]["message"]
+    assert "print_scale_sigma" in found[0]["advice"]
+    assert board_size(report(0.0), []) == board_size(report(0.0005), []) == []
+    assert board_size(report(), []) == []

@@ -111,6 +111,10 @@ class Board:
     charuco: CharucoSpec | None = None  # a ChArUco board: ids/corners are saddle-corner quads
     sheets: tuple[FaceSheet, ...] = ()  # a multi-face target: its faces (empty otherwise)
     body: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    # how well the printed size is known against this file (relative 1 sigma, as measured);
+    # None: not stated (the file's lengths are taken as exact). Every translation of a
+    # calibration scales with it (docs/formats.md, 'print_scale_sigma')
+    print_scale_sigma: float | None = None
 
     @cached_property
     def index_of(self) -> dict[int, int]:
@@ -235,6 +239,12 @@ class Board:
         return self.T_board_face(face)[:3, 2].copy()
 
     def to_dict(self) -> dict[str, Any]:
+        out = self._form_dict()
+        if self.print_scale_sigma is not None:
+            out["print_scale_sigma"] = self.print_scale_sigma
+        return out
+
+    def _form_dict(self) -> dict[str, Any]:
         if self.sheets:
             out: dict[str, Any] = {"name": self.name, "type": MULTIFACE,
                                    "dictionary": self.dictionary, "thickness": self.thickness}
@@ -609,7 +619,7 @@ def refined_board(board: Board, T_front_back: np.ndarray) -> Board:
         moved[:, 2] = -thickness
         corners[back] = moved.reshape(-1, 4, 3)
     return Board(board.dictionary, board.ids.copy(), corners, board.faces.copy(), thickness,
-                 board.panel, board.name, None)
+                 board.panel, board.name, None, print_scale_sigma=board.print_scale_sigma)
 
 
 def thesis_board() -> Board:
@@ -715,5 +725,6 @@ def refined_multiface(board: Board, T_board_face: dict[int, np.ndarray]) -> Boar
     self-calibration; faces not given keep theirs): what ``board_refined.yaml`` holds."""
     sheets = [replace(s, T_board_face=np.asarray(T_board_face.get(s.label, s.T_board_face),
                                                  dtype=float)) for s in board.sheets]
-    return multiface_board(board.dictionary, sheets, board.thickness, board.name, board.body,
-                           None, board.name)
+    return replace(multiface_board(board.dictionary, sheets, board.thickness, board.name,
+                                   board.body, None, board.name),
+                   print_scale_sigma=board.print_scale_sigma)

@@ -11,6 +11,7 @@ constructors of :mod:`rgbd_calib.model.board`.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -69,10 +70,11 @@ _TOP_KEYS = {
     "panel",
     "margin",
     "type",
+    "print_scale_sigma",
 }
 _CHARUCO_KEYS = {
     "name", "type", "dictionary", "squares_x", "squares_y", "square_length", "marker_length",
-    "legacy_pattern", "first_id", "inverted", "panel", "margin", "thickness",
+    "legacy_pattern", "first_id", "inverted", "panel", "margin", "thickness", "print_scale_sigma",
 }
 _GRID_KEYS = {"rows", "cols", "marker_length", "separation", "front_first_id", "back_first_id"}
 
@@ -118,7 +120,21 @@ def load_board(path: Path, fix_winding: bool = False) -> Board:
 
 
 def _board_from_mapping(raw: dict, path: Path, where: str, fix_winding: bool = False) -> Board:
-    """The board of a board file's top-level mapping (any ``type``)."""
+    """The board of a board file's top-level mapping (any ``type``), with its optional
+    ``print_scale_sigma``."""
+    board = _board_of_form(raw, path, where, fix_winding)
+    sigma = raw.get("print_scale_sigma") if isinstance(raw, dict) else None
+    if sigma is None:
+        return board
+    sigma = _number(sigma, f"{where}: print_scale_sigma", allow_zero=True)
+    if sigma > 0.05:
+        raise BoardError(f"{where}: print_scale_sigma {sigma} is the printed size's relative "
+                         "1 sigma (0.0005 for a print measured to 0.05 %); give at most 0.05")
+    return replace(board, print_scale_sigma=sigma)
+
+
+def _board_of_form(raw: dict, path: Path, where: str, fix_winding: bool) -> Board:
+    """The board of a board file's top-level mapping, by its ``type``."""
     if raw.get("type", ARUCO) == CHARUCO:
         return _load_charuco(raw, path, where)
     if raw.get("type", ARUCO) == MULTIFACE:
@@ -368,7 +384,8 @@ def dataset_board_file(dataset_dir: str | Path) -> Path | None:
 
 
 # ------------------------------------------------------------------------ multi-face targets
-_MULTIFACE_KEYS = {"name", "type", "dictionary", "thickness", "faces", "body"}
+_MULTIFACE_KEYS = {"name", "type", "dictionary", "thickness", "faces", "body",
+                   "print_scale_sigma"}
 _FACE_KEYS = {"board", "pose"}
 _POSE_KEYS = {"rotation_deg", "translation_m"}
 

@@ -14,6 +14,7 @@ the initial poses is :mod:`rgbd_calib.solve.posegraph`; no file I/O here.
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -148,7 +149,8 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
     what is left in the residuals, on top of it. ``config.corner_noise == "marker"`` weighs
     each marker's centre and shape by their own sigmas (:mod:`~rgbd_calib.solve.corner_noise`;
     ``corner_centre_ratio``, or read from a first solve, then solved again) and adds the rig's scale
-    (``config.scale_sigma_ppm``) to every camera's covariance."""
+    (``config.scale_sigma_ppm``) to every camera's covariance; the board's printed size
+    (``problem.board_scale_sigma``) is added the same way, in quadrature."""
     if problem.edge_offset:
         problem = replace(problem, measurements=measurements_without_offset(
             problem.measurements, problem.edge_offset))
@@ -215,6 +217,7 @@ class _FactorLayout:
     runs: tuple[tuple[str, ...], ...] = ()  # the continuous stretches (runs.recording_runs)
     motion_prior: MotionPrior = MotionPrior()  # its scale (estimated from the data)
     edge_offset: dict[str, float] = field(default_factory=dict)  # taken out of the corners
+    board_scale_sigma: float = 0.0  # the printed board's size, relative 1 sigma
 
     @property
     def timed(self) -> bool:
@@ -326,7 +329,8 @@ def _factor_layout(problem: BundleProblem) -> tuple[
     layout = _FactorLayout(config, problem.K, cam_key, view_key, intr_key, intrinsics, names,
                            x0, prior_intr, fixed, problem.relative_poses, tuple(moving), refine,
                            problem.reference, cams, views, **timing,
-                           edge_offset=dict(problem.edge_offset or {}))
+                           edge_offset=dict(problem.edge_offset or {}),
+                           board_scale_sigma=problem.board_scale_sigma)
     return layout, kept, board_model, face_models
 
 
@@ -491,8 +495,8 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float,
     corner_res = (layout.marker_residuals(solution.groups, len(solution.active), values)
                   if solution.active else np.zeros((0, 4, 2)))
     runs = _run_correlation(layout, solution, corner_res)
-    scale_ppm = (layout.config.scale_sigma_ppm if layout.config.corner_noise == "marker"
-                 else 0.0)
+    scale_ppm = math.hypot(layout.config.scale_sigma_ppm if layout.config.corner_noise
+                           == "marker" else 0.0, 1e6 * layout.board_scale_sigma)
     for c in cov:
         if c in runs:
             cov[c] = cov[c] * runs[c].factor

@@ -93,6 +93,8 @@ class BundleResult:
     edge_offset: dict[str, EdgeOffset] = field(default_factory=dict)
     # the corners' centre and shape noise read from the residuals; the rig scale's sigma (ppm)
     corner_noise: CornerNoise | None = None  # in every covariance (config.corner_noise: marker)
+    # the rig scale's relative sigma (ppm) in every covariance: the marker model's
+    # (config.scale_sigma_ppm) and the board's printed size (board_scale_sigma) together
     scale_sigma_ppm: float = 0.0
 
 
@@ -123,6 +125,9 @@ class BundleProblem:
     # per camera its detector's edge offset (px per edge), taken out of its edge-fitted
     # corners before the solve (rgbd_calib/solve/edge_offset.py; estimated by ladder.py)
     edge_offset: dict[str, float] | None = None
+    # how well the board's printed size is known (relative 1 sigma; the board file's
+    # print_scale_sigma): the rig's scale, added to every solved camera's covariance
+    board_scale_sigma: float = 0.0
 
 
 def intrinsics_vector(base: CameraIntrinsics, names: tuple[str, ...]) -> np.ndarray:

@@ -89,7 +89,7 @@ def bundle_problem(measurements: list[MarkerMeasurement], rig: Rig, board: Board
                          capture_ms=capture_ms,
                          time_priors=anchored_priors(rig.names, capture_ms,
                                                      config.time_offset_sigma_ms),
-                         set_ms=set_ms)
+                         set_ms=set_ms, board_scale_sigma=board.print_scale_sigma or 0.0)
 
 
 def refined_rig(rig: Rig, bundle: BundleResult) -> Rig:

@@ -29,7 +29,7 @@ and :mod:`.ground_truth` (``ground_truth.yaml``).
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -253,7 +253,9 @@ def synthesize(
             _write_timestamps(writer, rig, written, draw_timestamps_ms(timing, seed, params))
         write_ground_truth(tmp / "ground_truth.yaml", rig, poses, layout, seed, board, printed,
                            params, closeups, n_frames, timing)
-        save_board(board, tmp / DATASET_BOARD_FILE)  # the nominal board file, as a user has it
+        # the nominal board file, as a user has it; printed at its size, it says so (0: exact)
+        save_board(replace(board, print_scale_sigma=0.0) if params.print_scale == 1.0
+                   and board.print_scale_sigma is None else board, tmp / DATASET_BOARD_FILE)
     return SynthDataset(out, rig, poses)
 
 

@@ -453,6 +453,8 @@ def _board_geometry(result: CalibrationResult) -> dict[str, Any]:
             float(pts[:, 1].max()),
         ],
         "thickness_m": float(max(-pts[:, 2].min(), 0.0)),
+        **({"print_scale_sigma": result.board.print_scale_sigma}
+           if result.board is not None else {}),
     }
 
 

@@ -11,6 +11,7 @@ import numpy as np
 from .findings_base import Finding, cameras_of, finding
 from .numbers import fmt
 from .schema import (
+    BOARD_SIZE_EXAMPLE,
     CORNER_REGIONS,
     COVERAGE_MIN,
     DISTANCE_SPREAD_MIN,
@@ -179,6 +180,35 @@ def board_glue(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
         f"{glue_sentence(refined)} (sigma {fmt(sx, 2)} / {fmt(sy, 2)} mm, {fmt(srot, 3)} deg).",
         "Use board_refined.yaml (--board) for the next calibrations with this board, or "
         "re-glue the back sheet.",
+    )]
+
+
+def board_size(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The board file states no ``print_scale_sigma``: its lengths are taken as exact, and
+    every translation scales with the printed size. The images cannot see a print error (the
+    whole rig scales with it), nor, below a percent, the cameras' depth, whose own scales
+    differ by a few 0.1 % (a render printed 0.2 % large: every camera 0.2 % of its distance
+    off, up to 5.6 mm at 2.5 m, at 13 of its sigmas; docs/accuracy.md)."""
+    board = report.get("board") or {}
+    if "print_scale_sigma" not in board or board["print_scale_sigma"] is not None:
+        return []
+    far = {n: float(np.linalg.norm(c["translation_m"])) for n, c in report["cameras"].items()
+           if c.get("calibrated") and c.get("translation_m") is not None}
+    if not far or max(far.values()) <= 0:
+        return []
+    cam = max(far, key=far.get)
+    return [finding(
+        "info",
+        "board_size",
+        [cam],
+        f"Every translation scales with the printed board's size, which the board file gives "
+        f"as exact (no print_scale_sigma): a print {100 * BOARD_SIZE_EXAMPLE:.1f} % off the "
+        f"file puts {cam} {1000 * BOARD_SIZE_EXAMPLE * far[cam]:.1f} mm off ({far[cam]:.2f} m "
+        "from the reference), which neither the images nor the cameras' depth can see.",
+        "Measure the printed grid end to end (a steel rule or calipers over the outermost "
+        "marker corners), set marker_length (or the corners) from it and print_scale_sigma to "
+        "the measurement's relative 1 sigma (0.0005 for 0.05 %): the sigmas then hold it; "
+        "docs/formats.md.",
     )]
 
 

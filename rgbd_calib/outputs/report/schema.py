@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.24"
+REPORT_SCHEMA_VERSION = "1.25"
 
 
 class ReportError(RgbdCalibError):
@@ -67,6 +67,7 @@ GLUE_SIGMAS = 3.0  # a back-sheet offset or rotation beyond this many sigma is r
 GLUE_MIN_MM = 0.2  # ... and worth a corrected board file above this offset ...
 GLUE_MIN_DEG = 0.05  # ... or this rotation
 BOARD_SCALE_MIN = 0.01  # every camera's depth scale off by this much the same way: the print
+BOARD_SIZE_EXAMPLE = 0.001  # the print error the board_size finding puts into millimetres
 BOARD_SCALE_SPREAD = 0.003  # camera-to-camera depth-scale spread allowed on top of the sigmas
 DEPTH_SCALE_TOL = 0.003  # |factor - 1| above this: the camera's depth needs its scale
 REFINE_MOVE_SIGMAS = 3.0  # refine: a camera moved by more than this many initial sigmas
@@ -209,6 +210,7 @@ REPORT_SCHEMA: dict[str, Any] = {
         "thickness_m": Nullable(N),
         "marker_length_m?": N,
         "square_length_m?": N,
+        "print_scale_sigma?": Nullable(N),
         "refined?": {
             "held": Nullable(S),
             "offset_mm": Nullable(ListOf(N)),
