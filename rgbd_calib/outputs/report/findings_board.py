@@ -188,7 +188,7 @@ def board_size(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
     every translation scales with the printed size. The images cannot see a print error (the
     whole rig scales with it), nor, below a percent, the cameras' depth, whose own scales
     differ by a few 0.1 % (a render printed 0.2 % large: every camera 0.2 % of its distance
-    off, up to 5.6 mm at 2.5 m, at 13 of its sigmas; docs/accuracy.md)."""
+    off, up to 6.0 mm at 3 m, at up to 13 of its sigmas; docs/accuracy.md)."""
     board = report.get("board") or {}
     if "print_scale_sigma" not in board or board["print_scale_sigma"] is not None:
         return []
