@@ -279,9 +279,10 @@ FAR_RAYS = 256  # of a cloud's points beyond the board: the rays its far sigma i
 
 def _depth_m(model: DepthModel, z_measured_m: float, rays: np.ndarray | None) -> float:
     """``model``'s true depth (m) for a measured depth on the image centre's ray, or its mean
-    over ``rays`` ((N,3), z = 1)."""
+    over ``rays`` ((N,3), z = 1) where the model has an answer (NaN where it has none)."""
     r = CENTRE_RAY if rays is None else np.asarray(rays, dtype=float).reshape(-1, 3)
-    return float(np.mean(model.correct_points(r, np.full(len(r), float(z_measured_m)))[:, 2]))
+    z = model.correct_points(r, np.full(len(r), float(z_measured_m)))[:, 2]
+    return float(np.mean(z[np.isfinite(z)])) if np.isfinite(z).any() else math.nan
 
 
 def _depth_sigma_mm(model: DepthModel, names: tuple[str, ...], cov: np.ndarray,
