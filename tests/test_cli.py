@@ -154,6 +154,7 @@ def test_synth_and_board_commands(tmp_path):
     code, text = run("board", CONFIGS / "board_thesis.yaml", "--out", tmp_path / "b",
                      "--dpi", "50")
     assert code == 0 and (tmp_path / "b" / "board.pdf").exists()
+    assert "should span 400.0 mm across and 220.0 mm down" in " ".join(text.split())
 
 
 def test_python_m_runs_a_command_with_worker_processes(tmp_path):

@@ -192,3 +192,18 @@ def test_quiet_zone_and_alignment_marks(thesis: Board, printed: PrintResult, fac
         col, row = np.clip(((off + [u, ymax - y]) * px_per_mm).astype(int), 0,
                            np.array(img.shape[::-1]) - 1)
         assert img[row, col] < 128, f"no alignment mark at board ({x}, {y}) mm"
+
+
+def test_the_board_command_says_what_the_printed_sheet_should_measure(thesis: Board) -> None:
+    """A print a fraction of a percent off scales every translation: `board` says what to
+    measure on the printed front sheet and what it should read (the thesis board's 7 x 4
+    markers of 40 mm, 20 mm apart: 400 x 220 mm), and where the measurement goes."""
+    from rgbd_calib.outputs.printing import measuring_line
+
+    line = measuring_line(thesis)
+    assert "outermost marker corners should span 400.0 mm across and 220.0 mm down" in line
+    assert "print_scale_sigma" in line and "\n" not in line
+    charuco = load_board(Path(__file__).parents[1] / "configs" / "board_charuco_a3.yaml")
+    assert "inner chessboard corners" in measuring_line(charuco)
+    cube = load_board(Path(__file__).parents[1] / "configs" / "board_cube.yaml")
+    assert measuring_line(cube) is None

@@ -51,13 +51,15 @@ def board(
 ) -> None:
     """Write the board's faces as true-scale PDFs and PNGs, ready to print and glue."""
     from ..model.board_file import load_board
-    from ..outputs.printing import write_printable_board
+    from ..outputs.printing import measuring_line, write_printable_board
 
     check_output_folder(out)
     b = load_board(board_file, fix_winding=fix_winding)
     result = write_printable_board(b, out, dpi=dpi, page=page)
     for path in result.files:
         typer.echo(path)
+    if (line := measuring_line(b)) is not None:
+        typer.echo(line)
 
 
 # the options of `synth` (its imperfections shown in a panel of their own)

@@ -539,6 +539,25 @@ def _render_png(path: Path, board: Board, face: int, page_size_mm: tuple[float, 
 # ----------------------------------------------------------------------------- entry point
 
 
+def measuring_line(board: Board) -> str | None:
+    """What to measure on the printed front sheet, and what it should read: the span of the
+    outermost marker corners (a ChArUco board: of its inner chessboard corners) across and
+    down, from the board file. A print off by a fraction of a percent scales every
+    translation of a calibration (docs/formats.md, ``print_scale_sigma``). None for a
+    multi-face target (each face is measured on its own sheet)."""
+    if board.sheets:
+        return None
+    front = board.corners[board.faces == FRONT].reshape(-1, 3)
+    if not len(front):
+        return None
+    w, h = 1000 * (front[:, :2].max(axis=0) - front[:, :2].min(axis=0))
+    what = "inner chessboard corners" if board.charuco is not None else "outermost marker corners"
+    return (f"measure the printed front sheet: its {what} should span {w:.1f} mm across and "
+            f"{h:.1f} mm down; where they do not, scale the board file's lengths by measured / "
+            "expected, and put the measurement's relative 1 sigma in its print_scale_sigma "
+            "(0.0005 for 0.2 mm over 400 mm; docs/formats.md)")
+
+
 def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,
                           page: str | None = None) -> PrintResult:
     """Write the board's printable sheets into ``out_dir`` at true scale.
