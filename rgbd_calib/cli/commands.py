@@ -525,21 +525,19 @@ def demo(
     """Render a small synthetic rig, calibrate it and compare with its ground truth (a re-run
     with the same options reuses the render and the detections). Exit codes as calibrate's."""
     from ..model.board import thesis_board
-    from ..model.board_file import dataset_board_file, load_board
     from ..model.dataset import FolderDataset
     from ..synth.render import SynthParams, load_ground_truth, synthesize_cached
 
     check_output_folder(out)
     workers_ignore_ctrl_c()
-    b = thesis_board()
     with stage_progress() as progress:
-        dataset, reused = synthesize_cached(out / "dataset", layout, frames, seed, b,
+        dataset, reused = synthesize_cached(out / "dataset", layout, frames, seed, thesis_board(),
                                             SynthParams(depth_bias=0.004), progress=progress)
     if reused:
         console.print(f"reusing the rendered rig in {dataset}/ (same options)", highlight=False)
     ds = FolderDataset(dataset)
-    own = dataset_board_file(dataset)  # the render's board file, as calibrate would read it
-    result = _calibrate_and_write(ds, load_board(own) if own else b, None, out / "calibration")
+    board, _ = _dataset_board(ds)  # the render's board file, as calibrate reads it
+    result = _calibrate_and_write(ds, board, None, out / "calibration")
     print_summary(result, out / "calibration", verdict=False)
     gt = load_ground_truth(dataset)
     print_demo_errors(result, gt)

@@ -123,7 +123,7 @@ def _board_from_mapping(raw: dict, path: Path, where: str, fix_winding: bool = F
     """The board of a board file's top-level mapping (any ``type``), with its optional
     ``print_scale_sigma``."""
     board = _board_of_form(raw, path, where, fix_winding)
-    sigma = raw.get("print_scale_sigma") if isinstance(raw, dict) else None
+    sigma = raw.get("print_scale_sigma")
     if sigma is None:
         return board
     sigma = _number(sigma, f"{where}: print_scale_sigma", allow_zero=True)
