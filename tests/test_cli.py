@@ -1,6 +1,7 @@
 """End-to-end through the command line: outputs per formats.md, caching, bad input."""
 
 import json
+import math
 import shutil
 
 import numpy as np
@@ -12,6 +13,7 @@ from typer.testing import CliRunner
 from rgbd_calib import __version__
 from rgbd_calib.cli.commands import app
 from rgbd_calib.core.geometry import quaternion_xyzw_to_matrix, transform_error
+from rgbd_calib.model.board_file import load_board
 from rgbd_calib.synth.render import load_ground_truth
 
 runner = CliRunner()
@@ -155,6 +157,18 @@ def test_synth_and_board_commands(tmp_path):
                      "--dpi", "50")
     assert code == 0 and (tmp_path / "b" / "board.pdf").exists()
     assert "should span 400.0 mm across and 220.0 mm down" in " ".join(text.split())
+    # the print measured: the board file rescaled to it, with the measurement's sigma
+    code, text = run("board", CONFIGS / "board_thesis.yaml", "--out", tmp_path / "m",
+                     "--measured", "400.8", "220.44")
+    assert code == 0 and "1.00200 x the file's size" in text
+    measured = load_board(tmp_path / "m" / "board.yaml")
+    assert measured.marker_length == pytest.approx(0.04 * 1.002)
+    assert measured.print_scale_sigma == pytest.approx(0.3 / math.hypot(400.0, 220.0))
+    assert not (tmp_path / "m" / "board.pdf").exists()
+    code, text = run("board", CONFIGS / "board_thesis.yaml", "--out", tmp_path / "cm",
+                     "--measured", "40.08", "22.04")
+    assert code == 2 and "more than 5% off" in text and len(text.strip().splitlines()) == 1
+    assert not (tmp_path / "cm").exists()
 
 
 def test_python_m_runs_a_command_with_worker_processes(tmp_path):
@@ -176,8 +190,6 @@ def test_calibrate_without_board_reads_the_datasets_board_yaml(small_line, tmp_p
     """Issue 34: the board goes with the dataset (synth and convert --board write board.yaml);
     without --board calibrate reads it and says so, and says when it falls back to the thesis
     board, never silently."""
-    from rgbd_calib.model.board_file import load_board
-
     own = load_board(small_line.path / "board.yaml").to_dict()
     assert own.pop("print_scale_sigma") == 0.0  # rendered at the file's size: exact
     assert own == load_board(CONFIGS / "board_thesis.yaml").to_dict()

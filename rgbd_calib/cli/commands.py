@@ -48,18 +48,56 @@ def board(
     fix_winding: Annotated[
         bool, typer.Option(help="Reorder mirrored markers instead of rejecting them.")
     ] = False,
+    measured: Annotated[
+        tuple[float, float] | None,
+        typer.Option(metavar="ACROSS_MM DOWN_MM",
+                     help="The printed front sheet as measured (the span its printed line "
+                     "names): write OUT/board.yaml, the board file rescaled to it with its "
+                     "print_scale_sigma, instead of the prints."),
+    ] = None,
+    measured_sigma: Annotated[
+        float, typer.Option(metavar="MM", help="1 sigma of one --measured reading (mm).")
+    ] = 0.3,
 ) -> None:
-    """Write the board's faces as true-scale PDFs and PNGs, ready to print and glue."""
+    """Write the board's faces as true-scale PDFs and PNGs, ready to print and glue; with
+    --measured, the board file rescaled to the printed sheet instead."""
     from ..model.board_file import load_board
     from ..outputs.printing import measuring_line, write_printable_board
 
     check_output_folder(out)
     b = load_board(board_file, fix_winding=fix_winding)
+    if measured is not None:
+        _write_measured_board(b, out, measured, measured_sigma)
+        return
     result = write_printable_board(b, out, dpi=dpi, page=page)
     for path in result.files:
         typer.echo(path)
     if (line := measuring_line(b)) is not None:
         typer.echo(line)
+
+
+def _write_measured_board(b, out: Path, measured: tuple[float, float], sigma_mm: float) -> None:
+    """``board --measured``: the board file rescaled to its printed front sheet, written as
+    ``out/board.yaml``, and what was measured said in two lines (three for a stretched
+    print)."""
+    from ..model.board_file import save_board
+    from ..model.board_print import measured_print_scale, rescaled_board
+
+    scale = measured_print_scale(b, measured, sigma_mm)
+    path = Path(out) / "board.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_board(rescaled_board(b, scale.scale, scale.sigma), path)
+    typer.echo(f"the print is {scale.scale:.5f} x the file's size +- {scale.sigma:.5f} "
+               f"(across {scale.across:.5f}, down {scale.down:.5f})")
+    if scale.stretched:
+        warn_line(f"the print is stretched: {abs(scale.across - scale.down):.2%} more "
+                  f"{'across' if scale.across > scale.down else 'down'} than the other way "
+                  "(a printer's paper feed); one scale cannot hold it, so the file takes "
+                  "the mean and its sigma covers half the difference. A print at actual "
+                  "size on another printer, measured again, avoids it")
+    typer.echo(f"wrote {path}: every printed length x {scale.scale:.5f}, print_scale_sigma "
+               f"{scale.sigma:.5f}; calibrate with --board {path} (or copy it into the "
+               "dataset folder as board.yaml)")
 
 
 # the options of `synth` (its imperfections shown in a panel of their own)

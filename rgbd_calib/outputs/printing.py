@@ -30,6 +30,7 @@ from reportlab.pdfgen.canvas import Canvas
 
 from ..core.errors import BoardError, ConfigError
 from ..model.board import BACK, FRONT, Board, charuco_black_squares, printed_markers
+from ..model.board_print import front_span_m
 
 MM_PER_INCH = 25.4
 PT_PER_MM = 72.0 / MM_PER_INCH
@@ -545,17 +546,15 @@ def measuring_line(board: Board) -> str | None:
     down, from the board file. A print off by a fraction of a percent scales every
     translation of a calibration (docs/formats.md, ``print_scale_sigma``). None for a
     multi-face target (each face is measured on its own sheet)."""
-    if board.sheets:
+    span = front_span_m(board)
+    if span is None:
         return None
-    front = board.corners[board.faces == FRONT].reshape(-1, 3)
-    if not len(front):
-        return None
-    w, h = 1000 * (front[:, :2].max(axis=0) - front[:, :2].min(axis=0))
+    w, h = 1000 * np.array(span)
     what = "inner chessboard corners" if board.charuco is not None else "outermost marker corners"
     return (f"measure the printed front sheet: its {what} should span {w:.1f} mm across and "
-            f"{h:.1f} mm down; where they do not, scale the board file's lengths by measured / "
-            "expected, and put the measurement's relative 1 sigma in its print_scale_sigma "
-            "(0.0005 for 0.2 mm over 400 mm; docs/formats.md)")
+            f"{h:.1f} mm down; where they do not, run this again with --measured ACROSS_MM "
+            "DOWN_MM: it writes the board file rescaled to the print, with the measurement's "
+            "sigma as its print_scale_sigma (docs/formats.md)")
 
 
 def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,

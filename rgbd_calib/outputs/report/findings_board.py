@@ -206,9 +206,9 @@ def board_size(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
         f"file puts {cam} {1000 * BOARD_SIZE_EXAMPLE * far[cam]:.1f} mm off ({far[cam]:.2f} m "
         "from the reference), which neither the images nor the cameras' depth can see.",
         "Measure the printed grid end to end (a steel rule or calipers over the outermost "
-        "marker corners), set marker_length (or the corners) from it and print_scale_sigma to "
-        "the measurement's relative 1 sigma (0.0005 for 0.05 %): the sigmas then hold it; "
-        "docs/formats.md.",
+        "marker corners) and run `rgbd-calib board BOARD.yaml --measured ACROSS_MM DOWN_MM`: "
+        "it writes the board file rescaled to the print, with the measurement's relative "
+        "1 sigma as its print_scale_sigma, so the sigmas hold it; docs/formats.md.",
     )]
 
 
