@@ -169,6 +169,11 @@ def test_synth_and_board_commands(tmp_path):
                      "--measured", "40.08", "22.04")
     assert code == 2 and "more than 5% off" in text and len(text.strip().splitlines()) == 1
     assert not (tmp_path / "cm").exists()
+    before = (tmp_path / "m" / "board.yaml").read_text()  # never rescaled in place
+    code, text = run("board", tmp_path / "m" / "board.yaml", "--out", tmp_path / "m",
+                     "--measured", "401.6", "220.88")
+    assert code == 2 and "in place" in text
+    assert (tmp_path / "m" / "board.yaml").read_text() == before
 
 
 def test_python_m_runs_a_command_with_worker_processes(tmp_path):

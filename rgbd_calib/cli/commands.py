@@ -80,11 +80,15 @@ def _write_measured_board(b, out: Path, measured: tuple[float, float], sigma_mm:
     """``board --measured``: the board file rescaled to its printed front sheet, written as
     ``out/board.yaml``, and what was measured said in two lines (three for a stretched
     print)."""
+    from ..core.errors import ConfigError
     from ..model.board_file import save_board
     from ..model.board_print import measured_print_scale, rescaled_board
 
     scale = measured_print_scale(b, measured, sigma_mm)
     path = Path(out) / "board.yaml"
+    if b.source is not None and path.resolve() == Path(b.source).resolve():
+        raise ConfigError(f"{path}: --out would rescale this board file in place (a second run "
+                          "would scale it twice); choose another --out folder")
     path.parent.mkdir(parents=True, exist_ok=True)
     save_board(rescaled_board(b, scale.scale, scale.sigma), path)
     typer.echo(f"the print is {scale.scale:.5f} x the file's size +- {scale.sigma:.5f} "
