@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbd_calib.cli.commands import app
-from rgbd_calib.core.config import CalibrationConfig
+from rgbd_calib.core.config import CalibrationConfig, DepthConfig
 from rgbd_calib.core.geometry import make_transform, rotvec_to_matrix, transform_error
 from rgbd_calib.model.board import thesis_board
 from rgbd_calib.model.dataset import FolderDataset
@@ -23,6 +23,9 @@ from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize
 
 SCALE_TOL = 0.001  # issue 4: depth-scale factor within 0.1 % (absolute)
 WEAK_GAIN = 0.30  # issue 4: refinement lowers the mean camera error by >= 30 % on weak data
+# ... with depth sensors whose poses are known to a real camera's 0.1 deg / 1 mm (the default;
+# measured -25 %)
+WEAK_GAIN_SENSOR_POSE = 0.10
 STRONG_RATIO, STRONG_MM = 0.10, 0.1  # ... and never worsens a camera by > 10 % (or 0.1 mm)
 
 
@@ -117,13 +120,23 @@ def test_refinement_helps_weak_board_data_and_never_hurts_strong(tmp_path_factor
         for cam, est in refined.depth.depth_scales.items():
             assert abs(est.factor - gt.depth_scale_bias[cam]) < SCALE_TOL
         if check == "weak":
+            # the render's depth sensors sit exactly where their colour cameras say (its only
+            # depth error is a scale): with their poses taken as exact, as before 2026-11-30,
             # measured (2026-11-24): 0.801 -> 0.290 mm (-64 %); with the board-estimated depth
             # scales taken as exact in the pairs it was -15 % (docs/depth.md, "Weak board data");
             # with the pairs registering depth-model-corrected clouds (ea91206 .. 5bf18b5)
-            # 0.92 -> 2.17 mm, since registered with the scale alone 0.92 -> 0.34 mm
-            mean_ref = np.mean([e_ref[c][1] for c in cams])
+            # 0.92 -> 2.17 mm, since registered with the scale alone 0.92 -> 0.34-0.44 mm
+            exact = calibrate(ds, board, CalibrationConfig(depth=DepthConfig(
+                sensor_pose_sigma_deg=0.0, sensor_pose_sigma_mm=0.0)), cache_dir=root / check)
             mean_none = np.mean([e_none[c][1] for c in cams])
-            assert mean_ref <= (1 - WEAK_GAIN) * mean_none, (mean_ref, mean_none)
+            e_exact = errors(exact.extrinsics, gt)
+            mean_exact = np.mean([e_exact[c][1] for c in cams])
+            assert mean_exact <= (1 - WEAK_GAIN) * mean_none, (mean_exact, mean_none)
+            # by default the pairs carry a real camera's depth-to-colour pose (0.1 deg / 1 mm
+            # per axis): they help less, and never hurt (0.92 -> 0.69 mm, docs/depth.md, "The
+            # depth sensor's pose in the pairs")
+            mean_ref = np.mean([e_ref[c][1] for c in cams])
+            assert mean_ref <= (1 - WEAK_GAIN_SENSOR_POSE) * mean_none, (mean_ref, mean_none)
         else:
             for c in cams:
                 allowed = max(STRONG_RATIO * e_none[c][1], STRONG_MM)

@@ -908,6 +908,20 @@ class DepthConfig(BaseModel, extra="forbid"):
     pair_bias_sigma_deg: float = Field(
         0.007, ge=0.0, description="Same, rotation (deg per axis; median error 0.011 deg)."
     )
+    sensor_pose_sigma_deg: float = Field(
+        0.1,
+        ge=0.0,
+        description="calibrate registers pairs on clouds not corrected for the depth "
+        "sensor's pose relative to the colour camera, so an accepted pair carries that pose's "
+        "error: its covariance gains it (rgbd_calib/depth/stage.py with_sensor_poses), as the "
+        "camera's depth model estimates it with this as its prior (deg per axis: how well a "
+        "factory depth-to-colour rotation is known; the every-term fit alone leaves it free on "
+        "the few views of a weak camera). 0 with sensor_pose_sigma_mm 0: the pairs take the "
+        "depth sensors' poses as exact (before 2026-11-30).",
+    )
+    sensor_pose_sigma_mm: float = Field(
+        1.0, ge=0.0, description="Same, translation (mm per axis)."
+    )
     max_board_chi2: float = Field(
         22.46,
         gt=0,

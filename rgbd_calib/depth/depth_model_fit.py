@@ -258,6 +258,38 @@ class DepthModelFit:
                if names and self.model_cov is not None else 0.0)
         return math.sqrt(max(law * law - own * own, 0.0))
 
+    @staticmethod
+    def prior_moment(prior_deg: float = 0.0, prior_mm: float = 0.0,
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`sensor_pose_moment` of a camera with no fit: zero and the prior's
+        covariance (``prior_deg`` / ``prior_mm`` per axis; zeros without a prior)."""
+        return np.zeros(6), np.diag((SENSOR_POSE_UNITS * np.array(
+            [prior_deg] * 3 + [prior_mm] * 3)) ** 2)
+
+    def sensor_pose_moment(self, prior_deg: float = 0.0, prior_mm: float = 0.0,
+                           ) -> tuple[np.ndarray, np.ndarray]:
+        """The rigid error ``eps`` (6, ``[omega rad, v m]``, GTSAM's order) that the depth
+        sensor's pose leaves on a cloud that is not corrected for it (``measured = Exp(eps)
+        true``, to first order: ``eps = -(rx, ry, rz, tx, ty, tz)``), and its covariance
+        (6x6): the every-term fit's (which frees the pose whatever the ladder chose), combined
+        with a zero-mean prior of ``prior_deg`` / ``prior_mm`` per axis where given (0: no
+        prior). On a few views that fit leaves the pose nearly free (it trades with the
+        disparity gradients over a flat board): the prior then holds it. Without the fit's
+        pose terms: the prior alone (zeros without one)."""
+        _, P = self.prior_moment(prior_deg, prior_mm)
+        if self.law_model is None or self.law_cov is None or not set(SENSOR_POSE) <= set(
+                self.law_names):
+            return np.zeros(6), P
+        k = [self.law_names.index(p) for p in SENSOR_POSE]
+        eps = -SENSOR_POSE_UNITS * np.array([self.law_model.value(p) for p in SENSOR_POSE])
+        C = SENSOR_POSE_UNITS[:, None] * self.law_cov[np.ix_(k, k)] * SENSOR_POSE_UNITS[None, :]
+        if not np.any(P):
+            return eps, C
+        # the posterior of the fit (eps, C) and the prior (0, P), in the form that holds for a
+        # nearly singular C: P - P (P + C)^-1 P and P (P + C)^-1 eps
+        gain = np.linalg.solve(P + C, P).T  # P (P + C)^-1
+        return gain @ eps, P - gain @ P
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "camera": self.camera,
@@ -273,6 +305,8 @@ class DepthModelFit:
         }
 
 
+SENSOR_POSE = ("rx", "ry", "rz", "tx", "ty", "tz")  # the depth sensor's pose terms
+SENSOR_POSE_UNITS = np.array([math.pi / 180.0] * 3 + [1e-3] * 3)  # deg, mm -> rad, m
 CENTRE_RAY = np.array([[0.0, 0.0, 1.0]])
 FAR_RAYS = 256  # of a cloud's points beyond the board: the rays its far sigma is taken over
 

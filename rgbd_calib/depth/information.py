@@ -93,6 +93,22 @@ def with_bias_floor(information: np.ndarray, sigma_deg: float, sigma_mm: float) 
     return W - W @ np.linalg.solve(np.diag(1.0 / var) + W, W)
 
 
+def with_covariance(information: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """``information`` (6x6) of an estimate whose covariance gains ``covariance`` (6x6,
+    symmetric positive semi-definite, e.g. an error the estimate carries from its inputs):
+    ``(W^-1 + L L^T)^-1 = W - W L (I + L^T W L)^-1 L^T W`` with ``covariance = L L^T``, which
+    holds for a singular ``W`` or ``covariance`` too."""
+    w, V = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    keep = w > 1e-15 * max(float(w.max(initial=0.0)), 1e-300)
+    if not np.any(keep):
+        return information
+    L = V[:, keep] * np.sqrt(w[keep])
+    W = np.asarray(information, dtype=float)
+    WL = W @ L
+    out = W - WL @ np.linalg.solve(np.eye(L.shape[1]) + L.T @ WL, WL.T)
+    return 0.5 * (out + out.T)
+
+
 # --------------------------------------------------------------------------- Gauss-Newton
 def _intensity(colors: np.ndarray) -> np.ndarray:
     return np.asarray(colors, dtype=float).mean(axis=1)  # as Open3D's colored ICP: (r+g+b)/3

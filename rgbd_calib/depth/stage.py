@@ -55,7 +55,7 @@ from .depth_model_fit import (
     board_samples,
     fit_depth_model,
 )
-from .information import tangent_error
+from .information import tangent_error, with_covariance
 from .registration import (
     PairRegistration,
     failed_registration,
@@ -93,6 +93,9 @@ class DepthRefinement:
     pair_variance_factor: float | None = None
     # calibrate: the bias (mm, deg per axis) added to each pair's covariance in that solve
     pair_bias_sigma: tuple[float, float] | None = None
+    # calibrate: the prior (deg, mm per axis) of the depth sensors' poses the pairs carry
+    # (with_sensor_poses); None: taken as exact, or no pair registered
+    sensor_pose_sigma: tuple[float, float] | None = None
     # camera -> its depth model chosen by evidence from the board (the clouds are corrected)
     depth_models: dict[str, DepthModelFit] = field(default_factory=dict)
     # the overlapping pairs' surface distances at the final extrinsics (measure_agreement)
@@ -107,7 +110,9 @@ class DepthRefinement:
         cameras the board constrained weakly (those depth was registered for) and, when some
         camera with depth got no depth model, ``unmodelled`` (camera -> why), and when the
         pairs were weighed in a solve, their ``pair_variance_factor`` (and in calibrate the
-        bias added to their covariance, ``pair_bias_sigma_mm`` / ``_deg``)."""
+        bias added to their covariance, ``pair_bias_sigma_mm`` / ``_deg``), and when the
+        pairs carry their depth sensors' poses, that pose's prior
+        (``sensor_pose_sigma_deg`` / ``_mm``)."""
         status = ("fallback" if self.fallback else "skipped" if self.note
                   else "used" if self.relative_poses else "none")
         return {"status": status, "reason": self.fallback or self.note,
@@ -117,7 +122,10 @@ class DepthRefinement:
                     if self.pair_variance_factor is not None else {}) | (
                     {"pair_bias_sigma_mm": self.pair_bias_sigma[0],
                      "pair_bias_sigma_deg": self.pair_bias_sigma[1]}
-                    if self.pair_bias_sigma is not None else {})
+                    if self.pair_bias_sigma is not None else {}) | (
+                    {"sensor_pose_sigma_deg": self.sensor_pose_sigma[0],
+                     "sensor_pose_sigma_mm": self.sensor_pose_sigma[1]}
+                    if self.sensor_pose_sigma is not None else {})
 
     @property
     def used(self) -> bool:
@@ -232,22 +240,13 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
 
     pairs: list[dict[str, Any]] = []
     relative: list[RelativePose] = []
+    sensor_pose: tuple[float, float] | None = None
     if method != "none" and len(clouds) >= 2:
-        registering = clouds
-        if board_covariance is not None and any(c in clouds for c in models):
-            # calibrate registers only where the board is weak, which is where the depth models
-            # are fitted on few views: their extrapolation to the scene's depths has a variance
-            # the pairs' information leaves out (it frees only what a depth-scale error
-            # explains), and the pairs pulled the cameras by millimetres (weak race, 6 sets:
-            # 2.17 mm against 0.34 with the scale alone; docs/depth.md, 'Weak board data'). So
-            # the pairs register the clouds divided by the depth-scale factor, as before the
-            # models; fused.ply and the checks keep the models.
-            with timed(timings, "clouds"):  # a camera with a model has its scale estimate
-                rebuilt, _ = static_clouds(dataset, [(c, T_ref_cam[c], scales[c].factor)
-                                                     for c in models if c in clouds],
-                                           T_ref_board or {}, board, config, workers, None,
-                                           scheduler)
-            registering = {**clouds, **rebuilt}
+        registering, uncorrected = _registration_clouds(
+            dataset, clouds, models, scales, T_ref_cam, T_ref_board, board,
+            board_covariance is not None, config, workers, scheduler, timings)
+        if uncorrected:
+            sensor_pose = (config.sensor_pose_sigma_deg, config.sensor_pose_sigma_mm)
         with timed(timings, "registration"):
             intrinsics = {c: dataset.rig.cameras[c] for c in registering}
             overlaps = find_overlapping_pairs(registering, T_ref_cam, intrinsics, config)
@@ -266,7 +265,13 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             for ov, reg in zip(overlaps, register_pairs(registering, jobs, method, config,
                                                          workers, tick, scheduler=scheduler)):
                 if reg.accepted and board_covariance is not None:
-                    reg = consistent_with_board(reg, board_covariance, T_ref_cam, config)
+                    # the gate at the pair's own covariance: a move a depth sensor's pose
+                    # explains is a depth error, and rejected; an accepted pair is weighed
+                    # with what its sensors' poses may still hide
+                    reg = with_sensor_poses(consistent_with_board(reg, board_covariance,
+                                                                  T_ref_cam, config),
+                                            uncorrected, (config.sensor_pose_sigma_deg,
+                                                          config.sensor_pose_sigma_mm))
                 pairs.append({**ov.to_dict(), **reg.to_dict()})
                 if reg.accepted:
                     relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
@@ -275,10 +280,46 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                             scale_source={c: "board" if c in scales else "given"
                                           if c in (depth_scales or {}) else "unknown"
                                           for c in clouds}, depth_models=models,
-                            beyond_board=far, unmodelled=unmodelled)
+                            beyond_board=far, unmodelled=unmodelled,
+                            sensor_pose_sigma=sensor_pose)
     if method != "none" and not relative:
         depth = depth.with_fallback(no_pair_reason(depth))
     return depth
+
+
+def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
+                         models: dict[str, DepthModelFit], scales: dict[str, DepthScaleEstimate],
+                         T_ref_cam: dict[str, np.ndarray],
+                         T_ref_board: dict[str, np.ndarray] | None, board: Board | None,
+                         calibrating: bool, config: DepthConfig, workers: int | None,
+                         scheduler: str | None, timings: dict[str, float],
+                         ) -> tuple[dict[str, CameraCloud], dict[str, DepthModelFit | None]]:
+    """The clouds the pairs register, and the cameras whose clouds there are not corrected for
+    their depth sensors' poses (camera -> its depth model's fit, None without one: what
+    :func:`with_sensor_poses` widens the pairs by; empty with ``depth.sensor_pose_sigma_deg``
+    and ``_mm`` 0, the poses taken as exact).
+
+    calibrate (``calibrating``) registers only where the board is weak, which is where the
+    depth models are fitted on few views: their extrapolation to the scene's depths has a
+    variance the pairs' information leaves out (it frees only what a depth-scale error
+    explains), and the pairs pulled the cameras by millimetres (weak race, 6 sets: 2.17 mm
+    against 0.34 with the scale alone; docs/depth.md, 'Weak board data'). So its pairs
+    register the clouds divided by the depth-scale factor, as before the models (fused.ply
+    and the checks keep the models), and none of them is corrected for its sensor's pose.
+    refine registers the clouds as given."""
+    if not calibrating:
+        return clouds, {}
+    registering = clouds
+    if any(c in clouds for c in models):
+        with timed(timings, "clouds"):  # a camera with a model has its scale estimate
+            rebuilt, _ = static_clouds(dataset, [(c, T_ref_cam[c], scales[c].factor)
+                                                 for c in models if c in clouds],
+                                       T_ref_board or {}, board, config, workers, None,
+                                       scheduler)
+        registering = {**clouds, **rebuilt}
+    if config.sensor_pose_sigma_deg == 0 and config.sensor_pose_sigma_mm == 0:
+        return registering, {}
+    return registering, {c: models.get(c) for c in registering}
 
 
 def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
@@ -564,6 +605,33 @@ def consistent_with_board(reg: PairRegistration, board_covariance: dict[str, np.
         f"ICP moved {reg.correction_mm:.2f} mm / {reg.correction_deg:.3f} deg from the board's "
         f"extrinsics, beyond their uncertainty and the pair's (chi2 {chi2:.0f} > "
         f"{config.max_board_chi2}, 6 dof): a wrong local minimum or a depth error"))
+
+
+def with_sensor_poses(reg: PairRegistration, models: dict[str, DepthModelFit | None],
+                      prior: tuple[float, float] = (0.0, 0.0)) -> PairRegistration:
+    """``reg`` with its covariance widened by what its cameras' depth sensors' poses (relative
+    to their colour cameras) leave on clouds registered uncorrected for them (``models``:
+    camera -> its fit, None for a camera without one, whose pose is known to the prior alone;
+    calibrate registers the clouds divided by the depth scale alone). A
+    cloud ``Exp(eps) true`` moves the registered ``T_b_a`` by ``Ad(T_a_b) eps_b - eps_a``
+    (right perturbation), and the pair's covariance gains that move's second moment about
+    zero: at the every-term fits' estimates (a bias the pair carries; taking it out of
+    ``T_b_a`` instead measured no better: those estimates trade with the disparity
+    gradients), and their covariances, each with the
+    zero-mean ``prior`` (deg, mm per axis; config ``depth.sensor_pose_sigma_deg`` / ``_mm``:
+    :meth:`~rgbd_calib.depth.depth_model_fit.DepthModelFit.sensor_pose_moment`). Without
+    it a 0.13 deg depth-to-colour rotation passed into a 2-view camera's extrinsics at 4
+    of its sigmas (docs/depth.md, 'The depth sensor's pose in the pairs')."""
+    if reg.cam_a not in models and reg.cam_b not in models:
+        return reg
+    moments = [(np.zeros(6), np.zeros((6, 6))) if c not in models
+               else DepthModelFit.prior_moment(*prior) if models[c] is None
+               else models[c].sensor_pose_moment(*prior) for c in (reg.cam_a, reg.cam_b)]
+    (eps_a, C_a), (eps_b, C_b) = moments
+    Ad = adjoint(invert_transform(reg.T_b_a))
+    beta = Ad @ eps_b - eps_a  # the move the estimated sensor poses predict
+    B = np.outer(beta, beta) + C_a + Ad @ C_b @ Ad.T
+    return replace(reg, information=with_covariance(reg.information, B))
 
 
 BEYOND_BOARD_CHI2 = 16.81  # chi-square, 6 dof, 1 %

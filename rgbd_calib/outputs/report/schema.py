@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.25"
+REPORT_SCHEMA_VERSION = "1.26"
 
 
 class ReportError(RgbdCalibError):
@@ -312,7 +312,8 @@ REPORT_SCHEMA: dict[str, Any] = {
     "timings_s": MapOf("<stage>", N),
     "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S),
                "unmodelled?": MapOf("<camera>", S), "pair_variance_factor?": N,
-               "pair_bias_sigma_mm?": N, "pair_bias_sigma_deg?": N},
+               "pair_bias_sigma_mm?": N, "pair_bias_sigma_deg?": N,
+               "sensor_pose_sigma_deg?": N, "sensor_pose_sigma_mm?": N},
     "refine?": {
         "init": S,
         "registration": S,
