@@ -127,9 +127,10 @@ def _board_from_mapping(raw: dict, path: Path, where: str, fix_winding: bool = F
     if sigma is None:
         return board
     sigma = _number(sigma, f"{where}: print_scale_sigma", allow_zero=True)
-    if sigma > 0.05:
+    if sigma > MAX_PRINT_SCALE_SIGMA:
         raise BoardError(f"{where}: print_scale_sigma {sigma} is the printed size's relative "
-                         "1 sigma (0.0005 for a print measured to 0.05 %); give at most 0.05")
+                         "1 sigma (0.0005 for a print measured to 0.05 %); give at most "
+                         f"{MAX_PRINT_SCALE_SIGMA:g}")
     return replace(board, print_scale_sigma=sigma)
 
 
@@ -369,6 +370,7 @@ def _explicit_markers(markers: Any, where: str) -> tuple[np.ndarray, np.ndarray]
     return np.asarray(ids, dtype=int), np.asarray(corners, dtype=float)
 
 
+MAX_PRINT_SCALE_SIGMA = 0.05  # a board file's print_scale_sigma: a print known to 5 % at worst
 DATASET_BOARD_FILE = "board.yaml"  # a dataset folder's own board (docs/formats.md)
 
 

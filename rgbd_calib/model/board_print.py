@@ -23,10 +23,10 @@ import numpy as np
 
 from ..core.errors import BoardError, ConfigError
 from .board import FRONT, Board
+from .board_file import MAX_PRINT_SCALE_SIGMA
 
 PLAUSIBLE_SCALE = 0.05  # a measured span more than 5 % off the file's: the wrong corners measured
 STRETCH_SIGMAS = 3.0  # the two directions' ratios this many sigmas apart: a stretched print
-MAX_SIGMA = 0.05  # the board file's bound on print_scale_sigma (model.board_file)
 
 
 def front_span_m(board: Board) -> tuple[float, float] | None:
@@ -92,9 +92,10 @@ def measured_print_scale(board: Board, measured_mm: tuple[float, float],
     stretched = z > STRETCH_SIGMAS
     if stretched:
         sigma = max(sigma, spread / 2.0)
-    if sigma > MAX_SIGMA:
+    if sigma > MAX_PRINT_SCALE_SIGMA:
         raise ConfigError(f"--measured-sigma {sigma_mm} mm: a relative sigma of {sigma:.3f} "
-                         f"over this board's span; measure to better than {MAX_SIGMA:.0%}")
+                          "over this board's span; measure to better than "
+                          f"{MAX_PRINT_SCALE_SIGMA:.0%}")
     return PrintScale(scale, sigma, float(ratios[0]), float(ratios[1]), stretched)
 
 
