@@ -82,15 +82,14 @@ def tangent_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
 def with_bias_floor(information: np.ndarray, sigma_deg: float, sigma_mm: float) -> np.ndarray:
     """``information`` (6x6, ``[rot rad, trans m]``) of a pair whose covariance gains a bias
     ``B`` (``sigma_deg`` per rotation axis, ``sigma_mm`` per translation axis): ``(W^-1 +
-    B)^-1``, by Woodbury ``W - W (B^-1 + W)^-1 W``, which holds for a singular ``W`` too (a
-    pair whose information leaves the directions of an unknown depth scale out). However
-    many points a pair has, its information then stays below ``B^-1``. ``information`` as it
-    is when either sigma is 0."""
+    B)^-1`` (:func:`with_covariance`, which holds for a singular ``W`` too: a pair whose
+    information leaves the directions of an unknown depth scale out). However many points a
+    pair has, its information then stays below ``B^-1``. ``information`` as it is when
+    either sigma is 0."""
     var = np.array([np.radians(sigma_deg) ** 2] * 3 + [(sigma_mm * 1e-3) ** 2] * 3)
     if not np.all(var > 0):
         return information
-    W = np.asarray(information, dtype=float)
-    return W - W @ np.linalg.solve(np.diag(1.0 / var) + W, W)
+    return with_covariance(information, np.diag(var))
 
 
 def with_covariance(information: np.ndarray, covariance: np.ndarray) -> np.ndarray:
