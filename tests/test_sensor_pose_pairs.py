@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from rgbd_calib.core.config import DepthConfig
 from rgbd_calib.core.depth_model import PARAMETERS, DepthModel
 from rgbd_calib.core.geometry import adjoint, invert_transform, make_transform, rotvec_to_matrix
-from rgbd_calib.depth.depth_model_fit import DepthModelFit
+from rgbd_calib.depth.depth_model_fit import DepthModelFit, applied_pose_moment
 from rgbd_calib.depth.information import tangent_error, with_covariance
 from rgbd_calib.depth.registration import PairRegistration
-from rgbd_calib.depth.stage import with_sensor_poses
+from rgbd_calib.depth.stage import applied_pose_moments, fit_pose_moments, with_sensor_poses
 
 
 def _fit(camera: str, pose: dict[str, float], sigma: float = 0.0) -> DepthModelFit:
@@ -65,7 +66,7 @@ def test_the_moved_pair_is_what_the_sensor_poses_predict():
     W = np.diag([1e8] * 3 + [1e6] * 3)  # a pair of 0.006 deg / 1 mm
     reg = PairRegistration("a", "b", "colored-icp", registered, T_b_a, W, "right", 0.9, 1.0,
                            1.0, 1.0, 0.5, 1000, 0.0, 0.0, True, None, 0.0)
-    wide = with_sensor_poses(reg, fits)
+    wide = with_sensor_poses(reg, fit_pose_moments(fits, (0.0, 0.0)))
     cov = np.linalg.inv(wide.information) - np.linalg.inv(W)
     Ad = adjoint(invert_transform(registered))
     _, C_a = fits["a"].sensor_pose_moment()
@@ -78,7 +79,7 @@ def test_the_moved_pair_is_what_the_sensor_poses_predict():
     assert move @ W @ move > 100 and move @ wide.information @ move < 2.0
     assert with_sensor_poses(reg, {}) is reg
     # a camera without a fit is known to the prior alone
-    prior_only = with_sensor_poses(reg, {"a": None}, (0.1, 1.0))
+    prior_only = with_sensor_poses(reg, fit_pose_moments({"a": None}, (0.1, 1.0)))
     np.testing.assert_allclose(np.linalg.inv(prior_only.information) - np.linalg.inv(W),
                                np.diag([np.radians(0.1) ** 2] * 3 + [1e-6] * 3), atol=1e-12)
 
@@ -97,3 +98,34 @@ def test_a_prior_holds_a_sensor_pose_the_views_leave_free():
     assert abs(np.degrees(eps[0]) + 0.15) < 0.002 and abs(eps[5] - 0.8e-3) < 2e-5
     eps0, C0 = tight.sensor_pose_moment()
     np.testing.assert_allclose(C, C0, rtol=0.02)
+
+
+def test_a_corrected_cloud_keeps_what_its_correction_did_not_take_out():
+    """check and refine register clouds corrected by the calibration's depth models: a model
+    that freed the pose leaves its estimate's error (its sigmas), one that held the pose at the
+    factory value, a depth-scale factor or nothing leave the prior; both prior sigmas at 0 take
+    the poses as exact (no widening at all)."""
+    sig = {"rx": 0.05, "ry": 0.02, "rz": 0.03, "tx": 0.4, "ty": 0.5, "tz": 0.6}
+    posed = DepthModel(50.0, {"rx": 0.1, "tz": 1.0}, ("scale", "offset", "pose"),
+                       {"scale": 1e-4, "d0": 0.01, **sig})
+    eps, C = applied_pose_moment(posed, 0.1, 1.0)
+    np.testing.assert_array_equal(eps, np.zeros(6))
+    np.testing.assert_allclose(np.sqrt(np.diag(C)), [np.radians(0.05), np.radians(0.02),
+                                                     np.radians(0.03), 4e-4, 5e-4, 6e-4])
+    prior = np.diag([np.radians(0.1) ** 2] * 3 + [1e-6] * 3)
+    unposed = DepthModel(50.0, {"scale": 1.002}, ("scale", "offset"), {"scale": 1e-4})
+    for correction in (unposed, 1.003, None):
+        np.testing.assert_allclose(applied_pose_moment(correction, 0.1, 1.0)[1], prior)
+    moments = applied_pose_moments({"a": posed, "b": 1.003}, ["a", "b", "c"], DepthConfig())
+    assert set(moments) == {"a", "b", "c"}
+    np.testing.assert_allclose(moments["c"][1], prior)  # the config's default prior
+    assert applied_pose_moments({"a": posed}, ["a"], DepthConfig(
+        sensor_pose_sigma_deg=0.0, sensor_pose_sigma_mm=0.0)) == {}
+    # a pair of two prior-held cameras gains both priors (a's directly, b's through the pair)
+    T_b_a = make_transform(rotvec_to_matrix(np.radians([0, 30, 0])), np.array([1.0, 0, 0.2]))
+    W = np.diag([1e8] * 3 + [1e6] * 3)
+    reg = PairRegistration("b", "c", "colored-icp", T_b_a, T_b_a, W, "right", 0.9, 1.0,
+                           1.0, 1.0, 0.5, 1000, 0.0, 0.0, True, None, 0.0)
+    Ad = adjoint(invert_transform(T_b_a))
+    np.testing.assert_allclose(np.linalg.inv(with_sensor_poses(reg, moments).information)
+                               - np.linalg.inv(W), prior + Ad @ prior @ Ad.T, atol=1e-12)

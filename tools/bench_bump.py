@@ -38,13 +38,20 @@ from rgbd_calib.pipelines.refine import fix_verdict
 from rgbd_calib.synth.render import SynthParams, load_ground_truth, synthesize_cached
 
 MOVING = {"motion": (0.3, 30.0), "sync_offset_ms": 16.0}
+# issue 33's depth errors beside the scale (``--depth-errors``): a disparity offset within
+# +-0.2 px, its gradients and curvature within +-0.05 px, the depth-to-colour pose within
+# +-0.2 deg / +-1 mm per axis
+DEPTH_ERRORS = {"depth_disparity_offset_px": 0.2, "depth_disparity_field_px": 0.05,
+                "depth_pose_error": (0.2, 1.0)}
 
 
-def calibrated(root: Path, layout: str, seed: int, bias: float) -> Path:
+def calibrated(root: Path, layout: str, seed: int, bias: float, depth_errors: bool) -> Path:
     """The rig's calibration (16 still sets, default calibrate), rendered and run once."""
-    data, _ = synthesize_cached(root / f"cal_{layout}_s{seed}_b{bias}", layout, 16, seed,
-                                thesis_board(), SynthParams(depth_bias=bias))
-    out = root / f"cal_{layout}_s{seed}_b{bias}_out"
+    tag = f"{layout}_s{seed}_b{bias}" + ("_de" if depth_errors else "")
+    data, _ = synthesize_cached(root / f"cal_{tag}", layout, 16, seed, thesis_board(),
+                                SynthParams(depth_bias=bias,
+                                            **(DEPTH_ERRORS if depth_errors else {})))
+    out = root / f"cal_{tag}_out"
     if not (out / "extrinsics.yaml").is_file():
         subprocess.run([sys.executable, "-m", "rgbd_calib.cli", "calibrate", str(data), "--out",
                         str(out), "--accept-poor"], check=True, capture_output=True)
@@ -56,12 +63,14 @@ def errors(ext, truth) -> dict[str, tuple[float, float]]:
 
 
 def run_one(root: Path, layout: str, seed: int, bias: float, recording: str, mm: float,
-            camera: str, frames: int) -> dict:
-    calib_dir = calibrated(root, layout, seed, bias)
+            camera: str, frames: int, depth_errors: bool = False) -> dict:
+    calib_dir = calibrated(root, layout, seed, bias, depth_errors)
     calib = load_extrinsics(calib_dir / "extrinsics.yaml")
     params = SynthParams(depth_bias=bias, bump=((camera, mm, mm / 10.0),) if mm else (),
-                         **(MOVING if recording == "moving" else {}))
-    path, _ = synthesize_cached(root / f"now_{layout}_s{seed}_b{bias}_{recording}_{mm:g}",
+                         **(MOVING if recording == "moving" else {}),
+                         **(DEPTH_ERRORS if depth_errors else {}))
+    de = "_de" if depth_errors else ""
+    path, _ = synthesize_cached(root / f"now_{layout}_s{seed}_b{bias}{de}_{recording}_{mm:g}",
                                 layout, frames, seed, thesis_board(), params)
     truth = load_ground_truth(path).T_ref_cam
     t0 = time.perf_counter()
@@ -70,13 +79,14 @@ def run_one(root: Path, layout: str, seed: int, bias: float, recording: str, mm:
     unknown_scale = {c for c, k in run.scale_source.items() if k == "unknown"}
     t0 = time.perf_counter()
     fix = fix_moved(run.clouds, calib, run.result, run.overlaps, unknown_scale=unknown_scale,
-                    links=run.links)
+                    links=run.links, sensor_poses=run.sensor_poses)
     t_fix = time.perf_counter() - t0
     verdict = fix_verdict(calib, fix.extrinsics, run.moved, fix.pairs, fix.unconfirmed)
     before, after = errors(calib, truth), errors(fix.extrinsics, truth)
     others = [c for c in calib.cameras if c != camera or not mm]
     damage = max(after[c][0] - before[c][0] for c in others)
-    row = {"layout": layout, "seed": seed, "depth_bias": bias, "recording": recording,
+    row = {"layout": layout, "seed": seed, "depth_bias": bias, "depth_errors": depth_errors,
+           "recording": recording,
            "bump_mm": mm, "bump_deg": mm / 10.0, "camera": camera if mm else None,
            "moved": run.moved, "unknown": run.unknown,
            "exit": check_exit(run.moved, run.unknown),
@@ -103,7 +113,8 @@ def table(rows: list[dict]) -> str:
                   f"({r['bumped_sigma_mm']:.2f} / {r['bumped_sigma_deg']:.3f})"
                   if r["bump_mm"] else "-")
         out.append(
-            f"| {r['depth_bias'] * 100:.1f} % | {r['recording']} | {r['bump_mm']:g} / "
+            f"| {r['depth_bias'] * 100:.1f} %{' + DE' if r.get('depth_errors') else ''} "
+            f"| {r['recording']} | {r['bump_mm']:g} / "
             f"{r['bump_deg']:g} ({r['camera'] or 'none'}) | {', '.join(r['moved']) or 'none'} | "
             f"{', '.join(r['unknown']) or 'none'} | {r['exit']} | "
             f"{r['worst_other_after_mm']:.2f} ({r['damage_mm']:+.2f}) | {bumped} | "
@@ -121,6 +132,8 @@ def main() -> None:
     ap.add_argument("--bumps", type=float, nargs="+", default=[0, 2, 5, 10, 50])
     ap.add_argument("--biases", type=float, nargs="+", default=[0.0, 0.004])
     ap.add_argument("--recordings", nargs="+", default=["still", "moving"])
+    ap.add_argument("--depth-errors", action="store_true",
+                    help="issue 33's depth errors beside each depth bias (DEPTH_ERRORS)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--table", type=Path, help="print the table of a --json file and stop")
     args = ap.parse_args()
@@ -132,7 +145,7 @@ def main() -> None:
         for recording in args.recordings:
             for mm in args.bumps:
                 row = run_one(args.out, args.layout, args.seed, bias, recording, mm,
-                              args.camera, args.frames)
+                              args.camera, args.frames, args.depth_errors)
                 rows.append(row)
                 print(table([row]).splitlines()[-1], flush=True)
                 if args.json:

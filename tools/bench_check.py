@@ -60,7 +60,8 @@ def run_one(root: Path, layout: str, seed: int, scenario: str, frames: int) -> d
     run = check_dataset(ds, calib, {c: 1.0 for c in calib.cameras})
     t_check = time.perf_counter() - t0
     t0 = time.perf_counter()
-    fixed = fix_moved(run.clouds, calib, run.result, run.overlaps, links=run.links).extrinsics
+    fixed = fix_moved(run.clouds, calib, run.result, run.overlaps, links=run.links,
+                    sensor_poses=run.sensor_poses).extrinsics
     t_fix = time.perf_counter() - t0
     after = make_rig(layout, seed, params)
     truth = {c.name: after.T_ref_cam(c) for c in after.cameras}  # in the reference's frame now

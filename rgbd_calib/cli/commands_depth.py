@@ -184,7 +184,8 @@ def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolera
     with stage_progress() as progress:
         tick = start(progress, "re-registering the moved cameras", 1)
         fix = fix_moved(run.clouds, calib, run.result, run.overlaps, method, depth_config,
-                        unknown_scale=unknown, scheduler=scheduler, links=run.links)
+                        unknown_scale=unknown, scheduler=scheduler, links=run.links,
+                        sensor_poses=run.sensor_poses)
         tick(1)
     moved, fixed, pairs = run.result.moved, fix.extrinsics, fix.pairs
     verdict = fix_verdict(calib, fixed, moved, pairs, fix.unconfirmed)

@@ -916,8 +916,11 @@ class DepthConfig(BaseModel, extra="forbid"):
         "error: its covariance gains it (rgbd_calib/depth/stage.py with_sensor_poses), as the "
         "camera's depth model estimates it with this as its prior (deg per axis: how well a "
         "factory depth-to-colour rotation is known; the every-term fit alone leaves it free on "
-        "the few views of a weak camera). 0 with sensor_pose_sigma_mm 0: the pairs take the "
-        "depth sensors' poses as exact (before 2026-11-30).",
+        "the few views of a weak camera). check and refine register clouds corrected by the "
+        "calibration's depth models: their pairs gain what the models leave of the pose (its "
+        "sigmas where a model freed the pose, this prior where not). 0 with "
+        "sensor_pose_sigma_mm 0: the pairs take the depth sensors' poses as exact (before "
+        "2026-11-30).",
     )
     sensor_pose_sigma_mm: float = Field(
         1.0, ge=0.0, description="Same, translation (mm per axis)."

@@ -307,6 +307,25 @@ class DepthModelFit:
 
 SENSOR_POSE = ("rx", "ry", "rz", "tx", "ty", "tz")  # the depth sensor's pose terms
 SENSOR_POSE_UNITS = np.array([math.pi / 180.0] * 3 + [1e-3] * 3)  # deg, mm -> rad, m
+
+
+def applied_pose_moment(correction: DepthModel | float | None, prior_deg: float = 0.0,
+                        prior_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """What the depth sensor's pose may still leave on a cloud already corrected by
+    ``correction`` (``check`` and ``refine`` register such clouds): zero, and the covariance
+    of the rigid error ``eps`` (6, ``[omega rad, v m]``) the correction did not take out. A
+    model whose ``terms`` free the pose took out its estimate: what remains is that
+    estimate's error (its ``sigmas``, diagonal; the file keeps no correlations). A model that
+    holds the pose at the factory value, a depth-scale factor or nothing took out nothing:
+    the zero-mean prior of ``prior_deg`` / ``prior_mm`` per axis (zeros: the pose taken as
+    exact)."""
+    if isinstance(correction, DepthModel) and "pose" in correction.terms and set(
+            SENSOR_POSE) <= set(correction.sigmas):
+        sigma = np.array([correction.sigmas[p] for p in SENSOR_POSE])
+        return np.zeros(6), np.diag((SENSOR_POSE_UNITS * sigma) ** 2)
+    return DepthModelFit.prior_moment(prior_deg, prior_mm)
+
+
 CENTRE_RAY = np.array([[0.0, 0.0, 1.0]])
 FAR_RAYS = 256  # of a cloud's points beyond the board: the rays its far sigma is taken over
 

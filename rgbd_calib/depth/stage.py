@@ -51,6 +51,7 @@ from .clouds import (
 from .depth_model_fit import (
     BeyondBoard,
     DepthModelFit,
+    applied_pose_moment,
     beyond_board,
     board_samples,
     fit_depth_model,
@@ -242,10 +243,11 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     relative: list[RelativePose] = []
     sensor_pose: tuple[float, float] | None = None
     if method != "none" and len(clouds) >= 2:
-        registering, uncorrected = _registration_clouds(
+        registering, moments = _registration_clouds(
             dataset, clouds, models, scales, T_ref_cam, T_ref_board, board,
-            board_covariance is not None, config, workers, scheduler, timings)
-        if uncorrected:
+            board_covariance is not None, config, workers, scheduler, timings,
+            depth_scales or {})
+        if moments:
             sensor_pose = (config.sensor_pose_sigma_deg, config.sensor_pose_sigma_mm)
         with timed(timings, "registration"):
             intrinsics = {c: dataset.rig.cameras[c] for c in registering}
@@ -266,12 +268,11 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                                                          workers, tick, scheduler=scheduler)):
                 if reg.accepted and board_covariance is not None:
                     # the gate at the pair's own covariance: a move a depth sensor's pose
-                    # explains is a depth error, and rejected; an accepted pair is weighed
-                    # with what its sensors' poses may still hide
-                    reg = with_sensor_poses(consistent_with_board(reg, board_covariance,
-                                                                  T_ref_cam, config),
-                                            uncorrected, (config.sensor_pose_sigma_deg,
-                                                          config.sensor_pose_sigma_mm))
+                    # explains is a depth error, and rejected
+                    reg = consistent_with_board(reg, board_covariance, T_ref_cam, config)
+                if reg.accepted:
+                    # an accepted pair is weighed with what its sensors' poses may still hide
+                    reg = with_sensor_poses(reg, moments)
                 pairs.append({**ov.to_dict(), **reg.to_dict()})
                 if reg.accepted:
                     relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
@@ -293,11 +294,12 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
                          T_ref_board: dict[str, np.ndarray] | None, board: Board | None,
                          calibrating: bool, config: DepthConfig, workers: int | None,
                          scheduler: str | None, timings: dict[str, float],
-                         ) -> tuple[dict[str, CameraCloud], dict[str, DepthModelFit | None]]:
-    """The clouds the pairs register, and the cameras whose clouds there are not corrected for
-    their depth sensors' poses (camera -> its depth model's fit, None without one: what
-    :func:`with_sensor_poses` widens the pairs by; empty with ``depth.sensor_pose_sigma_deg``
-    and ``_mm`` 0, the poses taken as exact).
+                         given: dict[str, float | DepthModel],
+                         ) -> tuple[dict[str, CameraCloud], dict[str, tuple[np.ndarray,
+                                                                           np.ndarray]]]:
+    """The clouds the pairs register, and per camera what its depth sensor's pose may leave
+    on its cloud (:func:`with_sensor_poses` widens the pairs by it; empty with
+    ``depth.sensor_pose_sigma_deg`` and ``_mm`` 0, the poses taken as exact).
 
     calibrate (``calibrating``) registers only where the board is weak, which is where the
     depth models are fitted on few views: their extrapolation to the scene's depths has a
@@ -305,10 +307,13 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
     explains), and the pairs pulled the cameras by millimetres (weak race, 6 sets: 2.17 mm
     against 0.34 with the scale alone; docs/depth.md, 'Weak board data'). So its pairs
     register the clouds divided by the depth-scale factor, as before the models (fused.ply
-    and the checks keep the models), and none of them is corrected for its sensor's pose.
-    refine registers the clouds as given."""
+    and the checks keep the models), and none of them is corrected for its sensor's pose:
+    :func:`fit_pose_moments`. refine registers the clouds as built, with the models fitted
+    here or ``given`` (the calibration's): :func:`applied_pose_moments`."""
     if not calibrating:
-        return clouds, {}
+        used = {**given, **{c: f.factor for c, f in scales.items()},  # as the clouds were
+                **{c: m.model for c, m in models.items()}}
+        return clouds, applied_pose_moments(used, clouds, config)
     registering = clouds
     if any(c in clouds for c in models):
         with timed(timings, "clouds"):  # a camera with a model has its scale estimate
@@ -319,7 +324,9 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
         registering = {**clouds, **rebuilt}
     if config.sensor_pose_sigma_deg == 0 and config.sensor_pose_sigma_mm == 0:
         return registering, {}
-    return registering, {c: models.get(c) for c in registering}
+    return registering, fit_pose_moments({c: models.get(c) for c in registering},
+                                         (config.sensor_pose_sigma_deg,
+                                          config.sensor_pose_sigma_mm))
 
 
 def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
@@ -607,27 +614,49 @@ def consistent_with_board(reg: PairRegistration, board_covariance: dict[str, np.
         f"{config.max_board_chi2}, 6 dof): a wrong local minimum or a depth error"))
 
 
-def with_sensor_poses(reg: PairRegistration, models: dict[str, DepthModelFit | None],
-                      prior: tuple[float, float] = (0.0, 0.0)) -> PairRegistration:
-    """``reg`` with its covariance widened by what its cameras' depth sensors' poses (relative
-    to their colour cameras) leave on clouds registered uncorrected for them (``models``:
-    camera -> its fit, None for a camera without one, whose pose is known to the prior alone;
-    calibrate registers the clouds divided by the depth scale alone). A
-    cloud ``Exp(eps) true`` moves the registered ``T_b_a`` by ``Ad(T_a_b) eps_b - eps_a``
-    (right perturbation), and the pair's covariance gains that move's second moment about
-    zero: at the every-term fits' estimates (a bias the pair carries; taking it out of
-    ``T_b_a`` instead measured no better: those estimates trade with the disparity
-    gradients), and their covariances, each with the
-    zero-mean ``prior`` (deg, mm per axis; config ``depth.sensor_pose_sigma_deg`` / ``_mm``:
-    :meth:`~rgbd_calib.depth.depth_model_fit.DepthModelFit.sensor_pose_moment`). Without
-    it a 0.13 deg depth-to-colour rotation passed into a 2-view camera's extrinsics at 4
-    of its sigmas (docs/depth.md, 'The depth sensor's pose in the pairs')."""
-    if reg.cam_a not in models and reg.cam_b not in models:
+def fit_pose_moments(models: dict[str, DepthModelFit | None], prior: tuple[float, float],
+                     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """camera -> what its depth sensor's pose leaves on a cloud NOT corrected for it (the
+    clouds calibrate registers: :func:`_registration_clouds`), as :func:`with_sensor_poses`
+    takes it: the every-term fit's estimate and covariance with the zero-mean ``prior`` (deg,
+    mm per axis; config ``depth.sensor_pose_sigma_deg`` / ``_mm``:
+    :meth:`~rgbd_calib.depth.depth_model_fit.DepthModelFit.sensor_pose_moment`), the prior
+    alone for a camera without a fit (None)."""
+    return {c: DepthModelFit.prior_moment(*prior) if m is None else m.sensor_pose_moment(*prior)
+            for c, m in models.items()}
+
+
+def applied_pose_moments(corrections: dict[str, float | DepthModel], cameras,
+                         config: DepthConfig) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """camera -> what its depth sensor's pose may still leave on a cloud corrected by
+    ``corrections`` (the models or factors ``check`` and ``refine`` build their clouds with;
+    a camera of ``cameras`` without one has none): :func:`applied_pose_moment`. Empty with
+    ``depth.sensor_pose_sigma_deg`` and ``_mm`` 0 (the poses taken as exact)."""
+    if config.sensor_pose_sigma_deg == 0 and config.sensor_pose_sigma_mm == 0:
+        return {}
+    prior = (config.sensor_pose_sigma_deg, config.sensor_pose_sigma_mm)
+    return {c: applied_pose_moment(corrections.get(c), *prior) for c in cameras}
+
+
+def with_sensor_poses(reg: PairRegistration,
+                      moments: dict[str, tuple[np.ndarray, np.ndarray]]) -> PairRegistration:
+    """``reg`` with its covariance widened by what its cameras' depth sensors' poses
+    (relative to their colour cameras) may leave on the clouds it registered: ``moments``
+    maps camera -> ``(eps, C)``, the rigid error ``measured = Exp(eps) true`` of its cloud and
+    that error's covariance (:func:`fit_pose_moments` for clouds not corrected for the pose,
+    as calibrate registers them; :func:`applied_pose_moments` for clouds corrected by a
+    depth model, as check and refine do); a camera not in it is exact. A cloud turned by
+    ``eps`` moves the registered ``T_b_a`` by ``Ad(T_a_b) eps_b - eps_a`` (right
+    perturbation), and the pair's covariance gains that move's second moment about zero: the
+    estimates are a bias the pair carries (taking them out of ``T_b_a`` instead measured no
+    better in calibrate: they trade with the disparity gradients), the covariances what they
+    may still be off. Without it a 0.13 deg depth-to-colour rotation passed into a 2-view
+    camera's extrinsics at 4 of its sigmas (docs/depth.md, 'The depth sensor's pose in the
+    pairs')."""
+    if reg.cam_a not in moments and reg.cam_b not in moments:
         return reg
-    moments = [(np.zeros(6), np.zeros((6, 6))) if c not in models
-               else DepthModelFit.prior_moment(*prior) if models[c] is None
-               else models[c].sensor_pose_moment(*prior) for c in (reg.cam_a, reg.cam_b)]
-    (eps_a, C_a), (eps_b, C_b) = moments
+    exact = (np.zeros(6), np.zeros((6, 6)))
+    (eps_a, C_a), (eps_b, C_b) = (moments.get(c, exact) for c in (reg.cam_a, reg.cam_b))
     Ad = adjoint(invert_transform(reg.T_b_a))
     beta = Ad @ eps_b - eps_a  # the move the estimated sensor poses predict
     B = np.outer(beta, beta) + C_a + Ad @ C_b @ Ad.T

@@ -40,7 +40,12 @@ from ..core.geometry import covariance_sigmas, invert_transform, transform_error
 from ..core.progress import Progress, start
 from ..depth.clouds import CameraCloud
 from ..depth.registration import PairRegistration, find_overlapping_pairs
-from ..depth.stage import register_pairs, static_clouds
+from ..depth.stage import (
+    applied_pose_moments,
+    register_pairs,
+    static_clouds,
+    with_sensor_poses,
+)
 from ..detect.markers import MarkerDetections
 from ..detect.run import detect_dataset
 from ..model.board import Board
@@ -198,7 +203,9 @@ def check_rig(clouds: dict[str, CameraCloud], calib: Extrinsics,
               unknown_scale: set[str] = frozenset(), workers: int | None = None,
               tick=None, scheduler: str | None = None,
               links: list[BoardLink] | tuple = (),
-              board: dict[str, Any] | None = None) -> CheckResult:
+              board: dict[str, Any] | None = None,
+              sensor_poses: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+              ) -> CheckResult:
     """:func:`~rgbd_calib.depth.registration.register_robust` for each overlapping ``(cam_a,
     cam_b)`` from the calibrated extrinsics (in a process pool of ``workers``, or on the Dask
     cluster of ``scheduler``),
@@ -206,12 +213,16 @@ def check_rig(clouds: dict[str, CameraCloud], calib: Extrinsics,
     measurements that confirm the calibration too, so ``min_improvement_chi2`` is 0) and the
     board ``links`` (:func:`board_evidence`; ``board`` its summary). Cameras
     in ``unknown_scale`` have no depth-scale factor: their pairs leave out what a scale error
-    explains. Cameras of ``calib`` with neither a cloud nor a board view are ``unknown``."""
+    explains. ``sensor_poses`` (:func:`~rgbd_calib.depth.stage.applied_pose_moments`) widen
+    each accepted pair by what its depth sensors' poses may leave on the clouds
+    (:func:`~rgbd_calib.depth.stage.with_sensor_poses`; None: the poses taken as exact).
+    Cameras of ``calib`` with neither a cloud nor a board view are ``unknown``."""
     config = check_config(config)
     t0 = time.perf_counter()
     T = {c: e.T_ref_cam for c, e in calib.cameras.items()}
-    regs = register_pairs(clouds, _jobs(overlaps, T, set(unknown_scale)), method, config,
-                          workers, tick, robust=True, scheduler=scheduler)
+    regs = [_widened(r, sensor_poses) for r in register_pairs(
+        clouds, _jobs(overlaps, T, set(unknown_scale)), method, config, workers, tick,
+        robust=True, scheduler=scheduler)]
     t_reg = time.perf_counter() - t0
     pairs = [RelativePose(r.cam_a, r.cam_b, r.T_b_a, r.information) for r in regs if r.accepted]
     checked = set(clouds) | {k.camera for k in links}
@@ -249,6 +260,8 @@ class CheckRun:
     overlaps: list[tuple[str, str]]
     scale_source: dict[str, str]  # camera -> "given" (the calibration's factor) / "unknown"
     links: tuple[BoardLink, ...] = ()  # the board's evidence (board_evidence)
+    # camera -> what its depth sensor's pose may leave on its cloud (applied_pose_moments)
+    sensor_poses: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     @property
     def moved(self) -> list[str]:
@@ -329,13 +342,15 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
         clouds, T, {c: dataset.rig.cameras[c] for c in clouds}, wide)]
     tick = start(progress, f"registering pairs ({method})", len(overlaps))
     unknown = {c for c in clouds if c not in scales}
+    poses = applied_pose_moments(scales, clouds, config)
     result = check_rig(clouds, calib, overlaps, method, config, tolerance, unknown, workers,
-                       tick, scheduler, links, summary)
+                       tick, scheduler, links, summary, poses)
     for c, why in skipped.items():
         if not any(k.camera == c for k in links):
             result.cameras[c] = CameraCheck(c, "unknown", reason=f"no depth cloud: {why}")
     return CheckRun(result, clouds, overlaps,
-                    {c: "unknown" if c in unknown else "given" for c in clouds}, tuple(links))
+                    {c: "unknown" if c in unknown else "given" for c in clouds}, tuple(links),
+                    poses)
 
 
 # --------------------------------------------------------------------------- fix
@@ -373,6 +388,7 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
               config: DepthConfig | None = None, max_passes: int = 3,
               unknown_scale: set[str] = frozenset(), workers: int | None = None,
               scheduler: str | None = None, links: list[BoardLink] | tuple = (),
+              sensor_poses: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
               ) -> FixResult:
     """Re-register the moved cameras of ``check`` against the others and solve for them with
     the others held at their calibration (priors with its sigmas); only pairs with a moved
@@ -380,7 +396,8 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
     the global alignment where needed) and is re-registered from each new estimate, up to
     ``max_passes`` times, until it moves less than 0.1 mm / 0.01 deg: ICP crops each cloud to
     the other camera's view under the start, so a start centimetres off leaves points out.
-    The board ``links`` of the check (:func:`board_evidence`) are evidence too. Covariances
+    The board ``links`` of the check (:func:`board_evidence`) are evidence too, and each pair
+    is widened by ``sensor_poses`` as in :func:`check_rig` (``CheckRun.sensor_poses``). Covariances
     are the graph marginals with each kind of evidence scaled by its variance factor
     (:func:`~rgbd_calib.solve.moved.variance_factors`). Returns the extrinsics (the
     cameras in place keep their calibration exactly; if the reference moved, everything is
@@ -403,7 +420,7 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
     regs: list[PairRegistration] = []
     solved: set[str] = set()
     for _ in range(max_passes):
-        regs = [_within_fix_reach(r) for r in register_pairs(
+        regs = [_within_fix_reach(_widened(r, sensor_poses)) for r in register_pairs(
             clouds, _jobs(jobs, T_now, set(unknown_scale)), method, config, workers,
             robust=True, scheduler=scheduler)]
         pairs = [RelativePose(r.cam_a, r.cam_b, r.T_b_a, r.information)
@@ -441,6 +458,12 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
 NOTHING_FITS = ("no pair fits after re-registration and no board view measures it: its pose "
                 "is the check's rough estimate")
 FIX_REACH = (100.0, 10.0)  # mm, deg: how far a fix's pair may move from the check's estimate
+
+
+def _widened(r: PairRegistration, sensor_poses: dict[str, tuple[np.ndarray, np.ndarray]] | None,
+             ) -> PairRegistration:
+    """An accepted pair weighed with what its depth sensors' poses may leave on its clouds."""
+    return with_sensor_poses(r, sensor_poses) if r.accepted and sensor_poses else r
 
 
 def _within_fix_reach(r: PairRegistration) -> PairRegistration:
