@@ -49,6 +49,7 @@ from rgbd_calib.depth.depth_model_fit import (
     board_samples,
     predicted_depth_m,
 )
+from rgbd_calib.depth.overlap_models import measured_rays
 from rgbd_calib.depth.registration import find_overlapping_pairs
 from rgbd_calib.depth.stage import board_views_per_camera
 from rgbd_calib.model.board import thesis_board
@@ -80,15 +81,6 @@ class OverlapSamples:
     block: np.ndarray
 
 
-def _measured(cloud: CameraCloud, model: DepthModel | None) -> tuple[np.ndarray, np.ndarray]:
-    """Each point's ray (z = 1) and measured depth: the model undone (no point dropped)."""
-    pts = cloud.points.astype(float)
-    if model is not None and not model.is_identity:
-        pts = model.measured_points(pts)
-    z = pts[:, 2]
-    return pts / np.where(np.isfinite(z) & (z > 0), z, np.nan)[:, None], z
-
-
 def overlap_samples(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndarray],
                     pairs: list[tuple[str, str]], models: dict[str, DepthModel],
                     seed: int = 0) -> list[OverlapSamples]:
@@ -96,7 +88,7 @@ def overlap_samples(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndar
     rng = np.random.default_rng(seed)
     used = {x for p in pairs for x in p if x in clouds}
     surf = {c: Surface.of(clouds[c]) for c in used}
-    raw = {c: _measured(clouds[c], models.get(c)) for c in used}
+    raw = {c: measured_rays(clouds[c], models.get(c)) for c in used}
     out = []
     for a, b in pairs:
         if a in surf and b in surf:
@@ -364,7 +356,7 @@ def main() -> None:
     print("camera: median signed distance to the true surfaces (mm) [by band "
           + " ".join(f"{lo}-{hi} m" for lo, hi in BANDS) + "]")
     for c in sorted(clouds):
-        rays, z = _measured(clouds[c], m0.get(c))
+        rays, z = measured_rays(clouds[c], m0.get(c))
         ok = np.isfinite(z)
         Tw = cams[c].T_world_cam
         parts = [truth_line("true-model", gt.depth_model[c], rays[ok], z[ok], Tw, rig),

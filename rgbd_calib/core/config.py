@@ -908,6 +908,15 @@ class DepthConfig(BaseModel, extra="forbid"):
     pair_bias_sigma_deg: float = Field(
         0.007, ge=0.0, description="Same, rotation (deg per axis; median error 0.011 deg)."
     )
+    overlap_models: bool = Field(
+        True,
+        description="calibrate updates each camera's board-fitted depth model by the "
+        "overlapping pairs' median surface distances at the final extrinsics (a linear-"
+        "Gaussian update with the board fit as the prior: rgbd_calib/depth/overlap_models.py): "
+        "the overlaps reach the scene beyond the board's depths, where the board fit "
+        "extrapolates (docs/depth.md, 'The overlaps on the depth models'). false: the board's "
+        "models alone (before 2026-11-30).",
+    )
     sensor_pose_sigma_deg: float = Field(
         0.1,
         ge=0.0,

@@ -57,6 +57,7 @@ from .depth_model_fit import (
     fit_depth_model,
 )
 from .information import tangent_error, with_covariance
+from .overlap_models import OverlapUpdate, overlap_samples, recorrected, update_models
 from .registration import (
     PairRegistration,
     failed_registration,
@@ -105,6 +106,8 @@ class DepthRefinement:
     beyond_board: dict[str, BeyondBoard] = field(default_factory=dict)
     # camera with depth -> why it has no depth model (its cloud is uncorrected)
     unmodelled: dict[str, str] = field(default_factory=dict)
+    # the depth models updated by the overlaps' medians (with_overlaps); None: not run
+    overlaps: OverlapUpdate | None = None
 
     def status_dict(self) -> dict[str, Any]:
         """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason``, the
@@ -113,7 +116,8 @@ class DepthRefinement:
         pairs were weighed in a solve, their ``pair_variance_factor`` (and in calibrate the
         bias added to their covariance, ``pair_bias_sigma_mm`` / ``_deg``), and when the
         pairs carry their depth sensors' poses, that pose's prior
-        (``sensor_pose_sigma_deg`` / ``_mm``)."""
+        (``sensor_pose_sigma_deg`` / ``_mm``), and when the overlaps updated the depth
+        models, ``overlap_models`` (:meth:`OverlapUpdate.to_dict`)."""
         status = ("fallback" if self.fallback else "skipped" if self.note
                   else "used" if self.relative_poses else "none")
         return {"status": status, "reason": self.fallback or self.note,
@@ -126,7 +130,9 @@ class DepthRefinement:
                     if self.pair_bias_sigma is not None else {}) | (
                     {"sensor_pose_sigma_deg": self.sensor_pose_sigma[0],
                      "sensor_pose_sigma_mm": self.sensor_pose_sigma[1]}
-                    if self.sensor_pose_sigma is not None else {})
+                    if self.sensor_pose_sigma is not None else {}) | (
+                    {"overlap_models": self.overlaps.to_dict()}
+                    if self.overlaps is not None else {})
 
     @property
     def used(self) -> bool:
@@ -745,6 +751,43 @@ def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
         if tick is not None:
             tick(1)
     return replace(depth, pairs=pairs)
+
+
+def with_overlaps(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
+                  extrinsics_cov: dict[str, np.ndarray | None],
+                  config: DepthConfig | None = None) -> DepthRefinement:
+    """``depth`` with its depth models updated by the overlapping pairs' medians at the
+    final extrinsics ``T_ref_cam`` (their covariances ``extrinsics_cov``;
+    :mod:`.overlap_models`) and its clouds corrected by them; unchanged with
+    ``depth.overlap_models`` off, without two clouds or a pair with a modelled camera. A
+    camera without a board fit (``unmodelled``: its raw depth) takes no part."""
+    config = config or DepthConfig()
+    fits = {c: f for c, f in depth.depth_models.items()
+            if c in depth.clouds and f.model_cov is not None and f.model.sigmas}
+    clouds = {c: k for c, k in depth.clouds.items() if c in T_ref_cam}
+    if not config.overlap_models or not fits or len(clouds) < 2:
+        return depth
+    # a camera without a board fit (its raw depth) is known to nothing: its pairs say nothing
+    clouds = {c: k for c, k in clouds.items() if c in depth.depth_models}
+    models = {c: depth.depth_models[c].model for c in clouds}
+    held = {c: depth.depth_models[c] for c in clouds if c not in fits}
+    pairs = [(o.cam_a, o.cam_b) for o in find_overlapping_pairs(clouds, T_ref_cam, None, config)]
+    try:
+        update = update_models(models, {c: f.model_cov for c, f in fits.items()},
+                               overlap_samples(clouds, T_ref_cam, pairs, models), T_ref_cam,
+                               extrinsics_cov, held)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        warnings.warn(f"the depth models could not be updated by the overlaps "
+                      f"({type(exc).__name__}: {one_line_error(exc)})", RuntimeWarning,
+                      stacklevel=2)
+        return depth
+    if update is None:
+        return depth
+    fitted = {c: replace(depth.depth_models[c], model=m, model_cov=update.covariances[c])
+              for c, m in update.models.items()}
+    moved = {c: recorrected(depth.clouds[c], models[c], m) for c, m in update.models.items()}
+    return replace(depth, depth_models={**depth.depth_models, **fitted},
+                   clouds={**depth.clouds, **moved}, overlaps=update)
 
 
 def measure_agreement(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],

@@ -39,6 +39,7 @@ from ..depth.stage import (
     moved_beyond_board,
     unseen_board_views,
     view_pose_covariances,
+    with_overlaps,
 )
 from ..detect.markers import MarkerDetections
 from ..detect.probe import dictionary_family, probe_targets
@@ -324,6 +325,10 @@ def _depth(run: _Run, pg: PoseGraphResult, solved: _Solved,
         depth = finish_pairs(depth, {c: e.T_ref_cam for c, e in solved.cameras.items()},
                              run.config.depth,
                              start(run.progress, "checking depth pairs", len(depth.pairs)))
+    with timed(run.timings, "overlap_models"):
+        depth = with_overlaps(depth, {c: e.T_ref_cam for c, e in solved.cameras.items()},
+                              {c: e.covariance for c, e in solved.cameras.items()},
+                              run.config.depth)
     with timed(run.timings, "fused_agreement"):
         depth = measure_agreement(depth, {c: e.T_ref_cam for c, e in solved.cameras.items()},
                                   run.config.depth)

@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.26"
+REPORT_SCHEMA_VERSION = "1.27"
 
 
 class ReportError(RgbdCalibError):
@@ -313,7 +313,12 @@ REPORT_SCHEMA: dict[str, Any] = {
     "depth?": {"status": S, "reason": Nullable(S), "weak_cameras": MapOf("<camera>", S),
                "unmodelled?": MapOf("<camera>", S), "pair_variance_factor?": N,
                "pair_bias_sigma_mm?": N, "pair_bias_sigma_deg?": N,
-               "sensor_pose_sigma_deg?": N, "sensor_pose_sigma_mm?": N},
+               "sensor_pose_sigma_deg?": N, "sensor_pose_sigma_mm?": N,
+               "overlap_models?": {
+                   "iterations": INT,
+                   "cameras": MapOf("<camera>", {"shift_chi2": Nullable(N), "dof": INT}),
+                   "pairs": ListOf({"cam_a": S, "cam_b": S, "median_mm": N, "se_mm": N,
+                                    "n": INT, "median_after_mm": N, "se_after_mm": N})}},
     "refine?": {
         "init": S,
         "registration": S,
