@@ -238,7 +238,7 @@ def surface_distances(a: CameraCloud, surf_b: Surface, T_ref_a: np.ndarray,
     # the p90 of |N(0, sigma_i)| over the points (near and far ones mixed): drawn once
     noise = float(np.percentile(np.abs(rng.standard_normal(m.sigma.size) * m.sigma), 90))
     return SurfaceDistances(int(m.d.size), 1e3 * float(np.median(m.d)),
-                            1e3 * _median_se(m.d, image_blocks(a.pixels[m.ia], a.intrinsics)),
+                            1e3 * median_se(m.d, image_blocks(a.pixels[m.ia], a.intrinsics)),
                             1e3 * float(np.percentile(np.abs(m.d), 90))), 1e3 * noise
 
 
@@ -249,7 +249,7 @@ def image_blocks(pixels: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
             + np.minimum(pixels[:, 1] * BLOCKS // max(intr.height, 1), BLOCKS - 1))
 
 
-def _median_se(d: np.ndarray, block: np.ndarray) -> float:
+def median_se(d: np.ndarray, block: np.ndarray) -> float:
     """Standard error of the median of ``d`` from the spread of its blocks' medians
     (:func:`image_blocks`)."""
     meds = np.array([np.median(d[block == k]) for k in np.unique(block)

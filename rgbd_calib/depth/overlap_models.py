@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..core.depth_model import DepthModel
-from .agreement import Surface, _median_se, image_blocks, match_points, plane_on_rays
+from .agreement import Surface, image_blocks, match_points, median_se, plane_on_rays
 from .clouds import CameraCloud
 from .depth_model_fit import STEP, DepthModelFit
 
@@ -206,7 +206,7 @@ def _statistics(models: dict[str, DepthModel], o: OverlapSamples, T_b_a: np.ndar
     med = float(np.median(d[ok]))
     q1, q3 = np.percentile(d[ok], [25, 75])
     central = np.flatnonzero(ok & (d >= q1) & (d <= q3))
-    se2 = (max(_median_se(d[ok], o.block[ok]), SE_FLOOR_MM * 1e-3) ** 2
+    se2 = (max(median_se(d[ok], o.block[ok]), SE_FLOOR_MM * 1e-3) ** 2
            + _extrinsics_variance(o, central, pa, centre, T_b_a, cov))
     if o.cam_a in held:
         se2 += _held_variance(held[o.cam_a], o.rays_a[central] * o.z_a[central, None])
