@@ -38,8 +38,7 @@ from bench_fused import true_rig
 
 from rgbd_calib.core.config import CalibrationConfig, DepthConfig
 from rgbd_calib.core.depth_model import PARAMETERS, TERMS, DepthModel, identity_model
-from rgbd_calib.depth.agreement import Surface, image_blocks, match_points, plane_on_rays
-from rgbd_calib.depth.clouds import CameraCloud, board_faces
+from rgbd_calib.depth.clouds import board_faces
 from rgbd_calib.depth.depth_model_fit import (
     STEP,
     BoardSamples,
@@ -49,7 +48,12 @@ from rgbd_calib.depth.depth_model_fit import (
     board_samples,
     predicted_depth_m,
 )
-from rgbd_calib.depth.overlap_models import measured_rays
+from rgbd_calib.depth.overlap_models import (
+    OverlapSamples,
+    measured_rays,
+    overlap_samples,
+    signed_distances,
+)
 from rgbd_calib.depth.registration import find_overlapping_pairs
 from rgbd_calib.depth.stage import board_views_per_camera
 from rgbd_calib.model.board import thesis_board
@@ -57,64 +61,7 @@ from rgbd_calib.model.dataset import FolderDataset
 from rgbd_calib.pipelines.calibrate import calibrate
 from rgbd_calib.synth.surfaces import surface_distances
 
-OVERLAP_POINTS = 4000  # a's points per pair
-MAX_DISTANCE_M = 0.05  # a point farther from b's surface is not on it (the report's bound)
 GN_ITERATIONS = 6
-
-
-@dataclass(frozen=True)
-class OverlapSamples:
-    """One pair's matched points: a's rays (z = 1) and measured depths ``(N,3)``, ``(N,)``;
-    the window of b's pixels around each one's projection, their rays and measured depths
-    ``(N,K,3)``, ``(N,K)`` and which are there ``(N,K)``; b's normal (b's frame) ``(N,3)``;
-    the residual's noise (m) and its cluster (a's image block)."""
-
-    cam_a: str
-    cam_b: str
-    rays_a: np.ndarray
-    z_a: np.ndarray
-    rays_b: np.ndarray
-    z_b: np.ndarray
-    valid_b: np.ndarray
-    normal_b: np.ndarray
-    sigma_m: np.ndarray
-    block: np.ndarray
-
-
-def overlap_samples(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndarray],
-                    pairs: list[tuple[str, str]], models: dict[str, DepthModel],
-                    seed: int = 0) -> list[OverlapSamples]:
-    """The matched points of every pair of ``pairs`` (clouds as corrected by ``models``)."""
-    rng = np.random.default_rng(seed)
-    used = {x for p in pairs for x in p if x in clouds}
-    surf = {c: Surface.of(clouds[c]) for c in used}
-    raw = {c: measured_rays(clouds[c], models.get(c)) for c in used}
-    out = []
-    for a, b in pairs:
-        if a in surf and b in surf:
-            s = _one_pair(clouds[a], surf[b], T_ref_cam[a], T_ref_cam[b], raw[a], raw[b], rng)
-            if s is not None:
-                out.append(s)
-    return out
-
-
-def _one_pair(a: CameraCloud, surf_b: Surface, T_ref_a: np.ndarray, T_ref_b: np.ndarray,
-              raw_a, raw_b, rng: np.random.Generator) -> OverlapSamples | None:
-    """a's points matched to b's windows as the report matches them (:func:`match_points`),
-    kept with the measured rays and depths the models act on."""
-    pick = rng.choice(a.n_points, min(a.n_points, 4 * OVERLAP_POINTS), replace=False)
-    m = match_points(a, surf_b, np.linalg.inv(T_ref_b) @ T_ref_a, pick, MAX_DISTANCE_M)
-    keep = np.flatnonzero(np.isfinite(raw_a[1][m.ia]))[:OVERLAP_POINTS]
-    if keep.size < 200:
-        return None
-    ia, idx = m.ia[keep], m.idx[keep]
-    valid = idx >= 0
-    jb = np.where(valid, idx, 0)
-    valid &= np.isfinite(raw_b[1][jb])
-    return OverlapSamples(a.camera, surf_b.cloud.camera, raw_a[0][ia], raw_a[1][ia],
-                          np.nan_to_num(raw_b[0][jb]), np.nan_to_num(raw_b[1][jb], nan=1.0),
-                          valid, m.normal_b[keep], np.maximum(m.sigma[keep], 1e-4),
-                          image_blocks(a.pixels[ia], a.intrinsics))
 
 
 # --------------------------------------------------------------------------- residuals
@@ -127,14 +74,7 @@ def overlap_residual(ma: DepthModel, mb: DepthModel, o: OverlapSamples,
                      T_ref_a: np.ndarray, T_ref_b: np.ndarray) -> np.ndarray:
     """a's corrected point against the plane of b's corrected window where b's ray through
     it meets it, along b's normal, over the noise (+ = a's depth beyond b's surface)."""
-    T_b_a = np.linalg.inv(T_ref_b) @ T_ref_a
-    pa = ma.correct_points(o.rays_a, o.z_a) @ T_b_a[:3, :3].T + T_b_a[:3, 3]
-    k = o.z_b.shape[1]
-    q = mb.correct_points(o.rays_b.reshape(-1, 3), o.z_b.reshape(-1)).reshape(-1, k, 3)
-    valid = o.valid_b & np.isfinite(q[..., 2])
-    centre, ok, _ = plane_on_rays(np.nan_to_num(q, nan=1.0), valid, pa[:, :2] / pa[:, 2:])
-    r = -np.einsum("ij,ij->i", pa - centre, o.normal_b) / o.sigma_m
-    return np.where(ok, r, np.nan)
+    return signed_distances(ma, mb, o, np.linalg.inv(T_ref_b) @ T_ref_a)[0] / o.sigma_m
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,6 @@ OVERLAP_POINTS = 4000  # a's matched points per pair
 SE_FLOOR_MM = 0.2  # a pair's median is not known better than this (the report's floor)
 MAX_DISTANCE_M = 0.05  # a point farther from b's surface is not on it (the report's bound)
 ITERATIONS = 3  # Gauss-Newton steps; measured: the medians settle after two
-MIN_PAIRS = 1
 HELD_RAYS = 256  # of a pair's central half: the rays a held camera's depth sigma is taken over
 
 
@@ -49,7 +48,9 @@ class OverlapSamples:
     """One pair's matched points as the cameras measured them: a's rays (z = 1) and depths
     ``(N,3)``, ``(N,)``; the window of b's pixels around each one's projection, their rays
     and depths ``(N,K,3)``, ``(N,K)`` and which are there ``(N,K)``; b's normal (b's frame)
-    ``(N,3)``; each point's image block in a (:func:`~.agreement.image_blocks`)."""
+    ``(N,3)``; the noise of each point's distance (m, :func:`~.agreement.match_points`'s, at
+    least 0.1 mm: a per-point residual's scale, ``tools/experiment_joint_depth.py``); each
+    point's image block in a (:func:`~.agreement.image_blocks`)."""
 
     cam_a: str
     cam_b: str
@@ -59,6 +60,7 @@ class OverlapSamples:
     z_b: np.ndarray
     valid_b: np.ndarray
     normal_b: np.ndarray
+    sigma_m: np.ndarray
     block: np.ndarray
 
 
@@ -141,8 +143,8 @@ def overlap_samples(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndar
         out.append(OverlapSamples(a, b, raw[a][0][ia], raw[a][1][ia],
                                   np.nan_to_num(raw[b][0][jb]),
                                   np.nan_to_num(raw[b][1][jb], nan=1.0), valid,
-                                  m.normal_b[keep], image_blocks(cloud_a.pixels[ia],
-                                                                 cloud_a.intrinsics)))
+                                  m.normal_b[keep], np.maximum(m.sigma[keep], 1e-4),
+                                  image_blocks(cloud_a.pixels[ia], cloud_a.intrinsics)))
     return out
 
 
@@ -252,7 +254,7 @@ def update_models(models: dict[str, DepthModel], covariances: dict[str, np.ndarr
     free = {c: tuple(models[c].sigmas) for c in covariances if models[c].sigmas}
     overlaps = [o for o in overlaps if (o.cam_a in free or o.cam_b in free)
                 and o.cam_a in models and o.cam_b in models]
-    if len(overlaps) < MIN_PAIRS or not free:
+    if not overlaps or not free:
         return None
     index = {(c, p): k for k, (c, p) in enumerate((c, p) for c in sorted(free)
                                                   for p in free[c])}
