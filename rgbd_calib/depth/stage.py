@@ -224,8 +224,9 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
 
     no_pair = method != "none" and weak is not None and not weak
     with timed(timings, "clouds"):
-        jobs = [(c, T_ref_cam[c], models[c].model if c in models else scales[c].factor
-                 if c in scales else (depth_scales or {}).get(c, 1.0)) for c in cams]
+        corrections = {c: models[c].model if c in models else scales[c].factor
+                       if c in scales else (depth_scales or {}).get(c, 1.0) for c in cams}
+        jobs = [(c, T_ref_cam[c], corrections[c]) for c in cams]
         # no registration: the clouds are for fused.ply and the cloud checks only
         cloud_config = (config.model_copy(update={"max_frames": min(
             config.max_frames, config.skipped_max_frames)}) if no_pair else config)
@@ -251,8 +252,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     if method != "none" and len(clouds) >= 2:
         registering, moments = _registration_clouds(
             dataset, clouds, models, scales, T_ref_cam, T_ref_board, board,
-            board_covariance is not None, config, workers, scheduler, timings,
-            depth_scales or {})
+            board_covariance is not None, config, workers, scheduler, timings, corrections)
         if moments:
             sensor_pose = (config.sensor_pose_sigma_deg, config.sensor_pose_sigma_mm)
         with timed(timings, "registration"):
@@ -300,7 +300,7 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
                          T_ref_board: dict[str, np.ndarray] | None, board: Board | None,
                          calibrating: bool, config: DepthConfig, workers: int | None,
                          scheduler: str | None, timings: dict[str, float],
-                         given: dict[str, float | DepthModel],
+                         corrections: dict[str, float | DepthModel],
                          ) -> tuple[dict[str, CameraCloud], dict[str, tuple[np.ndarray,
                                                                            np.ndarray]]]:
     """The clouds the pairs register, and per camera what its depth sensor's pose may leave
@@ -314,12 +314,11 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
     against 0.34 with the scale alone; docs/depth.md, 'Weak board data'). So its pairs
     register the clouds divided by the depth-scale factor, as before the models (fused.ply
     and the checks keep the models), and none of them is corrected for its sensor's pose:
-    :func:`fit_pose_moments`. refine registers the clouds as built, with the models fitted
-    here or ``given`` (the calibration's): :func:`applied_pose_moments`."""
+    :func:`fit_pose_moments`. refine registers the clouds as built, with their
+    ``corrections`` (the models fitted here, else the scale factors, else the calibration's):
+    :func:`applied_pose_moments`."""
     if not calibrating:
-        used = {**given, **{c: f.factor for c, f in scales.items()},  # as the clouds were
-                **{c: m.model for c, m in models.items()}}
-        return clouds, applied_pose_moments(used, clouds, config)
+        return clouds, applied_pose_moments(corrections, clouds, config)
     registering = clouds
     if any(c in clouds for c in models):
         with timed(timings, "clouds"):  # a camera with a model has its scale estimate
@@ -328,11 +327,16 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
                                        T_ref_board or {}, board, config, workers, None,
                                        scheduler)
         registering = {**clouds, **rebuilt}
-    if config.sensor_pose_sigma_deg == 0 and config.sensor_pose_sigma_mm == 0:
-        return registering, {}
-    return registering, fit_pose_moments({c: models.get(c) for c in registering},
-                                         (config.sensor_pose_sigma_deg,
-                                          config.sensor_pose_sigma_mm))
+    prior = _pose_prior(config)
+    return registering, ({} if prior is None else
+                         fit_pose_moments({c: models.get(c) for c in registering}, prior))
+
+
+def _pose_prior(config: DepthConfig) -> tuple[float, float] | None:
+    """The depth sensors' pose prior (deg, mm per axis), None when both are 0: the poses
+    taken as exact."""
+    prior = (config.sensor_pose_sigma_deg, config.sensor_pose_sigma_mm)
+    return None if prior == (0.0, 0.0) else prior
 
 
 def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
@@ -638,10 +642,9 @@ def applied_pose_moments(corrections: dict[str, float | DepthModel], cameras,
     ``corrections`` (the models or factors ``check`` and ``refine`` build their clouds with;
     a camera of ``cameras`` without one has none): :func:`applied_pose_moment`. Empty with
     ``depth.sensor_pose_sigma_deg`` and ``_mm`` 0 (the poses taken as exact)."""
-    if config.sensor_pose_sigma_deg == 0 and config.sensor_pose_sigma_mm == 0:
-        return {}
-    prior = (config.sensor_pose_sigma_deg, config.sensor_pose_sigma_mm)
-    return {c: applied_pose_moment(corrections.get(c), *prior) for c in cameras}
+    prior = _pose_prior(config)
+    return {} if prior is None else {c: applied_pose_moment(corrections.get(c), *prior)
+                                     for c in cameras}
 
 
 def with_sensor_poses(reg: PairRegistration,
@@ -764,11 +767,10 @@ def with_overlaps(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
     config = config or DepthConfig()
     fits = {c: f for c, f in depth.depth_models.items()
             if c in depth.clouds and f.model_cov is not None and f.model.sigmas}
-    clouds = {c: k for c, k in depth.clouds.items() if c in T_ref_cam}
+    # a camera without a board fit (its raw depth) is known to nothing: its pairs say nothing
+    clouds = {c: k for c, k in depth.clouds.items() if c in T_ref_cam and c in depth.depth_models}
     if not config.overlap_models or not fits or len(clouds) < 2:
         return depth
-    # a camera without a board fit (its raw depth) is known to nothing: its pairs say nothing
-    clouds = {c: k for c, k in clouds.items() if c in depth.depth_models}
     models = {c: depth.depth_models[c].model for c in clouds}
     held = {c: depth.depth_models[c] for c in clouds if c not in fits}
     pairs = [(o.cam_a, o.cam_b) for o in find_overlapping_pairs(clouds, T_ref_cam, None, config)]
