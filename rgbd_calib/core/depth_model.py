@@ -20,6 +20,11 @@ camera, ``z_m`` the measured depth in metres)::
     p_true     = R p + t,    p = z (x, y, 1),    R = exp(rotation), small
 
 so ``z_m = s z / (1 + z kappa)`` is what the camera reports for a surface at true depth ``z``.
+The ratio ``r = s - z_m kappa = z_m / z`` (true over measured disparity) is bounded to
+``[RATIO_MIN, RATIO_MAX]``: a fitted polynomial extrapolated to an image corner or a far wall can
+reach ``r <= 0`` (an infinite or negative depth no sensor measures); bounded, the corrected depth
+is finite, positive and increasing in the measured depth for every pixel and every model, and
+:meth:`DepthModel.beyond_bounds` says which pixels the bound held (clouds drop and count them).
 The identity model (``s = 1``, ``delta = 0``, ``R = I``, ``t = 0``) is a clean camera. The terms
 are chosen by evidence (:mod:`rgbd_calib.depth.depth_model_fit`): a clean camera keeps the
 identity. :func:`correct_depth_image` applies a model to a depth image for users' pipelines.
@@ -50,6 +55,10 @@ PARAMETERS: tuple[str, ...] = tuple(p for names in TERMS.values() for p in names
 # units of each parameter as written to depth_model.yaml and the report
 UNITS = {"scale": "", "d0": "px", "dx": "px", "dy": "px", "dxx": "px", "dxy": "px",
          "dyy": "px", "rx": "deg", "ry": "deg", "rz": "deg", "tx": "mm", "ty": "mm", "tz": "mm"}
+# the true depth over the measured one stays within [1 / RATIO_MAX, 1 / RATIO_MIN]: a D435's
+# depth error is a few per cent at its far range (a 0.5 px disparity offset at 10 m: 16 %);
+# a correction beyond 25 % is a model extrapolated past what its data support
+RATIO_MIN, RATIO_MAX = 0.8, 1.25
 D435_BASELINE_M = 0.050
 KINECT_V1_BASELINE_M = 0.075
 
@@ -111,25 +120,41 @@ class DepthModel:
         return (v("d0") + v("dx") * x + v("dy") * y
                 + v("dxx") * x * x + v("dxy") * x * y + v("dyy") * y * y)
 
-    def true_depth(self, x: Array, y: Array, z_measured_m: Array) -> Array:
-        """The true z-depth (m) of pixels at rays ``(x, y)`` that measured ``z_measured_m``;
-        0 where nothing was measured (``z_m <= 0``) or the model has no finite answer."""
-        z_m = np.asarray(z_measured_m, dtype=float)
+    def _ratio(self, x: Array, y: Array, z_measured_m: Array) -> Array:
+        """``r = s - z_m kappa(x, y)``, unbounded: the true over the measured disparity."""
         kappa = self.disparity_offset_px(np.asarray(x, float), np.asarray(y, float)) \
             / self.focal_baseline_px_m
-        denom = self.value("scale") - z_m * kappa
-        ok = (z_m > 0) & (denom > 1e-6)
-        return np.where(ok, z_m / np.where(ok, denom, 1.0), 0.0)
+        return self.value("scale") - np.asarray(z_measured_m, dtype=float) * kappa
+
+    def beyond_bounds(self, x: Array, y: Array, z_measured_m: Array) -> Array:
+        """Where the model's correction leaves ``[RATIO_MIN, RATIO_MAX]`` (bool, per pixel):
+        the corrected depth there is the bound's, not the fitted formula's."""
+        r = self._ratio(x, y, z_measured_m)
+        return (np.asarray(z_measured_m) > 0) & ((r < RATIO_MIN) | (r > RATIO_MAX))
+
+    def true_depth(self, x: Array, y: Array, z_measured_m: Array) -> Array:
+        """The true z-depth (m) of pixels at rays ``(x, y)`` that measured ``z_measured_m``;
+        0 where nothing was measured (``z_m <= 0`` or not finite). Finite, positive and
+        increasing in ``z_m`` for any parameters: the ratio ``z_m / z`` is held within
+        ``[RATIO_MIN, RATIO_MAX]`` (:meth:`beyond_bounds`)."""
+        z_m = np.asarray(z_measured_m, dtype=float)
+        ok = np.isfinite(z_m) & (z_m > 0)
+        z_m = np.where(ok, z_m, 0.0)
+        r = np.clip(np.nan_to_num(self._ratio(x, y, z_m), nan=1.0), RATIO_MIN, RATIO_MAX)
+        return np.where(ok, z_m / r, 0.0)
 
     def measured_depth(self, x: Array, y: Array, z_true_m: Array) -> Array:
         """What the camera reports for a surface at true z-depth ``z_true_m`` (the inverse of
-        :meth:`true_depth`; for rendering), before the pose error."""
+        :meth:`true_depth`, its bound included; for rendering), before the pose error."""
         z = np.asarray(z_true_m, dtype=float)
+        ok = np.isfinite(z) & (z > 0)
+        z = np.where(ok, z, 0.0)
         kappa = self.disparity_offset_px(np.asarray(x, float), np.asarray(y, float)) \
             / self.focal_baseline_px_m
         denom = 1.0 + z * kappa
-        ok = (z > 0) & (denom > 1e-6)
-        return np.where(ok, self.value("scale") * z / np.where(ok, denom, 1.0), 0.0)
+        pos = denom > 1e-12
+        r = np.where(pos, self.value("scale") / np.where(pos, denom, 1.0), RATIO_MAX)
+        return np.where(ok, z * np.clip(r, RATIO_MIN, RATIO_MAX), 0.0)
 
     def T_true_measured(self) -> Array:
         """4x4 rigid correction: true point = ``T @`` measured point (colour frame, metres)."""
@@ -139,16 +164,19 @@ class DepthModel:
         T[:3, 3] = 1e-3 * np.array([self.value("tx"), self.value("ty"), self.value("tz")])
         return T
 
-    def correct_points(self, rays: Array, z_measured_m: Array) -> Array:
+    def correct_points(self, rays: Array, z_measured_m: Array,
+                       drop_beyond_bounds: bool = False) -> Array:
         """True colour-frame points ``(N,3)`` (m) of pixels with rays ``(N,3)`` (z = 1,
         :meth:`CameraIntrinsics.rays`) and measured depths ``(N,)``; rows with no valid depth
-        are NaN."""
+        (and, with ``drop_beyond_bounds``, rows :meth:`beyond_bounds`) are NaN."""
         rays = np.asarray(rays, dtype=float).reshape(-1, 3)
         z = self.true_depth(rays[:, 0], rays[:, 1], z_measured_m)
         p = rays * z[:, None]
         T = self.T_true_measured()
         p = p @ T[:3, :3].T + T[:3, 3]
         p[z <= 0] = np.nan
+        if drop_beyond_bounds:
+            p[self.beyond_bounds(rays[:, 0], rays[:, 1], z_measured_m)] = np.nan
         return p
 
     def measured_points(self, points: Array) -> Array:

@@ -107,6 +107,9 @@ def undone(cloud: CameraCloud, model: DepthModel | None) -> CameraCloud | None:
                        cloud.frames)
 
 
+MIN_POINTS = 30  # a cloud with fewer points (a depth model that left physics on all) has no surface
+
+
 @dataclass(frozen=True)
 class Surface:
     """A camera's cloud ready to be measured against. A point is matched to the cloud's
@@ -266,9 +269,10 @@ def fused_agreement(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndar
     """The agreement of every overlapping pair of ``pairs`` at ``T_ref_cam``, the clouds as
     corrected by ``models`` (after) and with the models undone (before)."""
     rng = np.random.default_rng(seed)
-    named = [c for c in clouds if c in T_ref_cam]
+    named = [c for c in clouds if c in T_ref_cam and len(clouds[c].points) >= MIN_POINTS]
     surf = {c: Surface.of(clouds[c]) for c in named}
     raw = {c: undone(clouds[c], models.get(c)) for c in named}
+    raw = {c: r if r is None or len(r.points) >= MIN_POINTS else None for c, r in raw.items()}
     raw_surf = {c: Surface.of(r) for c, r in raw.items() if r is not None}
     out = []
     for a, b in pairs:

@@ -40,6 +40,7 @@ class CloudStats:
     n_moving: int  # depth spread above motion_k sigma
     n_edge: int  # depth-edge (flying) pixels
     n_out_of_range: int
+    n_beyond_model: int = 0  # the depth model's correction beyond its physical bounds: dropped
 
     def to_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -329,6 +330,7 @@ def static_cloud(
         rgb += np.where(inlier[k, ..., None], color[k], 0).astype(np.float32)
     rgb /= 255.0 * n_in[..., None]
     # 5. back-projection
+    n_kept = int(np.count_nonzero(keep))
     vs, us, points = _back_project(intr, keep, med, depth_model)
     sigma_z = sigma1[vs, us] * np.sqrt(median_efficiency(n_in[vs, us]) / n_in[vs, us])
     stats = CloudStats(
@@ -340,6 +342,7 @@ def static_cloud(
         n_moving=int(np.count_nonzero(moving)),
         n_edge=int(np.count_nonzero(edge & enough & ~moving)),
         n_out_of_range=int(np.count_nonzero(enough & ~moving & ~edge & ~in_range)),
+        n_beyond_model=n_kept - int(vs.size),
     )
     return CameraCloud(
         camera=camera,
@@ -360,14 +363,15 @@ def static_cloud(
 def _back_project(intr: CameraIntrinsics, keep: np.ndarray, med: np.ndarray,
                   depth_model: DepthModel | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows, columns and camera-frame points (m) of the ``keep`` pixels of the median depth
-    ``med`` (m), corrected by ``depth_model`` (pixels it has no answer for are dropped, and
-    cleared in ``keep``)."""
+    ``med`` (m), corrected by ``depth_model`` (pixels it has no answer for, or whose correction
+    leaves the model's physical bounds (:meth:`~rgbd_calib.core.depth_model.DepthModel.
+    beyond_bounds`), are dropped, and cleared in ``keep``)."""
     vs, us = np.nonzero(keep)
     rays = intr.rays(us, vs)
     z = med[vs, us].astype(float)
     if depth_model is None:
         return vs, us, rays * z[:, None]
-    points = depth_model.correct_points(rays, z)
+    points = depth_model.correct_points(rays, z, drop_beyond_bounds=True)
     bad = ~np.isfinite(points[:, 0])
     keep[vs[bad], us[bad]] = False
     return vs[~bad], us[~bad], points[~bad]
@@ -581,11 +585,15 @@ def _combine_frames(fk: np.ndarray, sk: np.ndarray, k: float) -> tuple[float, fl
 
 # --------------------------------------------------------------------------- voxels
 def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
-    """One int64 key per point's voxel (21 bits per axis, origin-shifted)."""
-    idx = np.floor(points / voxel).astype(np.int64)
+    """One int64 key per point's voxel: equal keys, equal voxels (21 bits per axis,
+    origin-shifted; a cloud spanning more than 2^21 voxels on an axis gets the rank of its
+    voxel among the cloud's instead). Points must be finite."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    idx = np.floor(np.asarray(points, dtype=float) / voxel).astype(np.int64)
     idx -= idx.min(axis=0)
     if np.any(idx >= 1 << 21):
-        raise ValueError("cloud too large for the voxel size")
+        return np.unique(idx, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
     return (idx[:, 0] << 42) | (idx[:, 1] << 21) | idx[:, 2]
 
 

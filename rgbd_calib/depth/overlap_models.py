@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..core.depth_model import DepthModel
-from .agreement import Surface, image_blocks, match_points, median_se, plane_on_rays
+from .agreement import MIN_POINTS, Surface, image_blocks, match_points, median_se, plane_on_rays
 from .clouds import CameraCloud
 from .depth_model_fit import STEP, DepthModelFit
 
@@ -121,7 +121,8 @@ def overlap_samples(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndar
     """The matched points of every pair of ``pairs`` (clouds as corrected by ``models``),
     matched as the report matches them (:func:`~.agreement.match_points`)."""
     rng = np.random.default_rng(seed)
-    used = {x for p in pairs for x in p if x in clouds and x in T_ref_cam}
+    used = {x for p in pairs for x in p
+            if x in clouds and x in T_ref_cam and clouds[x].n_points >= MIN_POINTS}
     surf = {c: Surface.of(clouds[c]) for c in used}
     raw = {c: measured_rays(clouds[c], models.get(c)) for c in used}
     out = []
@@ -325,8 +326,8 @@ def update_models(models: dict[str, DepthModel], covariances: dict[str, np.ndarr
 def recorrected(cloud: CameraCloud, old: DepthModel | None, new: DepthModel) -> CameraCloud:
     """``cloud`` (corrected by ``old``) corrected by ``new`` instead: each point back to the
     depth the camera measured on its ray, then through ``new``; points either model has no
-    answer for are dropped."""
+    answer for, or whose correction ``new`` holds at its physical bound, are dropped."""
     rays, z = measured_rays(cloud, old)
-    pts = new.correct_points(rays, z)
+    pts = new.correct_points(rays, z, drop_beyond_bounds=True)
     ok = np.isfinite(pts[:, 0]) & np.isfinite(z)
     return replace(cloud.select(ok), points=pts[ok].astype(cloud.points.dtype))
