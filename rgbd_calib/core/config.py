@@ -524,6 +524,11 @@ class BundleConfig(BaseModel):
         "reading is >= 5 standard errors and >= 0.01 px (a clean camera keeps none; "
         "rgbd_calib/solve/edge_offset.py); off: read and reported only",
     )
+    held_out: bool = Field(
+        False, description="also predict each view's corners from the other cameras' views "
+        "of its frame set (the self-calibration ladder sets it on its trials: a richer model "
+        "is kept only when it predicts them better)"
+    )
     time_offset_sigma_ms: float = Field(
         1.0, gt=0, description="sigma of each camera's clock offset about what its "
         "timestamps.csv says (ms): the timestamps' jitter and the host's latency"

@@ -184,7 +184,10 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
     if layout.relative_poses and config.estimate_sigma:
         solution = _solve_at_sigma(layout, solution, sigma_marg, params)
     # marginals of the plain Gaussian graph at the solution
-    return _result(layout, solution, sigma_hat, sigma_marg, board_model, face_models, clock)
+    result = _result(layout, solution, sigma_hat, sigma_marg, board_model, face_models, clock)
+    if config.held_out:
+        result = replace(result, held_out_px=_held_out(layout, solution, sigma_marg))
+    return result
 
 
 @dataclass(frozen=True)
@@ -530,6 +533,81 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float,
                         scale_ppm)
 
 
+HELD_OUT_ITERATIONS = 20  # a held-out board pose from a few views converges in 3-6
+
+
+def _held_out(layout: _FactorLayout, solution: _Solution,
+              sigma: float | CornerNoise) -> dict[tuple[str, str, int], float]:
+    """Each marker's corner RMS (px) as predicted from the OTHER cameras' views of its frame
+    set: per (camera, view) of a set two or more cameras saw, the set's board pose (and, with
+    the time model, its twist under the twist prior) solved from the other views alone, every
+    camera, lens, clock and face held at the solution, and this view's corners predicted at
+    it. A model whose extra freedom only absorbs misfit (a per-set twist two global shutters
+    fit exactly, a lens bent to one camera's corners) predicts them worse than the simpler
+    model; one that is physical, better. The cameras' parameters saw each view once among
+    many (a leave-one-view-out on the set level, not a refit)."""
+    by_view: dict[str, list[_ViewGroup]] = defaultdict(list)
+    for g in solution.groups:
+        by_view[g.view].append(g)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(HELD_OUT_ITERATIONS)
+    params.setRelativeErrorTol(1e-5)
+    twist_sigma = layout.twist_sigma or TwistPrior(layout.config.time_twist_sigma_mps,
+                                                   layout.config.time_twist_sigma_dps)
+    values, out = solution.values, {}
+    for view, groups in by_view.items():
+        if len(groups) < 2:
+            continue
+        free = {layout.view_key[view]} | (
+            {layout.twist_key[view]} if layout.timed else set())
+        for g in groups:
+            graph, start = gtsam.NonlinearFactorGraph(), gtsam.Values()
+            for h in groups:
+                if h is g:
+                    continue
+                factor = _view_factor(layout, h, sigma, layout.config.robust)
+                graph.add(factor)
+                for k in factor.keys():
+                    if not start.exists(k):
+                        _insert_held(graph, start, values, k, k not in free)
+            if layout.timed:
+                graph.add(twist_prior(layout.twist_key[view], twist_sigma))
+            try:
+                solved = gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
+            except RuntimeError:
+                continue
+            at = gtsam.Values(values)
+            for k in free:
+                if solved.exists(k):
+                    at.update(k, solved.atPose3(k) if k == layout.view_key[view]
+                              else solved.atVector(k))
+            alone = replace(g, index=np.arange(len(g.index)))
+            res = layout.marker_residuals([alone], len(g.index), at)
+            rms = np.sqrt(np.mean(np.sum(res**2, axis=2), axis=1))
+            ids = [solution.active[i].marker_id for i in g.index]
+            out |= {(g.camera, g.view, m): float(r) for m, r in zip(ids, rms)}
+    return out
+
+
+_POSE_SYMBOLS = {ord("c"), ord("b"), ord("f")}  # camera, board and face keys are Pose3
+
+
+def _insert_held(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values, values: gtsam.Values,
+                 key: int, held: bool) -> None:
+    """``key``'s value from ``values`` into ``start``; ``held``: with a tight prior there."""
+    if gtsam.Symbol(key).chr() in _POSE_SYMBOLS:
+        x = values.atPose3(key)
+        start.insert(key, x)
+        if held:
+            graph.add(gtsam.PriorFactorPose3(key, x, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    else:
+        x = values.atVector(key)
+        start.insert(key, x)
+        if held:
+            graph.add(gtsam.PriorFactorVector(key, x,
+                                              gtsam.noiseModel.Isotropic.Sigma(len(x), 1e-6)))
+
+
 def relative_pose_fit(relative_poses: Sequence[RelativePose], cam_key: dict[str, int],
                       connected: set[str], values: gtsam.Values, marginals: gtsam.Marginals,
                       ) -> tuple[tuple[float, float], ...]:
@@ -590,26 +668,8 @@ def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float | Corn
     kind = config.robust if robust else "none"
     stencils, in_graph = (p.stencils, {g.view for g in groups}) if p.timed else ({}, set())
     for g in groups:
-        seen = [(key, g.face == label, A) for key, label, A in p.moving
-                if np.any(g.face == label)]
-        extra = {"moving": seen} if seen else {}
-        if p.timed:
-            intr = (p.intr_key[g.camera], p.intrinsics[g.camera]) if p.refine else None
-            graph.add(timed_view_factor(
-                p.cam_key[g.camera], p.view_key[g.view], p.twist_key[g.view],
-                p.time_key[g.camera], p.K.get(g.camera), p.heights[g.camera], g.object_points,
-                g.corners_px, sigma, kind, config.robust_k, intr, p.names, **extra,
-                known_ms=p.capture_ms.get((g.camera, g.view), 0.0),
-                accel=_stencil_keys(p, stencils.get(g.view, ()), in_graph)))
-        elif p.refine:
-            graph.add(view_factor_intrinsics(
-                p.cam_key[g.camera], p.view_key[g.view], p.intr_key[g.camera],
-                p.intrinsics[g.camera], p.names, g.object_points, g.corners_px, sigma, kind,
-                config.robust_k, **extra))
-        else:
-            graph.add(view_factor(p.cam_key[g.camera], p.view_key[g.view], p.K[g.camera],
-                                   g.object_points, g.corners_px, sigma, kind,
-                                   config.robust_k, **extra))
+        graph.add(_view_factor(p, g, sigma, kind,
+                               _stencil_keys(p, stencils.get(g.view, ()), in_graph)))
     for key, _, A in p.moving:
         graph.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(
             board_prior_sigmas(config) if A is None else face_prior_sigmas(config))))
@@ -636,6 +696,29 @@ def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float | Corn
                 graph.add(motion_link_factor(p.view_key[f], p.twist_key[f], p.view_key[g],
                                              p.twist_key[g], dt_s, p.motion_prior))
     return graph
+
+
+def _view_factor(p: _FactorLayout, g: _ViewGroup, sigma: float | CornerNoise, kind: str,
+                 accel: tuple[tuple[int, float], ...] = ()) -> gtsam.CustomFactor:
+    """The view factor of ``g``: timed, through refined intrinsics, or pinhole, with the face
+    poses that move its markers; ``accel`` its acceleration stencil's twist keys (timed)."""
+    config = p.config
+    seen = [(key, g.face == label, A) for key, label, A in p.moving if np.any(g.face == label)]
+    extra = {"moving": seen} if seen else {}
+    if p.timed:
+        intr = (p.intr_key[g.camera], p.intrinsics[g.camera]) if p.refine else None
+        return timed_view_factor(
+            p.cam_key[g.camera], p.view_key[g.view], p.twist_key[g.view],
+            p.time_key[g.camera], p.K.get(g.camera), p.heights[g.camera], g.object_points,
+            g.corners_px, sigma, kind, config.robust_k, intr, p.names, **extra,
+            known_ms=p.capture_ms.get((g.camera, g.view), 0.0), accel=accel)
+    if p.refine:
+        return view_factor_intrinsics(
+            p.cam_key[g.camera], p.view_key[g.view], p.intr_key[g.camera],
+            p.intrinsics[g.camera], p.names, g.object_points, g.corners_px, sigma, kind,
+            config.robust_k, **extra)
+    return view_factor(p.cam_key[g.camera], p.view_key[g.view], p.K[g.camera],
+                       g.object_points, g.corners_px, sigma, kind, config.robust_k, **extra)
 
 
 def _initial_values(p: _FactorLayout, init_T_ref_cam: dict[str, np.ndarray],
@@ -695,7 +778,9 @@ def _time_model(p: _FactorLayout, values: gtsam.Values,
                                                 p.config.time_twist_sigma_dps),
         acceleration=p.accelerations(values),
         linked_sets=len({v for f, g, _ in p.links for v in (f, g)}),
-        motion_prior=p.motion_prior)
+        motion_prior=p.motion_prior,
+        offset_prior_sigma_ms={c: 0.0 if c == p.reference else p.time_priors[c].offset_sigma_ms
+                               for c in times})
 
 
 def _with_prior(clock: TimeModel, p: _FactorLayout) -> TimeModel:

@@ -96,6 +96,9 @@ class BundleResult:
     # the rig scale's relative sigma (ppm) in every covariance: the marker model's
     # (config.scale_sigma_ppm) and the board's printed size (board_scale_sigma) together
     scale_sigma_ppm: float = 0.0
+    # config.held_out: each marker's corner RMS (px) predicted from the other cameras' views of
+    # its frame set, (camera, view, marker) -> px (rgbd_calib/solve/bundle.py _held_out)
+    held_out_px: dict[tuple[str, str, int], float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

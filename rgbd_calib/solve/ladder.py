@@ -217,7 +217,8 @@ def bundle_sound_first(problem: BundleProblem, model_error: Collection[str]) -> 
     if joint:
         return bundle_adjust(problem)
     first = bundle_adjust(replace(
-        problem, measurements=[m for m in problem.measurements if m.camera in sound],
+        problem, config=problem.config.model_copy(update={"held_out": False}),
+        measurements=[m for m in problem.measurements if m.camera in sound],
         relative_poses=[r for r in problem.relative_poses if {r.cam_a, r.cam_b} <= sound]))
     held = {**first.T_ref_cam, **fixed}
     boards = {**problem.T_ref_board, **first.T_ref_board}
@@ -365,6 +366,8 @@ def self_calibrated_bundle(
         # the ratio read again on the richer model chosen
         result, problem = _solved_again(problem, result, {"corner_centre_ratio": None},
                                         pg.model_error)
+    # the run's later solves (edge offset, depth pairs) need no held-out prediction
+    problem = replace(problem, config=problem.config.model_copy(update={"held_out": False}))
     return result, problem, selfcal.SelfCalibration(chosen.fit.level, fits)
 
 
@@ -406,7 +409,7 @@ def _trial_config(level: selfcal.ModelLevel, config: BundleConfig) -> BundleConf
     """``level``'s config for a solve the ladder compares: the twist prior as configured (its
     estimate from the data is for the model chosen, :func:`self_calibrated_bundle`), a timed
     level to :data:`TIME_TRIAL_TOL` and :data:`TIME_TRIAL_ITERATIONS`."""
-    update: dict = {"time_twist_prior_from_data": False}
+    update: dict = {"time_twist_prior_from_data": False, "held_out": True}
     if level.time:
         update["relative_error_tol"] = max(config.relative_error_tol, TIME_TRIAL_TOL)
         update["max_iterations"] = min(config.max_iterations, TIME_TRIAL_ITERATIONS)
@@ -531,9 +534,26 @@ def _try_level(ladder: _Ladder, config: BundleConfig, trial_level: selfcal.Model
                        f"priors loosened {selfcal.LOOSEN:.0f}x")
         except _SOLVE_ERRORS as exc:
             reason += f"; loosening the contradicted prior failed: {_first_line(exc)}"
+    ok, reason, held = _held_out_judged(ok, reason, accepted, trial, config, gain is not None)
     fit = selfcal.LevelFit(trial_level, len(trial.T_ref_cam), len(trial.residuals_px),
-                           selfcal.rms_px(terms), added, gain, ok, reason)
+                           selfcal.rms_px(terms), added, gain, ok, reason, held)
     return _Step(fit, trial, problem, terms)
+
+
+def _held_out_judged(ok: bool, reason: str, base: BundleResult, trial: BundleResult,
+                     config: BundleConfig, same_cameras: bool,
+                     ) -> tuple[bool, str, selfcal.HeldOut | None]:
+    """The BIC's decision ``ok`` checked on data neither model was fitted to: the corners of
+    each view predicted from the other cameras' views of its set (``held_out_px``). A richer
+    model on the same cameras that predicts them no better is not kept, whatever its in-sample
+    fit (a per-set twist, a lens or a back sheet that took up misfit); one that calibrates more
+    cameras keeps the BIC's decision, with the figure said."""
+    held = selfcal.held_out(base.held_out_px, trial.held_out_px, config.outlier_px)
+    if held is None:
+        return ok, reason, None
+    if ok and same_cameras and not held.better:
+        return False, f"{reason}; but it predicts {held.phrase()} (worse)", held
+    return ok, f"{reason}; {held.phrase()}", held
 
 
 def _first_line(exc: Exception) -> str:

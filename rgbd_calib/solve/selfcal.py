@@ -85,6 +85,44 @@ class ModelLevel:
 
 
 @dataclass(frozen=True)
+class HeldOut:
+    """Two models' corners predicted from the other cameras' views of their frame sets
+    (``BundleResult.held_out_px``), on the markers both predicted: RMS (px, each marker's
+    capped at ``bundle.outlier_px``) of the simpler model and of the richer one."""
+
+    rms_before_px: float
+    rms_after_px: float
+    markers: int
+    views: int
+
+    @property
+    def better(self) -> bool:
+        return self.rms_after_px < self.rms_before_px
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"rms_before_px": self.rms_before_px, "rms_after_px": self.rms_after_px,
+                "markers": self.markers, "views": self.views}
+
+    def phrase(self) -> str:
+        return (f"held-out corners {self.rms_before_px:.3f} -> {self.rms_after_px:.3f} px on "
+                f"{self.views} views")
+
+
+def held_out(before: dict[tuple[str, str, int], float],
+             after: dict[tuple[str, str, int], float], cap_px: float) -> HeldOut | None:
+    """:class:`HeldOut` of two models' predicted marker RMS (``(camera, view, marker) ->
+    px``) on their common markers; None when they share none."""
+    common = before.keys() & after.keys()
+    if not common:
+        return None
+
+    def rms(d: dict[tuple[str, str, int], float]) -> float:
+        return math.sqrt(sum(min(d[k], cap_px) ** 2 for k in common) / len(common))
+
+    return HeldOut(rms(before), rms(after), len(common), len({k[:2] for k in common}))
+
+
+@dataclass(frozen=True)
 class LevelFit:
     """How one level of the ladder fitted, against the level it was compared with."""
 
@@ -96,6 +134,7 @@ class LevelFit:
     bic_gain: float | None = None  # n ln(SSR_before/SSR_after) - k ln(n); > 0 accepts
     accepted: bool = True
     reason: str = ""
+    held_out: HeldOut | None = None  # against the level it was compared with
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -110,6 +149,7 @@ class LevelFit:
             "bic_gain": self.bic_gain,
             "accepted": self.accepted,
             "reason": self.reason,
+            "held_out": None if self.held_out is None else self.held_out.to_dict(),
         }
 
 

@@ -508,6 +508,9 @@ class TimeModel:
     acceleration: dict[str, np.ndarray] = field(default_factory=dict)
     linked_sets: int = 0
     motion_prior: MotionPrior | None = None
+    # each camera's offset prior sigma (ms): the timestamps' jitter where they anchor it, else
+    # the wide prior of frames matched by index (nothing bounds them but a recording's sense)
+    offset_prior_sigma_ms: dict[str, float] = field(default_factory=dict)
 
     @property
     def speed_mps(self) -> dict[str, float]:
@@ -568,9 +571,12 @@ class TimeModel:
         rate = np.array(list(self.rate_dps.values()) or [0.0])
         return {
             "anchored_by_timestamps": sorted(self.anchored),
+            # how the frame sets were matched, which is what bounds the offsets a priori
+            "frames_matched_by": "timestamps" if self.anchored else "index",
             "cameras": {c: {"offset_ms": self.total_offset_ms(c),
                             "offset_beyond_timestamps_ms": self.offset_ms[c],
                             "offset_sigma_ms": self.sigma_offset_ms[c],
+                            "offset_prior_sigma_ms": self.offset_prior_sigma_ms.get(c),
                             "readout_ms": self.readout_ms[c],
                             "readout_sigma_ms": self.sigma_readout_ms[c]}
                         for c in sorted(self.offset_ms)},

@@ -68,7 +68,13 @@ from .findings_depth import (
     refine_moved,
     refit_failed,
 )
-from .findings_time import capture_time, moving_board, time_sentence
+from .findings_time import (
+    capture_time,
+    moving_board,
+    time_offsets_implausible,
+    time_sentence,
+    time_unresolved,
+)
 from .findings_views import (
     dropped_views,
     fitting_outlier_views,
@@ -129,7 +135,9 @@ __all__ = [
     "refit_failed",
     "reprojection",
     "scratch_coverage",
+    "time_offsets_implausible",
     "time_sentence",
+    "time_unresolved",
     "view_model_error",
     "weak_camera",
     "weak_link",
@@ -138,6 +146,8 @@ __all__ = [
 
 RULES: tuple[Rule, ...] = (
     not_calibrated,
+    time_unresolved,
+    time_offsets_implausible,
     inconsistent_camera,
     camera_model_error,
     capture_time,
@@ -172,6 +182,7 @@ RULES: tuple[Rule, ...] = (
 # a depth-only refinement has no board views: only these rules apply to it
 DEPTH_ONLY_RULES: tuple[Rule, ...] = (
     not_calibrated,
+    time_unresolved,
     each_pair(pair_disagrees, pair_rmse, pair_fitness),
     depth_unused,
     refine_moved,

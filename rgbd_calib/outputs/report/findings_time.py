@@ -69,6 +69,74 @@ def capture_time(report: dict[str, Any], earlier: list[Finding]) -> list[Finding
     )]
 
 
+def time_unresolved(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The pose graph found cameras whose views disagree beyond their noise and the chosen
+    model did not explain them (a lens or back sheet would have), the time model was tried
+    and fitted them, but it predicted each view's corners from the other cameras' views worse
+    than the timeless model (the ladder's held-out check): its per-set motions and clocks took
+    up what the data do not fix (single frames through global shutters, clocks that no
+    timestamps anchor), so it was not kept, and the timeless result carries the disagreement.
+    An error: the extrinsics are as good as a moving board's single unsynchronised frames
+    allow, which is not good enough to fuse clouds."""
+    bundle = report.get("bundle") or {}
+    ladder = (bundle.get("self_calibration") or {}).get("levels") or []
+    rejected = [lv for lv in ladder if lv.get("time") and not lv.get("accepted")
+                and lv.get("held_out") and lv["held_out"]["rms_after_px"]
+                >= lv["held_out"]["rms_before_px"]]
+    # model-error cameras the chosen model did not explain (camera_model_error's test)
+    unexplained = [m["camera"] for m in report["pose_graph"].get("model_error") or []
+                   if m.get("sigma_factor") is None or m["sigma_factor"] > 1.0]
+    if bundle.get("time") or not rejected or not unexplained:
+        return []
+    held = rejected[0]["held_out"]
+    cams = sorted(unexplained)
+    return [finding(
+        "error",
+        "time_unresolved",
+        cams,
+        "The cameras' views of the board disagree beyond their noise, as a board moving "
+        "through unsynchronised cameras makes them; the time model fitted them, but predicted "
+        "held-out views worse than the timeless model (corner RMS "
+        f"{held['rms_before_px']:.2f} -> {held['rms_after_px']:.2f} px on {held['views']} "
+        "views): these recordings cannot fix the board's motion, so the extrinsics keep the "
+        "disagreement.",
+        "Record again with timestamps.csv (rgbd-calib record or convert keep them), the "
+        "cameras' sync cable, or the board held still at each pose; to accept the timeless "
+        "result as it is, calibrate with --time fixed --accept-poor.",
+    )]
+
+
+OFFSET_PRIOR_K = 3.0  # an offset this many prior sigmas out contradicts the frame matching
+
+
+def time_offsets_implausible(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
+    """The time model was kept with a camera's clock offset beyond :data:`OFFSET_PRIOR_K`
+    sigmas of its prior (the timestamps' jitter where they anchor it, the wide prior of
+    frames matched by index otherwise): the per-set motions and the clocks traded with the
+    extrinsics until the clocks left what the recording allows. An error."""
+    time = (report.get("bundle") or {}).get("time")
+    if not time:
+        return []
+    out = {c: (d["offset_beyond_timestamps_ms"], d["offset_prior_sigma_ms"])
+           for c, d in time["cameras"].items()
+           if d.get("offset_prior_sigma_ms") and abs(d["offset_beyond_timestamps_ms"])
+           > OFFSET_PRIOR_K * d["offset_prior_sigma_ms"]}
+    if not out:
+        return []
+    matched = time.get("frames_matched_by", "index")
+    said = ", ".join(f"{c} {o:+.1f} ms (prior +-{s:.0f})" for c, (o, s) in sorted(out.items()))
+    return [finding(
+        "error",
+        "time_offsets_implausible",
+        sorted(out),
+        f"The time model put clock offsets beyond {OFFSET_PRIOR_K:.0f} sigmas of what the "
+        f"frame matching ({matched}) allows: {said}; the board's motions and the clocks took "
+        "up misfit they cannot be, and the extrinsics with them.",
+        "Record with timestamps.csv and the sync cable, or hold the board still at each pose; "
+        "compare with --time fixed.",
+    )]
+
+
 MOVED_SETS_WARNING = 0.25  # of the frame sets: more moved, and the finding is a warning
 
 

@@ -11,7 +11,13 @@ from ...solve.pose import DROP_ADVICE
 from .findings_base import Finding, cameras_of, finding
 from .findings_cameras import explained_model_errors, fitting_outliers, moved_set_views
 from .numbers import median_or_none
-from .schema import MARKER_FACTOR, MARKER_MIN_PX, REPROJECTION_FACTOR, RIG_REPROJECTION_MAX_PX
+from .schema import (
+    MARKER_FACTOR,
+    MARKER_MIN_PX,
+    REPROJECTION_FACTOR,
+    RIG_REPROJECTION_MAX_PX,
+    RIG_REPROJECTION_POOR_PX,
+)
 
 
 def outlier_views(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]:
@@ -118,14 +124,18 @@ def reprojection(report: dict[str, Any], earlier: list[Finding]) -> list[Finding
     rig_rms = report["summary"]["reprojection_rms_px"]
     if rig_rms is None or rig_rms <= RIG_REPROJECTION_MAX_PX:
         return []
+    poor = rig_rms > RIG_REPROJECTION_POOR_PX  # the model does not explain the images
     return [
         finding(
-            "warning",
+            "error" if poor else "warning",
             "reprojection",
             [],
             f"the rig's reprojection RMS is {rig_rms:.2f} px (expected well below "
-            f"{RIG_REPROJECTION_MAX_PX} px).",
-            "Check the intrinsics in rig.yaml, the board's flatness and its printed scale.",
+            f"{RIG_REPROJECTION_MAX_PX} px)"
+            + (": the calibrated poses do not explain the images." if poor else "."),
+            "Check the intrinsics in rig.yaml, the board's flatness and its printed scale"
+            + ("; a board moving through unsynchronised cameras needs timestamps.csv or "
+               "still poses." if poor else "."),
         )
     ]
 

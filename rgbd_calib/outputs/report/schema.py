@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.27"
+REPORT_SCHEMA_VERSION = "1.28"
 
 
 class ReportError(RgbdCalibError):
@@ -44,6 +44,7 @@ INCONSISTENT_FRACTION = 0.3  # share of a camera's views that are pose-graph out
 REPROJECTION_FACTOR = 3.0  # a camera's median reprojection error this many times the rig's ...
 REPROJECTION_MIN_PX = 0.5  # ... and above this is suspect (intrinsics, blur, sync)
 RIG_REPROJECTION_MAX_PX = 0.5  # the whole rig's RMS above this: check intrinsics / board
+RIG_REPROJECTION_POOR_PX = 2.0  # ... above this the poses do not explain the images: POOR
 MARKER_FACTOR = 3.0  # a marker id whose RMS is this many times the median marker's ...
 MARKER_MIN_PX = 0.3  # ... and above this: check that marker on the board
 COVERAGE_MIN = 0.35  # fraction of the image the board's views covered
@@ -339,9 +340,11 @@ REPORT_SCHEMA: dict[str, Any] = {
         "outlier_markers": ListOf({"camera": S, "view": S, "marker": INT, "rms_px": N}),
         "time?": {
             "anchored_by_timestamps": ListOf(S),
+            "frames_matched_by?": S,
             "cameras": MapOf("<camera>", {"offset_ms": N, "offset_beyond_timestamps_ms": N,
                                           "offset_sigma_ms": N, "readout_ms": N,
-                                          "readout_sigma_ms": N}),
+                                          "readout_sigma_ms": N,
+                                          "offset_prior_sigma_ms?": Nullable(N)}),
             "board_speed_mps": {"median": N, "max": N},
             "board_rate_dps": {"median": N, "max": N},
             "linked_sets?": INT,
@@ -364,6 +367,8 @@ REPORT_SCHEMA: dict[str, Any] = {
                 "cameras": INT,
                 "markers": INT, "rms_px": Nullable(N), "added_parameters": INT,
                 "bic_gain": Nullable(N), "accepted": B, "reason": S,
+                "held_out?": Nullable({"rms_before_px": N, "rms_after_px": N,
+                                       "markers": INT, "views": INT}),
             }),
         },
     },
