@@ -40,3 +40,42 @@ def test_a_failed_step_names_its_log_and_exits_1(tmp_path):
     assert "Traceback" not in done.stderr
     last = done.stderr.strip().splitlines()[-1]
     assert last.startswith("error: bench_fused.py: rgbd-calib synth ") and ".log" in last, last
+
+
+# modules the scripts import, not scripts themselves
+TOOL_LIBRARIES = {"baseline.py", "peers.py", "toolmain.py"}
+SCRIPTS = sorted(p.name for p in (REPO / "tools").glob("*.py") if p.name not in TOOL_LIBRARIES)
+
+
+def test_every_script_in_tools_is_a_script_or_a_named_library():
+    """A tool without ``__main__`` is one of the named libraries; a script has one (so the
+    --help test below reaches every script: a tool that no longer imports is found here, not
+    by its next user)."""
+    for name in SCRIPTS:
+        assert '__name__ == "__main__"' in (REPO / "tools" / name).read_text(), name
+    assert len(SCRIPTS) >= 25
+
+
+def test_every_tool_answers_help(tmp_path):
+    """Each script imports against today's package and parses its arguments: ``--help``
+    prints its usage and exits 0 (one process runs them all, so the suite pays one import)."""
+    code = (
+        "import runpy, sys\n"
+        f"sys.path.insert(0, {str(REPO / 'tools')!r})\n"
+        "bad = []\n"
+        f"for name in {SCRIPTS!r}:\n"
+        f"    sys.argv = [name, '--help']\n"
+        "    try:\n"
+        f"        runpy.run_path({str(REPO / 'tools')!r} + '/' + name, run_name='__main__')\n"
+        "        bad.append((name, 'no exit'))\n"
+        "    except SystemExit as exc:\n"
+        "        if exc.code not in (0, None):\n"
+        "            bad.append((name, exc.code))\n"
+        "    except Exception as exc:\n"
+        "        bad.append((name, repr(exc)))\n"
+        "print('BAD', bad)\n"
+    )
+    done = _run("-c", code, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "BAD []" in done.stdout, done.stdout[-3000:]
+    assert done.stdout.count("usage:") >= len(SCRIPTS), done.stdout[-3000:]

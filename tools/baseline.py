@@ -24,8 +24,10 @@ def load_module(name: str, path: Path) -> ModuleType:
 
 
 def module_at(rev: str, relpath: str, name: str) -> ModuleType:
-    """``relpath`` (e.g. ``rgbd_calib/graph.py``) at git revision ``rev``, read with
-    ``git show`` (the working tree is not touched) and imported as ``rgbd_calib.<name>``."""
+    """``relpath`` (e.g. ``rgbd_calib/solve/bundle.py``) at git revision ``rev``, read with
+    ``git show`` (the working tree is not touched) and imported as ``rgbd_calib.<name>``
+    (``name`` with its package, e.g. ``solve.bundle_baseline``, so that its relative imports
+    resolve)."""
     text = subprocess.run(
         ["git", "show", f"{rev}:{relpath}"], cwd=ROOT, check=True, capture_output=True, text=True
     ).stdout

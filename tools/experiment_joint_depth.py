@@ -28,8 +28,8 @@ current choice."""
 
 from __future__ import annotations
 
+import argparse
 import math
-import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -265,8 +265,13 @@ def truth_line(name: str, model: DepthModel, rays: np.ndarray, z: np.ndarray,
 
 
 def main() -> None:
-    render, work = Path(sys.argv[1]), Path(sys.argv[2])
-    modes = sys.argv[3:] or ["fixed", "full"]
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("render", type=Path, help="a synthetic render (synth's folder)")
+    ap.add_argument("work", type=Path, help="the calibration's cache folder")
+    ap.add_argument("modes", nargs="*", default=["fixed", "full"],
+                    choices=["fixed", "full", "select"])
+    args = ap.parse_args()
+    render, work, modes = args.render, args.work, args.modes
     ds = FolderDataset(render)
     res = calibrate(ds, thesis_board(), CalibrationConfig(), cache_dir=work)
     rig, gt = true_rig(render)

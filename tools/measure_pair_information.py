@@ -5,6 +5,7 @@ Usage: python tools/measure_pair_information.py DATASET PERTURB_MM PERTURB_DEG [
 OUT/rig_refined.yaml and gives each cloud the variances of its refined intrinsics from
 OUT/report.json, times lens_sigma_factor, as calibrate does).
 """
+import argparse
 import copy
 import json
 import sys
@@ -76,8 +77,22 @@ def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, cal
           "per component:", np.sqrt(np.mean(zs**2, axis=0)).round(2))
 
 
-if __name__ == "__main__":
-    kw = dict(a.split("=") for a in sys.argv[4:])
+def cli() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("dataset", help="a synthetic render (synth's folder)")
+    ap.add_argument("perturb_mm", type=float)
+    ap.add_argument("perturb_deg", type=float)
+    ap.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                    help="DepthConfig overrides, or calibration=OUT")
+    args = ap.parse_args()
+    kw = dict(a.split("=", 1) for a in args.overrides)
     kw = {k: (v if k == "calibration" else float(v) if "." in v else int(v) if v.isdigit()
               else v) for k, v in kw.items()}
-    main(sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), **kw)
+    main(args.dataset, args.perturb_mm, args.perturb_deg, **kw)
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).parent))
+    from toolmain import run_tool
+
+    run_tool(cli)

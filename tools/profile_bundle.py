@@ -1,18 +1,19 @@
-"""Time ``bundle_adjust`` against a baseline version of ``rgbd_calib/graph.py``, same inputs.
+"""Time ``bundle_adjust`` against a baseline revision of ``rgbd_calib/solve/bundle.py``.
 
-    python tools/profile_bundle.py --baseline-rev fcff359 --data /tmp/bench_data \\
+    python tools/profile_bundle.py --baseline-rev d0ab723 --data /tmp/bench_data \\
         --cache /tmp/bundle_cache --sets thesis-line-f40-s0 race-f40-s0 --repeats 3
 
 For each set, runs the calibration once up to the bundle stage (detections cached under
 ``--cache/<set>``, so only the first run pays detection) and captures the first
 :class:`~rgbd_calib.solve.bundle.BundleProblem` solved. Then calls the working-tree
-``bundle_adjust`` ("new") and the one at ``--baseline-rev`` ("old", loaded with ``git show``,
-given the problem's fields as its loose parameters) on it, interleaved and alternating which
-goes first so that machine load hits both alike, and reports the median time of each, the
-split of each (LM solves, marginals, rest) and the largest differences of the results:
-camera poses (mm, deg), sigmas (relative), estimated pixel sigma, marker residuals, iterations
-and outliers. ``--calibrate`` also reports the calibration's own ``timings_s["bundle"]`` (which
-includes building the marker measurements) with either version patched in, interleaved.
+``bundle_adjust`` ("new") and the one at ``--baseline-rev`` ("old", loaded with ``git show``;
+a revision whose ``bundle_adjust`` takes a ``BundleProblem``, 2026-11 on) on the same inputs,
+interleaved and alternating which goes first so that machine load hits both alike, and
+reports the median time of each, the split of each (LM solves, marginals, rest) and the
+largest differences of the results: camera poses (mm, deg), sigmas (relative), estimated pixel
+sigma, marker residuals, iterations and outliers. ``--calibrate`` also reports the
+calibration's own ``timings_s["bundle"]`` (which includes building the marker measurements)
+with either version patched in, interleaved.
 """
 
 from __future__ import annotations
@@ -62,19 +63,9 @@ def capture_inputs(data: Path, cache: Path) -> BundleProblem:
 
 
 def solver(mod):
-    """``mod.bundle_adjust`` as a function of a problem: the working tree's takes it, a
-    baseline's (before ``BundleProblem``) its fields as loose parameters."""
-    if mod is new:
-        return new.bundle_adjust
-
-    def loose(p: BundleProblem):
-        extra = {k: v for k, v in (("back_centre", p.back_centre),
-                                   ("face_frames", p.face_frames)) if v is not None}
-        return mod.bundle_adjust(list(p.measurements), p.K, p.reference, p.T_ref_cam,
-                                 p.T_ref_board, p.config, p.fixed_cameras, p.relative_poses,
-                                 intrinsics=p.intrinsics, **extra)
-
-    return loose
+    """``mod.bundle_adjust``: a function of a problem, the working tree's and a baseline's
+    alike (revisions before ``BundleProblem`` took loose parameters: not supported)."""
+    return mod.bundle_adjust
 
 
 def calibrate_bundle_time(data: Path, cache: Path, bundle_adjust) -> float:
@@ -162,7 +153,7 @@ def main() -> None:
     ap.add_argument("--calibrate", action="store_true",
                     help="also time whole calibrations (timings_s['bundle'])")
     opts = ap.parse_args()
-    old = module_at(opts.baseline_rev, "rgbd_calib/graph.py", "graph_baseline")
+    old = module_at(opts.baseline_rev, "rgbd_calib/solve/bundle.py", "solve.bundle_baseline")
     for name in opts.sets:
         problem = capture_inputs(opts.data / name, opts.cache / name)
         times: dict[str, list[float]] = {"old": [], "new": []}
