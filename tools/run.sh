@@ -17,7 +17,13 @@ case "$VENV" in /*) ;; *) VENV="$ROOT/$VENV" ;; esac  # a relative one: from the
 
 # ldconfig lives in /sbin, which a user's (or a CI job's) PATH may leave out
 LDCONFIG="$(command -v ldconfig || echo /sbin/ldconfig)"
-need_libusb() { ! "$LDCONFIG" -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; }
+# the cache read whole before grep looks (grep -q stops at the first match, ldconfig then dies of
+# SIGPIPE and pipefail turned a library that is there into one that is missing, ~4 % of calls)
+need_libusb() {
+  local cache
+  cache=$("$LDCONFIG" -p 2>/dev/null || true)
+  [[ "$cache" != *libusb-1.0.so.0* ]]
+}
 if need_libusb; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     echo "installing libusb-1.0-0 (needed by open3d and pyrealsense2) ..." >&2

@@ -57,6 +57,7 @@ EXIT_MOVED = 1  # check: some camera moved (named on the console and in check.js
 EXIT_INPUT = 2  # bad input or options: one error line, nothing written (click's usage errors too)
 EXIT_POOR = 3  # calibrate / refine / demo: written, but the verdict is POOR (unless --accept-poor)
 EXIT_UNCHECKED = 4  # check: none moved, but some camera could not be checked ("unknown")
+EXIT_CHECK = 5  # calibrate / refine / demo with --strict: written, but the verdict is CHECK
 EXIT_INTERRUPTED = 130  # Ctrl-C: earlier results untouched
 
 ACCEPT_POOR_OPTION = typer.Option(
@@ -64,9 +65,18 @@ ACCEPT_POOR_OPTION = typer.Option(
     f"{EXIT_POOR}; the verdict is written into extrinsics.yaml and the exports either way).")
 
 
-def verdict_exit(grade: str | None, accept_poor: bool = False) -> int:
-    """The exit code of a written result with verdict ``grade`` (None: not judged)."""
-    return EXIT_POOR if grade == "poor" and not accept_poor else EXIT_OK
+STRICT_OPTION = typer.Option(
+    "--strict", help=f"Exit {EXIT_CHECK} when the verdict is CHECK (default: exit {EXIT_OK}), "
+    "so that 'calibrate --strict ... && deploy' deploys only a GOOD result.")
+
+
+def verdict_exit(grade: str | None, accept_poor: bool = False, strict: bool = False) -> int:
+    """The exit code of a written result with verdict ``grade`` (None: not judged):
+    :data:`EXIT_POOR` for POOR unless ``accept_poor``, :data:`EXIT_CHECK` for CHECK with
+    ``strict``, else :data:`EXIT_OK`."""
+    if grade == "poor" and not accept_poor:
+        return EXIT_POOR
+    return EXIT_CHECK if grade == "check" and strict else EXIT_OK
 
 
 def check_exit(moved: list[str], unknown: list[str]) -> int:
@@ -75,9 +85,10 @@ def check_exit(moved: list[str], unknown: list[str]) -> int:
     return EXIT_MOVED if moved else EXIT_UNCHECKED if unknown else EXIT_OK
 
 
-def exit_on_poor(out: Path, accept_poor: bool, show: bool = False) -> None:
+def exit_on_poor(out: Path, accept_poor: bool, show: bool = False, strict: bool = False) -> None:
     """End a command that wrote ``out/extrinsics.yaml`` with the exit code of the verdict
-    written in it (``show``: print the verdict line first)."""
+    written in it (``show``: print the verdict line first; ``strict``: CHECK exits
+    :data:`EXIT_CHECK`)."""
     from rich.markup import escape
 
     from ..model.results import load_extrinsics
@@ -87,7 +98,12 @@ def exit_on_poor(out: Path, accept_poor: bool, show: bool = False) -> None:
         return
     if show:
         console.print(f"verdict: {escape(verdict.line)}", highlight=False, soft_wrap=True)
-    code = verdict_exit(verdict.grade, accept_poor)
+    code = verdict_exit(verdict.grade, accept_poor, strict)
+    if code == EXIT_CHECK:
+        console.print(f"[bold yellow]exit {code}[/]: the verdict is CHECK and --strict asks "
+                      "for GOOD; read the warnings before using these extrinsics",
+                      highlight=False, soft_wrap=True)
+        raise typer.Exit(code)
     if code != EXIT_OK:
         console.print(f"[bold red]exit {code}[/]: the verdict is POOR (recorded in "
                       "extrinsics.yaml); do not deploy these extrinsics as they are "

@@ -13,6 +13,7 @@ import typer
 
 from .app import (
     ACCEPT_POOR_OPTION,
+    STRICT_OPTION,
     app,
     check_output_folder,
     command,
@@ -439,9 +440,11 @@ def calibrate(
     sync_tolerance_ms: Annotated[float | None, SYNC_OPTION] = None,
     scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
     accept_poor: Annotated[bool, ACCEPT_POOR_OPTION] = False,
+    strict: Annotated[bool, STRICT_OPTION] = False,
 ) -> None:
     """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports.
-    Exit 0: verdict GOOD or CHECK; 3: POOR (written all the same); 2: an input error."""
+    Exit 0: verdict GOOD or CHECK; 3: POOR (written all the same); 5: CHECK with --strict;
+    2: an input error."""
     from ..core.config import load_config
     from ..core.parallel import check_scheduler
     from ..model.board_file import load_board
@@ -470,7 +473,7 @@ def calibrate(
     if board_note:  # after the run: a failing one ends on its error line alone
         console.print(board_note, highlight=False, soft_wrap=True)
     print_summary(result, out)
-    exit_on_poor(out, accept_poor)
+    exit_on_poor(out, accept_poor, strict=strict)
 
 
 def _check_fixed(prior, rig, path: Path) -> None:
@@ -563,6 +566,7 @@ def demo(
     frames: Annotated[int, typer.Option(help="Frame sets to render.")] = 16,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     accept_poor: Annotated[bool, ACCEPT_POOR_OPTION] = False,
+    strict: Annotated[bool, STRICT_OPTION] = False,
 ) -> None:
     """Render a small synthetic rig, calibrate it and compare with its ground truth (a re-run
     with the same options reuses the render and the detections). Exit codes as calibrate's."""
@@ -585,7 +589,7 @@ def demo(
     print_demo_errors(result, gt)
     console.print(f"dataset: {dataset}/", highlight=False)
     print_verdict(out / "calibration")
-    exit_on_poor(out / "calibration", accept_poor)
+    exit_on_poor(out / "calibration", accept_poor, strict=strict)
 
 
 @command()

@@ -12,6 +12,7 @@ import typer
 from .app import (
     ACCEPT_POOR_OPTION,
     EXIT_UNCHECKED,
+    STRICT_OPTION,
     check_exit,
     check_method,
     check_output_folder,
@@ -85,9 +86,11 @@ def refine(
     scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
     config: Annotated[Path | None, DEPTH_CONFIG_OPTION] = None,
     accept_poor: Annotated[bool, ACCEPT_POOR_OPTION] = False,
+    strict: Annotated[bool, STRICT_OPTION] = False,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view). Exit 0:
-    verdict GOOD or CHECK; 3: POOR (written all the same); 2: an input error."""
+    verdict GOOD or CHECK; 3: POOR (written all the same); 5: CHECK with --strict; 2: an
+    input error."""
     import math
 
     from ..model.board import thesis_board
@@ -101,7 +104,7 @@ def refine(
     if fix_others:
         _fix_others(ds, init, init_ext, scales, method, out, tolerance_mm, tolerance_deg,
                     scheduler, depth_config)
-        exit_on_poor(out, accept_poor, show=True)
+        exit_on_poor(out, accept_poor, show=True, strict=strict)
         return
     b = load_board(board_file) if board_file else thesis_board()
     with stage_progress() as progress:
@@ -126,7 +129,7 @@ def refine(
     console.print(f"[{colour}]{outcome['verdict']}[/]: {outcome['message']}")
     console.print(f"results in {out}/ (extrinsics.yaml, report.html, report.json, "
                   "refine_report.json, fused.ply)")
-    exit_on_poor(out, accept_poor, show=True)
+    exit_on_poor(out, accept_poor, show=True, strict=strict)
 
 
 DEPTH_CONFIG_OPTION = typer.Option(
