@@ -393,3 +393,26 @@ def test_run_sh_finds_an_installed_libusb_every_time():
     run = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=120,
                          check=False)
     assert run.returncode == 0 and run.stdout.strip() == "0", (run.stdout, run.stderr)
+
+
+def test_out_in_the_dataset_or_the_calibration_read_is_refused(tiny_dataset, poor_calibration,
+                                                                tmp_path):
+    """``--out`` the dataset, inside it, or the calibration refine/check read: one line,
+    exit 2, nothing written there (the results would mix with the recording or overwrite the
+    calibration being refined)."""
+    data = tmp_path / "dataset"
+    shutil.copytree(tiny_dataset, data)
+    before = sorted(p.relative_to(data) for p in data.rglob("*"))
+    for out in (data, data / "results"):
+        code, text = cli("calibrate", data, "--out", out, "--refine", "none")
+        assert code == cli_app.EXIT_INPUT, text
+        line = [ln for ln in text.splitlines() if ln.startswith("error:")]
+        assert len(line) == 1 and "dataset" in line[0] and "outside it" in line[0], text
+    assert sorted(p.relative_to(data) for p in data.rglob("*")) == before
+    calib, _, _ = poor_calibration
+    stamp = (calib / "extrinsics.yaml").stat().st_mtime_ns
+    for command in (["refine", data, "--init", calib / "extrinsics.yaml"],
+                    ["check", data, "--calib", calib]):
+        code, text = cli(*command, "--out", calib)
+        assert code == cli_app.EXIT_INPUT and "calibration" in text, text
+    assert (calib / "extrinsics.yaml").stat().st_mtime_ns == stamp

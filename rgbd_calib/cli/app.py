@@ -198,12 +198,26 @@ def check_method(method: str) -> None:
         raise ConfigError(f"--method {method!r}: use {' or '.join(REGISTRATION_METHODS)}")
 
 
-def check_output_folder(out: Path, option: str = "--out") -> None:
+def check_output_folder(out: Path, option: str = "--out",
+                        inputs: tuple[tuple[Path, str], ...] = ()) -> None:
     """Fail before any long step when ``out`` cannot become a folder: it is a file, or the
-    first existing folder above it is a file or not writable."""
+    first existing folder above it is a file or not writable; or it is one of the folders
+    ``inputs`` (``(folder, what it is)``: the dataset, a calibration read) or inside one,
+    where the results would mix with, or overwrite, what the run reads."""
     from ..core.errors import ConfigError
 
     out = Path(out)
+    where = out.resolve()
+    for folder, what in inputs:
+        folder = Path(folder)
+        if not folder.is_dir():
+            continue
+        inside = folder.resolve()
+        if where == inside or inside in where.parents:
+            raise ConfigError(
+                f"{out}: {option} is {'the' if where == inside else 'inside the'} {what} "
+                f"{folder}; the results would mix with what this run reads: give a folder "
+                "outside it")
     if out.exists():
         if not out.is_dir():
             raise ConfigError(f"{out}: {option} is a file, not a folder; choose a folder path")

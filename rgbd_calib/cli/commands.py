@@ -257,7 +257,9 @@ def synth(
         typer.Option(help="WIDTHxHEIGHT; default: 848x480 for race, 1280x720 otherwise."),
     ] = None,
     board_file: Annotated[
-        Path | None, typer.Option("--board", help="Board YAML; default: the thesis board.")
+        Path | None, typer.Option("--board", help="Board YAML; default: the dataset's "
+                                  "board.yaml (synth and convert --board write it), else the "
+                                  "thesis board.")
     ] = None,
     depth_bias: Annotated[
         float,
@@ -450,7 +452,8 @@ def calibrate(
     from ..model.board_file import load_board
     from ..model.results import load_extrinsics
 
-    check_output_folder(out)
+    check_output_folder(out, inputs=tuple((d, "dataset") for d in dataset)
+                        + (((fix.parent, "calibration of --fix"),) if fix else ()))
     cfg = load_config(config, method=method, workers=workers, refine=refine,
                       scheduler=scheduler,
                       **{"bundle.intrinsics": intrinsics, "bundle.board": board_model,

@@ -36,7 +36,8 @@ def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_m
     from ..model.calib_folder import load_depth_corrections, with_refined_intrinsics
     from ..model.results import load_extrinsics
 
-    check_output_folder(out)
+    check_output_folder(out, inputs=tuple((d, "dataset") for d in sources)
+                        + ((extrinsics.parent, "calibration"),))
     check_scheduler(scheduler)
     ds = open_dataset(sources, out, names, sync_tolerance_ms)
     ds.check_images()
