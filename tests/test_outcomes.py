@@ -416,3 +416,29 @@ def test_out_in_the_dataset_or_the_calibration_read_is_refused(tiny_dataset, poo
         code, text = cli(*command, "--out", calib)
         assert code == cli_app.EXIT_INPUT and "calibration" in text, text
     assert (calib / "extrinsics.yaml").stat().st_mtime_ns == stamp
+
+
+def test_check_and_refine_name_cameras_that_match_none_of_the_calibration(
+        tiny_dataset, poor_calibration, tmp_path):
+    """A recording whose camera names differ from the calibration's: one line naming both
+    lists, exit 2 (it ran on and called every camera 'unknown' for want of a depth cloud,
+    then 'in place' with none checked)."""
+    data = tmp_path / "renamed"
+    shutil.copytree(tiny_dataset, data)
+    rig = yaml.safe_load((data / "rig.yaml").read_text())
+    names = list(rig["cameras"])
+    rig["cameras"] = {f"x_{n}": v for n, v in rig["cameras"].items()}
+    if "reference" in rig:
+        rig["reference"] = f"x_{rig['reference']}"
+    (data / "rig.yaml").write_text(yaml.safe_dump(rig))
+    for n in names:
+        (data / n).rename(data / f"x_{n}")
+    calib, _, _ = poor_calibration
+    for command in (["check", data, "--calib", calib],
+                    ["refine", data, "--init", calib / "extrinsics.yaml"]):
+        code, text = cli(*command, "--out", tmp_path / command[0])
+        assert code == cli_app.EXIT_INPUT, text
+        errors = [ln for ln in text.splitlines() if ln.startswith("error:")]
+        assert len(errors) == 1 and "match none of the calibration's" in errors[0], text
+        assert f"x_{names[0]}" in text and names[0] in text
+        assert not (tmp_path / command[0] / "check.json").exists()

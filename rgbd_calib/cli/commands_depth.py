@@ -46,8 +46,29 @@ def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_m
         console.print(f"intrinsics: the refined ones of {extrinsics.parent / 'rig_refined.yaml'}"
                       f" for {', '.join(changed)}", highlight=False, soft_wrap=True)
     calib = load_extrinsics(extrinsics, check_redundant=True)
+    _check_camera_names(ds.rig.cameras, calib.cameras, sources, extrinsics)
     warn_if_poor(calib, extrinsics)
     return ds, calib, load_depth_corrections(extrinsics.parent)
+
+
+def _check_camera_names(recorded, calibrated, sources: list[Path], extrinsics: Path) -> None:
+    """The recording's cameras against the calibration's: none in common is a mistake (one
+    line naming both lists, exit 2: every camera would be 'unknown' for want of a cloud);
+    some of each unmatched is said (a camera added, or one renamed)."""
+    from ..core.errors import ConfigError
+
+    rec, cal = set(recorded), set(calibrated)
+    where = sources[0] if len(sources) == 1 else "the recordings"
+    if not rec & cal:
+        raise ConfigError(
+            f"{where}: its cameras ({', '.join(sorted(rec))}) match none of the calibration's "
+            f"in {extrinsics} ({', '.join(sorted(cal))}); record with the calibration's camera "
+            "names (rig.yaml, or --names for recordings)")
+    if rec - cal and cal - rec:
+        console.print(f"[yellow]warning[/]: {where}: cameras {', '.join(sorted(rec - cal))} are "
+                      f"not in the calibration, and its {', '.join(sorted(cal - rec))} are not "
+                      "recorded: renamed? They are not checked", highlight=False,
+                      soft_wrap=True)
 
 
 @command()
