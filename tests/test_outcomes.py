@@ -442,3 +442,24 @@ def test_check_and_refine_name_cameras_that_match_none_of_the_calibration(
         assert len(errors) == 1 and "match none of the calibration's" in errors[0], text
         assert f"x_{names[0]}" in text and names[0] in text
         assert not (tmp_path / command[0] / "check.json").exists()
+
+
+def test_a_board_file_in_millimetres_is_named_before_anything_runs(tiny_dataset, tmp_path):
+    """A board file written in millimetres (marker 40 instead of 0.04): one line, exit 2,
+    nothing written (it ran 1-2 minutes, then put cameras 800 m apart or raised a
+    TypeError)."""
+    text = (CONFIGS / "board_thesis.yaml").read_text()
+    for old, new in (("marker_length: 0.04", "marker_length: 40"),
+                     ("separation: 0.02", "separation: 20"),
+                     ("thickness: 0.0066", "thickness: 6.6")):
+        assert old in text
+        text = text.replace(old, new)
+    text = "\n".join(ln for ln in text.splitlines() if not ln.startswith("panel:"))
+    (tmp_path / "board_mm.yaml").write_text(text)
+    out = tmp_path / "out"
+    code, said = cli("calibrate", tiny_dataset, "--board", tmp_path / "board_mm.yaml", "--out",
+                     out)
+    assert code == cli_app.EXIT_INPUT, said
+    errors = [ln for ln in said.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "cannot be metres" in errors[0] and "1000" in errors[0], said
+    assert not out.exists()

@@ -123,6 +123,7 @@ def _board_from_mapping(raw: dict, path: Path, where: str, fix_winding: bool = F
     """The board of a board file's top-level mapping (any ``type``), with its optional
     ``print_scale_sigma``."""
     board = _board_of_form(raw, path, where, fix_winding)
+    _check_metres(board, where)
     sigma = raw.get("print_scale_sigma")
     if sigma is None:
         return board
@@ -132,6 +133,23 @@ def _board_from_mapping(raw: dict, path: Path, where: str, fix_winding: bool = F
                          "1 sigma (0.0005 for a print measured to 0.05 %); give at most "
                          f"{MAX_PRINT_SCALE_SIGMA:g}")
     return replace(board, print_scale_sigma=sigma)
+
+
+MAX_BOARD_SPAN_M = 5.0  # a hand-held calibration target spans less; more is not metres
+
+
+def _check_metres(board: Board, where: str) -> None:
+    """A board whose markers span more than :data:`MAX_BOARD_SPAN_M` (or a panel thicker than
+    half a metre) was written in other units than metres (millimetres, most often): every
+    distance of the calibration would be scaled by 1000."""
+    pts = np.asarray(board.corners, dtype=float).reshape(-1, 3)
+    span = float(np.ptp(pts[:, :2], axis=0).max()) if len(pts) else 0.0
+    if span > MAX_BOARD_SPAN_M or board.thickness > 0.5:
+        raise BoardError(
+            f"{where}: the markers span {span:g} and the panel is {board.thickness:g} thick, "
+            "which cannot be metres (a hand-held board spans under "
+            f"{MAX_BOARD_SPAN_M:g} m); board files are in metres: if it was written in "
+            "millimetres, divide every length by 1000")
 
 
 def _board_of_form(raw: dict, path: Path, where: str, fix_winding: bool) -> Board:
