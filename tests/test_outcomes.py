@@ -463,3 +463,25 @@ def test_a_board_file_in_millimetres_is_named_before_anything_runs(tiny_dataset,
     errors = [ln for ln in said.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and "cannot be metres" in errors[0] and "1000" in errors[0], said
     assert not out.exists()
+
+
+def test_a_charuco_recording_without_its_board_file_is_named_not_blamed_on_intrinsics(
+        charuco_line, tmp_path):
+    """A ChArUco recording whose rig.yaml gives only the image sizes, calibrated without
+    --board (so with the thesis marker board): one line saying the images show a ChArUco
+    board and which board file to give, exit 2 (it blamed the cameras' missing intrinsics:
+    'no fx/fy/cx/cy ... only 0 board view(s)')."""
+    data = tmp_path / "charuco"
+    shutil.copytree(charuco_line, data)
+    (data / "board.yaml").unlink(missing_ok=True)
+    rig = yaml.safe_load((data / "rig.yaml").read_text())
+    for cam in rig["cameras"].values():
+        for key in ("fx", "fy", "cx", "cy", "distortion"):
+            cam.pop(key, None)
+    (data / "rig.yaml").write_text(yaml.safe_dump(rig))
+    out = tmp_path / "out"
+    code, text = cli("calibrate", data, "--out", out, "--refine", "none")
+    assert code == cli_app.EXIT_INPUT, text
+    errors = [ln for ln in text.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "ChArUco" in errors[0] and "--board" in errors[0], text
+    assert "fx/fy" not in text

@@ -137,7 +137,9 @@ def calibrate(
     # 1. markers in every colour image (cached, in parallel)
     with timed(run.timings, "detection"):
         detections = _detect(run, dataset, "detecting markers", "detections.json")
-    # 1b. the cameras rig.yaml gives only the size of: intrinsics from their own views
+    # 1b. the cameras rig.yaml gives only the size of: intrinsics from their own views (a
+    # camera that saw none of the board's markers: another board in the images, named)
+    _check_board_seen(run.dataset, detections, board)
     run, initial = _intrinsics_from_scratch(run, detections)
     # 2. one board pose per view (PnP, covariance, gates)
     with timed(run.timings, "pose"):
@@ -552,6 +554,20 @@ def _check_views(
     reference_frames = {o.frame for o in observations if o.camera == reference}
     if not any(o.camera != reference and o.frame in reference_frames for o in observations):
         raise _no_shared_view(dataset)
+
+
+def _check_board_seen(dataset: FolderDataset,
+                      detections: dict[tuple[str, str], MarkerDetections], board: Board) -> None:
+    """Before the intrinsics from scratch, which need the board's views: when a camera rig.yaml
+    gives only the size of found no marker of ``board`` and the images show another target
+    (:func:`wrong_board`), stop with what they show and the board file to pass (the scratch
+    intrinsics would otherwise be blamed for a forgotten ``--board``)."""
+    seen = {c for (c, _), d in detections.items() if len(d.ids)}
+    if not (dataset.rig.unknown_intrinsics - seen):
+        return
+    other = wrong_board(dataset, board)
+    if other:
+        raise CalibrationError(f"{dataset.path}: {other}")
 
 
 PROBE_IMAGES = 8  # images probed for another target when no view of the board is usable
