@@ -485,3 +485,23 @@ def test_a_charuco_recording_without_its_board_file_is_named_not_blamed_on_intri
     errors = [ln for ln in text.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and "ChArUco" in errors[0] and "--board" in errors[0], text
     assert "fx/fy" not in text
+
+
+def test_an_extrinsics_file_of_yours_is_not_overwritten_and_stale_exports_go(
+        tiny_dataset, tmp_path):
+    """--out holding an extrinsics.yaml rgbd-calib did not write: refused with one line
+    (exit 2, the file untouched) unless --force; --out holding another rig's result: its
+    exports that this run does not write (another rig's cameras) are gone afterwards."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "extrinsics.yaml").write_text("cameras: {mine: 1}\n")
+    code, text = cli("calibrate", tiny_dataset, "--out", out, "--refine", "none")
+    assert code == cli_app.EXIT_INPUT and "--force" in text and "not written by" in text, text
+    assert (out / "extrinsics.yaml").read_text() == "cameras: {mine: 1}\n"
+    stale = out / "exports" / "open3d" / "cam_of_another_rig.json"
+    stale.parent.mkdir(parents=True)
+    stale.write_text("{}")
+    code, text = cli("calibrate", tiny_dataset, "--out", out, "--refine", "none", "--force")
+    assert code in (cli_app.EXIT_OK, cli_app.EXIT_POOR), text
+    assert (out / "extrinsics.yaml").read_text().startswith("# rgbd-calib")
+    assert not stale.exists() and any((out / "exports").iterdir())

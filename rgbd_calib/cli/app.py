@@ -198,16 +198,28 @@ def check_method(method: str) -> None:
         raise ConfigError(f"--method {method!r}: use {' or '.join(REGISTRATION_METHODS)}")
 
 
+FORCE_OPTION = typer.Option(
+    "--force", help="Write into --out even when its extrinsics.yaml was not written by "
+    "rgbd-calib (default: refuse, so that a file of yours is never overwritten).")
+
+
 def check_output_folder(out: Path, option: str = "--out",
-                        inputs: tuple[tuple[Path, str], ...] = ()) -> None:
+                        inputs: tuple[tuple[Path, str], ...] = (),
+                        force: bool | None = None) -> None:
     """Fail before any long step when ``out`` cannot become a folder: it is a file, or the
     first existing folder above it is a file or not writable; or it is one of the folders
     ``inputs`` (``(folder, what it is)``: the dataset, a calibration read) or inside one,
-    where the results would mix with, or overwrite, what the run reads."""
+    where the results would mix with, or overwrite, what the run reads; or (``force`` False,
+    a command that writes extrinsics.yaml) it holds an extrinsics.yaml rgbd-calib did not
+    write."""
     from ..core.errors import ConfigError
 
     out = Path(out)
     where = out.resolve()
+    mine = out / "extrinsics.yaml"
+    if force is False and mine.is_file() and not _ours(mine):
+        raise ConfigError(f"{mine}: not written by rgbd-calib (no '# rgbd-calib' header); this "
+                          "run would overwrite it: choose another --out, or pass --force")
     for folder, what in inputs:
         folder = Path(folder)
         if not folder.is_dir():
@@ -231,6 +243,15 @@ def check_output_folder(out: Path, option: str = "--out",
             )
     if not os.access(parent, os.W_OK | os.X_OK):
         raise ConfigError(f"{out}: {parent} is not writable; choose another {option} folder")
+
+
+def _ours(path: Path) -> bool:
+    """Whether the extrinsics file ``path`` starts with rgbd-calib's header comment."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            return fh.readline().startswith("# rgbd-calib")
+    except OSError:
+        return False
 
 
 def workers_ignore_ctrl_c() -> None:

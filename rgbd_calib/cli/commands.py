@@ -13,6 +13,7 @@ import typer
 
 from .app import (
     ACCEPT_POOR_OPTION,
+    FORCE_OPTION,
     STRICT_OPTION,
     app,
     check_output_folder,
@@ -443,6 +444,7 @@ def calibrate(
     scheduler: Annotated[str | None, SCHEDULER_OPTION] = None,
     accept_poor: Annotated[bool, ACCEPT_POOR_OPTION] = False,
     strict: Annotated[bool, STRICT_OPTION] = False,
+    force: Annotated[bool, FORCE_OPTION] = False,
 ) -> None:
     """Calibrate every camera's extrinsics; writes extrinsics.yaml, report.json and exports.
     Exit 0: verdict GOOD or CHECK; 3: POOR (written all the same); 5: CHECK with --strict;
@@ -453,7 +455,7 @@ def calibrate(
     from ..model.results import load_extrinsics
 
     check_output_folder(out, inputs=tuple((d, "dataset") for d in dataset)
-                        + (((fix.parent, "calibration of --fix"),) if fix else ()))
+                        + (((fix.parent, "calibration of --fix"),) if fix else ()), force=force)
     cfg = load_config(config, method=method, workers=workers, refine=refine,
                       scheduler=scheduler,
                       **{"bundle.intrinsics": intrinsics, "bundle.board": board_model,

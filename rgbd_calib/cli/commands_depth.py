@@ -12,6 +12,7 @@ import typer
 from .app import (
     ACCEPT_POOR_OPTION,
     EXIT_UNCHECKED,
+    FORCE_OPTION,
     STRICT_OPTION,
     check_exit,
     check_method,
@@ -26,7 +27,7 @@ from .options import NAMES_OPTION, SCHEDULER_OPTION, SYNC_OPTION, open_dataset
 
 
 def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms,
-             scheduler: str | None, extrinsics: Path):
+             scheduler: str | None, extrinsics: Path, force: bool | None = None):
     """What refine and check start from: the output folder and the scheduler checked before
     anything is read, the dataset of the rig as it is now opened (its images checked) with the
     intrinsics the calibration refined (its rig_refined.yaml, if any), the calibration's
@@ -37,7 +38,7 @@ def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_m
     from ..model.results import load_extrinsics
 
     check_output_folder(out, inputs=tuple((d, "dataset") for d in sources)
-                        + ((extrinsics.parent, "calibration"),))
+                        + ((extrinsics.parent, "calibration"),), force=force)
     check_scheduler(scheduler)
     ds = open_dataset(sources, out, names, sync_tolerance_ms)
     ds.check_images()
@@ -109,6 +110,7 @@ def refine(
     config: Annotated[Path | None, DEPTH_CONFIG_OPTION] = None,
     accept_poor: Annotated[bool, ACCEPT_POOR_OPTION] = False,
     strict: Annotated[bool, STRICT_OPTION] = False,
+    force: Annotated[bool, FORCE_OPTION] = False,
 ) -> None:
     """Depth-only refinement of existing extrinsics (no board needed in view). Exit 0:
     verdict GOOD or CHECK; 3: POOR (written all the same); 5: CHECK with --strict; 2: an
@@ -122,7 +124,8 @@ def refine(
 
     check_method(method)
     depth_config = _depth_config(config)
-    ds, init_ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, init)
+    ds, init_ext, scales = _rig_now(dataset, out, names, sync_tolerance_ms, scheduler, init,
+                                    force)
     if fix_others:
         _fix_others(ds, init, init_ext, scales, method, out, tolerance_mm, tolerance_deg,
                     scheduler, depth_config)

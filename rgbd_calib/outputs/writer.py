@@ -58,7 +58,9 @@ def staged(out_dir: Path, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
     """A staging folder for one run's outputs; when the block ends without error every file
     in it is renamed into ``out_dir`` (sub-folders kept), ``extrinsics.yaml`` last, and each
     name (file or folder) in ``replaces`` that the run did not write is removed from
-    ``out_dir`` (it would belong to an older run). On an error ``out_dir`` is left exactly
+    ``out_dir`` (it would belong to an older run), and each folder of ``replaces`` it did
+    write replaces the old one whole (another rig's ``exports/open3d/cam_*.json`` would
+    stay beside this run's otherwise). On an error ``out_dir`` is left exactly
     as it was. A Ctrl-C during the renames waits for them (:func:`sigint_deferred`), so
     ``out_dir`` holds either the earlier results or this run's, never a mix."""
     out_dir = Path(out_dir)
@@ -71,7 +73,9 @@ def staged(out_dir: Path, replaces: tuple[str, ...] = ()) -> Iterator[Path]:
         # Ctrl-C waits for the renames: cut in the middle, out_dir would hold two runs
         with sigint_deferred():
             for name in replaces:
-                if not (stage / name).exists():
+                if (stage / name).is_dir() and (out_dir / name).is_dir():
+                    shutil.rmtree(out_dir / name)  # a folder is replaced whole: no stale file
+                elif not (stage / name).exists():
                     if (out_dir / name).is_dir():
                         shutil.rmtree(out_dir / name)
                     else:

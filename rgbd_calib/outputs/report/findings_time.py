@@ -52,11 +52,11 @@ def capture_time(report: dict[str, Any], earlier: list[Finding]) -> list[Finding
         return []
     anchored = bool(time["anchored_by_timestamps"])
     scale = ("" if anchored else
-             " No timestamps.csv anchors the clocks: offsets, readouts and speeds are known only "
-             "up to a common scale factor, and only a wide prior holds the offsets, so the "
-             "frame sets' motions can also take up a lens or corner misfit (real 6 fps webcams: "
-             "held-out corners 3-6x worse than with --time fixed); keep timestamps.csv, or "
-             "compare with --time fixed if the board was held still.")
+             " No timestamps.csv anchors the clocks (frames matched by index): offsets, "
+             "readouts and speeds are known only up to a common scale factor and only a wide "
+             "prior holds the offsets; the model was kept because it predicts each view from "
+             "the other cameras' views better than the timeless model; keep timestamps.csv, "
+             "or compare with --time fixed if the board was held still.")
     return [finding(
         "info" if anchored else "warning",
         "capture_time",
