@@ -505,3 +505,21 @@ def test_an_extrinsics_file_of_yours_is_not_overwritten_and_stale_exports_go(
     assert code in (cli_app.EXIT_OK, cli_app.EXIT_POOR), text
     assert (out / "extrinsics.yaml").read_text().startswith("# rgbd-calib")
     assert not stale.exists() and any((out / "exports").iterdir())
+
+
+def test_the_readme_is_short_plain_and_its_links_resolve():
+    """The README is the user's document (issue 58): at most 2,500 words, no line over 300
+    characters outside code blocks, no commit hashes, and every relative link (and its
+    #anchor) points at a file and heading that exist."""
+    text = (REPO / "README.md").read_text()
+    prose = re.sub(r"```.*?```", "", text, flags=re.S)
+    assert len(text.split()) <= 2500
+    assert max(len(ln) for ln in prose.splitlines()) <= 300
+    assert not re.search(r"\b(at|commit) [0-9a-f]{7,40}\b", prose)
+    for target in re.findall(r"\]\(([^)#]+\.(?:md|png))(#[^)]+)?\)", text):
+        path, anchor = REPO / target[0], target[1]
+        assert path.is_file(), target
+        if anchor:
+            heads = [re.sub(r"[^\w\- ]", "", h.strip("# ").lower()).replace(" ", "-")
+                     for h in path.read_text().splitlines() if h.startswith("#")]
+            assert anchor[1:] in heads, target
