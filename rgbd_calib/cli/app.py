@@ -218,14 +218,15 @@ def check_output_folder(out: Path, option: str = "--out",
     where = out.resolve()
     mine = out / "extrinsics.yaml"
     if force is False and mine.is_file() and not _ours(mine):
-        raise ConfigError(f"{mine}: not written by rgbd-calib (no '# rgbd-calib' header); this "
-                          "run would overwrite it: choose another --out, or pass --force")
+        raise ConfigError(f"{mine}: not written by rgbd-calib (no '# rgbd-calib' header); "
+                          "this run would overwrite it: choose another --out, or pass --force")
     for folder, what in inputs:
         folder = Path(folder)
         if not folder.is_dir():
             continue
         inside = folder.resolve()
-        if where == inside or inside in where.parents:
+        # a dataset takes nothing inside it; a calibration read, no result over it
+        if where == inside or (what == "dataset" and inside in where.parents):
             raise ConfigError(
                 f"{out}: {option} is {'the' if where == inside else 'inside the'} {what} "
                 f"{folder}; the results would mix with what this run reads: give a folder "
@@ -246,10 +247,11 @@ def check_output_folder(out: Path, option: str = "--out",
 
 
 def _ours(path: Path) -> bool:
-    """Whether the extrinsics file ``path`` starts with rgbd-calib's header comment."""
+    """Whether the extrinsics file ``path`` carries rgbd-calib's header comment in its first
+    lines (a comment a user added above it keeps it ours)."""
     try:
         with open(path, encoding="utf-8", errors="replace") as fh:
-            return fh.readline().startswith("# rgbd-calib")
+            return any(fh.readline().startswith("# rgbd-calib") for _ in range(5))
     except OSError:
         return False
 

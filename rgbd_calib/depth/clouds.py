@@ -258,16 +258,15 @@ def static_cloud(
     ``depth_scale_factor`` (the camera's :func:`estimate_depth_scale` factor) before anything
     else; or, with ``depth_model`` (the camera's
     :class:`~rgbd_calib.core.depth_model.DepthModel`, its scale included), each median depth is
-    corrected by the model as it is back-projected (the factor is then ignored). Points are
-    back-projected with the rig intrinsics (depth_scale from the rig); the
-    intrinsics the rig marks as estimated (``rig.sigmas``) give the cloud its
-    ``intrinsics_variance``, their sigma times ``config.lens_sigma_factor``."""
+    corrected by the model as it is back-projected (the factor is then ignored; the pixels
+    its bound holds are dropped and counted). Points are back-projected with the rig
+    intrinsics (depth_scale from the rig); the intrinsics the rig marks as estimated
+    (``rig.sigmas``) give the cloud its ``intrinsics_variance``, their sigma times
+    ``config.lens_sigma_factor``."""
     config = config or DepthConfig()
     intr = dataset.rig.cameras[camera]
-    frames = [
-        f for f in dataset.frames
-        if dataset.depth_path(camera, f) is not None and dataset.color_path(camera, f) is not None
-    ]
+    frames = [f for f in dataset.frames if dataset.depth_path(camera, f) is not None
+              and dataset.color_path(camera, f) is not None]
     if not frames:
         raise DatasetError(
             f"{dataset.path / camera}: no frame with both colour and depth; "
@@ -330,8 +329,8 @@ def static_cloud(
         rgb += np.where(inlier[k, ..., None], color[k], 0).astype(np.float32)
     rgb /= 255.0 * n_in[..., None]
     # 5. back-projection
-    n_kept = int(np.count_nonzero(keep))
-    vs, us, points = _back_project(intr, keep, med, depth_model)
+    n_kept, (vs, us, points) = (int(np.count_nonzero(keep)),  # before it drops any
+                                _back_project(intr, keep, med, depth_model))
     sigma_z = sigma1[vs, us] * np.sqrt(median_efficiency(n_in[vs, us]) / n_in[vs, us])
     stats = CloudStats(
         n_frames=n,

@@ -33,7 +33,11 @@ corner residuals with each marker's RMS capped at ``bundle.outlier_px`` (a marke
 loses does not decide). On a correct model the freed parameters lower SSR by about ``k``
 sigma^2, far below ``k ln(n)`` (ln n ~ 9-12 here), so a clean rig keeps the nominal model and
 its result unchanged; a misglued sheet or a 0.5 % focal error lowers it by orders of magnitude
-more. Pure maths on bundle results; the solves are run by :mod:`rgbd_calib.solve.ladder`.
+more. A model on the same cameras must also predict data it was not fitted to better
+(:func:`held_out`): each view's corners from the other cameras' views of its frame set; a
+model whose extra freedom only took up misfit (per-set twists that two global shutters fit
+exactly) passes the BIC and fails this. Pure maths on bundle results; the solves are run by
+:mod:`rgbd_calib.solve.ladder`.
 """
 
 from __future__ import annotations
