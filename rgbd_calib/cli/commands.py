@@ -26,7 +26,6 @@ from .app import (
 )
 from .console import (
     console,
-    print_demo_errors,
     print_summary,
     print_verdict,
     stage_progress,
@@ -589,9 +588,7 @@ def demo(
     ds = FolderDataset(dataset)
     board, _ = _dataset_board(ds)  # the render's board file, as calibrate reads it
     result = _calibrate_and_write(ds, board, None, out / "calibration")
-    print_summary(result, out / "calibration", verdict=False)
-    gt = load_ground_truth(dataset)
-    print_demo_errors(result, gt)
+    print_summary(result, out / "calibration", verdict=False, truth=load_ground_truth(dataset))
     console.print(f"dataset: {dataset}/", highlight=False)
     print_verdict(out / "calibration")
     exit_on_poor(out / "calibration", accept_poor, strict=strict)

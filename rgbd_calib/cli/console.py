@@ -132,13 +132,26 @@ VERDICT_STYLE = {"good": "bold green", "check": "bold yellow", "poor": "bold red
 SEVERITY_STYLE = {"error": "red", "warning": "yellow", "info": "cyan"}
 # findings printed on the console; report.json and report.html hold every one
 CONSOLE_FINDINGS = 3
+CONSOLE_WIDTH = 100  # the terminal the console is written for: each finding or note in at
+CONSOLE_ROWS = 2  # most this many of its rows; report.html / report.json hold the rest
+
+
+def shortened(text: str, rows: int = CONSOLE_ROWS, width: int = CONSOLE_WIDTH) -> str:
+    """``text`` in at most ``rows`` rows of ``width`` characters: whole when it fits, else
+    cut at a word with an ellipsis (the full text is in report.html / report.json)."""
+    text = " ".join(text.split())
+    limit = rows * width - 2
+    if len(text) <= limit:
+        return text
+    cut = text.rfind(" ", 0, limit - 1)
+    return text[:cut if cut > limit // 2 else limit - 1].rstrip(" ,;:") + " …"
 
 
 def verdict_lines(report: dict, limit: int = CONSOLE_FINDINGS) -> list[tuple[str, str]]:
     """``(style, text)`` lines ending a calibration's console output: the verdict, the
-    ``limit`` actionable findings of ``report.json`` that matter most, one line each (errors,
-    warnings, then advice; a finding with nothing to do is not listed), then how many more
-    the report holds."""
+    ``limit`` actionable findings of ``report.json`` that matter most, each its action and
+    why in at most :data:`CONSOLE_ROWS` rows (errors, warnings, then advice; a finding with
+    nothing to do is not listed), then how many more the report holds."""
     from ..outputs.report.findings_base import ranked_actionable
 
     verdict = report.get("summary", {}).get("verdict", "check")
@@ -146,10 +159,10 @@ def verdict_lines(report: dict, limit: int = CONSOLE_FINDINGS) -> list[tuple[str
               f"verdict: {verdict.upper()}: {VERDICT_MEANING.get(verdict, '')}")]
     found = report.get("warnings", [])
     shown = ranked_actionable(found)[:limit]
-    for w in shown:
+    for w in shown:  # the action first, then why; at most two rows each
         cams = f" [{', '.join(w['cameras'])}]" if w.get("cameras") else ""
-        text = " ".join(f"{w['severity']}: {w['code']}{cams}: {w['message']} -> "
-                        f"{w['advice']}".split())
+        text = shortened(f"{w['severity']}: {w['code']}{cams}: {w['advice']} (why: "
+                         f"{w['message']})")
         lines.append((SEVERITY_STYLE.get(w["severity"], ""), text))
     if rest := len(found) - len(shown):
         lines.append(("", f"+ {rest} more finding{'s' if rest > 1 else ''} in report.html / "
@@ -275,11 +288,14 @@ def depth_model_line(fits: dict, unmodelled: dict | None = None) -> str:
             f"band, single-pixel noise {noise:.1f} mm); depth_model.yaml")
 
 
-def print_summary(result, out: Path, verdict: bool = True) -> None:
-    """The extrinsics table and notes, then (``verdict``) the verdict, the warnings and where
-    the results are."""
+def print_summary(result, out: Path, verdict: bool = True, truth=None) -> None:
+    """The extrinsics table (one row a camera; with ``truth``, a synthetic rig's ground truth,
+    each camera's error against it too) and notes of at most two rows each, then
+    (``verdict``) the verdict, the findings and where the results are."""
+    from rich import box
     from rich.table import Table
 
+    from ..core.geometry import transform_error
     from ..outputs.report.build import board_refined_entry
     from ..outputs.report.findings import (
         board_scale_sentence,
@@ -288,31 +304,29 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
         time_sentence,
     )
 
-    table = Table(title=f"extrinsics (reference {result.extrinsics.reference})")
-    for col, unit in (
-        ("camera", ""),
-        ("views", ""),
-        ("x", "m"),
-        ("y", "m"),
-        ("z", "m"),
-        ("sigma rot", "deg"),
-        ("sigma trans", "mm"),
-    ):
+    table = Table(title=f"extrinsics (reference {result.extrinsics.reference})",
+                  box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False)
+    columns = [("camera", ""), ("views", ""), ("x", "m"), ("y", "m"), ("z", "m"),
+               ("sigma", "deg"), ("sigma", "mm")]
+    if truth is not None:
+        columns += [("error", "deg"), ("error", "mm"), ("error/sigma", "")]
+    for col, unit in columns:
         table.add_column(f"{col} ({unit})" if unit else col, justify="right")
     views = {}
     for o in result.observations:
         views[o.camera] = views.get(o.camera, 0) + 1
     for name, cam in result.extrinsics.cameras.items():
         t = cam.T_ref_cam[:3, 3]
-        table.add_row(
-            name,
-            str(views.get(name, 0)),
-            _fixed(t[0], 4),
-            _fixed(t[1], 4),
-            _fixed(t[2], 4),
-            _fixed(cam.sigma_rotation_deg, 4),
-            _fixed(cam.sigma_translation_mm, 3),
-        )
+        row = [name, str(views.get(name, 0)), _fixed(t[0], 4), _fixed(t[1], 4),
+               _fixed(t[2], 4), _fixed(cam.sigma_rotation_deg, 4),
+               _fixed(cam.sigma_translation_mm, 3)]
+        if truth is not None:
+            deg, mm = transform_error(cam.T_ref_cam, truth.T_ref_cam[name])
+            ratio = (max(mm / cam.sigma_translation_mm, deg / cam.sigma_rotation_deg)
+                     if name != result.extrinsics.reference and cam.sigma_translation_mm
+                     and cam.sigma_rotation_deg else None)
+            row += [f"{deg:.4f}", f"{mm:.3f}", "-" if ratio is None else f"{ratio:.1f}"]
+        table.add_row(*row)
     Console().print(table)
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
@@ -325,34 +339,35 @@ def print_summary(result, out: Path, verdict: bool = True) -> None:
     if ladder is not None and ladder.chosen.name != "nominal":
         chosen = next((f for f in ladder.fits if f.level == ladder.chosen), None)
         why = f": {chosen.reason}" if chosen is not None else ""
-        console.print(f"self-calibration: refined {ladder.chosen.name}{why}"
-                      + ("; markers detected again with the refined lens"
-                         if ladder.redetected else ""))
+        console.print(shortened(f"self-calibration: refined {ladder.chosen.name}{why}"
+                                + ("; markers detected again with the refined lens"
+                                   if ladder.redetected else "")), highlight=False)
     clock = result.bundle.time if result.bundle is not None else None
     if clock is not None:
-        console.print(f"time: {time_sentence(clock.to_dict(), result.extrinsics.reference)}"
-                      + ("" if clock.anchored else
-                         " (no timestamps: known up to a common scale factor)"),
-                      highlight=False, soft_wrap=True)
+        console.print(shortened(
+            f"time: {time_sentence(clock.to_dict(), result.extrinsics.reference)}"
+            + ("" if clock.anchored else " (no timestamps: known up to a common scale factor)")),
+            highlight=False, soft_wrap=True)
     if result.bundle is not None and (line := edge_offset_line(result.bundle.edge_offset)):
-        console.print(line, highlight=False, soft_wrap=True)
+        console.print(shortened(line), highlight=False, soft_wrap=True)
     board = board_refined_entry(result).get("refined")
     if board and board["held"]:
         console.print(f"[yellow]board not refined[/]: {board['held']}")
     elif board:
         s = board["sigmas"]
-        console.print(
+        console.print(shortened(
             f"board: {glue_sentence(board)}; sigma {s['offset_mm'][0]:.2f} / "
             f"{s['offset_mm'][1]:.2f} mm, {s['rotation_deg']:.3f} deg, "
-            f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"
-        )
+            f"{s['thickness_mm']:.2f} mm thick; corrected board file: board_refined.yaml"),
+            highlight=False)
     if result.depth is not None and (line := depth_registration_line(result.depth)):
-        console.print(line, highlight=False)
+        console.print(shortened(line), highlight=False)
     if result.depth is not None and (line := fused_line(result.depth.agreement,
                                                          result.depth.beyond_board)):
-        console.print(line, highlight=False, soft_wrap=True)
+        console.print(shortened(line), highlight=False, soft_wrap=True)
     if result.depth is not None and (result.depth.depth_models or result.depth.unmodelled):
-        console.print(depth_model_line(result.depth.depth_models, result.depth.unmodelled),
+        console.print(shortened(depth_model_line(result.depth.depth_models,
+                                                 result.depth.unmodelled)),
                       highlight=False, soft_wrap=True)
     scales = result.depth.depth_scale_dict() if result.depth is not None else {}
     ratio = common_depth_scale({c: (e["factor"], e["sigma"]) for c, e in scales.items()})
@@ -387,39 +402,6 @@ def print_check_table(result, title: str) -> None:
         if result.cameras[c].reason:
             console.print(f"[yellow]{c}[/] {result.cameras[c].reason}", highlight=False,
                           soft_wrap=True)
-
-
-# what the demo's error table calls good on its small synthetic rig (16 frames, 848x480)
-DEMO_GOOD_MM = 1.0
-DEMO_GOOD_DEG = 0.05
-
-
-def print_demo_errors(result, gt) -> None:
-    """The demo's table: each camera's error against the synthetic ground truth ``gt`` and
-    whether it is good (:data:`DEMO_GOOD_MM`, :data:`DEMO_GOOD_DEG`, within 3 sigma)."""
-    from rich.table import Table
-
-    from ..core.geometry import transform_error
-
-    table = Table(
-        title="error against the synthetic ground truth",
-        caption=f"good: under {DEMO_GOOD_MM} mm and {DEMO_GOOD_DEG} deg, and within 3 sigma "
-        "(the sigmas above are honest when the errors are about their size)",
-    )
-    table.add_column("camera")
-    table.add_column("rotation (deg)", justify="right")
-    table.add_column("translation (mm)", justify="right")
-    table.add_column("error / sigma", justify="right")
-    table.add_column("good", justify="right")
-    for name, cam in result.extrinsics.cameras.items():
-        deg, mm = transform_error(cam.T_ref_cam, gt.T_ref_cam[name])
-        if name == result.extrinsics.reference:
-            table.add_row(name, f"{deg:.4f}", f"{mm:.3f}", "-", "reference")
-            continue
-        ratio = max(mm / cam.sigma_translation_mm, deg / cam.sigma_rotation_deg)
-        good = mm < DEMO_GOOD_MM and deg < DEMO_GOOD_DEG and ratio <= 3.0
-        table.add_row(name, f"{deg:.4f}", f"{mm:.3f}", f"{ratio:.1f}", "yes" if good else "no")
-    Console().print(table)
 
 
 # --------------------------------------------------------------------------- convert
