@@ -247,3 +247,21 @@ def test_run_posegraph_on_the_thesis_data(tmp_path):
     assert np.allclose(extrinsics.T_ref_cam("cam8"), run.extrinsics.T_ref_cam("cam8"))
     # the exported thesis-style edges are the ones the solution used
     assert len(read_edges_csv(paths["edges_csv"])) == len(run.result.used_edges)
+
+
+def test_posegraph_writes_a_verdict_as_calibrate_does():
+    """issue 58 item 6: an unlinked camera is POOR, a model-error camera or many outlier
+    edges CHECK, else GOOD (written into extrinsics.yaml; the exit codes follow it)."""
+    from types import SimpleNamespace
+
+    from rgbd_calib.pipelines.posegraph import posegraph_verdict
+
+    ext = SimpleNamespace(unconnected={})
+    clean = SimpleNamespace(model_error={}, outlier_edges=(1,))
+    assert posegraph_verdict(ext, clean, 100).grade == "good"
+    assert posegraph_verdict(ext, SimpleNamespace(model_error={}, outlier_edges=tuple(
+        range(11))), 100).grade == "check"
+    assert posegraph_verdict(ext, SimpleNamespace(model_error={"cam9": 1}, outlier_edges=()),
+                             100).reason.startswith("camera_model_error [cam9]")
+    poor = posegraph_verdict(SimpleNamespace(unconnected={"cam10": "no edge"}), clean, 100)
+    assert poor.grade == "poor" and "cam10" in poor.reason

@@ -531,8 +531,11 @@ def posegraph(
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("posegraph_out"),
     kernel: Annotated[str, typer.Option(help="cauchy, huber, tukey, gm or none.")] = "cauchy",
     optimizer: Annotated[str, typer.Option(help="lm or gnc.")] = "lm",
+    accept_poor: Annotated[bool, ACCEPT_POOR_OPTION] = False,
+    strict: Annotated[bool, STRICT_OPTION] = False,
 ) -> None:
-    """Robustly optimise a thesis-format pose graph (Nodes.csv / Edges.csv)."""
+    """Robustly optimise a thesis-format pose graph (Nodes.csv / Edges.csv). Exit codes as
+    calibrate's: 3 for a POOR verdict (a camera no edge links), 5 for CHECK with --strict."""
     from pydantic import ValidationError
 
     from ..core.config import PoseGraphConfig
@@ -558,6 +561,7 @@ def posegraph(
             f"{cam.sigma_rotation_deg:.3f} deg / {cam.sigma_translation_mm:.2f} mm"
         )
     console.print(f"results in {out}/ (extrinsics.yaml, posegraph_report.json, exports/)")
+    exit_on_poor(out, accept_poor, show=True, strict=strict)
 
 
 @command()

@@ -13,7 +13,7 @@ and its board nodes one camera's view, so the initialisation is rebuilt from the
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +23,7 @@ from ..core.config import PoseGraphConfig
 from ..core.errors import CalibrationError
 from ..core.yamlio import to_builtin
 from ..model.posegraph_csv import camera_name, read_edges_csv, read_nodes_csv
-from ..model.results import Extrinsics, PoseEdge
+from ..model.results import Extrinsics, PoseEdge, Verdict
 from ..solve.posegraph import (
     EdgeResidual,
     PoseGraphResult,
@@ -87,6 +87,28 @@ class PosegraphRun:
         )
 
 
+OUTLIER_SHARE_CHECK = 0.1  # more of the edges than this rejected as outliers: CHECK
+
+
+def posegraph_verdict(extrinsics: Extrinsics, result: PoseGraphResult, n_edges: int) -> Verdict:
+    """The pose graph's verdict, as calibrate's: POOR when a camera of the edges could not be
+    calibrated; CHECK when a camera's edges disagree as a whole (a model error) or more than
+    :data:`OUTLIER_SHARE_CHECK` of the edges were outliers; GOOD otherwise."""
+    if extrinsics.unconnected:
+        cams = sorted(extrinsics.unconnected)
+        return Verdict("poor", f"not_calibrated [{', '.join(cams)}]: no edge chain links "
+                       f"{'them' if len(cams) > 1 else 'it'} to the reference")
+    if result.model_error:
+        cams = sorted(result.model_error)
+        return Verdict("check", f"camera_model_error [{', '.join(cams)}]: their edges disagree "
+                       "with the rest of the graph as a whole; their sigmas are inflated")
+    outliers = len(result.outlier_edges)
+    if n_edges and outliers > OUTLIER_SHARE_CHECK * n_edges:
+        return Verdict("check", f"outlier_edges: {outliers} of {n_edges} edges rejected as "
+                       "outliers (posegraph_report.json lists them)")
+    return Verdict("good", "no camera unlinked, no model error, few outlier edges")
+
+
 def _reference(nodes: dict[str, np.ndarray], cameras: list[str]) -> str:
     """The camera whose ``Nodes.csv`` pose is the identity, else the first camera of
     ``Nodes.csv`` (or of ``Edges.csv`` when Nodes.csv lists none)."""
@@ -128,8 +150,9 @@ def run_posegraph(
         "default_sigma_translation_mm": result.sigma_translation_mm_default,
         "seconds": time.perf_counter() - start,
     }
+    extrinsics = result.to_extrinsics()
     return PosegraphRun(
-        result.to_extrinsics(),
+        replace(extrinsics, verdict=posegraph_verdict(extrinsics, result, len(edges))),
         result.residuals,
         result.stale_edges,
         result.outlier_edges,
