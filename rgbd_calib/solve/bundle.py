@@ -435,9 +435,10 @@ def _twist_prior_from_data(layout: _FactorLayout, solution: _Solution,
     barely fix with a global shutter) keeps the prior's spread, and the extrinsics' marginals
     claim several times their error. Each step sets the prior's variance to the mean over
     sets and axes of ``twist^2 + its marginal variance`` (the EM update of a zero-mean
-    Gaussian's variance; linear and angular parts apart, floored at :data:`TWIST_FLOOR`) and
-    solves again. The extrinsics and their sigmas come from that solve; the clocks do not
-    (:func:`bundle_adjust` keeps them from the solve before it): a prior as tight as the
+    Gaussian's variance; linear and angular parts apart, floored at :data:`TWIST_FLOOR` and
+    capped at the configured prior, what a hand does) and solves again. The extrinsics and
+    their sigmas come from that solve; the clocks do not (:func:`bundle_adjust` keeps them
+    from the solve before it): a prior as tight as the
     twists pulls them towards 0 and with them the clocks' scale, the gauge the timestamps
     anchor only weakly (measured: ring, +-16 ms, offsets 1.3x too large)."""
     for _ in range(TWIST_PRIOR_STEPS):
@@ -447,9 +448,11 @@ def _twist_prior_from_data(layout: _FactorLayout, solution: _Solution,
         second = np.array([solution.values.atVector(k) ** 2
                            + np.diag(marginals.marginalCovariance(k)) for k in keys])
         sigma_w, sigma_v = np.sqrt(second[:, :3].mean()), np.sqrt(second[:, 3:].mean())
+        cfg = layout.config  # what a hand does bounds it from above (time_twist_sigma_*)
         layout = replace(layout, twist_sigma=TwistPrior(
-            sigma_mps=max(float(sigma_v), TWIST_FLOOR.sigma_mps),
-            sigma_dps=max(float(np.degrees(sigma_w)), TWIST_FLOOR.sigma_dps)),
+            sigma_mps=min(max(float(sigma_v), TWIST_FLOOR.sigma_mps), cfg.time_twist_sigma_mps),
+            sigma_dps=min(max(float(np.degrees(sigma_w)), TWIST_FLOOR.sigma_dps),
+                          cfg.time_twist_sigma_dps)),
             motion_prior=_motion_prior_from_data(layout, solution.values, marginals))
         solution = _solve_at_sigma(layout, solution, sigma, params)
     return layout, solution
