@@ -282,8 +282,9 @@ def test_the_far_depth_sigma_is_taken_where_the_clouds_far_points_lie_in_the_ima
 def test_a_camera_whose_far_depth_is_known_to_centimetres_is_a_warning_and_on_the_console():
     """Beyond :data:`FAR_WARN_SIGMA_MM` (a centimetre, 1 sigma) ``depth_extrapolated`` is a
     warning naming those cameras and their board views (an untuned ring's cameras of 3 and 4
-    views: +-88 / +-124 mm, their clouds 31 / 47 mm off, named only in an info before), the
-    others stay an info; the console's fused-cloud line names them too, also without pairs."""
+    views: +-88 / +-124 mm, their clouds 31 / 47 mm off, named only in an info before), and
+    the same finding says the others (one finding, not a second info saying it again); the
+    console's fused-cloud line names them too, also without pairs."""
     from types import SimpleNamespace
 
     from rgbd_calib.cli.console import fused_line
@@ -297,8 +298,8 @@ def test_a_camera_whose_far_depth_is_known_to_centimetres_is_a_warning_and_on_th
     report = {"depth_models": {c: {"beyond_board": b.to_dict(), "n_views": n}
                                for (c, b), n in zip(far.items(), (4, 11, 3, 9))}}
     found = depth_extrapolated(report, [])
-    assert [(f["severity"], f["cameras"]) for f in found] == [
-        ("warning", ["cam1", "cam3"]), ("info", ["cam2"])]
+    assert [(f["severity"], f["cameras"]) for f in found] == [("warning", ["cam1", "cam3"])]
+    assert "the other cameras' far clouds (cam2 +-3.6 mm) are known better" in found[0]["message"]
     assert "cam1's depth is known to +-124 mm (1 sigma) at 3.6 m" in found[0]["message"]
     assert "from 4 board views" in found[0]["message"]
     line = fused_line(None, far)

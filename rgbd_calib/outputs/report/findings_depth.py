@@ -312,13 +312,16 @@ def depth_extrapolated(report: dict[str, Any], earlier: list[Finding]) -> list[F
     their depth is known to worse than :data:`FAR_SIGMA_MM` (:func:`far_cameras`): the far
     part of ``fused.ply`` is an extrapolation of the board. A warning for those known to
     worse than :data:`FAR_WARN_SIGMA_MM` (their far cloud can be centimetres off the true
-    surfaces, and the overlaps cannot tell when two cameras err alike), an info for the
-    others."""
+    surfaces, and the overlaps cannot tell when two cameras err alike), which names the others
+    too (one finding says it once); an info when all are known better."""
     uncertain = far_cameras(report, FAR_WARN_SIGMA_MM)
     rest = [f for f in far_cameras(report) if f not in uncertain]
     out = []
-    if uncertain:
-        out.append(finding(
+    if uncertain:  # one finding: the others beyond the board are said in it, not again
+        others = ("; the other cameras' far clouds ("
+                  + ", ".join(f"{c} +-{b['sigma_mm']:.1f} mm" for c, b, _ in rest)
+                  + ") are known better") if rest else ""
+        return [finding(
             "warning", "depth_extrapolated", [c for c, _, _ in uncertain],
             "fused.ply beyond the board's depths can be centimetres off the true surfaces: "
             + "; ".join(f"{c}'s depth is known to +-{b['sigma_mm']:.0f} mm (1 sigma) at "
@@ -326,11 +329,11 @@ def depth_extrapolated(report: dict[str, Any], earlier: list[Finding]) -> list[F
                         f"beyond the board's {b['board_max_m']:.2f} m"
                         + (f", from {n} board views" if n else "")
                         for c, b, n in uncertain)
-            + ". The overlaps cannot see an error that overlapping cameras share.",
+            + others + ". The overlaps cannot see an error that overlapping cameras share.",
             "Record again with the board held in front of these cameras in more poses (their "
             "depth model frees every term from 15 views) and at the distances of their scene, "
             "or leave their far points out of the fused cloud; docs/depth.md, 'Few board "
-            "views'."))
+            "views'.")]
     if rest:
         out.append(finding(
             "info", "depth_extrapolated", [c for c, _, _ in rest],
