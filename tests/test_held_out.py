@@ -4,7 +4,9 @@
 (rgbd_calib/solve/bundle.py ``_held_out``); the ladder keeps a richer model only when that
 prediction improves (rgbd_calib/solve/ladder.py ``_held_out_judged``). On the time model's
 analytic scenes (tests/test_time_model.py): where the board moved, the time model predicts
-held-out views far better than the timeless one; where it stood still, it does not."""
+held-out views far better than the timeless one; where it stood still, it does not. And the
+verdict cannot call a self-contradicting rig usable (issue 56 item 4): the findings
+time_unresolved, time_offsets_implausible and a pixel-level reprojection are errors."""
 
 from __future__ import annotations
 
@@ -75,3 +77,60 @@ def test_the_ladder_refuses_a_better_fit_that_predicts_worse():
     ok, reason, held = _held_out_judged(True, "fits", base, SimpleNamespace(held_out_px={}),
                                         config, True)
     assert ok and held is None and reason == "fits"
+
+
+def _time_report(time_level: dict | None, model_error: list[dict], chosen_time: dict | None):
+    levels = [{"level": "nominal", "time": False, "accepted": True, "held_out": None}]
+    if time_level is not None:
+        levels.append(time_level)
+    return {"bundle": {"self_calibration": {"levels": levels}, "time": chosen_time},
+            "pose_graph": {"model_error": model_error}, "reference": "cam0"}
+
+
+def test_time_unresolved_is_an_error_only_when_the_disagreement_stays_unexplained():
+    from rgbd_calib.outputs.report.findings_time import time_unresolved
+
+    rejected = {"level": "time", "time": True, "accepted": False,
+                "held_out": {"rms_before_px": 1.04, "rms_after_px": 1.18, "markers": 2506,
+                             "views": 115}}
+    unexplained = [{"camera": "cam3", "sigma_factor": 24.2}]
+    found = time_unresolved(_time_report(rejected, unexplained, None), [])
+    assert [(f["severity"], f["code"], f["cameras"]) for f in found] == [
+        ("error", "time_unresolved", ["cam3"])]
+    assert "1.04 -> 1.18 px on 115 views" in found[0]["message"]
+    assert "timestamps.csv" in found[0]["advice"] and "--time fixed" in found[0]["advice"]
+    # the lens explained the model errors (sigma factor 1): nothing unresolved
+    explained = [{"camera": "cam3", "sigma_factor": 1.0}]
+    assert time_unresolved(_time_report(rejected, explained, None), []) == []
+    # time kept, or never tried: nothing to say here
+    kept = {**rejected, "accepted": True}
+    assert time_unresolved(_time_report(kept, unexplained, {"cameras": {}}), []) == []
+    assert time_unresolved(_time_report(None, unexplained, None), []) == []
+
+
+def test_a_clock_beyond_its_prior_is_an_error():
+    from rgbd_calib.outputs.report.findings_time import time_offsets_implausible
+
+    def cam(offset, prior):
+        return {"offset_beyond_timestamps_ms": offset, "offset_prior_sigma_ms": prior}
+
+    time = {"frames_matched_by": "index",
+            "cameras": {"cam0": cam(0.0, 0.0), "cam1": cam(-40.0, 50.0),
+                        "cam5": cam(-160.0, 50.0)}}
+    found = time_offsets_implausible(_time_report(None, [], time), [])
+    assert [(f["severity"], f["cameras"]) for f in found] == [("error", ["cam5"])]
+    assert "cam5 -160.0 ms (prior +-50)" in found[0]["message"] and "index" in found[0]["message"]
+    time["cameras"]["cam5"] = cam(-100.0, 50.0)
+    assert time_offsets_implausible(_time_report(None, [], time), []) == []
+
+
+def test_pixel_level_reprojection_is_poor():
+    from rgbd_calib.outputs.report.findings_views import reprojection
+
+    def report(rms):
+        return {"summary": {"reprojection_rms_px": rms}}
+
+    assert reprojection(report(0.3), []) == []
+    assert reprojection(report(0.8), [])[0]["severity"] == "warning"
+    poor = reprojection(report(12.1), [])[0]
+    assert poor["severity"] == "error" and "do not explain the images" in poor["message"]
