@@ -397,8 +397,8 @@ def test_run_sh_finds_an_installed_libusb_every_time():
 
 def test_out_in_the_dataset_or_the_calibration_read_is_refused(tiny_dataset, poor_calibration,
                                                                 tmp_path):
-    """``--out`` the dataset, inside it, or the calibration refine/check read: one line,
-    exit 2, nothing written there (the results would mix with the recording or overwrite the
+    """``--out`` the dataset or inside it, or the calibration refine reads: one line, exit 2,
+    nothing written there (the results would mix with the recording or overwrite the
     calibration being refined)."""
     data = tmp_path / "dataset"
     shutil.copytree(tiny_dataset, data)
@@ -411,10 +411,10 @@ def test_out_in_the_dataset_or_the_calibration_read_is_refused(tiny_dataset, poo
     assert sorted(p.relative_to(data) for p in data.rglob("*")) == before
     calib, _, _ = poor_calibration
     stamp = (calib / "extrinsics.yaml").stat().st_mtime_ns
-    for command in (["refine", data, "--init", calib / "extrinsics.yaml"],
-                    ["check", data, "--calib", calib]):
-        code, text = cli(*command, "--out", calib)
-        assert code == cli_app.EXIT_INPUT and "calibration" in text, text
+    code, text = cli("refine", data, "--init", calib / "extrinsics.yaml", "--out", calib)
+    assert code == cli_app.EXIT_INPUT and "calibration" in text, text
+    code, text = cli("check", data, "--calib", calib, "--out", data / "check")
+    assert code == cli_app.EXIT_INPUT and "dataset" in text, text
     assert (calib / "extrinsics.yaml").stat().st_mtime_ns == stamp
 
 

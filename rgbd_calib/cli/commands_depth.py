@@ -28,7 +28,8 @@ from .options import NAMES_OPTION, SCHEDULER_OPTION, SYNC_OPTION, open_dataset
 
 def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_ms,
              scheduler: str | None, extrinsics: Path, force: bool | None = None):
-    """What refine and check start from: the output folder and the scheduler checked before
+    """What refine and check start from: the output folder (``force`` None: check, which
+    writes no extrinsics.yaml; else refine's --force) and the scheduler checked before
     anything is read, the dataset of the rig as it is now opened (its images checked) with the
     intrinsics the calibration refined (its rig_refined.yaml, if any), the calibration's
     ``extrinsics`` and the depth corrections beside them (its depth_model.yaml, else its
@@ -37,8 +38,10 @@ def _rig_now(sources: list[Path], out: Path, names: str | None, sync_tolerance_m
     from ..model.calib_folder import load_depth_corrections, with_refined_intrinsics
     from ..model.results import load_extrinsics
 
-    check_output_folder(out, inputs=tuple((d, "dataset") for d in sources)
-                        + ((extrinsics.parent, "calibration"),), force=force)
+    # refine writes an extrinsics.yaml: never over the calibration it reads (check writes
+    # check.json only, which may go beside it)
+    over = ((extrinsics.parent, "calibration"),) if force is not None else ()
+    check_output_folder(out, inputs=tuple((d, "dataset") for d in sources) + over, force=force)
     check_scheduler(scheduler)
     ds = open_dataset(sources, out, names, sync_tolerance_ms)
     ds.check_images()
