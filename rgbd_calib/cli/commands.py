@@ -593,7 +593,6 @@ def demo(
     board, _ = _dataset_board(ds)  # the render's board file, as calibrate reads it
     result = _calibrate_and_write(ds, board, None, out / "calibration")
     print_summary(result, out / "calibration", verdict=False, truth=load_ground_truth(dataset))
-    console.print(f"dataset: {dataset}/", highlight=False)
     print_verdict(out / "calibration")
     exit_on_poor(out / "calibration", accept_poor, strict=strict)
 

@@ -304,20 +304,19 @@ def print_summary(result, out: Path, verdict: bool = True, truth=None) -> None:
         time_sentence,
     )
 
-    table = Table(title=f"extrinsics (reference {result.extrinsics.reference})",
-                  box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False)
-    columns = [("camera", ""), ("views", ""), ("x", "m"), ("y", "m"), ("z", "m"),
-               ("sigma", "deg"), ("sigma", "mm")]
-    if truth is not None:
-        columns += [("error", "deg"), ("error", "mm"), ("error/sigma", "")]
-    for col, unit in columns:
-        table.add_column(f"{col} ({unit})" if unit else col, justify="right")
+    table = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, collapse_padding=True)
+    columns = ["camera", "views", "x m", "y m", "z m", "sigma deg", "sigma mm"]
+    if truth is not None:  # a synthetic rig: its errors against the truth
+        columns += ["error deg", "error mm", "err/sigma"]
+    for col in columns:
+        table.add_column(col, justify="right", no_wrap=True)
     views = {}
     for o in result.observations:
         views[o.camera] = views.get(o.camera, 0) + 1
     for name, cam in result.extrinsics.cameras.items():
         t = cam.T_ref_cam[:3, 3]
-        row = [name, str(views.get(name, 0)), _fixed(t[0], 4), _fixed(t[1], 4),
+        ref = " (ref)" if name == result.extrinsics.reference else ""  # the frame's origin
+        row = [name + ref, str(views.get(name, 0)), _fixed(t[0], 4), _fixed(t[1], 4),
                _fixed(t[2], 4), _fixed(cam.sigma_rotation_deg, 4),
                _fixed(cam.sigma_translation_mm, 3)]
         if truth is not None:

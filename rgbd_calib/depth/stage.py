@@ -241,10 +241,9 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
         # the clouds are still built: fused.ply and the report's cloud checks use them
         return DepthRefinement(
             method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
-            note=(f"the board constrains every camera within {config.board_weak_sigma_mm} mm "
-                  f"/ {config.board_weak_sigma_deg} deg: depth registration would add no "
-                  "information and was skipped"), weak_cameras={}, depth_models=models,
-            beyond_board=far, unmodelled=unmodelled)
+            note=(f"not needed: the board alone holds every camera within "
+                  f"{config.board_weak_sigma_mm} mm / {config.board_weak_sigma_deg} deg"),
+            weak_cameras={}, depth_models=models, beyond_board=far, unmodelled=unmodelled)
 
     pairs: list[dict[str, Any]] = []
     relative: list[RelativePose] = []
