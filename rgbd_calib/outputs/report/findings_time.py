@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 from .findings_base import Finding, finding
+from .findings_cameras import explained_model_errors
 from .numbers import fmt
 
 TIME_ADVICE = (
@@ -83,9 +84,8 @@ def time_unresolved(report: dict[str, Any], earlier: list[Finding]) -> list[Find
     rejected = [lv for lv in ladder if lv.get("time") and not lv.get("accepted")
                 and lv.get("held_out") and lv["held_out"]["rms_after_px"]
                 >= lv["held_out"]["rms_before_px"]]
-    # model-error cameras the chosen model did not explain (camera_model_error's test)
-    unexplained = [m["camera"] for m in report["pose_graph"].get("model_error") or []
-                   if m.get("sigma_factor") is None or m["sigma_factor"] > 1.0]
+    unexplained = {m["camera"] for m in report["pose_graph"].get("model_error") or []
+                   } - explained_model_errors(report)
     if bundle.get("time") or not rejected or not unexplained:
         return []
     held = rejected[0]["held_out"]
