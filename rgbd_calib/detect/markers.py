@@ -33,8 +33,16 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.config import DetectionConfig
-from ..model.board import Board, aruco_dictionary, cover_quads
+from ..model.board import (
+    APRILGRID,
+    CHARUCO,
+    CHECKERBOARD,
+    Board,
+    aruco_dictionary,
+    cover_quads,
+)
 from ..model.dataset import read_color_image
+from .checkerboard import detect_checkerboard
 from .edge_fit import refine_corners_edges
 
 _CV_REFINE = {
@@ -107,21 +115,24 @@ class MarkerDetections:
 
 
 @lru_cache(maxsize=4096)
-def marker_pattern(dictionary: str, marker_id: int) -> np.ndarray:
-    """A marker's cells ``(bits+2, bits+2)``, True where white, row 0 at its top edge, the
-    one-cell black border included (what the edge model needs to know behind the border)."""
+def marker_pattern(dictionary: str, marker_id: int, border_bits: int = 1) -> np.ndarray:
+    """A marker's cells ``(bits+2b, bits+2b)``, True where white, row 0 at its top edge, the
+    ``b`` = ``border_bits`` black border included (what the edge model needs to know behind
+    the border)."""
     d = aruco_dictionary(dictionary)
-    n = int(d.markerSize) + 2
-    img = cv2.aruco.generateImageMarker(d, int(marker_id), n, borderBits=1)
+    n = int(d.markerSize) + 2 * border_bits
+    img = cv2.aruco.generateImageMarker(d, int(marker_id), n, borderBits=border_bits)
     out = img > 127
     out.setflags(write=False)
     return out
 
 
-def _marker_parameters(config: DetectionConfig,
-                       image_size: tuple[int, int]) -> cv2.aruco.DetectorParameters:
-    """OpenCV's marker-finding parameters from ``config`` (ArUco and ChArUco boards alike)."""
+def _marker_parameters(config: DetectionConfig, image_size: tuple[int, int],
+                       border_bits: int = 1) -> cv2.aruco.DetectorParameters:
+    """OpenCV's marker-finding parameters from ``config`` (ArUco and ChArUco boards alike;
+    ``border_bits`` the markers' printed border, :attr:`Board.border_bits`)."""
     params = cv2.aruco.DetectorParameters()
+    params.markerBorderBits = int(border_bits)
     params.minMarkerPerimeterRate = config.min_marker_perimeter_px / max(image_size)
     params.errorCorrectionRate = config.error_correction_rate
     params.adaptiveThreshWinSizeMin = config.adaptive_thresh_win_size_min
@@ -131,10 +142,18 @@ def _marker_parameters(config: DetectionConfig,
 
 
 def _detector(
-    dictionary: cv2.aruco.Dictionary, config: DetectionConfig, image_size: tuple[int, int]
+    dictionary: cv2.aruco.Dictionary, config: DetectionConfig, image_size: tuple[int, int],
+    border_bits: int = 1, from_junctions: bool = False,
 ) -> cv2.aruco.ArucoDetector:
-    params = _marker_parameters(config, image_size)
-    params.cornerRefinementMethod = _CV_REFINE[config.refinement]
+    """OpenCV's detector. ``from_junctions``: the markers' corners touch black squares (an
+    AprilGrid), so the contour's corners are pulled outwards (1.5 px median on a ring
+    render) and the edge fit starts from OpenCV's SUBPIX corners at the junctions instead
+    (measured there: 8 % of corners left unrefined instead of 30 %, the refined ones 0.024 px
+    RMS from the truth instead of 0.065)."""
+    params = _marker_parameters(config, image_size, border_bits)
+    method = config.refinement
+    params.cornerRefinementMethod = _CV_REFINE["subpix" if from_junctions and method == "edges"
+                                               else method]
     params.cornerRefinementWinSize = config.subpix_win_size_px
     params.relativeCornerRefinmentWinSize = config.subpix_relative_win_size  # (sic)
     params.cornerRefinementMaxIterations = config.subpix_max_iterations
@@ -209,12 +228,13 @@ def detect_markers(
     config = config or DetectionConfig()
     if board.sheets:
         return detect_multiface(image, board, config, intrinsics)
-    if board.charuco is not None:
-        return detect_charuco(image, board, config)
+    if board.pattern is not None:
+        return _PATTERN_DETECTORS[board.pattern.kind](image, board, config)
     gray = to_gray(image)
     size = (int(gray.shape[1]), int(gray.shape[0]))
     dictionary = aruco_dictionary(board.dictionary)
-    detector = _detector(dictionary, config, size)
+    detector = _detector(dictionary, config, size, board.border_bits,
+                         from_junctions=board.board_type == APRILGRID)
     corners, ids, rejected = detector.detectMarkers(gray)
     foreign = duplicate = np.zeros(0, dtype=int)
     if ids is not None and len(ids):
@@ -254,7 +274,8 @@ def detect_markers(
     ids, corners_px = ids[order], corners_px[order]
     refined = np.zeros(corners_px.shape[:2], dtype=bool)
     if config.refinement == "edges" and len(ids):
-        white = np.stack([marker_pattern(board.dictionary, int(i)) for i in ids])
+        white = np.stack([marker_pattern(board.dictionary, int(i), board.border_bits)
+                          for i in ids])
         corners_px, refined = refine_corners_edges(
             _gray_float(image), corners_px, white, config, intrinsics
         )
@@ -273,7 +294,7 @@ def _subpix_fallback(
     """OpenCV's SUBPIX refinement (cornerSubPix, the window sized as the detector sizes it)
     of the corners in ``mask`` ``(N,4)``: the fallback for corners the edge fit rejected."""
     out = corners_px.copy()
-    cells = int(aruco_dictionary(board.dictionary).markerSize) + 2
+    cells = int(aruco_dictionary(board.dictionary).markerSize) + 2 * board.border_bits
     side = np.linalg.norm(np.roll(corners_px, -1, axis=1) - corners_px, axis=-1).mean(axis=1)
     win = np.clip(
         np.ceil(config.subpix_relative_win_size * side / cells), 1, config.subpix_win_size_px
@@ -308,8 +329,8 @@ def detect_multiface(
     if aruco is not None:
         parts.append(detect_markers(image, aruco, config, intrinsics))
     for s in board.sheets:
-        if s.board.charuco is not None:
-            det = detect_charuco(image, s.board, config)
+        if s.board.pattern is not None:
+            det = _PATTERN_DETECTORS[s.board.pattern.kind](image, s.board, config)
             parts.append(MarkerDetections(det.ids + s.id_offset, det.corners_px, det.refined,
                                           det.foreign_ids, det.duplicate_ids, det.image_size,
                                           det.refinement))
@@ -412,6 +433,8 @@ def _saddles(
                             of_square=True)
     return ids, px, foreign
 
+
+_PATTERN_DETECTORS = {CHARUCO: detect_charuco, CHECKERBOARD: detect_checkerboard}
 
 PAINTED_WIN_FRACTION = 0.4  # half-window / square, markers painted out
 PAINT_GROW_PX = 1.5  # a painted marker extends this far beyond its detected outline

@@ -37,13 +37,14 @@ import numpy as np
 
 from ..core.errors import BoardError
 from ..core.geometry import matrix_to_rotvec, transform_points
+from .checkerboard import CheckerSpec
 
 #: A board file's ``type:``, one per board form (docs/formats.md): ``aruco`` (the default: a
 #: double-sided ArUco board, its markers in grid or explicit form), ``charuco`` (a one-faced
 #: ChArUco board) or ``multiface`` (a target of several faces, each an ArUco or ChArUco sheet).
-BoardType = Literal["aruco", "charuco", "multiface"]
+BoardType = Literal["aruco", "charuco", "multiface", "checkerboard", "aprilgrid"]
 BOARD_TYPES: tuple[BoardType, ...] = get_args(BoardType)
-ARUCO, CHARUCO, MULTIFACE = BOARD_TYPES
+ARUCO, CHARUCO, MULTIFACE, CHECKERBOARD, APRILGRID = BOARD_TYPES
 
 FRONT, BACK = 1, -1
 CHARUCO_ID_BASE = 10000  # a multi-face target's ChArUco face k (0-based): quad q has id
@@ -108,13 +109,21 @@ class Board:
     name: str = "board"
     grid: dict[str, Any] | None = None
     source: Path | None = field(default=None, compare=False)
-    charuco: CharucoSpec | None = None  # a ChArUco board: ids/corners are saddle-corner quads
+    # a target measured by chessboard saddle corners (ChArUco, checkerboard): ids/corners
+    # are saddle-corner quads (:meth:`CharucoSpec.quads`); None for a marker board
+    pattern: CharucoSpec | CheckerSpec | None = None
     sheets: tuple[FaceSheet, ...] = ()  # a multi-face target: its faces (empty otherwise)
     body: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     # how well the printed size is known against this file (relative 1 sigma, as measured);
     # None: not stated (the file's lengths are taken as exact). Every translation of a
     # calibration scales with it (docs/formats.md, 'print_scale_sigma')
     print_scale_sigma: float | None = None
+    border_bits: int = 1  # black cells around each marker's code (Kalibr's AprilGrid: 2)
+
+    @property
+    def charuco(self) -> CharucoSpec | None:
+        """The ChArUco spec of a ChArUco board, else None."""
+        return self.pattern if isinstance(self.pattern, CharucoSpec) else None
 
     @cached_property
     def index_of(self) -> dict[int, int]:
@@ -129,7 +138,9 @@ class Board:
         """The form of this board's file (its ``type:``)."""
         if self.sheets:
             return MULTIFACE
-        return CHARUCO if self.charuco is not None else ARUCO
+        if self.pattern is not None:
+            return self.pattern.kind
+        return APRILGRID if self.grid is not None and "tagCols" in self.grid else ARUCO
 
     @cached_property
     def face_labels(self) -> tuple[int, ...]:
@@ -171,14 +182,14 @@ class Board:
     def aruco_faces(self) -> Board | None:
         """A multi-face target's ArUco faces as one plain board (what one ArUco detector pass
         looks for; labels kept); None without ArUco faces."""
-        sel = [s for s in self.sheets if s.board.charuco is None]
+        sel = [s for s in self.sheets if s.board.pattern is None]
         if not sel:
             return None
         ids = np.concatenate([s.board.ids for s in sel])
         corners = np.concatenate([s.to_board(s.board.corners) for s in sel])
         faces = np.concatenate([np.full(len(s.board.ids), s.label) for s in sel])
         return Board(self.dictionary, ids, corners, faces, self.thickness, self.panel,
-                     f"{self.name}_aruco")
+                     f"{self.name}_aruco", border_bits=sel[0].board.border_bits)
 
     @cached_property
     def printed_ids(self) -> np.ndarray:
@@ -191,7 +202,7 @@ class Board:
         ids = np.asarray(ids)
         if self.sheets:
             return ids >= CHARUCO_ID_BASE
-        return np.full(ids.shape, self.charuco is not None)
+        return np.full(ids.shape, self.pattern is not None)
 
     def faces_of(self, ids) -> np.ndarray:
         """Face labels ``(N,)`` of the given marker ids."""
@@ -213,6 +224,8 @@ class Board:
         squares, so :attr:`marker_length` is the square there)."""
         if self.charuco is not None:
             return self.charuco.marker_length, self.charuco.square_length
+        if self.pattern is not None:  # a checkerboard: its squares only
+            return self.marker_length, self.marker_length
         return self.marker_length, None
 
     @property
@@ -227,10 +240,11 @@ class Board:
         return self.ids[self.faces == face]
 
     def marker_cells(self, marker_id: int) -> np.ndarray:
-        """Marker pattern as a ``(bits+2, bits+2)`` uint8 image (0 black, 255 white), row 0 at
-        the marker's top edge, including the one-cell black border."""
-        n = self.bits + 2
-        return cv2.aruco.generateImageMarker(self.aruco_dict, int(marker_id), n, borderBits=1)
+        """Marker pattern as a ``(bits+2b, bits+2b)`` uint8 image (0 black, 255 white), row 0
+        at the marker's top edge, including the ``b`` = :attr:`border_bits` black border."""
+        n = self.bits + 2 * self.border_bits
+        return cv2.aruco.generateImageMarker(self.aruco_dict, int(marker_id), n,
+                                             borderBits=self.border_bits)
 
     def face_normal(self, face: int) -> np.ndarray:
         """Outward unit normal of a face in the board frame."""
@@ -253,10 +267,14 @@ class Board:
             out["faces"] = [{"board": _sheet_dict(s.board), "pose": pose_dict(s.T_board_face)}
                             for s in self.sheets]
             return out
-        if self.charuco is not None:
-            return {"name": self.name, "type": CHARUCO, "dictionary": self.dictionary,
-                    **self.charuco.to_dict(), "thickness": self.thickness,
+        if self.pattern is not None:
+            return {"name": self.name, "type": self.pattern.kind,
+                    **({} if self.charuco is None else {"dictionary": self.dictionary}),
+                    **self.pattern.to_dict(), "thickness": self.thickness,
                     "panel": list(self.panel)}
+        if self.board_type == APRILGRID:
+            return {"name": self.name, "type": APRILGRID, **self.grid,
+                    "thickness": self.thickness, "panel": list(self.panel)}
         out: dict[str, Any] = {
             "name": self.name,
             "dictionary": self.dictionary,
@@ -292,6 +310,25 @@ class CharucoSpec:
     legacy_pattern: bool = False
     first_id: int = 0
     inverted: bool = False
+
+    kind = CHARUCO
+
+    @property
+    def square_xy(self) -> tuple[float, float]:
+        """A square's width (x) and height (y), metres."""
+        return self.square_length, self.square_length
+
+    def saddles(self, dictionary: str) -> np.ndarray:
+        """The saddle corners ``(C,3)`` in the board frame (m), in saddle-id order."""
+        return charuco_saddles(self, dictionary)
+
+    def black_squares(self, dictionary: str) -> np.ndarray:
+        """``(squares_y, squares_x)`` bool, True where a square is black (row 0 at the top)."""
+        return charuco_black_squares(self, dictionary)
+
+    def printed_markers(self, dictionary: str) -> tuple[np.ndarray, np.ndarray]:
+        """The ArUco markers printed: ids ``(K,)`` and corners ``(K,4,3)`` (board frame, m)."""
+        return charuco_markers(self, dictionary)
 
     @property
     def n_markers(self) -> int:
@@ -385,9 +422,9 @@ def printed_markers(board: Board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         corners = np.concatenate([s.to_board(c) for s, _, c, _ in parts])
         faces = np.concatenate([np.full(len(i), s.label) for s, i, _, _ in parts])
         return ids, corners, faces
-    if board.charuco is None:
+    if board.pattern is None:
         return board.ids, board.corners, board.faces
-    ids, corners = charuco_markers(board.charuco, board.dictionary)
+    ids, corners = board.pattern.printed_markers(board.dictionary)
     return ids, corners, np.full(len(ids), FRONT)
 
 
@@ -423,22 +460,23 @@ def charuco_black_squares(spec: CharucoSpec, dictionary: str) -> np.ndarray:
 
 def board_from_charuco(
     dictionary: str,
-    spec: CharucoSpec,
+    spec: CharucoSpec | CheckerSpec,
     panel: tuple[float, float, float, float] | None = None,
     margin: float | None = None,
     name: str = "charuco",
     source: Path | None = None,
     thickness: float = 0.003,
 ) -> Board:
-    """A one-faced ChArUco :class:`Board`: its "markers" are the saddle-corner quads of
-    :meth:`CharucoSpec.quads` (ids 0..Q-1), the panel the chessboard plus ``margin`` (default
-    half a square) unless given. ``thickness`` (m) is the panel's (the renderer and the depth
-    stage use it; no marker is on the back)."""
-    saddles = charuco_saddles(spec, dictionary)
+    """A one-faced ChArUco (or, ``spec`` a :class:`CheckerSpec`, checkerboard) :class:`Board`:
+    its "markers" are the saddle-corner quads of ``spec.quads()`` (ids 0..Q-1), the panel the
+    chessboard plus ``margin`` (default half a square) unless given. ``thickness`` (m) is the
+    panel's (the renderer and the depth stage use it; no marker is on the back)."""
+    saddles = spec.saddles(dictionary)
     quads = spec.quads()
+    sx, sy = spec.square_xy
     if panel is None:
-        m = spec.square_length / 2 if margin is None else margin
-        panel = (-m, spec.squares_x * spec.square_length + m, -m, spec.height + m)
+        m = min(sx, sy) / 2 if margin is None else margin
+        panel = (-m, spec.squares_x * sx + m, -m, spec.height + m)
     return Board(dictionary, np.arange(len(quads)), saddles[quads], np.ones(len(quads), int),
                  thickness, tuple(map(float, panel)), name, None, source, spec)
 

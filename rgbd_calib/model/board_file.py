@@ -2,9 +2,12 @@
 
 A board file's ``type`` (:data:`~rgbd_calib.model.board.BoardType`) names its form:
 ``aruco`` (the default; a double-sided ArUco board in grid form, ``grid:``, or explicit
-form, ``markers:``), ``charuco`` (one-faced ChArUco) or ``multiface`` (several faces, each a
-single-face board at a pose). Every mistake is one :class:`~rgbd_calib.core.errors.BoardError`
-line naming the file, the key and the fix. The boards themselves are built by the
+form, ``markers:``), ``charuco`` (one-faced ChArUco), ``checkerboard`` (a plain chessboard),
+``aprilgrid`` (Kalibr's AprilGrid, optionally double-sided) or ``multiface`` (several faces,
+each a single-face board at a pose). Kalibr's target files (``target_type: aprilgrid`` or
+``checkerboard``) are read as they are (:data:`_FORMS` is the table of types). Every
+mistake is one :class:`~rgbd_calib.core.errors.BoardError` line naming the file, the key and
+the fix. The boards themselves are built by the
 constructors of :mod:`rgbd_calib.model.board`.
 """
 
@@ -20,10 +23,13 @@ import numpy as np
 from ..core.errors import BoardError, ConfigError
 from ..core.geometry import make_transform, rotvec_to_matrix
 from ..core.yamlio import check_keys, read_yaml_mapping, write_yaml
+from .aprilgrid import APRILGRID_DICTIONARY, KALIBR_KEYS, aprilgrid_board
 from .board import (
+    APRILGRID,
     ARUCO,
     CHARUCO,
     CHARUCO_ID_BASE,
+    CHECKERBOARD,
     FRONT,
     MAX_LISTED_IDS,
     MULTIFACE,
@@ -37,6 +43,7 @@ from .board import (
     multiface_board,
     validate_markers,
 )
+from .checkerboard import CheckerSpec, check_orderable
 
 
 def _number(value: Any, where: str, positive: bool = True, allow_zero: bool = False) -> float:
@@ -153,14 +160,117 @@ def _check_metres(board: Board, where: str) -> None:
 
 
 def _board_of_form(raw: dict, path: Path, where: str, fix_winding: bool) -> Board:
-    """The board of a board file's top-level mapping, by its ``type``."""
-    if raw.get("type", ARUCO) == CHARUCO:
-        return _load_charuco(raw, path, where)
-    if raw.get("type", ARUCO) == MULTIFACE:
-        return _load_multiface(raw, path, where)
-    if raw.get("type", ARUCO) != ARUCO:
-        raise BoardError(f"{where}: type must be 'aruco' (default) or 'charuco' for one board, "
-                         f"or 'multiface' for several faces; got {str(raw['type'])[:40]!r}")
+    """The board of a board file's top-level mapping, by its ``type`` (or a Kalibr target
+    file's ``target_type``)."""
+    if "target_type" in raw:
+        raw = _from_kalibr(raw, where)
+    kind = raw.get("type", ARUCO)
+    if kind == ARUCO:
+        return _load_aruco(raw, path, where, fix_winding)
+    if not isinstance(kind, str) or kind not in _FORMS:
+        raise BoardError(f"{where}: type must be one of {', '.join(_FORMS)} (default aruco); "
+                         f"got {str(kind)[:40]!r}")
+    return _FORMS[kind](raw, path, where)
+
+
+_KALIBR_TYPES = {
+    APRILGRID: ("tagCols", "tagRows", "tagSize", "tagSpacing"),
+    CHECKERBOARD: ("targetCols", "targetRows", "rowSpacingMeters", "colSpacingMeters"),
+}
+
+
+def _from_kalibr(raw: dict, where: str) -> dict:
+    """A Kalibr target file's mapping as the board file of its type: ``target_type:
+    aprilgrid`` keeps its keys, ``checkerboard``'s become ``cols``, ``rows`` (inner corners),
+    ``col_spacing`` and ``row_spacing``. A one-line error for another ``target_type``."""
+    kind = raw["target_type"]
+    if kind not in _KALIBR_TYPES:
+        raise BoardError(
+            f"{where}: target_type {str(kind)[:40]!r}: the Kalibr targets read are "
+            f"{' and '.join(_KALIBR_TYPES)}; describe another target in a board file of this "
+            "project's form (docs/formats.md)")
+    try:
+        check_keys(raw, {"target_type", *_KALIBR_TYPES[kind]}, where,
+                   required=_KALIBR_TYPES[kind])
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    if kind == APRILGRID:
+        return {"type": APRILGRID, **{k: raw[k] for k in KALIBR_KEYS}}
+    return {"type": CHECKERBOARD, "cols": raw["targetCols"], "rows": raw["targetRows"],
+            "col_spacing": raw["colSpacingMeters"], "row_spacing": raw["rowSpacingMeters"]}
+
+
+def _load_checkerboard(data: dict, path: Path, where: str) -> Board:
+    """A ``type: checkerboard`` board file: ``cols`` x ``rows`` inner corners, squares of
+    ``col_spacing`` x ``row_spacing`` m (``square_length`` for both); refused when no view
+    could order its corners (:func:`~rgbd_calib.model.checkerboard.check_orderable`)."""
+    try:
+        check_keys(data, {"name", "type", "cols", "rows", "col_spacing", "row_spacing",
+                          "square_length", "panel", "margin", "thickness",
+                          "print_scale_sigma"}, where, required=("cols", "rows"))
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    cols = _int(data["cols"], f"{where}: cols", 1)
+    rows = _int(data["rows"], f"{where}: rows", 1)
+    check_orderable(cols, rows, where)
+    if "square_length" in data:
+        if "col_spacing" in data or "row_spacing" in data:
+            raise BoardError(f"{where}: give square_length or col_spacing and row_spacing, "
+                             "not both")
+        sx = sy = _number(data["square_length"], f"{where}: square_length")
+    elif "col_spacing" in data and "row_spacing" in data:
+        sx = _number(data["col_spacing"], f"{where}: col_spacing")
+        sy = _number(data["row_spacing"], f"{where}: row_spacing")
+    else:
+        raise BoardError(f"{where}: give square_length (m) or col_spacing and row_spacing")
+    if cols * rows > 10000:
+        raise BoardError(f"{where}: cols x rows is more than 10000 corners; check them")
+    margin = data.get("margin")
+    margin = None if margin is None else _number(margin, f"{where}: margin", allow_zero=True)
+    return board_from_charuco("none", CheckerSpec(cols, rows, sx, sy),
+                              _panel(data.get("panel"), where), margin,
+                              str(data.get("name", path.stem)), path,
+                              _number(data.get("thickness", 0.003), f"{where}: thickness"))
+
+
+def _load_aprilgrid(data: dict, path: Path, where: str) -> Board:
+    """A ``type: aprilgrid`` board file: Kalibr's keys (``tagCols``, ``tagRows``, ``tagSize``
+    m, ``tagSpacing`` a fraction of ``tagSize``), and optionally ``back_first_id`` (a second
+    grid on the back), ``thickness``, ``panel``, ``name``."""
+    try:
+        check_keys(data, {"name", "type", *KALIBR_KEYS, "back_first_id", "thickness", "panel",
+                          "print_scale_sigma", "dictionary"}, where, required=KALIBR_KEYS)
+    except ConfigError as exc:
+        raise BoardError(str(exc)) from None
+    if data.get("dictionary", APRILGRID_DICTIONARY) != APRILGRID_DICTIONARY:
+        raise BoardError(f"{where}: an AprilGrid is printed with {APRILGRID_DICTIONARY} "
+                         "tags; leave dictionary out or use type: aruco for other markers")
+    cols = _int(data["tagCols"], f"{where}: tagCols", 1)
+    rows = _int(data["tagRows"], f"{where}: tagRows", 1)
+    if min(cols, rows) < 2:
+        raise BoardError(f"{where}: an AprilGrid of {cols} x {rows} tags is too small; give "
+                         "at least 2 x 2 tags")
+    size = _number(data["tagSize"], f"{where}: tagSize")
+    spacing = _number(data["tagSpacing"], f"{where}: tagSpacing")
+    if spacing > 1.0:
+        raise BoardError(f"{where}: tagSpacing {spacing} is the gap as a fraction of tagSize "
+                         "(Kalibr's 0.3 for a gap of 30 % of a tag); give at most 1")
+    back = data.get("back_first_id")
+    back = None if back is None else _int(back, f"{where}: back_first_id")
+    n_dict = aruco_dictionary(APRILGRID_DICTIONARY).bytesList.shape[0]
+    _check_grid_fits(rows, cols, 0, back, APRILGRID_DICTIONARY, n_dict, where)
+    if back is not None and back < cols * rows:
+        raise BoardError(f"{where}: back_first_id {back} reuses the front's tag ids "
+                         f"0..{cols * rows - 1}; give at least {cols * rows}")
+    thickness = _number(data.get("thickness", 0.003), f"{where}: thickness",
+                        allow_zero=back is None)
+    return aprilgrid_board(cols, rows, size, spacing, thickness, back,
+                           _panel(data.get("panel"), where), str(data.get("name", path.stem)),
+                           path)
+
+
+def _load_aruco(raw: dict, path: Path, where: str, fix_winding: bool) -> Board:
+    """A ``type: aruco`` (default) board file, in grid or explicit form."""
     data = _check_board_mapping(raw, where)
     # the keys both forms share
     dictionary = str(data["dictionary"])
@@ -466,9 +576,22 @@ def _load_multiface(data: dict, path: Path, where: str) -> Board:
                              f"target's {dictionary}; one dictionary for every face")
         T = _face_pose(face.get("pose"), f"{fwhere}.pose")
         offset = CHARUCO_ID_BASE * (k + 1) if sheet.charuco is not None else 0
+        bits = {s.board.border_bits for s in sheets if s.board.pattern is None}
+        if sheet.pattern is None and bits and sheet.border_bits not in bits:
+            raise BoardError(f"{fwhere}: its markers' border ({sheet.border_bits} cells) "
+                             "differs from the other faces'; one marker print for every face")
         sheets.append(FaceSheet(k + 1, sheet, T, offset))
     return multiface_board(str(dictionary), sheets, thickness, str(data.get("name", path.stem)),
                            _body(data.get("body"), where), path, where)
+
+
+_FORMS = {
+    ARUCO: None,  # read by _load_aruco (its explicit form takes fix_winding)
+    CHARUCO: _load_charuco,
+    CHECKERBOARD: _load_checkerboard,
+    APRILGRID: _load_aprilgrid,
+    MULTIFACE: _load_multiface,
+}
 
 
 def _face_board(value: Any, path: Path, where: str, dictionary: str | None,
@@ -493,6 +616,9 @@ def _face_board(value: Any, path: Path, where: str, dictionary: str | None,
             raise BoardError(f"{where}.board: grid.back_first_id: a face is one sheet; give "
                              "the back sheet as a face of its own with its pose")
     sheet = _board_from_mapping(raw, path, f"{where}.board")
+    if sheet.board_type == CHECKERBOARD:
+        raise BoardError(f"{where}.board: a checkerboard face cannot say which face a view "
+                         "sees; give the target's faces as ArUco, AprilGrid or ChArUco sheets")
     if np.any(sheet.faces != FRONT):
         raise BoardError(f"{where}.board: markers off the sheet's z = 0 plane; a face is one "
                          "sheet: list its markers at z = 0 and give the face a pose")

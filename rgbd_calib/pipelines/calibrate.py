@@ -245,7 +245,7 @@ def _bundle(run: _Run, pg: PoseGraphResult, views: _Views) -> _Solved:
     solved = _Solved(views, {}, {}, bundle, problem, ladder)
     lens_refined = (ladder.chosen.distortion if ladder is not None
                     else _refines_distortion(config.bundle))
-    if lens_refined and (ladder is not None or run.board.charuco is None):
+    if lens_refined and (ladder is not None or run.board.pattern is None):
         solved = _redetect(run, pg, solved)
     if config.bundle.edge_offset == "auto":  # the detector's edge offset, where it is read
         with timed(run.timings, "bundle"):

@@ -17,7 +17,8 @@ from scipy.spatial import cKDTree
 from ..core.camera import CameraIntrinsics
 from ..core.depth_model import DepthModel, distort_depth_image
 from ..core.geometry import invert_transform
-from ..model.board import BACK, FRONT, Board, charuco_black_squares, printed_markers
+from ..model.aprilgrid import corner_squares
+from ..model.board import BACK, FRONT, Board, printed_markers
 from .imperfections import BoardPrint
 from .params import SynthCamera, SynthParams
 from .scene import Rect, box, cast, pixel_rays, rect, shade_scene
@@ -50,7 +51,8 @@ class _BoardModel:
     ids: np.ndarray = field(init=False)  # the printed ArUco markers, corners and faces
     corners: np.ndarray = field(init=False)
     faces: np.ndarray = field(init=False)
-    black_squares: np.ndarray | None = field(init=False)  # ChArUco only: (rows, cols)
+    black_squares: np.ndarray | None = field(init=False)  # ChArUco, checkerboard: (rows, cols)
+    ink: np.ndarray = field(init=False)  # black rectangles besides the markers (face, x0..y1)
     sheets: list[_BoardModel] = field(init=False, default_factory=list)  # multi-face: per face
 
     @property
@@ -76,8 +78,9 @@ class _BoardModel:
         # the printed markers: the board's own, or a ChArUco board's ArUco markers (its
         # "markers" are saddle-corner quads, see board.CharucoSpec) and its black squares
         self.ids, self.corners, self.faces = printed_markers(b)
-        self.black_squares = (None if b.charuco is None
-                              else charuco_black_squares(b.charuco, b.dictionary))
+        self.black_squares = (None if b.pattern is None
+                              else b.pattern.black_squares(b.dictionary))
+        self.ink = corner_squares(b)
         self.trees = {
             f: cKDTree(self.corners[self.faces == f].mean(axis=1)[:, :2])
             for f in (FRONT, BACK)
@@ -107,6 +110,7 @@ class _BoardModel:
         self.rects = sheets + plates + body
         self.ids, self.corners, self.faces = printed_markers(b)
         self.black_squares, self.trees, self.cells = None, {}, {}
+        self.ink = np.zeros((0, 5))
 
     def reflectance(self, hit_index: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Reflectance of board hits: ink, paper or the panel's edge."""
@@ -123,7 +127,7 @@ class _BoardModel:
             if sel.size == 0:
                 continue
             out[sel] = PAPER_WHITE
-            if face not in self.trees:
+            if face not in self.trees and self.black_squares is None:
                 continue
             xy = (
                 np.column_stack([x0 + a[sel], y0 + b[sel]])
@@ -132,8 +136,13 @@ class _BoardModel:
             )
             if self.printed is not None and not self.printed.is_nominal:
                 xy = self.printed.file_xy(face, xy)
-            if self.black_squares is not None:
+            if self.black_squares is not None and face == FRONT:
                 out[sel] = self._squares(xy)
+            for _, u0, u1, v0, v1 in self.ink[self.ink[:, 0] == face]:
+                out[sel[(xy[:, 0] >= u0) & (xy[:, 0] < u1) & (xy[:, 1] >= v0)
+                        & (xy[:, 1] < v1)]] = INK_BLACK
+            if face not in self.trees:
+                continue
             ids = self.ids[self.faces == face]
             corners = self.corners[self.faces == face][:, :, :2]
             k = min(2, len(ids))
@@ -168,10 +177,12 @@ class _BoardModel:
         return out
 
     def _squares(self, xy: np.ndarray) -> np.ndarray:
-        """Paper or ink of a ChArUco board's chessboard at board-frame points ``(N,2)`` (m)."""
-        spec = self.board.charuco
-        col = np.floor(xy[:, 0] / spec.square_length).astype(int)
-        row = np.floor((spec.height - xy[:, 1]) / spec.square_length).astype(int)
+        """Paper or ink of a ChArUco board's or checkerboard's chessboard at board-frame
+        points ``(N,2)`` (m)."""
+        spec = self.board.pattern
+        sx, sy = spec.square_xy
+        col = np.floor(xy[:, 0] / sx).astype(int)
+        row = np.floor((spec.height - xy[:, 1]) / sy).astype(int)
         inside = (col >= 0) & (col < spec.squares_x) & (row >= 0) & (row < spec.squares_y)
         out = np.full(len(xy), PAPER_WHITE)
         black = np.zeros(len(xy), dtype=bool)

@@ -209,7 +209,7 @@ def board_print(board: Board, params: SynthParams) -> BoardPrint:
     printed = _board_print(board, params)
     if params.ink_spread_mm == 0:
         return printed
-    if board.sheets or board.charuco is not None:
+    if board.sheets or board.pattern is not None:
         raise ConfigError("--ink-spread renders an ArUco board's markers; this board is "
                           f"{board.board_type}: leave --ink-spread out")
     return replace(printed, ink_spread_m=params.ink_spread_mm / 1000.0)

@@ -440,7 +440,7 @@ def _board_geometry(result: CalibrationResult) -> dict[str, Any]:
     ids = {int(i) for o in result.observations for i in o.ids}
     corners = np.concatenate([o.object_points for o in result.observations])
     side_m = float(np.linalg.norm(np.diff(corners[:, [0, 1]], axis=1), axis=-1).mean())
-    charuco = result.board is not None and result.board.charuco is not None
+    charuco = result.board is not None and result.board.pattern is not None
     lengths = ({"marker_length_m": side_m} if not charuco else  # quads: chessboard squares
                {"marker_length_m": result.board.printed_lengths[0], "square_length_m": side_m})
     return {

@@ -1,0 +1,193 @@
+"""Targets behind the board-file reader's table of types (issue 57): Kalibr's AprilGrid and
+checkerboard files read as they are, detected where a projection puts them, and every bad
+target file one line naming the file and the fix."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from rgbd_calib.cli.commands import app
+from rgbd_calib.core.errors import BoardError
+from rgbd_calib.detect.checkerboard import order_by_colour
+from rgbd_calib.detect.markers import detect_markers
+from rgbd_calib.model.aprilgrid import corner_squares
+from rgbd_calib.model.board import APRILGRID, CHECKERBOARD
+from rgbd_calib.model.board_file import load_board, save_board
+
+runner = CliRunner()
+
+KALIBR_APRILGRID = """target_type: 'aprilgrid' #gridtype
+tagCols: 2               #number of apriltags
+tagRows: 2               #number of apriltags
+tagSize: 0.088           #size of apriltag, edge to edge [m]
+tagSpacing: 0.3          #ratio of space between tags to tagSize
+"""
+KALIBR_CHECKERBOARD = """target_type: 'checkerboard' #gridtype
+targetCols: 6               #number of internal chessboard corners
+targetRows: 7               #number of internal chessboard corners
+rowSpacingMeters: 0.06      #size of one chessboard square [m]
+colSpacingMeters: 0.05      #size of one chessboard square [m]
+"""
+# Kalibr's own tag36h11 codes of ids 0..3 (kalibr_create_target_pdf, from the AprilTags C++
+# library), to print a tag exactly as Kalibr does
+KALIBR_CODES = (0xD5D628584, 0xD97F18B49, 0xDD280910E, 0xE479E9C98)
+
+
+def _write(tmp_path: Path, name: str, text: str) -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def _kalibr_page(board, px_per_m: float, margin_px: int) -> np.ndarray:
+    """The AprilGrid page as ``kalibr_create_target_pdf`` draws it (a 2-cell border, the code
+    bits turned half a turn, black squares at the tag corners), fronto-parallel: board point
+    (x, y) at pixel (margin + x * s, H - margin - y * s)."""
+    g = board.grid
+    size, gap = g["tagSize"], g["tagSpacing"] * g["tagSize"]
+    w = int(round((g["tagCols"] * (size + gap)) * px_per_m)) + 2 * margin_px
+    h = int(round((g["tagRows"] * (size + gap)) * px_per_m)) + 2 * margin_px
+    page = np.full((h, w), 255, np.uint8)
+
+    def fill(x0, x1, y0, y1):  # board-frame rectangle, metres
+        page[int(round(h - margin_px - y1 * px_per_m)):int(round(h - margin_px - y0 * px_per_m)),
+             int(round(margin_px + x0 * px_per_m)):int(round(margin_px + x1 * px_per_m))] = 0
+
+    bit = size / 10.0
+    for k in range(g["tagCols"] * g["tagRows"]):
+        r, c = divmod(k, g["tagCols"])
+        x, y = c * (size + gap), r * (size + gap)
+        fill(x, x + size, y, y + size)
+        code = np.array([[0 if KALIBR_CODES[k] & (1 << (6 * i + j)) else 1 for j in range(6)]
+                         for i in range(6)])
+        code = np.rot90(code, 2)  # Kalibr's rotation=2
+        for i in range(6):
+            for j in range(6):
+                if not code[i, j]:  # a white bit (row 0 at the top)
+                    page[int(round(h - margin_px - (y + (8 - i) * bit) * px_per_m)):
+                         int(round(h - margin_px - (y + (7 - i) * bit) * px_per_m)),
+                         int(round(margin_px + (x + (j + 2) * bit) * px_per_m)):
+                         int(round(margin_px + (x + (j + 3) * bit) * px_per_m))] = 255
+    for _, x0, x1, y0, y1 in corner_squares(board):
+        fill(x0, x1, y0, y1)
+    return page
+
+
+def test_a_kalibr_aprilgrid_file_is_read_as_it_is_and_its_print_detected_in_kalibr_order(
+        tmp_path):
+    board = load_board(_write(tmp_path, "april_6x6.yaml", KALIBR_APRILGRID))
+    assert board.board_type == APRILGRID and board.border_bits == 2
+    assert board.dictionary == "DICT_APRILTAG_36h11" and board.ids.tolist() == [0, 1, 2, 3]
+    # tag 0 at the origin, tag 1 to its right, tag 2 above it (Kalibr's grid)
+    lows = board.corners[:, :, :2].min(axis=1)
+    assert np.allclose(lows, [[0, 0], [0.088 * 1.3, 0], [0, 0.088 * 1.3],
+                              [0.088 * 1.3, 0.088 * 1.3]])
+    assert len(corner_squares(board)) == 9  # shared between neighbours, drawn once
+    scale, margin = 2500.0, 60  # px per metre
+    page = cv2.GaussianBlur(_kalibr_page(board, scale, margin), (0, 0), 0.8)
+    det = detect_markers(page, board)
+    assert det.ids.tolist() == [0, 1, 2, 3]
+    h = page.shape[0]
+    xy = board.object_points(det.ids)[:, :, :2]
+    expected = np.stack([margin + xy[..., 0] * scale, h - margin - xy[..., 1] * scale], axis=-1)
+    # pixel centres at integer coordinates: a board edge at pixel boundary b lies at b - 0.5
+    err = np.abs(det.corners_px - (expected - 0.5))
+    assert err[det.refined].max() < 0.3, err
+
+
+def test_a_kalibr_checkerboard_file_is_read_and_written_back_in_this_projects_form(tmp_path):
+    board = load_board(_write(tmp_path, "checker.yaml", KALIBR_CHECKERBOARD))
+    assert board.board_type == CHECKERBOARD
+    spec = board.pattern
+    assert (spec.cols, spec.rows, spec.col_spacing, spec.row_spacing) == (6, 7, 0.05, 0.06)
+    assert len(spec.saddles()) == 42 and len(board.ids) == 5 * 6
+    save_board(board, tmp_path / "again.yaml")
+    again = load_board(tmp_path / "again.yaml")
+    assert np.array_equal(again.corners, board.corners) and again.board_type == CHECKERBOARD
+
+
+def _checker_image(spec, H: np.ndarray, size=(640, 480)) -> np.ndarray:
+    """The printed chessboard (top-left square black) warped by ``H`` (board metres ->
+    pixels)."""
+    s = 400  # px per metre on the flat print
+    sx, sy = spec.square_xy
+    flat = np.full((int(spec.height * s) + 1, int(spec.width * s) + 1), 255, np.uint8)
+    for r, row in enumerate(spec.black_squares()):
+        for c, black in enumerate(row):
+            if black:
+                flat[round(r * sy * s):round((r + 1) * sy * s),
+                     round(c * sx * s):round((c + 1) * sx * s)] = 0
+    # flat pixel centre (u, v) is board point ((u + 0.5) / s, height - (v + 0.5) / s)
+    A = np.array([[1 / s, 0, 0.5 / s], [0, -1 / s, spec.height - 0.5 / s], [0, 0, 1]])
+    img = cv2.warpPerspective(flat, H @ A, size, borderValue=200)
+    return cv2.GaussianBlur(img, (0, 0), 0.7)
+
+
+@pytest.mark.parametrize("turn", [0, 90, 180, 270])
+def test_a_checkerboard_view_names_its_corners_by_the_squares_colours_however_it_is_turned(
+        tmp_path, turn):
+    board = load_board(_write(tmp_path, "checker.yaml", KALIBR_CHECKERBOARD))
+    spec = board.pattern
+    a = np.radians(turn + 8)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) * 700.0
+    centre = np.array([spec.width / 2, spec.height / 2])
+    H = np.eye(3)
+    H[:2, :2] = R @ np.diag([1.0, -1.0])  # board y up -> image y down
+    H[:2, 2] = np.array([320.0, 240.0]) - H[:2, :2] @ centre
+    det = detect_markers(_checker_image(spec, H), board)
+    assert len(det) > 0
+    obj = board.object_points(det.ids)[..., :2].reshape(-1, 2)
+    expected = obj @ H[:2, :2].T + H[:2, 2]
+    assert np.abs(det.corners_px.reshape(-1, 2) - expected).max() < 0.5
+
+
+def test_the_detectors_corner_order_is_turned_to_the_boards(tmp_path):
+    """A grid found mirrored or half a turn off is put back in saddle order."""
+    board = load_board(_write(tmp_path, "checker.yaml", KALIBR_CHECKERBOARD))
+    spec = board.pattern
+    H = np.array([[600.0, 0, 100], [0, -600.0, 420], [0, 0, 1]])
+    img = _checker_image(spec, H)
+    xy = spec.saddles()[:, :2]
+    true = (xy @ H[:2, :2].T + H[:2, 2]).reshape(spec.rows, spec.cols, 2)
+    for found in (true, true[::-1, ::-1], true[:, ::-1], true[::-1, :]):
+        assert np.allclose(order_by_colour(img, found), true)
+
+
+@pytest.mark.parametrize("text, says", [
+    ("target_type: circlegrid\ntargetCols: 6\ntargetRows: 7\nspacingMeters: 0.02\n",
+     "target_type 'circlegrid'"),
+    ("target_type: checkerboard\ntargetCols: 2\ntargetRows: 5\nrowSpacingMeters: 0.02\n"
+     "colSpacingMeters: 0.02\n", "too small"),
+    ("target_type: checkerboard\ntargetCols: 6\ntargetRows: 6\nrowSpacingMeters: 0.02\n"
+     "colSpacingMeters: 0.02\n", "half a turn"),
+    ("target_type: aprilgrid\ntagCols: 6\ntagRows: 6\ntagSize: 88\ntagSpacing: 0.3\n",
+     "cannot be metres"),
+    ("target_type: aprilgrid\ntagCols: 6\ntagRows: 6\ntagSize: 0.088\ntagSpacing: 30\n",
+     "fraction of tagSize"),
+    ("target_type: aprilgrid\ntagCols: 6\ntagRows: 6\ntagSize: 0.088\n", "tagSpacing"),
+    ("type: aprilgrid\ntagCols: 6\ntagRows: 6\ntagSize: 0.088\ntagSpacing: 0.3\n"
+     "back_first_id: 10\n", "reuses the front's tag ids"),
+])
+def test_a_bad_target_file_is_one_line_naming_the_file(tmp_path, text, says):
+    path = _write(tmp_path, "target.yaml", text)
+    with pytest.raises(BoardError) as err:
+        load_board(path)
+    message = str(err.value)
+    assert "\n" not in message and str(path) in message and says in message, message
+
+
+def test_calibrate_with_an_unknown_kalibr_target_exits_2_and_writes_nothing(tmp_path):
+    path = _write(tmp_path, "target.yaml", "target_type: circlegrid\ntargetCols: 6\n")
+    dataset = tmp_path / "ds"
+    (dataset / "cam0" / "color").mkdir(parents=True)
+    (dataset / "rig.yaml").write_text("cameras:\n  cam0: {width: 640, height: 480}\n")
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["calibrate", str(dataset), "--board", str(path),
+                                 "--out", str(out)])
+    assert result.exit_code == 2, result.output
+    assert "target_type 'circlegrid'" in result.output and not out.exists()
