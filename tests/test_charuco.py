@@ -98,7 +98,7 @@ def test_cover_quads_keeps_the_corners_of_a_partly_seen_board():
         ({"dictionary": "DICT_9X9"}, r"dictionary: unknown ArUco dictionary"),
         ({"first_id": 995}, r"first_id 995 \+ 10 markers exceeds DICT_4X4_1000"),
         ({"rows": 4}, r"unknown key\(s\) rows"),
-        ({"type": "chessboard"}, r"type must be 'aruco' \(default\) or 'charuco'"),
+        ({"type": "chessboard"}, r"type must be one of aruco, charuco, checkerboard"),
     ],
 )
 def test_bad_board_file_names_file_and_key(tmp_path, change, message):

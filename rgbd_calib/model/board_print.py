@@ -110,15 +110,20 @@ def rescaled_board(board: Board, scale: float, sigma: float) -> Board:
     corners = board.corners.copy()
     corners[..., :2] *= scale
     grid = board.grid
-    if grid is not None:
+    if grid is not None and "tagSize" in grid:  # an AprilGrid: the spacing is relative
+        grid = {**grid, "tagSize": grid["tagSize"] * scale}
+    elif grid is not None:
         grid = {**grid, "marker_length": grid["marker_length"] * scale,
                 "separation": grid["separation"] * scale}
-    charuco = board.charuco
-    if charuco is not None:
-        charuco = replace(charuco, square_length=charuco.square_length * scale,
-                          marker_length=charuco.marker_length * scale)
+    pattern = board.pattern
+    if board.charuco is not None:
+        pattern = replace(pattern, square_length=pattern.square_length * scale,
+                          marker_length=pattern.marker_length * scale)
+    elif pattern is not None:  # a checkerboard
+        pattern = replace(pattern, col_spacing=pattern.col_spacing * scale,
+                          row_spacing=pattern.row_spacing * scale)
     panel = tuple(float(v) * scale for v in board.panel)
-    return replace(board, corners=corners, panel=panel, grid=grid, charuco=charuco,
+    return replace(board, corners=corners, panel=panel, grid=grid, pattern=pattern,
                    print_scale_sigma=float(sigma))
 
 

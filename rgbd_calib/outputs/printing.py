@@ -29,7 +29,8 @@ from reportlab.pdfbase.pdfmetrics import stringWidth
 from reportlab.pdfgen.canvas import Canvas
 
 from ..core.errors import BoardError, ConfigError
-from ..model.board import BACK, FRONT, Board, charuco_black_squares, printed_markers
+from ..model.aprilgrid import corner_squares
+from ..model.board import BACK, FRONT, Board, printed_markers
 from ..model.board_print import front_span_m
 
 MM_PER_INCH = 25.4
@@ -164,27 +165,35 @@ def board_to_page_mm(board: Board, face: int, xy_m: np.ndarray,
 
 def _module_mm(board: Board) -> float:
     """One marker module (cell) in mm: the minimum quiet zone around every marker."""
+    if board.pattern is not None and board.charuco is None:  # a checkerboard: a square
+        return min(board.pattern.square_xy) * 1000.0
     length = board.marker_length if board.charuco is None else board.charuco.marker_length
-    return length * 1000.0 / (board.bits + 2)
+    return length * 1000.0 / (board.bits + 2 * board.border_bits)
 
 
-def _charuco_squares_mm(board: Board) -> list[tuple[float, float, float, float]]:
-    """A ChArUco board's black squares as board-frame boxes ``(xmin, xmax, ymin, ymax)`` mm."""
-    spec = board.charuco
-    sq = spec.square_length * 1000.0
+def _charuco_squares_mm(board: Board, face: int = FRONT
+                        ) -> list[tuple[float, float, float, float]]:
+    """The black squares printed on ``face`` besides the markers, as board-frame boxes
+    ``(xmin, xmax, ymin, ymax)`` mm: a ChArUco board's or checkerboard's chessboard (front),
+    an AprilGrid's corner squares."""
+    out = [tuple(1000.0 * r[1:]) for r in corner_squares(board) if r[0] == face]
+    spec = board.pattern
+    if spec is None or face != FRONT:
+        return out
+    sx, sy = (1000.0 * v for v in spec.square_xy)
     top = spec.height * 1000.0
-    black = charuco_black_squares(spec, board.dictionary)
-    return [(c * sq, (c + 1) * sq, top - (r + 1) * sq, top - r * sq)
-            for r, c in zip(*np.nonzero(black))]
+    black = spec.black_squares(board.dictionary)
+    return out + [(c * sx, (c + 1) * sx, top - (r + 1) * sy, top - r * sy)
+                  for r, c in zip(*np.nonzero(black))]
 
 
 def _marker_boxes_mm(board: Board) -> np.ndarray:
     """Axis-aligned board-frame boxes ``(M,4)`` ``(xmin, xmax, ymin, ymax)`` in mm of all
     markers of both faces (both sheets share the alignment marks, so both must avoid them);
     a ChArUco board's whole chessboard."""
-    if board.charuco is not None:
-        spec = board.charuco
-        return np.array([[0.0, spec.squares_x * spec.square_length * 1000.0, 0.0,
+    if board.pattern is not None:
+        spec = board.pattern
+        return np.array([[0.0, spec.squares_x * spec.square_xy[0] * 1000.0, 0.0,
                           spec.height * 1000.0]])
     xy = board.corners[:, :, :2] * 1000.0
     return np.stack([xy[..., 0].min(1), xy[..., 0].max(1), xy[..., 1].min(1),
@@ -247,6 +256,11 @@ def _block_height(font_mm: float) -> float:
 def _info_lines(board: Board, face: int) -> tuple[str, str]:
     side = "FRONT" if face == FRONT else "BACK"
     where = "front" if face == FRONT else "back"
+    if board.pattern is not None and board.charuco is None:
+        c = board.pattern
+        return (f"{board.name}  |  checkerboard {c.cols} x {c.rows} inner corners, squares "
+                f"{c.col_spacing * 1000:.1f} x {c.row_spacing * 1000:.1f} mm",
+                "print at 100% / actual size, check: this bar = 100 mm")
     if board.charuco is not None:
         c = board.charuco
         first = (f"{board.name}  |  ChArUco {c.squares_x} x {c.squares_y} squares of "
@@ -347,19 +361,21 @@ def _marker_quads(board: Board, marker_id: int, corners_page: np.ndarray) -> lis
 
 def _chessboard_page_mm(board: Board, page_size_mm: tuple[float, float]):
     """A ChArUco board's chessboard area on the front sheet ``(u0, v0, u1, v1)`` page mm."""
-    spec = board.charuco
-    corners = np.array([[0.0, spec.height], [spec.squares_x * spec.square_length, 0.0]])
+    spec = board.pattern
+    corners = np.array([[0.0, spec.height], [spec.squares_x * spec.square_xy[0], 0.0]])
     (u0, v0), (u1, v1) = board_to_page_mm(board, FRONT, corners, page_size_mm)
     return u0, v0, u1, v1
 
 
-def _charuco_squares_page_mm(board: Board, page_size_mm: tuple[float, float]):
-    """A ChArUco board's black squares as page rectangles ``(u0, v0, u1, v1)`` mm."""
+def _charuco_squares_page_mm(board: Board, page_size_mm: tuple[float, float],
+                             face: int = FRONT):
+    """The black squares of :func:`_charuco_squares_mm` as page rectangles ``(u0, v0, u1,
+    v1)`` mm (top-left and bottom-right on the page)."""
     out = []
-    for x0, x1, y0, y1 in _charuco_squares_mm(board):
+    for x0, x1, y0, y1 in _charuco_squares_mm(board, face):
         corners = np.array([[x0, y1], [x1, y0]]) / 1000.0
-        (u0, v0), (u1, v1) = board_to_page_mm(board, FRONT, corners, page_size_mm)
-        out.append((u0, v0, u1, v1))
+        (u0, v0), (u1, v1) = board_to_page_mm(board, face, corners, page_size_mm)
+        out.append((min(u0, u1), v0, max(u0, u1), v1))
     return out
 
 
@@ -385,8 +401,8 @@ def _draw_pdf_page(canvas: Canvas, board: Board, face: int, page_size_mm: tuple[
         ink = 1.0
     canvas.setFillGray(ink)
     canvas.setStrokeGray(0.0)
-    if board.charuco is not None:
-        for u0, v0, u1, v1 in _charuco_squares_page_mm(board, page_size_mm):
+    if True:  # the chessboard squares, an AprilGrid's corner squares
+        for u0, v0, u1, v1 in _charuco_squares_page_mm(board, page_size_mm, face):
             x0, y1 = pt(u0, v0)
             x1, y0 = pt(u1, v1)
             canvas.rect(x0, y0, x1 - x0, y1 - y0, stroke=0, fill=1)
@@ -509,9 +525,8 @@ def _render_png(path: Path, board: Board, face: int, page_size_mm: tuple[float, 
     px_per_mm = dpi / MM_PER_INCH
     w, h = (int(round(s * px_per_mm)) for s in page_size_mm)
     img = np.full((h, w), 255, dtype=np.uint8)
-    if board.charuco is not None:
-        for rect in _charuco_squares_page_mm(board, page_size_mm):
-            _raster_rect(img, px_per_mm, *rect)
+    for rect in _charuco_squares_page_mm(board, page_size_mm, face):
+        _raster_rect(img, px_per_mm, *rect)
     ids, _, faces = printed_markers(board)
     for k in np.flatnonzero(faces == face):
         cells = board.marker_cells(int(ids[k])) == 0
@@ -550,7 +565,8 @@ def measuring_line(board: Board) -> str | None:
     if span is None:
         return None
     w, h = 1000 * np.array(span)
-    what = "inner chessboard corners" if board.charuco is not None else "outermost marker corners"
+    what = ("inner chessboard corners" if board.pattern is not None
+            else "outermost marker corners")
     return (f"measure the printed front sheet: its {what} should span {w:.1f} mm across and "
             f"{h:.1f} mm down; where they do not, run this again with --measured ACROSS_MM "
             "DOWN_MM: it writes the board file rescaled to the print, with the measurement's "
@@ -577,14 +593,14 @@ def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,
                           "use a lower dpi")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    if board.charuco is not None:
+    if board.pattern is not None:
         x0, x1, y0, y1 = _marker_boxes_mm(board)[0] / 1000.0
         px0, px1, py0, py1 = board.panel
         tol = FIT_TOL_MM / 1000.0
         if x0 < px0 - tol or x1 > px1 + tol or y0 < py0 - tol or y1 > py1 + tol:
             raise BoardError(f"{_where(board)}: the chessboard [0, {x1:g}, 0, {y1:g}] does not "
                              f"fit the panel {list(board.panel)}; enlarge the panel")
-    outside = [] if board.charuco is not None else _markers_outside_panel(board)
+    outside = [] if board.pattern is not None else _markers_outside_panel(board)
     if outside:
         raise BoardError(f"{_where(board)}: marker(s) {outside} lie outside the panel "
                          f"{list(board.panel)}; enlarge the panel to cover every marker")
@@ -595,7 +611,8 @@ def write_printable_board(board: Board, out_dir: Path, dpi: int = 300,
                       "quiet zone; check the print scale on the markers themselves")
 
     printed_ids, printed_corners, printed_faces = printed_markers(board)
-    faces = [f for f in (FRONT, BACK) if np.any(printed_faces == f)]
+    faces = [f for f in (FRONT, BACK) if np.any(printed_faces == f)
+             or (f == FRONT and board.pattern is not None)]
     combined = _new_canvas(out_dir / "board.pdf", board, page_size)
     sheets, files = [], []
     for face in faces:
