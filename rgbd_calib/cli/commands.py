@@ -113,6 +113,12 @@ DISTORTION_OPTION = typer.Option(
     "exactly per pixel ray; e.g. 0.1 -0.2 0.001 -0.001 0.05.",
     rich_help_panel=IMPERFECTIONS_PANEL,
 )
+FISHEYE_OPTION = typer.Option(
+    metavar="K1 K2 K3 K4",
+    help="true fisheye lens of every camera instead (equidistant, cv2.fisheye's and Kalibr's "
+    "pinhole-equi k1..k4; rig.yaml lists model: fisheye); e.g. 0.05 -0.01 0.003 -0.0005.",
+    rich_help_panel=IMPERFECTIONS_PANEL,
+)
 RIG_DISTORTION_OPTION = typer.Option(
     help="What rig.yaml lists with --distortion: zeros (as the D435 colour stream "
     "reports) or truth.",
@@ -277,6 +283,7 @@ def synth(
     distortion: Annotated[
         tuple[float, float, float, float, float] | None, DISTORTION_OPTION
     ] = None,
+    fisheye: Annotated[tuple[float, float, float, float] | None, FISHEYE_OPTION] = None,
     rig_distortion: Annotated[str, RIG_DISTORTION_OPTION] = "zeros",
     intrinsics_error: Annotated[tuple[float, float], INTRINSICS_ERROR_OPTION] = (0.0, 0.0),
     glue: Annotated[tuple[float, float, float], GLUE_OPTION] = (0.0, 0.0, 0.0),
@@ -305,6 +312,11 @@ def synth(
 
     check_output_folder(out, "the output dataset folder")
     workers_ignore_ctrl_c()
+    from ..core.errors import ConfigError
+
+    if fisheye is not None and distortion is not None:
+        raise ConfigError("--distortion and --fisheye: give one lens (OpenCV's k1 k2 p1 p2 k3, "
+                          "or the fisheye's k1..k4)")
     params = SynthParams(
         resolution=parse_resolution(resolution),
         blur_sigma_px=blur,
@@ -316,7 +328,8 @@ def synth(
         depth_dropout=depth_dropout,
         drop_rate=drop_rate,
         cameras=cameras,
-        distortion=distortion,
+        distortion=fisheye if fisheye is not None else distortion,
+        lens="fisheye" if fisheye is not None else "opencv",
         rig_distortion=rig_distortion,
         intrinsics_error=intrinsics_error,
         glue=glue,

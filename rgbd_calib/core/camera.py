@@ -1,4 +1,10 @@
-"""The one camera model: pinhole intrinsics plus OpenCV's lens distortion (pure numpy).
+"""The one camera model: pinhole intrinsics plus a lens model (pure numpy).
+
+Two lens models (:data:`LENS_MODELS`, ``model:`` in rig.yaml): ``opencv`` (the default, below)
+and ``fisheye``, the equidistant model of ``cv2.fisheye`` and Kalibr's ``pinhole-equi``: with
+``r = sqrt(x^2 + y^2)``, ``theta = atan(r)`` and the four coefficients ``k1 k2 k3 k4``,
+``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)`` and
+``x' = (theta_d / r) x, y' = (theta_d / r) y``.
 
 Every projection, distortion and undistortion of the package goes through this module, so the
 detection's edge fit, the PnP pixels fed to the bundle adjustment and the depth
@@ -46,6 +52,9 @@ DISTORTION_NAMES = (
     "tau_y",
 )
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+OPENCV, FISHEYE = "opencv", "fisheye"
+LENS_MODELS = (OPENCV, FISHEYE)
+FISHEYE_NAMES = ("k1", "k2", "k3", "k4")  # cv2.fisheye's and Kalibr's equidistant k1..k4
 # depth noise models of rig.yaml ``depth_noise`` (rgbd_calib.depth.noise.depth_noise): active stereo
 # (RealSense D435, the default) or structured light (Kinect v1 / PrimeSense)
 DEPTH_NOISE_MODELS = ("d435", "kinect-v1")
@@ -223,12 +232,51 @@ def _distort(
     return out
 
 
-def distort_normalized(xy: ArrayLike, dist: ArrayLike) -> Array:
+def _distort_equidistant(
+    x: Array, y: Array, d: Array, jac_xy: bool = False, jac_coef: bool = False
+) -> _Distorted:
+    """The equidistant fisheye (module docstring) of normalized ``x, y`` (N,) with the four
+    coefficients ``d``, and its derivatives as :func:`_distort` gives them."""
+    k1, k2, k3, k4 = d[:4]
+    r = np.sqrt(x * x + y * y)
+    theta = np.arctan(r)
+    t2 = theta * theta
+    poly = 1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
+    theta_d = theta * poly
+    small = r < 1e-12
+    safe_r = np.where(small, 1.0, r)
+    s = np.where(small, 1.0, theta_d / safe_r)  # theta_d / r -> 1 at the centre
+    out = _Distorted(s * x, s * y)
+    if not (jac_xy or jac_coef):
+        return out
+    # ds/dr = (theta_d'(theta) / (1 + r^2) - s) / r; (ds/dr) / r multiplies x x, x y, y y
+    d_theta_d = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+    g = np.where(small, 0.0, (d_theta_d / (1 + r * r) - s) / (safe_r * safe_r))
+    out.j00, out.j01 = s + g * x * x, g * x * y
+    out.j10, out.j11 = g * x * y, s + g * y * y
+    if jac_coef:
+        ux, uy = np.where(small, 0.0, x / safe_r), np.where(small, 0.0, y / safe_r)
+        J = np.zeros((len(x), 2, 4))
+        power = theta * t2
+        for j in range(4):
+            J[:, 0, j], J[:, 1, j] = ux * power, uy * power
+            power = power * t2
+        out.J_coef = J
+    return out
+
+
+def _lens(lens: str):
+    """The distortion function of a lens model (:data:`LENS_MODELS`)."""
+    return _distort_equidistant if lens == FISHEYE else _distort
+
+
+def distort_normalized(xy: ArrayLike, dist: ArrayLike, lens: str = OPENCV) -> Array:
     """Distorted normalized coordinates ``(...,2)`` of ideal ones ``xy`` ``(...,2)``
-    (OpenCV's model with the 4, 5, 8, 12 or 14 coefficients ``dist``)."""
+    (OpenCV's model with the 4, 5, 8, 12 or 14 coefficients ``dist``, or ``lens`` fisheye's
+    four)."""
     xy = np.asarray(xy, dtype=float)
     flat = xy.reshape(-1, 2)
-    out = _distort(flat[:, 0], flat[:, 1], np.asarray(dist, dtype=float).reshape(-1))
+    out = _lens(lens)(flat[:, 0], flat[:, 1], np.asarray(dist, dtype=float).reshape(-1))
     return np.column_stack([out.xd, out.yd]).reshape(xy.shape)
 
 
@@ -237,6 +285,7 @@ def undistort_normalized(
     dist: ArrayLike,
     tolerance: float = UNDISTORT_TOLERANCE,
     max_iterations: int = UNDISTORT_MAX_ITERATIONS,
+    lens: str = OPENCV,
 ) -> Array:
     """Ideal normalized coordinates ``(...,2)`` whose distortion is ``xy_distorted``.
 
@@ -248,6 +297,7 @@ def undistort_normalized(
     ``max_iterations`` keep their best iterate, as ``cv2.undistortPoints`` does."""
     xy_d = np.asarray(xy_distorted, dtype=float)
     d = np.asarray(dist, dtype=float).reshape(-1)
+    distort = _lens(lens)
     flat = xy_d.reshape(-1, 2)
     result = flat.copy()
     tol2 = tolerance * tolerance
@@ -260,7 +310,7 @@ def undistort_normalized(
     step_x = step_y = np.zeros(len(flat))
     scale = np.ones(len(flat))
     for _ in range(max_iterations + 1):
-        f = _distort(x, y, d, jac_xy=True)
+        f = distort(x, y, d, jac_xy=True)
         rx, ry = f.xd - tx, f.yd - ty
         err = rx * rx + ry * ry
         improved = err < best_err  # NaN inputs: never improved, dropped below
@@ -306,6 +356,7 @@ class CameraIntrinsics:
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     depth_scale: float = 0.001  # metres per depth count
     depth_noise: str = "d435"
+    lens: str = OPENCV  # the lens model (LENS_MODELS): its distortion's meaning
 
     @property
     def K(self) -> Array:
@@ -322,8 +373,15 @@ class CameraIntrinsics:
     @property
     def parameter_names(self) -> tuple[str, ...]:
         """Names of the columns of :meth:`intrinsics_jacobian`: fx fy cx cy, then the
-        distortion coefficients in OpenCV order."""
-        return ("fx", "fy", "cx", "cy") + DISTORTION_NAMES[: len(self.distortion)]
+        distortion coefficients in OpenCV order (the fisheye's k1..k4)."""
+        return ("fx", "fy", "cx", "cy") + self.coefficient_names
+
+    @property
+    def coefficient_names(self) -> tuple[str, ...]:
+        """The names of :attr:`distortion`'s coefficients under this lens model."""
+        if self.lens == FISHEYE:
+            return FISHEYE_NAMES[: len(self.distortion)]
+        return DISTORTION_NAMES[: len(self.distortion)]
 
     @property
     def parameters(self) -> dict[str, float]:
@@ -343,20 +401,22 @@ class CameraIntrinsics:
     def distort(self, xy: ArrayLike) -> Array:
         """Ideal normalized coordinates ``(...,2)`` -> distorted normalized coordinates."""
         xy = np.asarray(xy, dtype=float)
-        return distort_normalized(xy, self.dist) if self.has_distortion else xy.copy()
+        return distort_normalized(xy, self.dist, self.lens) if self.has_distortion else xy.copy()
 
     def undistort(self, xy_distorted: ArrayLike) -> Array:
         """Distorted normalized coordinates ``(...,2)`` -> ideal normalized coordinates (the
         inverse of :meth:`distort`, see :func:`undistort_normalized`)."""
         xy_d = np.asarray(xy_distorted, dtype=float)
-        return undistort_normalized(xy_d, self.dist) if self.has_distortion else xy_d.copy()
+        if not self.has_distortion:
+            return xy_d.copy()
+        return undistort_normalized(xy_d, self.dist, lens=self.lens)
 
     def distort_pixels(self, ideal_px: ArrayLike) -> Array:
         """Ideal pinhole pixels ``(...,2)`` (this ``K``, no distortion) -> distorted pixels."""
         px = np.asarray(ideal_px, dtype=float)
         if not self.has_distortion:
             return px.copy()
-        return self._to_pixels(distort_normalized(self._to_normalized(px), self.dist))
+        return self._to_pixels(distort_normalized(self._to_normalized(px), self.dist, self.lens))
 
     def undistort_pixels(self, pixels: ArrayLike) -> Array:
         """Distorted pixels ``(...,2)`` -> ideal pinhole pixels of the same ``K``: what a
@@ -364,7 +424,8 @@ class CameraIntrinsics:
         px = np.asarray(pixels, dtype=float)
         if not self.has_distortion:
             return px.copy()
-        return self._to_pixels(undistort_normalized(self._to_normalized(px), self.dist))
+        return self._to_pixels(undistort_normalized(self._to_normalized(px), self.dist,
+                                                    lens=self.lens))
 
     def rays(self, u: ArrayLike, v: ArrayLike) -> Array:
         """Rays ``(N,3)`` with z = 1 through pixels ``(u, v)`` (pixel centres at integers),
@@ -372,7 +433,7 @@ class CameraIntrinsics:
         x = (np.asarray(u, dtype=float).reshape(-1) - self.cx) / self.fx
         y = (np.asarray(v, dtype=float).reshape(-1) - self.cy) / self.fy
         if self.has_distortion:
-            xy = undistort_normalized(np.column_stack([x, y]), self.dist)
+            xy = undistort_normalized(np.column_stack([x, y]), self.dist, lens=self.lens)
             x, y = xy[:, 0], xy[:, 1]
         return np.column_stack([x, y, np.ones_like(x)])
 
@@ -384,7 +445,7 @@ class CameraIntrinsics:
         if not self.has_distortion:
             return project_pinhole(p, self.fx, self.fy, self.cx, self.cy)
         xy = np.stack([p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]], axis=-1)
-        return self._to_pixels(distort_normalized(xy, self.dist))
+        return self._to_pixels(distort_normalized(xy, self.dist, self.lens))
 
     def project_jacobian(self, points_cam: ArrayLike) -> tuple[Array, Array]:
         """Pixels ``(N,2)`` of camera-frame points ``(N,3)`` (metres) and d(u,v)/d(X,Y,Z)
@@ -397,7 +458,7 @@ class CameraIntrinsics:
             )
         inv_z = 1.0 / p[:, 2]
         x, y = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
-        f = _distort(x, y, self.dist, jac_xy=True)
+        f = _lens(self.lens)(x, y, self.dist, jac_xy=True)
         # d(x, y)/d(X, Y, Z) = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]
         J = np.empty((len(p), 2, 3))
         for row, focal, ja, jb in ((0, self.fx, f.j00, f.j01), (1, self.fy, f.j10, f.j11)):
@@ -411,7 +472,7 @@ class CameraIntrinsics:
         """``(N,2,4+len(distortion))`` d(u,v)/d(fx, fy, cx, cy, k1, k2, p1, p2, k3, ...) at
         camera-frame points ``(N,3)`` (metres); column names in :attr:`parameter_names`."""
         p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
-        f = _distort(p[:, 0] / p[:, 2], p[:, 1] / p[:, 2], self.dist, jac_coef=True)
+        f = _lens(self.lens)(p[:, 0] / p[:, 2], p[:, 1] / p[:, 2], self.dist, jac_coef=True)
         J = np.zeros((len(p), 2, 4 + self.dist.size))
         J[:, 0, 0] = f.xd
         J[:, 1, 1] = f.yd
@@ -429,6 +490,7 @@ class CameraIntrinsics:
             "fy": self.fy,
             "cx": self.cx,
             "cy": self.cy,
+            **({"model": self.lens} if self.lens != OPENCV else {}),
             "distortion": list(self.distortion),
             "depth_scale": self.depth_scale,
             # written only when not the default: rig files of D435 rigs stay as they were

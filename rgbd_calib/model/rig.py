@@ -14,13 +14,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..core.camera import DEPTH_NOISE_MODELS, DISTORTION_LENGTHS, CameraIntrinsics
+from ..core.camera import (
+    DEPTH_NOISE_MODELS,
+    DISTORTION_LENGTHS,
+    FISHEYE,
+    LENS_MODELS,
+    OPENCV,
+    CameraIntrinsics,
+)
 from ..core.errors import ConfigError
 from ..core.yamlio import check_keys, read_yaml_mapping, write_yaml
 
 CAMERA_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 _CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "distortion", "depth_scale",
-                "depth_noise"}
+                "depth_noise", "model"}
 _PINHOLE_KEYS = ("fx", "fy", "cx", "cy")
 _DIST_ADVICE = "give OpenCV's k1 k2 p1 p2 k3, e.g. [0, 0, 0, 0, 0]"
 _ADVICE = "copy the colour intrinsics of the recorded resolution (rs-enumerate-devices -c)"
@@ -116,6 +123,10 @@ def parse_camera(raw: Any, where: str) -> CameraIntrinsics:
     width = int(_positive(raw["width"], f"{where}.width", integer=True))
     height = int(_positive(raw["height"], f"{where}.height", integer=True))
     if not given:
+        if raw.get("model", OPENCV) == FISHEYE:
+            raise ConfigError(f"{where}: a fisheye camera (model: fisheye) needs its fx fy cx "
+                              "cy (and distortion, zeros to self-calibrate it); calibrating a "
+                              "fisheye from scratch is not supported")
         return placeholder_intrinsics(width, height, *_depth_settings(raw, where))
     fx = _positive(raw["fx"], f"{where}.fx")
     fy = _positive(raw["fy"], f"{where}.fy")
@@ -126,9 +137,14 @@ def parse_camera(raw: Any, where: str) -> CameraIntrinsics:
             f"{where}: principal point ({cx}, {cy}) lies outside the {width}x{height} image; "
             "check that the intrinsics belong to this resolution"
         )
-    dist_raw = raw.get("distortion", [0.0] * 5)
+    lens = raw.get("model", OPENCV)
+    if lens not in LENS_MODELS:
+        raise ConfigError(f"{where}.model: {_show(lens)} is not a lens model; give "
+                          f"{' or '.join(LENS_MODELS)} (equidistant, cv2.fisheye's k1..k4)")
+    zeros = [0.0] * (4 if lens == FISHEYE else 5)
+    dist_raw = raw.get("distortion", zeros)
     if dist_raw is None:
-        dist_raw = [0.0] * 5
+        dist_raw = zeros
     if not isinstance(dist_raw, (list, tuple)):
         raise ConfigError(f"{where}.distortion: expected a list of numbers; {_DIST_ADVICE}")
     try:
@@ -137,12 +153,18 @@ def parse_camera(raw: Any, where: str) -> CameraIntrinsics:
         raise ConfigError(
             f"{where}.distortion: expected a list of numbers; {_DIST_ADVICE}"
         ) from exc
+    if lens == FISHEYE and (len(dist) != 4 or not all(math.isfinite(v) for v in dist)):
+        raise ConfigError(
+            f"{where}.distortion: a fisheye lens (model: fisheye) has 4 finite coefficients "
+            f"k1 k2 k3 k4 (cv2.fisheye, Kalibr's pinhole-equi), got {len(dist)}; give four, "
+            "or model: opencv for k1 k2 p1 p2 k3")
     if len(dist) not in DISTORTION_LENGTHS or not all(math.isfinite(v) for v in dist):
         raise ConfigError(
             f"{where}.distortion: expected 4, 5, 8, 12 or 14 finite OpenCV coefficients "
             f"(k1 k2 p1 p2 k3 ...), got {len(dist)}; {_DIST_ADVICE}"
         )
-    return CameraIntrinsics(width, height, fx, fy, cx, cy, dist, *_depth_settings(raw, where))
+    return CameraIntrinsics(width, height, fx, fy, cx, cy, dist, *_depth_settings(raw, where),
+                            lens=lens)
 
 
 def _depth_settings(raw: dict[str, Any], where: str) -> tuple[float, str]:

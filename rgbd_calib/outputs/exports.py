@@ -30,6 +30,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import yaml
 
+from ..core.camera import FISHEYE
 from ..core.geometry import invert_transform, matrix_to_quaternion_xyzw
 from ..core.yamlio import atomic_write_text, to_builtin
 from ..model.posegraph_csv import edges_csv_text, nodes_csv_text
@@ -50,6 +51,7 @@ EXPORT_FILES = {
     "open3d_posegraph": "open3d/posegraph.json",
 }
 OPEN3D_CAMERA = "open3d/{camera}.json"  # one PinholeCameraParameters per camera (with a rig)
+ROS_CAMERA_INFO = "ros/{camera}.yaml"  # camera_calibration_parsers' camera_info (with a rig)
 
 
 def _ordered(extrinsics: Extrinsics) -> list[str]:
@@ -123,7 +125,15 @@ def kalibr_camchain(
         if previous is not None:
             entry["T_cn_cnm1"] = (invert_transform(T_ref_cam) @ previous).tolist()
         intrinsics = rig.cameras.get(name) if rig is not None else None
-        if intrinsics is not None:
+        if intrinsics is not None and intrinsics.lens == FISHEYE:  # Kalibr's pinhole-equi
+            entry.update(
+                camera_model="pinhole",
+                intrinsics=[intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy],
+                distortion_model="equidistant",
+                distortion_coeffs=[float(v) for v in intrinsics.distortion],
+                resolution=[intrinsics.width, intrinsics.height],
+            )
+        elif intrinsics is not None:
             dist = [float(v) for v in intrinsics.distortion]
             if any(dist[4:]):
                 notes.append(
@@ -429,6 +439,42 @@ def open3d_texts(extrinsics: Extrinsics, rig: Rig | None = None) -> dict[str, st
 
 
 # ---------------------------------------------------------------------------------------------
+# ROS camera_info
+
+
+def ros_distortion(intrinsics) -> tuple[str, list[float]]:
+    """``(distortion_model, D)`` of a camera as ROS's ``sensor_msgs/CameraInfo`` names them:
+    ``equidistant`` (a fisheye's k1..k4), ``plumb_bob`` (k1 k2 p1 p2 k3) or
+    ``rational_polynomial`` (the 8 coefficients; thin-prism and tilt terms beyond them are not
+    in ROS's models and are dropped)."""
+    d = [float(v) for v in intrinsics.distortion]
+    if intrinsics.lens == FISHEYE:
+        return "equidistant", d
+    if len(d) <= 5 or not any(d[5:]):
+        return "plumb_bob", (d + [0.0] * 5)[:5]
+    return "rational_polynomial", (d + [0.0] * 8)[:8]
+
+
+def ros_camera_info_text(camera: str, intrinsics, extrinsics: Extrinsics) -> str:
+    """The camera_info YAML of ``camera_calibration_parsers`` (what ``camera_info_url``
+    loads): size, K, the lens model and its D, R = identity, P = [K | 0]; the verdict as a
+    comment."""
+    model, d = ros_distortion(intrinsics)
+    K = intrinsics.K
+    P = np.hstack([K, np.zeros((3, 1))])
+    info = {
+        "image_width": intrinsics.width, "image_height": intrinsics.height,
+        "camera_name": camera,
+        "camera_matrix": {"rows": 3, "cols": 3, "data": K.ravel().tolist()},
+        "distortion_model": model,
+        "distortion_coefficients": {"rows": 1, "cols": len(d), "data": d},
+        "rectification_matrix": {"rows": 3, "cols": 3, "data": np.eye(3).ravel().tolist()},
+        "projection_matrix": {"rows": 3, "cols": 4, "data": P.ravel().tolist()},
+    }
+    return _hash_comment(extrinsics) + yaml.safe_dump(to_builtin(info), sort_keys=False)
+
+
+# ---------------------------------------------------------------------------------------------
 # All at once
 
 
@@ -472,4 +518,9 @@ def write_exports(
         kind = by_path.get(rel, "open3d_camera:" + Path(rel).stem)
         paths[kind] = folder / rel
         atomic_write_text(paths[kind], text)
+    for camera in _ordered(extrinsics) if rig is not None else []:
+        if camera in rig.cameras:
+            paths["ros_camera_info:" + camera] = folder / ROS_CAMERA_INFO.format(camera=camera)
+            atomic_write_text(paths["ros_camera_info:" + camera],
+                              ros_camera_info_text(camera, rig.cameras[camera], extrinsics))
     return paths

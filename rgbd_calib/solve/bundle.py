@@ -38,6 +38,7 @@ from .bundle_faces import (
 )
 from .bundle_factors import (
     face_transform,
+    lens_names,
     project_board,
     project_board_full,
     view_factor,
@@ -803,9 +804,10 @@ def _refined_intrinsics(p: _FactorLayout, values: gtsam.Values, marginals: gtsam
     """The refined camera models, their marginal sigmas and their prior sigmas, by parameter
     name (all empty when the intrinsics are fixed)."""
     refined = _current_models(p, values) or {}
-    sigma = {c: dict(zip(p.names, np.sqrt(np.diag(
+    sigma = {c: dict(zip(lens_names(p.intrinsics[c], p.names), np.sqrt(np.diag(
         marginals.marginalCovariance(p.intr_key[c]))).tolist())) for c in refined}
-    prior = {c: dict(zip(p.names, p.prior_intr[c].sigmas().tolist())) for c in refined}
+    prior = {c: dict(zip(lens_names(p.intrinsics[c], p.names),
+                         p.prior_intr[c].sigmas().tolist())) for c in refined}
     return refined, sigma, prior
 
 
@@ -814,6 +816,8 @@ def _residual_dof(p: _FactorLayout, n_markers: int, values: gtsam.Values) -> int
     unheld pose, the intrinsics vectors, 4 for the back sheet: its tilts are held; 6 for
     each face of a multi-face target)."""
     n_intr = sum(values.exists(k) for k in p.intr_key.values())
+    n_intr_params = sum(len(lens_names(p.intrinsics[c], p.names))
+                        for c, k in p.intr_key.items() if values.exists(k))
     n_back = len(p.moving)
     face_params = sum(4 if A is None else 6 for _, _, A in p.moving)
     n_time = sum(values.exists(k) for k in p.time_key.values())
@@ -821,7 +825,7 @@ def _residual_dof(p: _FactorLayout, n_markers: int, values: gtsam.Values) -> int
     time_params = 2 * n_time - (1 if n_time else 0) + 6 * n_twist  # the reference's offset held
     return max(8 * n_markers - 6 * (values.size() - n_intr - n_back - len(p.fixed)
                                     - n_time - n_twist)
-               - len(p.names) * n_intr - face_params - time_params, 1)
+               - n_intr_params - face_params - time_params, 1)
 
 
 def _camera_marginals(cams: list[str], values: gtsam.Values, cam_key: dict[str, int],

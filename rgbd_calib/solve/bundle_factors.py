@@ -9,12 +9,16 @@ with that face's pose (:func:`_view_factor_faces`). Poses are perturbed on the r
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 
 from ..core.camera import (
     DISTORTION_LENGTHS,
     DISTORTION_NAMES,
+    FISHEYE,
+    FISHEYE_NAMES,
     CameraIntrinsics,
     pinhole_pose_jacobian,
     project_pinhole,
@@ -161,23 +165,38 @@ def view_factor(key_cam: int, key_board: int, K: np.ndarray, object_points: np.n
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), [key_cam, key_board], error)
 
 
+def lens_names(base: CameraIntrinsics, names: tuple[str, ...]) -> tuple[str, ...]:
+    """The parameters ``names`` (the configuration's, in OpenCV's model) as ``base``'s lens
+    model names them: the same for an OpenCV lens and for fisheye names (k1..k4); for a
+    fisheye asked for OpenCV's coefficients (p1, p2, k5, ...: the configuration's default
+    k1 k2 p1 p2 k3), its pinhole names and its four k1..k4."""
+    if base.lens != FISHEYE:
+        return tuple(names)
+    pinhole = tuple(n for n in names if n in ("fx", "fy", "cx", "cy"))
+    lens = tuple(n for n in names if n not in pinhole)
+    return pinhole + (lens if set(lens) <= set(FISHEYE_NAMES) else FISHEYE_NAMES)
+
+
 def with_parameters(base: CameraIntrinsics, names: tuple[str, ...],
                     x: np.ndarray) -> CameraIntrinsics:
-    """``base`` with the parameters ``names`` set to ``x`` (distortion names index OpenCV's
-    coefficient list; the list is padded with zeros to hold the last name)."""
+    """``base`` with the parameters ``names`` set to ``x`` (distortion names index the lens
+    model's coefficient list; OpenCV's is padded with zeros to hold the last name)."""
+    names = lens_names(base, names)
     values = dict(zip(names, np.asarray(x, dtype=float).tolist()))
     dist = list(padded_distortion(base, names))
-    for i, name in enumerate(DISTORTION_NAMES[:len(dist)]):
+    coefficients = FISHEYE_NAMES if base.lens == FISHEYE else DISTORTION_NAMES
+    for i, name in enumerate(coefficients[:len(dist)]):
         dist[i] = values.get(name, dist[i])
-    return CameraIntrinsics(base.width, base.height,
-                            values.get("fx", base.fx), values.get("fy", base.fy),
-                            values.get("cx", base.cx), values.get("cy", base.cy),
-                            tuple(dist), base.depth_scale, base.depth_noise)
+    return replace(base, fx=values.get("fx", base.fx), fy=values.get("fy", base.fy),
+                   cx=values.get("cx", base.cx), cy=values.get("cy", base.cy),
+                   distortion=tuple(dist))
 
 
 def padded_distortion(base: CameraIntrinsics, names: tuple[str, ...]) -> tuple[float, ...]:
     """``base.distortion`` padded with zeros to OpenCV's next valid length (4, 5, 8, 12, 14)
-    that holds every distortion coefficient of ``names``."""
+    that holds every distortion coefficient of ``names`` (a fisheye's four as they are)."""
+    if base.lens == FISHEYE:
+        return tuple(base.distortion)
     need = max([DISTORTION_NAMES.index(n) + 1 for n in names if n in DISTORTION_NAMES]
                + [len(base.distortion)])
     length = next(n for n in DISTORTION_LENGTHS if n >= need)
@@ -190,8 +209,8 @@ def refined_model(base: CameraIntrinsics,
     (:func:`padded_distortion`), and the columns of ``names`` in its
     :meth:`~rgbd_calib.core.camera.CameraIntrinsics.intrinsics_jacobian`: what a view factor
     that refines those parameters projects through."""
-    padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
-                              padded_distortion(base, names), base.depth_scale)
+    names = lens_names(base, names)
+    padded = replace(base, distortion=padded_distortion(base, names))
     return padded, np.array([padded.parameter_names.index(nm) for nm in names])
 
 

@@ -8,7 +8,7 @@ ladder read. No solving here.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
@@ -16,7 +16,7 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..core.config import BundleConfig
 from .bundle_faces import BoardModel, FaceModel
-from .bundle_factors import padded_distortion
+from .bundle_factors import lens_names, padded_distortion
 from .corner_noise import CornerNoise
 from .edge_offset import EdgeOffset
 from .runs import RunCorrelation
@@ -135,8 +135,8 @@ class BundleProblem:
 
 def intrinsics_vector(base: CameraIntrinsics, names: tuple[str, ...]) -> np.ndarray:
     """The values of the parameters ``names`` of ``base`` (missing coefficients are 0)."""
-    padded = CameraIntrinsics(base.width, base.height, base.fx, base.fy, base.cx, base.cy,
-                              padded_distortion(base, names), base.depth_scale)
+    names = lens_names(base, names)
+    padded = replace(base, distortion=padded_distortion(base, names))
     table = padded.parameters
     return np.array([table[n] for n in names], dtype=float)
 
@@ -146,7 +146,7 @@ def intrinsics_prior_sigmas(base: CameraIntrinsics, names: tuple[str, ...],
     """Prior sigmas of the parameters ``names``: focal in percent of its value, centre in
     pixels, p1/p2 tangential, every other coefficient with the distortion sigma."""
     out = []
-    for n in names:
+    for n in lens_names(base, names):
         if n in ("fx", "fy"):
             out.append(config.intrinsics_prior_focal_pct / 100.0 * getattr(base, n))
         elif n in ("cx", "cy"):

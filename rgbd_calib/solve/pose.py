@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..core.camera import CameraIntrinsics
+from ..core.camera import FISHEYE, CameraIntrinsics
 from ..core.config import CalibrationConfig, PoseConfig
 from ..core.geometry import make_transform, rotation_angle_deg, rotvec_to_matrix, skew
 from ..detect.markers import MarkerDetections
@@ -163,6 +163,9 @@ def project_points(
     """Pixels of board-frame points ``(...,3)`` (metres) seen through ``T_cam_board``
     (OpenCV camera model, intrinsics' distortion) as ``(...,2)``."""
     pts = np.asarray(object_points, dtype=float)
+    if intrinsics.lens == FISHEYE:  # cv2.projectPoints is OpenCV's lens only
+        T = np.asarray(T_cam_board, dtype=float)
+        return intrinsics.project(pts @ T[:3, :3].T + T[:3, 3])
     rvec, tvec = _to_rvec_tvec(np.asarray(T_cam_board, dtype=float))
     uv, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), rvec, tvec, intrinsics.K, intrinsics.dist)
     return uv.reshape(*pts.shape[:-1], 2)  # projectPoints gives (M,1,2)
@@ -196,10 +199,14 @@ def pose_jacobian(
     points, instead of 12 projections by central differences (1.3 ms -> ~0.1 ms a view;
     the two agree to ~1e-9 relative, :func:`pose_jacobian_numeric`)."""
     pts = np.asarray(object_points, dtype=float).reshape(-1, 3)
-    rvec, tvec = _to_rvec_tvec(np.asarray(T_cam_board, dtype=float))
-    _, d = cv2.projectPoints(pts.reshape(-1, 1, 3), rvec, tvec, intrinsics.K, intrinsics.dist)
-    d_pix_d_x = d[:, 3:6].reshape(-1, 2, 3)  # columns: rvec (3), tvec (3), f, c, distortion
     R = np.asarray(T_cam_board, dtype=float)[:3, :3]
+    if intrinsics.lens == FISHEYE:
+        _, d_pix_d_x = intrinsics.project_jacobian(pts @ R.T + np.asarray(T_cam_board)[:3, 3])
+    else:
+        rvec, tvec = _to_rvec_tvec(np.asarray(T_cam_board, dtype=float))
+        _, d = cv2.projectPoints(pts.reshape(-1, 1, 3), rvec, tvec, intrinsics.K,
+                                 intrinsics.dist)
+        d_pix_d_x = d[:, 3:6].reshape(-1, 2, 3)  # columns: rvec, tvec, f, c, distortion
     P_x = np.cross(pts[:, None, :], np.eye(3)).transpose(0, 2, 1)  # [P]x: column k is P x e_k
     d_x_d_omega = -np.einsum("ij,njk->nik", R, P_x)
     J = np.empty((len(pts), 2, 6))
@@ -235,12 +242,10 @@ def _solve(
     None; the ratio is IPPE's best/second reprojection error, the angle between the two
     solutions' rotations (0 without a second solution)."""
     obj = object_points.astype(np.float64).reshape(-1, 1, 3)
-    img = image_points.astype(np.float64).reshape(-1, 1, 2)
+    img, K, dist = _cv_camera(image_points, intrinsics)
     flags = cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_SQPNP
     try:
-        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
-            obj, img, intrinsics.K, intrinsics.dist, flags=flags
-        )
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=flags)
     except cv2.error:
         return None
     if not n:
@@ -255,10 +260,20 @@ def _solve(
         R1, _ = cv2.Rodrigues(rvecs[best])
         R2, _ = cv2.Rodrigues(rvecs[second])
         angle = rotation_angle_deg(R1.T @ R2)
-    rvec, tvec = cv2.solvePnPRefineLM(
-        obj, img, intrinsics.K, intrinsics.dist, rvecs[best].copy(), tvecs[best].copy()
-    )
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvecs[best].copy(),
+                                      tvecs[best].copy())
     return _from_rvec_tvec(rvec, tvec), ratio, angle
+
+
+def _cv_camera(image_points: np.ndarray, intrinsics: CameraIntrinsics):
+    """``(pixels (P,1,2), K, distortion)`` for OpenCV's PnP: the pixels and the lens as they
+    are for OpenCV's model; for another lens (fisheye) the pixels undistorted to the same
+    ``K`` and no distortion (the bundle adjustment then fits the raw pixels through the
+    lens)."""
+    img = np.asarray(image_points, dtype=np.float64).reshape(-1, 2)
+    if intrinsics.lens == FISHEYE:
+        return intrinsics.undistort_pixels(img).reshape(-1, 1, 2), intrinsics.K, None
+    return img.reshape(-1, 1, 2), intrinsics.K, intrinsics.dist
 
 
 def _pose_covariance(
@@ -364,19 +379,18 @@ def _solve_faces(
     best_face = labels[int(np.argmax(counts))]
     sel = faces == best_face
     obj = object_points.reshape(-1, 3).astype(np.float64).reshape(-1, 1, 3)
-    img = corners_px.reshape(-1, 2).astype(np.float64).reshape(-1, 1, 2)
+    img, K, dist = _cv_camera(corners_px, intrinsics)
     rows = np.repeat(sel, 4)
     try:
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj[rows], img[rows], intrinsics.K,
-                                                 intrinsics.dist, flags=cv2.SOLVEPNP_IPPE)
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj[rows], img[rows], K, dist,
+                                                 flags=cv2.SOLVEPNP_IPPE)
     except cv2.error:
         return None
     if not n:
         return None
     found = []
     for rvec, tvec in zip(rvecs, tvecs):
-        rvec, tvec = cv2.solvePnPRefineLM(obj, img, intrinsics.K, intrinsics.dist,
-                                          rvec.copy(), tvec.copy())
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec.copy(), tvec.copy())
         T = _from_rvec_tvec(rvec, tvec)
         r = reprojection_residuals(T, object_points, corners_px, intrinsics)
         found.append((float(np.sqrt((r**2).sum(-1).mean())), T))

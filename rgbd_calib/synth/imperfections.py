@@ -44,10 +44,11 @@ def camera_imperfections(
     for cam, (e_f, e_cx, e_cy) in zip(cameras, unit):
         truth = cam.intrinsics
         if params.distortion is not None:
-            truth = replace(truth, distortion=tuple(float(d) for d in params.distortion))
+            truth = replace(truth, distortion=tuple(float(d) for d in params.distortion),
+                            lens=params.lens)
         listed = truth
         if truth.has_distortion and params.rig_distortion == "zeros":
-            listed = replace(listed, distortion=(0.0,) * 5)
+            listed = replace(listed, distortion=(0.0,) * len(truth.distortion))
         if f_pct > 0 or px > 0:
             scale = 1.0 + e_f * f_pct / 100.0
             listed = replace(

@@ -48,7 +48,7 @@ def sample_board_poses(
     board and the cameras' pinhole part, so a seed gives the same poses with or without the
     imperfections of :class:`SynthParams`."""
     pinholes = [
-        replace(c, intrinsics=replace(c.intrinsics, distortion=(0.0,) * 5))
+        replace(c, intrinsics=replace(c.intrinsics, distortion=(0.0,) * 5, lens="opencv"))
         if c.intrinsics.has_distortion
         else c
         for c in rig.cameras
