@@ -115,15 +115,17 @@ def test_the_depth_registration_line_says_what_the_pairs_did_and_how_they_were_w
     """calibrate's console line on the depth pairs: used with their variance factor (the
     pairs' covariance x the factor: at least depth.pair_variance_floor), not used and why
     (markup in the reason escaped), not needed, or nothing."""
+    import numpy as np
+
     from rgbd_calib.cli.console import depth_registration_line
+    from rgbd_calib.depth.registration import DepthPair, failed_registration
     from rgbd_calib.depth.stage import DepthRefinement
     from rgbd_calib.solve.bundle import RelativePose
 
-    pair = {"cam_a": "a", "cam_b": "b", "accepted": True, "reason": None, "rejected_by": []}
-    import numpy as np
-
+    rejected = failed_registration("a", "b", "colored-icp", np.eye(4), "no correspondences")
+    pair = DepthPair(replace(rejected, accepted=True, reason=None, rejected_by=()))
     rel = RelativePose("a", "b", np.eye(4), np.eye(6))
-    used = DepthRefinement("colored-icp", {}, {}, [pair, {**pair, "accepted": False}], [rel],
+    used = DepthRefinement("colored-icp", {}, {}, [pair, DepthPair(rejected)], [rel],
                            {}, pair_variance_factor=4.37)
     line = depth_registration_line(used)
     assert line.startswith("depth registration: 1 of 2 camera pairs used") and "x4.37" in line

@@ -16,6 +16,7 @@ from rgbd_calib.core.geometry import invert_transform, transform_error
 from rgbd_calib.depth import information as DI
 from rgbd_calib.depth import registration as D
 from rgbd_calib.depth import stage as S
+from rgbd_calib.depth.registration import DepthPair, pair_dicts
 
 
 @pytest.fixture(scope="module")
@@ -123,11 +124,12 @@ def _assert_board_result(result, board_only, rig):
     from rgbd_calib.outputs.report.build import report_dict
 
     assert result.depth is not None and result.depth.fallback
-    assert not result.depth.relative_poses and not any(p["accepted"] for p in result.depth.pairs)
+    assert not result.depth.relative_poses and not any(p.accepted for p in result.depth.pairs)
     for name, cam in board_only.extrinsics.cameras.items():
         np.testing.assert_allclose(result.extrinsics.cameras[name].T_ref_cam, cam.T_ref_cam,
                                    atol=1e-9)
-    report = report_dict(result, rig, result.depth.pairs, result.depth.depth_scale_dict())
+    report = report_dict(result, rig, pair_dicts(result.depth.pairs),
+                         result.depth.depth_scale_dict())
     codes = [w["code"] for w in report["warnings"]]
     assert "depth_unused" in codes and report["summary"]["verdict"] != "good"
 
@@ -138,7 +140,7 @@ def test_calibrate_falls_back_to_the_board_when_every_pair_fails(line_board_only
     result = run()  # default: colored ICP
     assert result.depth.pairs, "the thesis line has overlapping pairs"
     for p in result.depth.pairs:
-        assert "No correspondences found" in p["reason"] and "\x1b" not in p["reason"]
+        assert "No correspondences found" in p.reason and "\x1b" not in p.reason
     _assert_board_result(result, board_only, rig)
 
 
@@ -163,7 +165,7 @@ def test_calibrate_falls_back_when_the_joint_solve_fails(line_board_only, monkey
     monkeypatch.setattr(S, "register_pair", accepted)
     monkeypatch.setattr(C, "bundle_sound_first", failing)
     result = run()
-    assert any("not used: the joint solve with the depth pairs failed" in p["reason"]
+    assert any("not used: the joint solve with the depth pairs failed" in p.reason
                for p in result.depth.pairs)
     _assert_board_result(result, board_only, rig)
 
@@ -188,6 +190,6 @@ def test_a_pair_against_the_board_and_an_unused_pair_say_their_kind():
     # within the board's uncertainty (1 m sigma): kept as it was
     loose = {c: np.eye(6) for c in ("a", "b")}
     assert S.consistent_with_board(reg, loose, {"a": CAM_A, "b": CAM_B}, DepthConfig()) is reg
-    depth = S.DepthRefinement("colored-icp", {}, {}, [reg.to_dict()], [], {})
+    depth = S.DepthRefinement("colored-icp", {}, {}, [DepthPair(reg)], [], {})
     (pair,) = depth.with_fallback("the joint solve failed").pairs
-    assert not pair["accepted"] and pair["rejected_by"] == ["not_used"]
+    assert not pair.accepted and pair.to_dict()["rejected_by"] == ["not_used"]

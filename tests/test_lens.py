@@ -118,3 +118,14 @@ def test_the_exports_carry_the_lens_model():
     assert chain["cam1"]["distortion_model"] == "radtan"
     assert ros_distortion(FISH) == ("equidistant", list(FISH.distortion))
     assert ros_distortion(rig.cameras["b"])[0] == "plumb_bob"
+
+
+def test_a_fisheye_with_zero_coefficients_is_equidistant_not_a_pinhole():
+    """rig.yaml's "unknown lens" of a fisheye is its zeros: theta_d = theta, not r."""
+    zero = replace(FISH, distortion=(0.0,) * 4)
+    assert zero.has_distortion
+    P = np.array([[1.0, 0.5, 1.0]])
+    r = np.hypot(1.0, 0.5)
+    expected = np.array([640.0, 360.0]) + np.array([500.0, 502.0]) * P[0, :2] * np.arctan(r) / r
+    assert np.abs(zero.project(P)[0] - expected).max() < 1e-9
+    assert np.abs(project_points(np.eye(4), P, zero)[0] - expected).max() < 1e-9

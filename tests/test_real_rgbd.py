@@ -98,7 +98,7 @@ def tum_refined(request, tmp_path_factory):
                          "start": (mm0, deg0), "error": (mm1, deg1),
                          "sigma_mm": ext.cameras["b"].sigma_translation_mm,
                          "sigma_deg": ext.cameras["b"].sigma_rotation_deg,
-                         "pairs": [(p["accepted"], p.get("reason")) for p in depth.pairs]})
+                         "pairs": [(p.accepted, p.reason) for p in depth.pairs]})
     print("\n" + "\n".join(
         f"{r['method']} {r['pair']} s{r['seed']} {r['baseline_mm']:.0f} mm: "
         f"{r['start'][0]:.1f} mm / {r['start'][1]:.2f} deg -> {r['error'][0]:.2f} mm / "

@@ -59,14 +59,14 @@ def test_depth_scale_bias_recovered(refined_small_race):
 def test_pairs_are_reported_and_joined(refined_small_race):
     _, result = refined_small_race
     pairs = result.depth.pairs
-    assert pairs and any(p["accepted"] for p in pairs)
+    assert pairs and any(p.accepted for p in pairs)
     for p in pairs:
-        assert p["accepted"] or p["reason"]
-        if p["accepted"]:
-            assert np.isfinite(p["rmse_final_mm"]) and p["rmse_final_mm"] < 20
+        assert p.accepted or p.reason
+        if p.accepted:
+            assert p.finished and np.isfinite(p.rmse_final_mm) and p.rmse_final_mm < 20
     # the joint graph used the accepted pairs (one relative-pose factor each), weighed by
     # their variance factor against the board (never trusted beyond their information)
-    assert len(result.depth.relative_poses) == sum(p["accepted"] for p in pairs)
+    assert len(result.depth.relative_poses) == sum(p.accepted for p in pairs)
     assert result.depth.pair_variance_factor >= 1.0
     assert result.depth.status_dict()["pair_variance_factor"] == result.depth.pair_variance_factor
 

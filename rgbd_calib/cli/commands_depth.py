@@ -146,12 +146,12 @@ def refine(
             console.print(f"depth scale {what}: {', '.join(cams)}")
     write_refine(result, out, warn=warn_line)
     for p in result.depth.pairs:
-        state = "accepted" if p["accepted"] else f"rejected: {p['reason']}"
-        before, final = p["rmse_before_mm"], p["rmse_final_mm"]
+        state = "accepted" if p.accepted else f"rejected: {p.reason}"
+        before, final = p.registration.rmse_before_mm, p.rmse_final_mm
         rmse = (f"rmse {before:.2f} -> {final:.2f} mm, "
                 if before is not None and final is not None and math.isfinite(before)
                 and math.isfinite(final) else "")
-        console.print(f"{p['cam_a']} -> {p['cam_b']}: {rmse}{state}")
+        console.print(f"{p.cam_a} -> {p.cam_b}: {rmse}{state}")
     outcome = result.outcome
     colour = {"refined": "green", "unchanged": "yellow", "check": "yellow"}[outcome["verdict"]]
     console.print(f"[{colour}]{outcome['verdict']}[/]: {outcome['message']}")
@@ -223,7 +223,7 @@ def _fix_others(ds, init: Path, calib, scales, method, out, tolerance_mm, tolera
     status = ({"status": "skipped", "reason": "no camera moved beyond the tolerance",
                "weak_cameras": {}} if not moved else
               {"status": "used", "reason": None, "weak_cameras": {}}
-              if any(p["accepted"] for p in pairs) else
+              if any(p.accepted for p in pairs) else
               {"status": "fallback", "reason": "no pair of a moved camera fits after "
                "re-registration", "weak_cameras": {}})
     depth_only = DepthOnlyRun(ds, init, method, verdict, pairs, run.scale_source, scales,

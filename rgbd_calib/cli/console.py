@@ -240,7 +240,7 @@ def depth_registration_line(depth: Any) -> str | None:
     from ..outputs.report.findings import confirming_pairs
 
     pairs = depth.pairs
-    agree = len(confirming_pairs(pairs))
+    agree = len(confirming_pairs([p.to_dict() for p in pairs]))
     if depth.fallback is not None and agree:
         return (f"depth registration: {agree} of {len(pairs)} camera pairs agree with the "
                 "board result within their own uncertainty; nothing to correct, the "

@@ -368,7 +368,9 @@ class CameraIntrinsics:
 
     @property
     def has_distortion(self) -> bool:
-        return bool(np.any(self.dist != 0.0))
+        """Whether pixels differ from the pinhole's: any nonzero coefficient, or a fisheye
+        (its equidistant mapping bends rays with every coefficient zero)."""
+        return self.lens == FISHEYE or bool(np.any(self.dist != 0.0))
 
     @property
     def parameter_names(self) -> tuple[str, ...]:

@@ -171,6 +171,64 @@ class PairRegistration:
         }
 
 
+@dataclass(frozen=True)
+class DepthPair:
+    """One camera pair as the depth stage, ``check`` and ``refine`` report it: its
+    registration, the overlap it was found by (None where the pairs were given), its
+    point-to-plane RMSE at the final extrinsics once measured (``finished``;
+    :func:`rgbd_calib.depth.stage.finish_pairs`) and, for ``refine --fix``, the moved
+    cameras it was registered again for. :meth:`to_dict` is its report-ready entry
+    (report.json ``pairs[]``, check.json, refine_report.json)."""
+
+    registration: PairRegistration
+    overlap: PairOverlap | None = None
+    rmse_final_mm: float | None = None
+    finished: bool = False
+    re_registered_for: tuple[str, ...] | None = None
+
+    @property
+    def cam_a(self) -> str:
+        return self.registration.cam_a
+
+    @property
+    def cam_b(self) -> str:
+        return self.registration.cam_b
+
+    @property
+    def accepted(self) -> bool:
+        return self.registration.accepted
+
+    @property
+    def agrees(self) -> bool:
+        return self.registration.agrees
+
+    @property
+    def reason(self) -> str | None:
+        return self.registration.reason
+
+    def unused(self, why: str) -> DepthPair:
+        """This pair, when accepted, marked left out of the solve (``not_used``)."""
+        if not self.accepted:
+            return self
+        reg = replace(self.registration, accepted=False, reason=f"not used: {why}",
+                      rejected_by=("not_used",))
+        return replace(self, registration=reg)
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {**(self.overlap.to_dict() if self.overlap is not None else {}),
+               **self.registration.to_dict()}
+        if self.finished:
+            out["rmse_final_mm"] = self.rmse_final_mm
+        if self.re_registered_for is not None:
+            out["re_registered_for"] = list(self.re_registered_for)
+        return out
+
+
+def pair_dicts(pairs: list[DepthPair]) -> list[dict[str, Any]]:
+    """The report-ready entries of ``pairs`` (:meth:`DepthPair.to_dict`)."""
+    return [p.to_dict() for p in pairs]
+
+
 # --------------------------------------------------------------------------- overlap
 def _overlap_fraction(points_a: np.ndarray, T_b_a: np.ndarray, intr_b: CameraIntrinsics,
                       tree_b: cKDTree, distance: float) -> tuple[float, int]:

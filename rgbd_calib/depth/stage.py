@@ -59,6 +59,7 @@ from .depth_model_fit import (
 from .information import tangent_error, with_covariance
 from .overlap_models import OverlapUpdate, overlap_samples, recorrected, update_models
 from .registration import (
+    DepthPair,
     PairRegistration,
     failed_registration,
     find_overlapping_pairs,
@@ -77,12 +78,13 @@ FEW_BOARD_PIXELS = "too few board pixels with depth in its views"
 
 @dataclass(frozen=True)
 class DepthRefinement:
-    """What the depth stage measured; ``pairs`` are report-ready dicts (see report schema)."""
+    """What the depth stage measured; ``pairs`` its camera pairs (:class:`DepthPair`;
+    ``DepthPair.to_dict`` is their report entry)."""
 
     method: str
     depth_scales: dict[str, DepthScaleEstimate]
     clouds: dict[str, CameraCloud]
-    pairs: list[dict[str, Any]]
+    pairs: list[DepthPair]
     relative_poses: list[RelativePose]
     T_ref_cam_initial: dict[str, np.ndarray]  # extrinsics the pairs were registered from
     timings_s: dict[str, float] = field(default_factory=dict)
@@ -141,9 +143,7 @@ class DepthRefinement:
 
     def with_fallback(self, reason: str) -> DepthRefinement:
         """This measurement with every pair unused: the solve keeps the board result."""
-        pairs = [p if not p.get("accepted") else
-                 {**p, "accepted": False, "reason": f"not used: {reason}",
-                  "rejected_by": ["not_used"]} for p in self.pairs]
+        pairs = [p.unused(reason) for p in self.pairs]
         return replace(self, pairs=pairs, relative_poses=[], fallback=reason)
 
     def depth_scale_dict(self) -> dict[str, dict[str, float]]:
@@ -245,7 +245,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                   f"{config.board_weak_sigma_mm} mm / {config.board_weak_sigma_deg} deg"),
             weak_cameras={}, depth_models=models, beyond_board=far, unmodelled=unmodelled)
 
-    pairs: list[dict[str, Any]] = []
+    pairs: list[DepthPair] = []
     relative: list[RelativePose] = []
     sensor_pose: tuple[float, float] | None = None
     if method != "none" and len(clouds) >= 2:
@@ -278,7 +278,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                 if reg.accepted:
                     # an accepted pair is weighed with what its sensors' poses may still hide
                     reg = with_sensor_poses(reg, moments)
-                pairs.append({**ov.to_dict(), **reg.to_dict()})
+                pairs.append(DepthPair(reg, ov))
                 if reg.accepted:
                     relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
     depth = DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings,
@@ -727,7 +727,7 @@ def no_pair_reason(depth: DepthRefinement) -> str:
         return f"fewer than 2 cameras have a static cloud{f' ({why})' if why else ''}"
     if not depth.pairs:
         return "no camera pair overlaps under the current extrinsics"
-    agree = sum(bool(p.get("agrees")) for p in depth.pairs)
+    agree = sum(p.agrees for p in depth.pairs)
     return (f"all {len(depth.pairs)} camera pairs were rejected"
             + (f" ({agree} of them agree with the current extrinsics within their own "
                "uncertainty: nothing to correct)" if agree else ""))
@@ -741,15 +741,15 @@ def finish_pairs(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
     ``tick(1)`` after each pair."""
     pairs = []
     for p in depth.pairs:
-        a, b = p["cam_a"], p["cam_b"]
+        a, b = p.cam_a, p.cam_b
         final = None
         if a in T_ref_cam and b in T_ref_cam and all(
                 np.array_equal(T_ref_cam[c], depth.T_ref_cam_initial[c]) for c in (a, b)):
-            final = p.get("rmse_before_mm")
+            final = p.registration.rmse_before_mm
         elif a in T_ref_cam and b in T_ref_cam:
             final = pair_rmse_mm(depth.clouds[a], depth.clouds[b], depth.T_ref_cam_initial[a],
                                  depth.T_ref_cam_initial[b], T_ref_cam[a], T_ref_cam[b], config)
-        pairs.append({**p, "rmse_final_mm": final})
+        pairs.append(replace(p, rmse_final_mm=final, finished=True))
         if tick is not None:
             tick(1)
     return replace(depth, pairs=pairs)

@@ -28,6 +28,7 @@ from ..core.ply import write_fused_ply
 from ..core.progress import Progress
 from ..core.yamlio import to_builtin, write_yaml
 from ..depth.clouds import fuse_clouds
+from ..depth.registration import DepthPair, pair_dicts
 from ..depth.stage import DepthRefinement
 from ..model.board import refined_board, refined_multiface
 from ..model.board_file import save_board
@@ -155,7 +156,7 @@ def write_outputs(
             save_board(refined_multiface(result.board, {f.label: f.T_board_face for f in faces
                                                          if not f.held}), stage / BOARD_REFINED)
         if result.depth is not None:
-            pairs = pairs if pairs is not None else result.depth.pairs
+            pairs = pairs if pairs is not None else pair_dicts(result.depth.pairs)
             depth_scale = depth_scale if depth_scale is not None else (
                 result.depth.depth_scale_dict())
             fits = result.depth.depth_models
@@ -228,7 +229,7 @@ class DepthOnlyRun:
     init: Path | None  # None: extrinsics given in memory
     method: str
     verdict: dict[str, Any]  # refine_verdict / fix_verdict
-    pairs: list[dict[str, Any]]
+    pairs: list[DepthPair]
     scale_source: dict[str, str]  # camera -> board / given / unknown
     # camera -> the depth model (depth_model.yaml) or factor (report.json) next to --init
     given_scales: dict[str, float | DepthModel]
@@ -254,7 +255,7 @@ class DepthOnlyRun:
             extrinsics, self.dataset.rig, self.dataset.summary().to_dict(),
             refine_summary(self.init, self.method, self.verdict, self.scale_source,
                            self.moved),
-            self.pairs, self.depth_status, scales, self.timings_s)
+            pair_dicts(self.pairs), self.depth_status, scales, self.timings_s)
 
 
 def write_refine_outputs(
@@ -275,7 +276,7 @@ def write_refine_outputs(
     ``warn(why)``: the extrinsics are written all the same."""
     report = {**(verdict or {}), "method": method,
               "init": str(init) if init is not None else IN_MEMORY,
-              "depth": depth.status_dict(), "pairs": depth.pairs}
+              "depth": depth.status_dict(), "pairs": pair_dicts(depth.pairs)}
     return _write_refined(extrinsics, depth.clouds, out_dir, fused_voxel_m,
                           json.dumps(to_builtin(report), indent=1, default=str), run, warn)
 
@@ -311,7 +312,7 @@ def write_check_outputs(run: CheckRun, out_dir: Path, calib: Path) -> list[Path]
     return written
 
 
-def write_fix_outputs(extrinsics: Extrinsics, run: CheckRun, pairs: list[dict[str, Any]],
+def write_fix_outputs(extrinsics: Extrinsics, run: CheckRun, pairs: list[DepthPair],
                       out_dir: Path, method: str, init: Path,
                       verdict: dict[str, Any], fused_voxel_m: float = 0.005,
                       depth_only: DepthOnlyRun | None = None,
@@ -321,7 +322,7 @@ def write_fix_outputs(extrinsics: Extrinsics, run: CheckRun, pairs: list[dict[st
     ``depth_only`` ``report.json`` and ``report.html``, and ``extrinsics.yaml`` (last)."""
     report = {**verdict, "method": method, "init": str(init), "fix_others": True,
               "check": {"depth_scale_source": run.scale_source, **run.result.to_dict()},
-              "pairs": pairs}
+              "pairs": pair_dicts(pairs)}
     return _write_refined(extrinsics, run.clouds, out_dir, fused_voxel_m, json.dumps(
         finite_or_null(to_builtin(report)), indent=1, allow_nan=False), depth_only, warn)
 

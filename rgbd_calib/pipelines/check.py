@@ -39,7 +39,12 @@ from ..core.depth_model import DepthModel
 from ..core.geometry import covariance_sigmas, invert_transform, transform_error
 from ..core.progress import Progress, start
 from ..depth.clouds import CameraCloud
-from ..depth.registration import PairRegistration, find_overlapping_pairs
+from ..depth.registration import (
+    DepthPair,
+    PairRegistration,
+    find_overlapping_pairs,
+    pair_dicts,
+)
 from ..depth.stage import (
     applied_pose_moments,
     register_pairs,
@@ -73,11 +78,11 @@ from ..sources.cache import open_dataset
 
 @dataclass(frozen=True)
 class CheckResult:
-    """Per camera :class:`CameraCheck`, the pairs (report-ready dicts, see
-    docs/report_schema.md) and the moved cameras in the order they were found."""
+    """Per camera :class:`CameraCheck`, the pairs (:class:`DepthPair`; their ``to_dict`` is
+    check.json's entry) and the moved cameras in the order they were found."""
 
     cameras: dict[str, CameraCheck]
-    pairs: list[dict[str, Any]]
+    pairs: list[DepthPair]
     tolerance: Tolerance
     timings_s: dict[str, float] = field(default_factory=dict)
     # the board's evidence: views, frame sets seen by two cameras or more, per camera views
@@ -98,7 +103,7 @@ class CheckResult:
             "tolerance": {"mm": self.tolerance.mm, "deg": self.tolerance.deg},
             "moved_chi2": MOVED_CHI2,
             "cameras": {c: r.to_dict() for c, r in self.cameras.items()},
-            "pairs": self.pairs, "board": self.board,
+            "pairs": pair_dicts(self.pairs), "board": self.board,
             "variance_factors": self.variance_factors, "timings_s": self.timings_s,
         }
 
@@ -235,7 +240,7 @@ def check_rig(clouds: dict[str, CameraCloud], calib: Extrinsics,
             cams[c] = CameraCheck(c, "unknown", reason="no depth cloud (no depth frames or "
                                   "none usable) and no board seen with another camera")
     factors = _final_factors(held, cov, evidence, cams)
-    return CheckResult(cams, [r.to_dict() for r in regs], tolerance,
+    return CheckResult(cams, [DepthPair(r) for r in regs], tolerance,
                        {"registration": t_reg, "total": time.perf_counter() - t0},
                        board or {}, factors)
 
@@ -449,8 +454,9 @@ def fix_moved(clouds: dict[str, CameraCloud], calib: Extrinsics, check: CheckRes
     out = Extrinsics(ref, cams, dict(calib.unconnected))
     evidence = Evidence.of([RelativePose(r.cam_a, r.cam_b, r.T_b_a, r.information)
                             for r in regs if r.accepted], links, set(held))
-    return FixResult(out, [{**r.to_dict(), "re_registered_for": sorted({r.cam_a, r.cam_b}
-                                                                       & moved)} for r in regs],
+    return FixResult(out, [DepthPair(r, re_registered_for=tuple(sorted({r.cam_a, r.cam_b}
+                                                                       & set(moved))))
+                           for r in regs],
                      {**{c: NOTHING_FITS for c in sorted(moved - solved)},
                       **kinds_disagree({c: T_now[c] for c in held}, cov, evidence, moved)})
 
@@ -482,11 +488,11 @@ def _within_fix_reach(r: PairRegistration) -> PairRegistration:
 @dataclass(frozen=True)
 class FixResult:
     """What :func:`fix_moved` made: the ``extrinsics``, the last pass's ``pairs``
-    (report-ready dicts) and, per fixed camera the evidence does not confirm, why
-    (``unconfirmed``: nothing measured it, or its depth pairs and board views disagree,
-    :func:`~rgbd_calib.solve.moved.kinds_disagree`): such a camera's pose is CHECK, not
-    GOOD."""
+    (:class:`~rgbd_calib.depth.registration.DepthPair`) and, per fixed camera the evidence
+    does not confirm, why (``unconfirmed``: nothing measured it, or its depth pairs and board
+    views disagree, :func:`~rgbd_calib.solve.moved.kinds_disagree`): such a camera's pose is
+    CHECK, not GOOD."""
 
     extrinsics: Extrinsics
-    pairs: list[dict[str, Any]]
+    pairs: list[DepthPair]
     unconfirmed: dict[str, str] = field(default_factory=dict)

@@ -24,6 +24,7 @@ from ..core.config import DepthConfig, RegistrationMethod
 from ..core.depth_model import DepthModel
 from ..core.errors import CalibrationError
 from ..core.geometry import invert_transform, transform_error
+from ..depth.registration import DepthPair
 from ..depth.stage import DepthRefinement, finish_pairs, measure_depth, moved_beyond_board
 from ..model.board import Board, thesis_board
 from ..model.board_file import load_board
@@ -194,7 +195,7 @@ def camera_moves(init: Extrinsics, result: Extrinsics) -> dict[str, dict[str, fl
 
 
 def fix_verdict(init: Extrinsics, fixed: Extrinsics, moved: list[str],
-                pairs: list[dict[str, Any]], unconfirmed: dict[str, str] | None = None,
+                pairs: list[DepthPair], unconfirmed: dict[str, str] | None = None,
                 ) -> dict[str, Any]:
     """``refine --fix-others`` in one line: ``verdict`` ``unchanged`` (no camera moved),
     ``refined`` (the evidence confirms every fixed camera) or ``check`` (it does not confirm
@@ -208,8 +209,7 @@ def fix_verdict(init: Extrinsics, fixed: Extrinsics, moved: list[str],
     if unconfirmed is None:
         unconfirmed = {c: "no pair fits after re-registration: its pose is the check's rough "
                        "estimate" for c in moved
-                       if not any(c in (p["cam_a"], p["cam_b"]) and p["accepted"]
-                                  for p in pairs)}
+                       if not any(c in (p.cam_a, p.cam_b) and p.accepted for p in pairs)}
     moves = [f"{c} {cameras[c]['moved_mm']:.1f} mm / {cameras[c]['moved_deg']:.2f} deg (now "
              f"sigma {fixed.cameras[c].sigma_translation_mm:.2f} mm / "
              f"{fixed.cameras[c].sigma_rotation_deg:.3f} deg)" for c in moved]
@@ -254,7 +254,7 @@ def refine_verdict(init: Extrinsics, result: Extrinsics, depth: DepthRefinement,
     far = sorted(c for c, m in moves.items()
                  if np.isfinite(m["initial_sigma_mm"]) and m["initial_sigma_mm"] > 0
                  and m["moved_mm"] > 3.0 * m["initial_sigma_mm"])
-    n_used = sum(bool(p.get("accepted")) for p in depth.pairs)
+    n_used = sum(p.accepted for p in depth.pairs)
     f = depth.pair_variance_factor
     weighed = (f" (their covariance x{f:.2f}: variance factor from their residuals)"
                if f is not None and f > 1.0 else "")

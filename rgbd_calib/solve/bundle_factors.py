@@ -267,7 +267,7 @@ def view_factor_intrinsics(key_cam: int, key_board: int, key_intr: int,
         r = noise.whiten((uv - measured).reshape(n, 8))
         return robust_rows(r, lambda: (noise.whiten_rows(J_cam.reshape(-1, 6)),
                                        noise.whiten_rows(J_board.reshape(-1, 6)),
-                                       noise.whiten_rows(J_intr.reshape(-1, len(names)))),
+                                       noise.whiten_rows(J_intr.reshape(-1, len(columns)))),
                            H, robust, robust_k)
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n),
@@ -315,7 +315,7 @@ def _view_factor_faces(key_cam: int, key_board: int, moving: list,
             out = [noise.whiten_rows(J_cam.reshape(-1, 6)),
                    noise.whiten_rows(J_board.reshape(-1, 6))]
             if intr:
-                out.append(noise.whiten_rows(J_intr.reshape(-1, len(names))))
+                out.append(noise.whiten_rows(J_intr.reshape(-1, len(columns))))
             out += [noise.whiten_rows(_face_jacobian(J_board, rows, x, A).reshape(-1, 6))
                     for (_, rows, A), x in zip(faces, X)]
             return out
