@@ -20,6 +20,7 @@ import numpy as np
 
 from ..core.config import DetectionConfig
 from ..model.board import Board, cover_quads
+from .detections import MarkerDetections, to_gray
 
 REFINEMENT = "checkerboard"
 SB_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE
@@ -31,8 +32,6 @@ SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 0.001
 def detect_checkerboard(image: np.ndarray, board: Board, config: DetectionConfig | None = None):
     """The inner corners of the checkerboard ``board.pattern`` in a BGR or grey image, as its
     saddle-corner quads (all of them, or none when the board is not whole in view)."""
-    from .markers import MarkerDetections, to_gray  # markers dispatches here
-
     spec = board.pattern
     gray = to_gray(image)
     size = (int(gray.shape[1]), int(gray.shape[0]))
