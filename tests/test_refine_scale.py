@@ -78,6 +78,8 @@ def test_initial_sigmas_become_priors_and_the_verdict_names_the_outcome():
     moved = T1.copy()
     moved[0, 3] += 0.001  # 1 mm: 20 of its 0.05 mm sigmas
     result = Extrinsics("ref", {**init.cameras, "good": CameraExtrinsics("good", moved)})
-    depth = replace(depth, fallback=None, pairs=[{"accepted": True}])
+    fitted = replace(D.failed_registration("good", "ref", "colored-icp", np.eye(4), "-"),
+                     accepted=True, reason=None, rejected_by=())
+    depth = replace(depth, fallback=None, pairs=[D.DepthPair(fitted)])
     verdict = R.refine_verdict(init, result, depth)
     assert verdict["verdict"] == "check" and "good moved by more than 3" in verdict["message"]
