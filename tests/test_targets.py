@@ -263,3 +263,27 @@ def test_two_real_webcams_and_a_chessboard_agree_with_opencvs_stereo_calibration
     assert mm < 3 * cam1["sigma_translation_mm"] and deg < 3 * cam1["sigma_rotation_deg"], (
         mm, deg, cam1)
     assert ex["verdict"]["grade"] != "good"
+
+
+def test_images_of_a_kalibr_aprilgrid_calibrated_with_another_board_say_what_they_show(tmp_path):
+    """A tag family that does not match the images: one line naming the AprilGrid the images
+    show and the file to give, exit 2, no result written."""
+    grid = load_board(_write(tmp_path, "april.yaml", KALIBR_APRILGRID))
+    page = cv2.GaussianBlur(_kalibr_page(grid, 2500.0, 60), (0, 0), 0.8)
+    h, w = page.shape
+    dataset = tmp_path / "ds"
+    for cam in ("c0", "c1"):
+        (dataset / cam / "color").mkdir(parents=True)
+        for f in range(3):
+            cv2.imwrite(str(dataset / cam / "color" / f"{f:06d}.png"), page)
+    (dataset / "rig.yaml").write_text(f"cameras:\n  c0: {{width: {w}, height: {h}}}\n"
+                                      f"  c1: {{width: {w}, height: {h}}}\n")
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["calibrate", str(dataset), "--board",
+                                 str(Path(__file__).parents[1] / "configs/board_thesis.yaml"),
+                                 "--out", str(out)])
+    assert result.exit_code == 2, result.output
+    assert "Kalibr AprilGrid" in result.output and "target_type: aprilgrid" in result.output
+    # no result: only the detection cache (keyed by the board, reused by a run with the same
+    # board) is there
+    assert sorted(p.name for p in out.iterdir()) == ["cache"]

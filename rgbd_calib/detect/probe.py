@@ -17,16 +17,18 @@ import numpy as np
 from ..model.board import aruco_dictionary
 from .markers import to_gray
 
-# (largest dictionary of the family, its members' sizes and name stem)
+# (largest dictionary of the family, its members' sizes and name stem, the markers' border
+# in cells: 2 for Kalibr's AprilGrid tags)
 FAMILIES = (
-    ("DICT_4X4_1000", "DICT_4X4_{}", (50, 100, 250, 1000)),
-    ("DICT_5X5_1000", "DICT_5X5_{}", (50, 100, 250, 1000)),
-    ("DICT_6X6_1000", "DICT_6X6_{}", (50, 100, 250, 1000)),
-    ("DICT_7X7_1000", "DICT_7X7_{}", (50, 100, 250, 1000)),
-    ("DICT_ARUCO_ORIGINAL", "DICT_ARUCO_ORIGINAL", ()),
-    ("DICT_APRILTAG_36h11", "DICT_APRILTAG_36h11", ()),
-    ("DICT_APRILTAG_25h9", "DICT_APRILTAG_25h9", ()),
-    ("DICT_APRILTAG_16h5", "DICT_APRILTAG_16h5", ()),
+    ("DICT_4X4_1000", "DICT_4X4_{}", (50, 100, 250, 1000), 1),
+    ("DICT_5X5_1000", "DICT_5X5_{}", (50, 100, 250, 1000), 1),
+    ("DICT_6X6_1000", "DICT_6X6_{}", (50, 100, 250, 1000), 1),
+    ("DICT_7X7_1000", "DICT_7X7_{}", (50, 100, 250, 1000), 1),
+    ("DICT_ARUCO_ORIGINAL", "DICT_ARUCO_ORIGINAL", (), 1),
+    ("DICT_APRILTAG_36h11", "DICT_APRILTAG_36h11", (), 1),
+    ("DICT_APRILTAG_36h11", "DICT_APRILTAG_36h11", (), 2),  # Kalibr's AprilGrid
+    ("DICT_APRILTAG_25h9", "DICT_APRILTAG_25h9", (), 1),
+    ("DICT_APRILTAG_16h5", "DICT_APRILTAG_16h5", (), 1),
 )
 DIAGONAL_RATIO = 0.6  # nearest neighbour offset min/max in the marker's frame: diagonal
 
@@ -45,8 +47,12 @@ class TargetGuess:
     id_max: int
     charuco: bool
     inverted: bool
+    border_bits: int = 1  # 2: Kalibr's AprilGrid tags
 
     def describe(self) -> str:
+        if self.border_bits == 2:
+            return (f"{self.markers} tags of a Kalibr AprilGrid (tag36h11 with a 2-cell border, "
+                    f"ids {self.id_min}-{self.id_max}) in {self.images} images")
         kind = "a ChArUco board" if self.charuco else "an ArUco marker board"
         ink = " printed inverted (white on black)" if self.inverted else ""
         return (f"{self.markers} markers of {self.dictionary}{ink} (ids {self.id_min}-"
@@ -86,9 +92,10 @@ def _diagonal_share(corners: np.ndarray) -> float:
     return float(np.mean(votes)) if votes else 0.0
 
 
-def _detect(grays: list[np.ndarray], dictionary: str, inverted: bool):
+def _detect(grays: list[np.ndarray], dictionary: str, inverted: bool, border_bits: int = 1):
     params = cv2.aruco.DetectorParameters()
     params.detectInvertedMarker = inverted
+    params.markerBorderBits = border_bits
     detector = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), params)
     ids_all, corners_all = [], []
     for g in grays:
@@ -105,11 +112,11 @@ def probe_targets(images: list[np.ndarray], min_markers: int = 4) -> TargetGuess
     many."""
     grays = [to_gray(im) for im in images]
     best: TargetGuess | None = None
-    for largest, stem, sizes in FAMILIES:
-        either = _detect(grays, largest, True)  # both polarities
+    for largest, stem, sizes, bits in FAMILIES:
+        either = _detect(grays, largest, True, bits)  # both polarities
         if sum(map(len, either[0])) < min_markers:
             continue
-        plain = _detect(grays, largest, False)
+        plain = _detect(grays, largest, False, bits)
         # both polarities also pick up a few inverted codes in texture: a print is inverted
         # only when the plain pass misses most of what both find
         inverted = sum(map(len, plain[0])) < 0.5 * sum(map(len, either[0]))
@@ -125,5 +132,5 @@ def probe_targets(images: list[np.ndarray], min_markers: int = 4) -> TargetGuess
         per_image = [c for c in corners_all if len(c) >= 3]
         share = float(np.mean([_diagonal_share(c) for c in per_image])) if per_image else 0.0
         best = TargetGuess(_smallest(stem, sizes, int(ids.max())), n, len(ids_all),
-                           int(ids.min()), int(ids.max()), share > 0.5, inverted)
+                           int(ids.min()), int(ids.max()), share > 0.5, inverted, bits)
     return best

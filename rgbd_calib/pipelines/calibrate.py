@@ -44,7 +44,7 @@ from ..depth.stage import (
 from ..detect.markers import MarkerDetections
 from ..detect.probe import dictionary_family, probe_targets
 from ..detect.run import detect_dataset
-from ..model.board import Board, refined_board, refined_multiface
+from ..model.board import CHECKERBOARD, Board, refined_board, refined_multiface
 from ..model.board_file import load_board
 from ..model.dataset import FolderDataset
 from ..model.results import CameraExtrinsics, Extrinsics, cameras_from_solve
@@ -589,9 +589,15 @@ def wrong_board(dataset: FolderDataset, board: Board) -> str | None:
     charuco = board.charuco is not None
     inverted = bool(board.charuco.inverted) if charuco else False
     if (guess.family() == dictionary_family(board.dictionary) and guess.inverted == inverted
-            and guess.charuco == charuco):
+            and guess.charuco == charuco and guess.border_bits == board.border_bits):
         return None
-    given = (f"{board.dictionary}{' inverted' if inverted else ''} "
+    if guess.border_bits == 2:
+        return (f"the images show {guess.describe()}, not the {board.board_type} board "
+                f"{board.name!r} given; give --board Kalibr's target file of that grid as it "
+                "is (target_type: aprilgrid) or a type: aprilgrid board file; "
+                "configs/board_aprilgrid_kalibr.yaml is such a file")
+    given = ("checkerboard" if board.board_type == CHECKERBOARD else
+             f"{board.dictionary}{' inverted' if inverted else ''} "
              f"{'ChArUco' if charuco else 'marker'} board")
     example = ("configs/board_charuco_caliscope.yaml is such a file" if guess.charuco else
                "configs/board_thesis.yaml is such a file")
