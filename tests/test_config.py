@@ -103,7 +103,9 @@ def test_written_config_reads_back_unchanged(tmp_path):
     path = tmp_path / "config_resolved.yaml"
     write_config(cfg, path)
     assert load_config(path) == cfg
-    assert path.read_text().startswith("detection:\n")  # field order, as in the model
+    # the user section first (issue 57), then every setting in field order, as in the model
+    text = path.read_text()
+    assert "\nuser:\n" in text and text.index("\nuser:\n") < text.index("\ndetection:\n")
 
 
 # The child process of the test below: validate a config from YAML + overrides, then do what a

@@ -26,6 +26,7 @@ from pydantic import (
 
 from .camera import DISTORTION_NAMES
 from .errors import ConfigError
+from .settings import apply_user_section, split_user_section, user_section_comments
 from .yamlio import read_yaml_mapping, to_builtin
 
 Refinement = Literal["edges", "subpix", "none", "contour"]
@@ -1038,6 +1039,7 @@ def load_config(path: Path | None, **overrides: Any) -> CalibrationConfig:
     ``overrides`` map dotted keys (``"graph.kernel"``) to values; ``None`` leaves a key alone.
     Raises :class:`ConfigError` with one line naming the file, the setting and the fix."""
     data = read_yaml_mapping(path, "config file") if path else {}
+    data = apply_user_section(data, str(path or "options"))
     for dotted, value in overrides.items():
         if value is None:
             continue
@@ -1058,6 +1060,13 @@ def load_config(path: Path | None, **overrides: Any) -> CalibrationConfig:
 
 
 def write_config(config: BaseModel, path: Path) -> None:
-    """Write the resolved ``config`` (every setting, defaults included) as YAML, in field order;
+    """Write the resolved ``config`` (every setting, defaults included) as YAML, in field order
+    (a :class:`CalibrationConfig`: its ``user:`` section first, :mod:`.settings`);
     :func:`load_config` reads it back to the same config."""
-    Path(path).write_text(yaml.safe_dump(to_builtin(config.model_dump()), sort_keys=False))
+    data = to_builtin(config.model_dump())
+    if isinstance(config, CalibrationConfig):
+        text = user_section_comments() + yaml.safe_dump(split_user_section(data),
+                                                        sort_keys=False)
+    else:
+        text = yaml.safe_dump(data, sort_keys=False)
+    Path(path).write_text(text)
