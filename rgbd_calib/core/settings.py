@@ -16,7 +16,8 @@ from typing import Any
 from .errors import ConfigError
 
 #: short name -> (dotted place among the stages' settings, what it does). Defaults are the
-#: stages' own (core/config.py); the CLI options of the same names set the same settings.
+#: stages' own (core/config.py); ``calibrate``'s ``--intrinsics``, ``--time``,
+#: ``--board-model``, ``--refine``, ``--method`` and ``--workers`` set the same settings.
 USER_SETTINGS: dict[str, tuple[str, str]] = {
     "method": ("method", "bundle (default) or posegraph (the thesis method)"),
     "refine": ("refine", "depth refinement: auto, colored-icp, geometric or none"),
