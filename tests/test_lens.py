@@ -129,3 +129,14 @@ def test_a_fisheye_with_zero_coefficients_is_equidistant_not_a_pinhole():
     expected = np.array([640.0, 360.0]) + np.array([500.0, 502.0]) * P[0, :2] * np.arctan(r) / r
     assert np.abs(zero.project(P)[0] - expected).max() < 1e-9
     assert np.abs(project_points(np.eye(4), P, zero)[0] - expected).max() < 1e-9
+
+
+def test_the_ladder_names_a_fisheye_rigs_lens_by_its_own_coefficients():
+    from rgbd_calib.core.config import BundleConfig
+    from rgbd_calib.solve.ladder import _in_the_rigs_lens_names
+
+    config = BundleConfig()
+    fish = _in_the_rigs_lens_names(config, Rig({"a": FISH, "b": FISH}, "a"))
+    assert fish.intrinsics_params == ["fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"]
+    mixed = Rig({"a": FISH, "b": replace(FISH, lens="opencv", distortion=(0.0,) * 5)}, "a")
+    assert _in_the_rigs_lens_names(config, mixed) is config

@@ -28,6 +28,7 @@ from ..model.results import CameraExtrinsics
 from ..model.rig import Rig
 from . import edge_offset, selfcal
 from .bundle import bundle_adjust
+from .bundle_factors import lens_names
 from .bundle_problem import BundleProblem, BundleResult, MarkerMeasurement
 from .pose import BoardObservation
 from .posegraph import PoseGraphResult
@@ -311,6 +312,20 @@ class _Step:
     terms: dict[tuple[str, str, int], float]
 
 
+def _in_the_rigs_lens_names(config: BundleConfig, rig: Rig) -> BundleConfig:
+    """``config`` with its ``intrinsics_params`` named as the rig's lenses name them when
+    every camera has the same lens model (a fisheye rig frees k1..k4, and the ladder's levels
+    say so); a mixed rig keeps the configuration's names (each camera maps them,
+    :func:`~rgbd_calib.solve.bundle_factors.lens_names`)."""
+    lenses = {c.lens for c in rig.cameras.values()}
+    if len(lenses) != 1:
+        return config
+    names = lens_names(next(iter(rig.cameras.values())), tuple(config.intrinsics_params))
+    if list(names) == list(config.intrinsics_params):
+        return config
+    return config.model_copy(update={"intrinsics_params": list(names)})
+
+
 def self_calibrated_bundle(
     observations: list[BoardObservation],
     pg: PoseGraphResult,
@@ -335,6 +350,7 @@ def self_calibrated_bundle(
     ladder = _Ladder(observations, pg, rig, board, fixed_cameras,
                      start(progress, "bundle adjustment (models solved)", None), capture_ms,
                      set_ms)
+    config = _in_the_rigs_lens_names(config, rig)
     if not selfcal.is_auto(config):
         result, problem = ladder.solve(config, pg.T_ref_cam, pg.T_ref_board,
                                        "refine" in (config.board, config.time))
