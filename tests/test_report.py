@@ -708,3 +708,19 @@ def test_a_board_whose_printed_size_is_not_stated_is_named_with_what_a_print_err
     assert "print_scale_sigma" in found[0]["advice"]
     assert board_size(report(0.0), []) == board_size(report(0.0005), []) == []
     assert board_size(report(), []) == []
+
+
+def test_the_report_leads_with_the_verdict_and_at_most_three_actions_the_rest_folded():
+    """Issue 58: report.html opens with the verdict in plain words and the actions that matter
+    most (what to do, then why), as the console lists them; every finding is folded below."""
+    from rgbd_calib.outputs.report.html import REPORT_ACTIONS, _verdict_section
+
+    found = [{"severity": s, "code": f"code{k}", "cameras": ["cam1"], "message": f"why {k}",
+              "advice": f"do {k}"} for k, s in enumerate(["info", "warning", "error", "info",
+                                                          "warning"])]
+    html = "".join(_verdict_section({"summary": {"verdict": "poor"}, "warnings": found,
+                                     "next_steps": []}))
+    head, _, folded = html.partition("<details>")
+    assert "Do not use these extrinsics" in head and head.count("<li>") == REPORT_ACTIONS == 3
+    assert head.index("do 2") < head.index("do 1") < head.index("do 4")  # errors first
+    assert "Every finding (5)" in folded and all(f"why {k}" in folded for k in range(5))

@@ -15,6 +15,7 @@ from ...core.progress import Progress, Tick, start
 from ...solve.pose import DROP_ADVICE
 from .cloud import Cloud, load_cloud
 from .figures import palette, render_figures
+from .findings_base import ranked_actionable
 from .layout import display_frame
 from .numbers import percent_of_prior
 from .viewer import VIEWER_JS, viewer_data
@@ -47,6 +48,7 @@ img.fig{max-width:100%;height:auto;display:block;margin:6px 0}
 vertical-align:-1px}button{font:inherit;font-size:12.5px;padding:3px 10px;margin:4px 6px 4px 0;
 border:1px solid #b8bfcc;background:#fff;border-radius:4px;cursor:pointer}
 details{margin:6px 0}code{font-size:12.5px}ol li{margin:3px 0}
+.actions .why{color:#3b4252;font-size:13px}
 """
 
 _JS_GUARD = """
@@ -143,22 +145,37 @@ def _refine_head(report: dict[str, Any]) -> list[str]:
     ]
 
 
+REPORT_ACTIONS = 3  # the actions the report leads with, as the console does
+
+
 def _verdict_section(report: dict[str, Any]) -> list[str]:
+    """The verdict in plain words, then at most :data:`REPORT_ACTIONS` actions (the ranked
+    actionable findings, as the console lists them: what to do, then why), then every
+    finding folded."""
     out = ["<section><h2>Verdict and what to do next</h2>"]
     verdict_text = {
         "good": "No camera or view needs attention: these extrinsics can be used.",
-        "check": "Usable, but some cameras or views need a look (warnings below).",
-        "poor": "Do not use these extrinsics as they are: fix the errors below and re-run.",
+        "check": "Usable, but some cameras or views need a look (below).",
+        "poor": "Do not use these extrinsics as they are: do what is listed below and re-run.",
     }[report["summary"]["verdict"]]
     out.append(f"<p><b>{verdict_text}</b></p>")
-    for w in report["warnings"]:
-        out.append(
-            f"<div class='w {w['severity']}'><b class='sev'>{w['severity']}</b>"
-            f"<code>{_e(w['code'])}</code> {_e(w['message'])}"
-            + (f"<div class='adv'>&rarr; {_e(w['advice'])}</div>" if w["advice"] else "")
-            + "</div>"
-        )
-    if not report["warnings"]:
+    actions = ranked_actionable(report["warnings"])[:REPORT_ACTIONS]
+    if actions:
+        out.append("<h3>What to do</h3><ol class='actions'>" + "".join(
+            f"<li><b>{_e(w['advice'])}</b><div class='why'>{_e(w['severity'])} "
+            f"<code>{_e(w['code'])}</code>"
+            + (f" [{_e(', '.join(w['cameras']))}]" if w.get("cameras") else "")
+            + f": {_e(w['message'])}</div></li>" for w in actions) + "</ol>")
+    findings = [
+        f"<div class='w {w['severity']}'><b class='sev'>{w['severity']}</b>"
+        f"<code>{_e(w['code'])}</code> {_e(w['message'])}"
+        + (f"<div class='adv'>&rarr; {_e(w['advice'])}</div>" if w["advice"] else "")
+        + "</div>"
+        for w in report["warnings"]]
+    if findings:
+        out.append(f"<details><summary>Every finding ({len(findings)})</summary>"
+                   + "".join(findings) + "</details>")
+    else:
         out.append("<p>No warnings.</p>")
     if report["next_steps"]:
         out.append(
