@@ -394,7 +394,8 @@ def test_common_depth_scale_names_the_print():
     assert "40.0 mm" in found[0]["message"] and "50.0 mm" in found[0]["message"]
     assert "20.0% smaller" in found[0]["message"]
     assert depth_scale(report, found) == []
-    assert len(depth_scale(report, [])) == 3  # without it: every camera blamed
+    (blamed,) = depth_scale(report, [])  # without it: every camera blamed, in one finding
+    assert blamed["cameras"] == ["a", "b", "c"]
     # one camera disagrees: its depth, not the board
     assert common_depth_scale({**print_40, "d": (1.0, 0.002)}) is None
     # all alike but within 1 %: depth units, not a wrong print

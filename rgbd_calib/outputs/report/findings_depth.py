@@ -253,25 +253,29 @@ def depth_scale(report: dict[str, Any], earlier: list[Finding]) -> list[Finding]
     """A camera whose depth reads long or short by more than :data:`DEPTH_SCALE_TOL`, and
     significantly so: its depth model's scale (``depth_models``; a camera whose model has
     every term free has the scale whether it is needed or not), or, in a report without one,
-    its factor, more than 3 sigmas from 1."""
+    its factor, more than 3 sigmas from 1. One finding names every such camera (it says one
+    thing for all of them)."""
     if any(w["code"] == "board_scale" for w in earlier):
         return []  # one board finding instead of every camera's depth blamed
-    out = []
+    off = []
     for name, cam in report["cameras"].items():
         f, modelled = _significant_scale(cam, (report.get("depth_models") or {}).get(name))
-        if f is None or abs(f - 1.0) <= DEPTH_SCALE_TOL:
-            continue
-        out.append(finding(
-            "info",
-            "depth_scale",
-            [name],
-            f"{name}'s depth reads {100 * (f - 1):+.2f}% off the board's true distance.",
-            (f"Correct {name}'s depth with depth_model.yaml (rgbd_calib.correct_depth_image, or "
-             f"convert --depth-model); fused.ply already is. Its scale alone: divide its depth "
-             f"by {f:.4f}." if modelled else
-             f"Divide {name}'s depth by {f:.4f} (or recalibrate its depth unit)."),
-        ))
-    return out
+        if f is not None and abs(f - 1.0) > DEPTH_SCALE_TOL:
+            off.append((name, f, modelled))
+    if not off:
+        return []
+    names = [n for n, _, _ in off]
+    reads = ", ".join(f"{n} {100 * (f - 1):+.2f}%" for n, f, _ in off)
+    divide = ", ".join(f"{n}'s by {f:.4f}" for n, f, _ in off)
+    whose = names[0] if len(names) == 1 else "their"
+    modelled = [n for n, _, m in off if m]
+    advice = (f"Correct {', '.join(modelled)}'s depth with depth_model.yaml "
+              "(rgbd_calib.correct_depth_image, or convert --depth-model); fused.ply already "
+              f"is. The scale alone: divide {divide}." if modelled else
+              f"Divide {divide} (or recalibrate {whose} depth unit).")
+    return [finding(
+        "info", "depth_scale", names,
+        f"The depth reads off the board's true distance: {reads}.", advice)]
 
 
 def _significant_scale(cam: dict[str, Any], model: dict[str, Any] | None
