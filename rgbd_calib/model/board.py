@@ -6,9 +6,9 @@ a pose ``T_board_face`` (4x4, metres; face frame: markers in its z = 0 plane, z 
 normal) that every "which face / which normal / which plane" question goes through
 (:meth:`Board.T_board_face`, :meth:`Board.face_normal`):
 
-- the double-sided board (ArUco grid, explicit markers, or one-faced ChArUco): labels +1 (front,
-  z = 0, the identity) and -1 (back, ``z = -thickness``, the front flipped about y), derived from
-  ``thickness`` as they always were;
+- the double-sided board (ArUco grid, explicit markers, AprilGrid, or one-faced ChArUco or
+  checkerboard): labels +1 (front, z = 0, the identity) and -1 (back, ``z = -thickness``, the
+  front flipped about y), derived from ``thickness`` as they always were;
 - a multi-face target (``type: multiface``: a cube, an L of two boards, ...): labels 1..F, one
   per listed face, each face a single-face ArUco grid or ChArUco sheet (``Board.sheets``) at its
   own pose. Face 1 is the reference face of the board self-calibration.
@@ -41,7 +41,9 @@ from .checkerboard import CheckerSpec
 
 #: A board file's ``type:``, one per board form (docs/formats.md): ``aruco`` (the default: a
 #: double-sided ArUco board, its markers in grid or explicit form), ``charuco`` (a one-faced
-#: ChArUco board) or ``multiface`` (a target of several faces, each an ArUco or ChArUco sheet).
+#: ChArUco board), ``multiface`` (a target of several faces, each an ArUco, AprilGrid or
+#: ChArUco sheet), ``checkerboard`` (:mod:`.checkerboard`) or ``aprilgrid`` (Kalibr's,
+#: :mod:`.aprilgrid`; an ArUco board of tag36h11 with 2-cell borders).
 BoardType = Literal["aruco", "charuco", "multiface", "checkerboard", "aprilgrid"]
 BOARD_TYPES: tuple[BoardType, ...] = get_args(BoardType)
 ARUCO, CHARUCO, MULTIFACE, CHECKERBOARD, APRILGRID = BOARD_TYPES
