@@ -140,3 +140,21 @@ def test_the_ladder_names_a_fisheye_rigs_lens_by_its_own_coefficients():
     assert fish.intrinsics_params == ["fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"]
     mixed = Rig({"a": FISH, "b": replace(FISH, lens="opencv", distortion=(0.0,) * 5)}, "a")
     assert _in_the_rigs_lens_names(config, mixed) is config
+
+
+def test_a_fisheyes_back_projection_moves_with_its_coefficients_as_its_rays_do():
+    """The depth pairs' lens uncertainty (rig_refined.yaml's sigmas): d point / d k of a point
+    back-projected from a fixed pixel at fixed depth, for a fisheye's k1..k4 (before: a
+    KeyError 'k4' failed every pair of a self-calibrated fisheye rig)."""
+    from rgbd_calib.depth.information import back_projection_jacobian
+
+    P = _points(40, 2)
+    names = ["fx", "cx", "k1", "k2", "k3", "k4"]
+    J = back_projection_jacobian(P, FISH, names)
+    uv = FISH.project(P)
+    eps = 1e-7
+    for k, name in enumerate(names[2:], start=2):
+        moved = with_parameters(FISH, (name,), np.array([FISH.parameters[name] + eps]))
+        rays = moved.rays(uv[:, 0], uv[:, 1])
+        numeric = (rays * P[:, 2:] - P) / eps
+        assert np.abs(numeric - J[:, :, k]).max() < 1e-4 * np.abs(J[:, :, k]).max() + 1e-6

@@ -484,6 +484,20 @@ class CameraIntrinsics:
         J[:, 1, 4:] = self.fy * f.J_coef[:, 1]
         return J
 
+    def ray_coefficient_jacobian(self, xy: ArrayLike) -> Array:
+        """d(ideal normalized x, y)/d(:attr:`coefficient_names`) ``(N,2,n)`` at ideal
+        normalized points ``xy`` ``(N,2)``, the distorted pixel held fixed: how a pixel's ray
+        moves with each lens coefficient, ``-(d distort/d xy)^-1 d distort/d coefficients``."""
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        f = _lens(self.lens)(xy[:, 0], xy[:, 1], self.dist, jac_xy=True, jac_coef=True)
+        det = f.j00 * f.j11 - f.j01 * f.j10
+        det = np.where(det != 0.0, det, 1e-300)[:, None]
+        J = f.J_coef
+        out = np.empty_like(J)
+        out[:, 0] = -(f.j11[:, None] * J[:, 0] - f.j01[:, None] * J[:, 1]) / det
+        out[:, 1] = -(-f.j10[:, None] * J[:, 0] + f.j00[:, None] * J[:, 1]) / det
+        return out
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "width": self.width,

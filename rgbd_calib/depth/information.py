@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.camera import CameraIntrinsics
+from ..core.camera import FISHEYE, CameraIntrinsics
 from ..core.geometry import invert_transform, matrix_to_rotvec, skew, transform_points
 from .clouds import VoxelLevel, voxel_keys
 
@@ -221,7 +221,8 @@ class _WhitenedRows:
 def back_projection_jacobian(points: np.ndarray, intr: CameraIntrinsics,
                              names: list[str]) -> np.ndarray:
     """d p / d theta ``(N,3,P)`` of points ``p = z * ray(u, v)`` back-projected from fixed
-    pixels at fixed depth, for the intrinsics ``names`` (fx fy cx cy k1 k2 p1 p2 k3), to
+    pixels at fixed depth, for the intrinsics ``names`` (fx fy cx cy k1 k2 p1 p2 k3; a
+    fisheye's k1..k4 exactly, through :meth:`CameraIntrinsics.ray_coefficient_jacobian`), to
     first order in the distortion: a pixel's normalised coordinates are
     ``x = (u - cx) / fx - delta_x(x, y)`` with the Brown-Conrady offset ``delta``, so e.g.
     ``dX/dfx = -X / fx``, ``dX/dcx = -Z / fx`` and ``d(X, Y)/dk1 = -r^2 (X, Y)``."""
@@ -238,6 +239,10 @@ def back_projection_jacobian(points: np.ndarray, intr: CameraIntrinsics,
         "p1": (-Z * 2 * x * y, -Z * (r2 + 2 * y * y)),
         "p2": (-Z * (r2 + 2 * x * x), -Z * 2 * x * y),
     }
+    if intr.lens == FISHEYE:  # its k1..k4: the exact ray derivative of the camera model
+        J = intr.ray_coefficient_jacobian(np.column_stack([x, y]))
+        cols |= {n: (Z * J[:, 0, k], Z * J[:, 1, k])
+                 for k, n in enumerate(intr.coefficient_names)}
     out = np.zeros((p.shape[0], 3, len(names)))
     for k, name in enumerate(names):
         out[:, 0, k], out[:, 1, k] = cols[name]
