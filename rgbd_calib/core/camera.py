@@ -52,6 +52,7 @@ DISTORTION_NAMES = (
     "tau_y",
 )
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+PINHOLE_NAMES = ("fx", "fy", "cx", "cy")  # the pinhole's parameters, before any lens's
 OPENCV, FISHEYE = "opencv", "fisheye"
 LENS_MODELS = (OPENCV, FISHEYE)
 FISHEYE_NAMES = ("k1", "k2", "k3", "k4")  # cv2.fisheye's and Kalibr's equidistant k1..k4
@@ -376,7 +377,7 @@ class CameraIntrinsics:
     def parameter_names(self) -> tuple[str, ...]:
         """Names of the columns of :meth:`intrinsics_jacobian`: fx fy cx cy, then the
         distortion coefficients in OpenCV order (the fisheye's k1..k4)."""
-        return ("fx", "fy", "cx", "cy") + self.coefficient_names
+        return PINHOLE_NAMES + self.coefficient_names
 
     @property
     def coefficient_names(self) -> tuple[str, ...]:

@@ -26,7 +26,12 @@ from pydantic import (
 
 from .camera import DISTORTION_NAMES
 from .errors import ConfigError
-from .settings import apply_user_section, split_user_section, user_section_comments
+from .settings import (
+    apply_user_section,
+    set_dotted,
+    split_user_section,
+    user_section_comments,
+)
 from .yamlio import read_yaml_mapping, to_builtin
 
 Refinement = Literal["edges", "subpix", "none", "contour"]
@@ -1041,13 +1046,8 @@ def load_config(path: Path | None, **overrides: Any) -> CalibrationConfig:
     data = read_yaml_mapping(path, "config file") if path else {}
     data = apply_user_section(data, str(path or "options"))
     for dotted, value in overrides.items():
-        if value is None:
-            continue
-        node = data
-        *parents, leaf = dotted.split(".")
-        for key in parents:
-            node = node.setdefault(key, {})
-        node[leaf] = value
+        if value is not None:
+            set_dotted(data, dotted, value)
     try:
         return CalibrationConfig.model_validate(data)
     except ValidationError as exc:

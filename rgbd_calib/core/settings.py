@@ -52,13 +52,15 @@ def _get(data: dict, dotted: str) -> Any:
     return node
 
 
-def _set(data: dict, dotted: str, value: Any) -> None:
+def set_dotted(data: dict, dotted: str, value: Any) -> None:
+    """Set ``data``'s setting at the dotted place ``"stage.key"`` (its stages made as needed;
+    a stage that is not a mapping is left for the validation to name)."""
     *parents, leaf = dotted.split(".")
     node = data
     for key in parents:
         node = node.setdefault(key, {})
         if not isinstance(node, dict):
-            return  # a malformed stage: the validation names it
+            return
     node[leaf] = value
 
 
@@ -84,7 +86,7 @@ def apply_user_section(data: dict, where: str) -> dict:
         if there is not _MISSING and there != value:
             raise ConfigError(f"{where}: user.{name} is {value!r} but {dotted} is {there!r}; "
                               "give it once")
-        _set(out, dotted, value)
+        set_dotted(out, dotted, value)
     return out
 
 

@@ -82,12 +82,8 @@ def order_by_colour(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
 
 
 def _sample(gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Bilinear grey levels of ``gray`` at pixels ``xy`` ``(N,2)`` (clamped to the image)."""
-    h, w = gray.shape[:2]
-    x = np.clip(xy[:, 0], 0, w - 1.001)
-    y = np.clip(xy[:, 1], 0, h - 1.001)
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    fx, fy = x - x0, y - y0
-    img = np.asarray(gray, dtype=float)
-    return ((1 - fx) * (1 - fy) * img[y0, x0] + fx * (1 - fy) * img[y0, x0 + 1]
-            + (1 - fx) * fy * img[y0 + 1, x0] + fx * fy * img[y0 + 1, x0 + 1])
+    """Bilinear grey levels of ``gray`` at pixels ``xy`` ``(N,2)`` (the border replicated
+    beyond the image; ``cv2.remap``)."""
+    maps = np.asarray(xy, dtype=np.float32).reshape(-1, 1, 2)
+    return cv2.remap(np.asarray(gray, dtype=np.float32), maps, None, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).reshape(-1).astype(float)

@@ -174,7 +174,7 @@ def _board_of_form(raw: dict, path: Path, where: str, fix_winding: bool) -> Boar
 
 
 _KALIBR_TYPES = {
-    APRILGRID: ("tagCols", "tagRows", "tagSize", "tagSpacing"),
+    APRILGRID: KALIBR_KEYS,
     CHECKERBOARD: ("targetCols", "targetRows", "rowSpacingMeters", "colSpacingMeters"),
 }
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..core.errors import BoardError, ConfigError
-from .board import FRONT, Board
+from .board import APRILGRID, FRONT, Board
 from .board_file import MAX_PRINT_SCALE_SIGMA
 
 PLAUSIBLE_SCALE = 0.05  # a measured span more than 5 % off the file's: the wrong corners measured
@@ -110,7 +110,7 @@ def rescaled_board(board: Board, scale: float, sigma: float) -> Board:
     corners = board.corners.copy()
     corners[..., :2] *= scale
     grid = board.grid
-    if grid is not None and "tagSize" in grid:  # an AprilGrid: the spacing is relative
+    if board.board_type == APRILGRID:  # its tagSpacing is relative to tagSize
         grid = {**grid, "tagSize": grid["tagSize"] * scale}
     elif grid is not None:
         grid = {**grid, "marker_length": grid["marker_length"] * scale,

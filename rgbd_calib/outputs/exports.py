@@ -125,17 +125,10 @@ def kalibr_camchain(
         if previous is not None:
             entry["T_cn_cnm1"] = (invert_transform(T_ref_cam) @ previous).tolist()
         intrinsics = rig.cameras.get(name) if rig is not None else None
-        if intrinsics is not None and intrinsics.lens == FISHEYE:  # Kalibr's pinhole-equi
-            entry.update(
-                camera_model="pinhole",
-                intrinsics=[intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy],
-                distortion_model="equidistant",
-                distortion_coeffs=[float(v) for v in intrinsics.distortion],
-                resolution=[intrinsics.width, intrinsics.height],
-            )
-        elif intrinsics is not None:
+        if intrinsics is not None:
             dist = [float(v) for v in intrinsics.distortion]
-            if any(dist[4:]):
+            fisheye = intrinsics.lens == FISHEYE  # Kalibr's pinhole-equi: its four as they are
+            if not fisheye and any(dist[4:]):
                 notes.append(
                     f"{name}: distortion terms beyond k1 k2 p1 p2 ({dist[4:]}) dropped; "
                     "Kalibr radtan has four"
@@ -143,7 +136,7 @@ def kalibr_camchain(
             entry.update(
                 camera_model="pinhole",
                 intrinsics=[intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy],
-                distortion_model="radtan",
+                distortion_model="equidistant" if fisheye else "radtan",
                 distortion_coeffs=(dist + [0.0] * 4)[:4],
                 resolution=[intrinsics.width, intrinsics.height],
             )

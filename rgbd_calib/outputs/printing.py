@@ -171,7 +171,7 @@ def _module_mm(board: Board) -> float:
     return length * 1000.0 / (board.bits + 2 * board.border_bits)
 
 
-def _charuco_squares_mm(board: Board, face: int = FRONT
+def _black_squares_mm(board: Board, face: int = FRONT
                         ) -> list[tuple[float, float, float, float]]:
     """The black squares printed on ``face`` besides the markers, as board-frame boxes
     ``(xmin, xmax, ymin, ymax)`` mm: a ChArUco board's or checkerboard's chessboard (front),
@@ -367,12 +367,12 @@ def _chessboard_page_mm(board: Board, page_size_mm: tuple[float, float]):
     return u0, v0, u1, v1
 
 
-def _charuco_squares_page_mm(board: Board, page_size_mm: tuple[float, float],
+def _black_squares_page_mm(board: Board, page_size_mm: tuple[float, float],
                              face: int = FRONT):
-    """The black squares of :func:`_charuco_squares_mm` as page rectangles ``(u0, v0, u1,
+    """The black squares of :func:`_black_squares_mm` as page rectangles ``(u0, v0, u1,
     v1)`` mm (top-left and bottom-right on the page)."""
     out = []
-    for x0, x1, y0, y1 in _charuco_squares_mm(board, face):
+    for x0, x1, y0, y1 in _black_squares_mm(board, face):
         corners = np.array([[x0, y1], [x1, y0]]) / 1000.0
         (u0, v0), (u1, v1) = board_to_page_mm(board, face, corners, page_size_mm)
         out.append((min(u0, u1), v0, max(u0, u1), v1))
@@ -401,11 +401,10 @@ def _draw_pdf_page(canvas: Canvas, board: Board, face: int, page_size_mm: tuple[
         ink = 1.0
     canvas.setFillGray(ink)
     canvas.setStrokeGray(0.0)
-    if True:  # the chessboard squares, an AprilGrid's corner squares
-        for u0, v0, u1, v1 in _charuco_squares_page_mm(board, page_size_mm, face):
-            x0, y1 = pt(u0, v0)
-            x1, y0 = pt(u1, v1)
-            canvas.rect(x0, y0, x1 - x0, y1 - y0, stroke=0, fill=1)
+    for u0, v0, u1, v1 in _black_squares_page_mm(board, page_size_mm, face):
+        x0, y1 = pt(u0, v0)  # the chessboard squares, an AprilGrid's corner squares
+        x1, y0 = pt(u1, v1)
+        canvas.rect(x0, y0, x1 - x0, y1 - y0, stroke=0, fill=1)
     ids, _, faces = printed_markers(board)
     for k in np.flatnonzero(faces == face):
         path = canvas.beginPath()
@@ -525,7 +524,7 @@ def _render_png(path: Path, board: Board, face: int, page_size_mm: tuple[float, 
     px_per_mm = dpi / MM_PER_INCH
     w, h = (int(round(s * px_per_mm)) for s in page_size_mm)
     img = np.full((h, w), 255, dtype=np.uint8)
-    for rect in _charuco_squares_page_mm(board, page_size_mm, face):
+    for rect in _black_squares_page_mm(board, page_size_mm, face):
         _raster_rect(img, px_per_mm, *rect)
     ids, _, faces = printed_markers(board)
     for k in np.flatnonzero(faces == face):

@@ -19,6 +19,7 @@ from ..core.camera import (
     DISTORTION_NAMES,
     FISHEYE,
     FISHEYE_NAMES,
+    PINHOLE_NAMES,
     CameraIntrinsics,
     pinhole_pose_jacobian,
     project_pinhole,
@@ -172,7 +173,7 @@ def lens_names(base: CameraIntrinsics, names: tuple[str, ...]) -> tuple[str, ...
     k1 k2 p1 p2 k3), its pinhole names and its four k1..k4."""
     if base.lens != FISHEYE:
         return tuple(names)
-    pinhole = tuple(n for n in names if n in ("fx", "fy", "cx", "cy"))
+    pinhole = tuple(n for n in names if n in PINHOLE_NAMES)
     lens = tuple(n for n in names if n not in pinhole)
     return pinhole + (lens if set(lens) <= set(FISHEYE_NAMES) else FISHEYE_NAMES)
 

@@ -46,9 +46,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..core.camera import PINHOLE_NAMES
 from ..core.config import BundleConfig
 
-FOCAL_CENTRE = ("fx", "fy", "cx", "cy")
+FOCAL_CENTRE = PINHOLE_NAMES
 PRIOR_TENSION = 3.0  # a refined parameter this many prior sigmas from rig.yaml: prior wrong
 LOOSEN = 10.0  # ... and its priors are then widened this many times
 BOARD_PARAMETERS = 4  # in-plane offset (2), rotation about the normal, thickness

@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..core.camera import OPENCV
 from ..core.errors import ConfigError
 from ..core.geometry import invert_transform, make_transform, rotvec_to_matrix
 from ..model.board import BACK, FRONT, Board
@@ -48,7 +49,7 @@ def sample_board_poses(
     board and the cameras' pinhole part, so a seed gives the same poses with or without the
     imperfections of :class:`SynthParams`."""
     pinholes = [
-        replace(c, intrinsics=replace(c.intrinsics, distortion=(0.0,) * 5, lens="opencv"))
+        replace(c, intrinsics=replace(c.intrinsics, distortion=(0.0,) * 5, lens=OPENCV))
         if c.intrinsics.has_distortion
         else c
         for c in rig.cameras

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.camera import DISTORTION_LENGTHS, FISHEYE, LENS_MODELS, CameraIntrinsics
+from ..core.camera import DISTORTION_LENGTHS, FISHEYE, LENS_MODELS, OPENCV, CameraIntrinsics
 from ..core.depth_model import DepthModel
 from ..core.errors import ConfigError
 from ..core.geometry import invert_transform
@@ -42,7 +42,7 @@ class SynthParams:
     # real-world imperfections (docs/synthetic.md); the defaults render the ideal rig
     distortion: tuple[float, ...] | None = None  # true OpenCV k1 k2 p1 p2 k3 of every camera
     rig_distortion: str = "zeros"  # rig.yaml lists "zeros" (as a D435 reports) or the "truth"
-    lens: str = "opencv"  # the lens model of --distortion: "opencv" or "fisheye" (k1..k4)
+    lens: str = OPENCV  # the lens model of ``distortion``: OpenCV's, or a fisheye's k1..k4
     intrinsics_error: tuple[float, float] = (0.0, 0.0)  # rig.yaml: max |focal error| %, max px
     glue: tuple[float, float, float] = (0.0, 0.0, 0.0)  # back sheet: dx mm, dy mm, rot deg
     thickness_error_mm: float = 0.0  # true panel thickness minus the board file's
@@ -95,10 +95,10 @@ class SynthParams:
 def check_params(params: SynthParams) -> None:
     """Reject imperfection settings that cannot be rendered, naming the option."""
     if params.lens not in LENS_MODELS:
-        raise ConfigError(f"--lens {params.lens!r}: choose {' or '.join(LENS_MODELS)}")
+        raise ConfigError(f"lens {params.lens!r}: choose {' or '.join(LENS_MODELS)}")
     if params.lens == FISHEYE and (params.distortion is None or len(params.distortion) != 4):
-        raise ConfigError("--lens fisheye: give its four coefficients with --distortion K1 K2 K3 "
-                          "K4 (equidistant, cv2.fisheye's)")
+        raise ConfigError("--fisheye: give the lens's four coefficients K1 K2 K3 K4 "
+                          "(equidistant, cv2.fisheye's)")
     if (params.lens != FISHEYE and params.distortion is not None
             and len(params.distortion) not in DISTORTION_LENGTHS):
         raise ConfigError(
