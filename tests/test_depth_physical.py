@@ -14,6 +14,7 @@ import pytest
 from analytic_scene import CAM_A, CAM_B, INTR, RECTS, look_at, scene_cloud
 
 from rgbd_calib.core.depth_model import (
+    PARAMETERS,
     RATIO_MAX,
     RATIO_MIN,
     DepthModel,
@@ -22,6 +23,12 @@ from rgbd_calib.core.depth_model import (
 )
 from rgbd_calib.depth.agreement import fused_agreement
 from rgbd_calib.depth.clouds import voxel_keys, voxel_mean, voxel_pick
+from rgbd_calib.depth.depth_model_fit import (
+    STEP,
+    BoardSamples,
+    predicted_depth_jacobian,
+    predicted_depth_m,
+)
 from rgbd_calib.depth.overlap_models import overlap_samples, recorrected, update_models
 
 FB = 40.0  # focal x baseline (px m)
@@ -125,3 +132,30 @@ def test_extreme_models_and_far_scenes_pass_every_depth_path():
         depth = np.full((INTR.height, INTR.width), 9.5)
         img = correct_depth_image(model, depth, INTR)
         assert np.all(np.isfinite(img)) and np.all(img >= 0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_fits_closed_form_jacobian_equals_central_differences(seed):
+    """The depth-model fit's Jacobian (closed form, issue 59) is the derivative of the
+    prediction it fits: equal to central differences at the fit's steps for any model, with
+    every term free and each view's plane moved by an inverse-depth offset."""
+    rng = np.random.default_rng(seed)
+    n = 2000
+    rays = np.column_stack([rng.uniform(-0.6, 0.6, n), rng.uniform(-0.4, 0.4, n), np.ones(n)])
+    normal = np.tile(np.array([-0.1, 0.2, 1.0]) / np.linalg.norm([-0.1, 0.2, 1.0]), (n, 1))
+    samples = BoardSamples(rays, np.ones(n), normal, np.full(n, rng.uniform(0.8, 3.0)),
+                           np.full(n, 1e-3), np.zeros(n, int), ("f0",), np.zeros((n, 2)))
+    values = {p: (1.0 + rng.normal(0, 0.01)) if p == "scale" else rng.normal(0, 0.3)
+              for p in PARAMETERS}
+    model = DepthModel(40.0, values)
+    offset = rng.normal(0, 0.01, n)
+    J, d_inv = predicted_depth_jacobian(model, samples, PARAMETERS, offset)
+    for j, p in enumerate(PARAMETERS):
+        h = STEP[p]
+        fd = (predicted_depth_m(model.with_values({p: model.value(p) + h}), samples, offset)
+              - predicted_depth_m(model.with_values({p: model.value(p) - h}), samples, offset)
+              ) / (2 * h)
+        assert np.max(np.abs(fd - J[:, j])) <= 1e-6 * np.max(np.abs(fd)), p
+    fd = (predicted_depth_m(model, samples, offset + 1e-5)
+          - predicted_depth_m(model, samples, offset - 1e-5)) / 2e-5
+    assert np.max(np.abs(fd - d_inv)) <= 1e-6 * np.max(np.abs(fd))
