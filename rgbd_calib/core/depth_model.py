@@ -156,6 +156,29 @@ class DepthModel:
         r = np.where(pos, self.value("scale") / np.where(pos, denom, 1.0), RATIO_MAX)
         return np.where(ok, z * np.clip(r, RATIO_MIN, RATIO_MAX), 0.0)
 
+    def warp_jacobian(self, points_measured: Array) -> Array:
+        """``d p_true / d p_measured`` ``(N,3,3)`` at measured colour-frame points ``(N,3)``
+        (m): the rigid correction's rotation times the derivative of the scaling along the
+        rays, ``p -> p / r(x, y, z)`` (:meth:`true_depth`); where the ratio is held at its
+        bound, the scaling alone. Surface normals move by its inverse transpose."""
+        p = np.asarray(points_measured, dtype=float).reshape(-1, 3)
+        z = p[:, 2]
+        x, y = p[:, 0] / z, p[:, 1] / z
+        v = self.value
+        r = self._ratio(x, y, z)
+        held = (r < RATIO_MIN) | (r > RATIO_MAX)
+        r = np.clip(r, RATIO_MIN, RATIO_MAX)
+        fb = self.focal_baseline_px_m
+        kappa = self.disparity_offset_px(x, y) / fb
+        k_x = (v("dx") + 2 * v("dxx") * x + v("dxy") * y) / fb
+        k_y = (v("dy") + v("dxy") * x + 2 * v("dyy") * y) / fb
+        # r = s - z kappa(X/Z, Y/Z): its gradient by (X, Y, Z)
+        grad_r = -np.column_stack([k_x, k_y, kappa - x * k_x - y * k_y])
+        grad_r[held] = 0.0
+        J = np.eye(3)[None] / r[:, None, None] - p[:, :, None] * (grad_r / (r * r)[:, None])[
+            :, None, :]
+        return self.T_true_measured()[:3, :3] @ J
+
     def T_true_measured(self) -> Array:
         """4x4 rigid correction: true point = ``T @`` measured point (colour frame, metres)."""
         T = np.eye(4)

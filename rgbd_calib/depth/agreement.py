@@ -111,13 +111,57 @@ MIN_POINTS = 30  # a cloud with fewer points (a depth model that left physics on
 
 
 @dataclass(frozen=True)
+class NormalGrid:
+    """A camera's surface normals on a grid of :data:`NORMAL_VOXEL_M` (camera frame, m): the
+    voxels' centres ``(M,3)`` and unit normals ``(M,3)`` facing the camera. Estimated once
+    per camera (Open3D's ``estimate_normals``, the costliest call of the depth stage's
+    surfaces) and carried through each change of the cloud's depth correction by
+    :meth:`moved`."""
+
+    centres: np.ndarray
+    normals: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray) -> NormalGrid:
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+            np.asarray(points, dtype=float))).voxel_down_sample(NORMAL_VOXEL_M)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * NORMAL_VOXEL_M,
+                                                                  max_nn=30))
+        pcd.orient_normals_towards_camera_location(np.zeros(3))
+        return cls(np.asarray(pcd.points), np.asarray(pcd.normals))
+
+    def moved(self, old: DepthModel | None, new: DepthModel | None) -> NormalGrid:
+        """The grid of the same cloud corrected by ``new`` instead of ``old`` (None: as
+        measured): each centre back to its measured depth on its ray and through ``new``
+        (as :func:`~.overlap_models.recorrected` moves the points), each normal by the
+        inverse transpose of the correction's derivative there
+        (:meth:`~rgbd_calib.core.depth_model.DepthModel.warp_jacobian`)."""
+        pts, n = self.centres, self.normals
+        if old is not None and not old.is_identity:
+            pts = old.measured_points(pts)
+            n = np.einsum("nji,nj->ni", old.warp_jacobian(pts), n)  # J^T n
+        if new is not None and not new.is_identity:
+            n = np.linalg.solve(np.transpose(new.warp_jacobian(pts), (0, 2, 1)),
+                                n[..., None])[..., 0]  # J^-T n
+            z = pts[:, 2]
+            rays = pts / np.where(np.isfinite(z) & (z > 0), z, np.nan)[:, None]
+            pts = new.correct_points(rays, z)
+        ok = np.isfinite(pts).all(axis=1) & np.isfinite(n).all(axis=1)
+        pts, n = pts[ok], n[ok]
+        n = n / np.linalg.norm(n, axis=1, keepdims=True)
+        n *= np.where(np.einsum("ij,ij->i", n, pts) > 0, -1.0, 1.0)[:, None]  # facing the camera
+        return NormalGrid(pts, n)
+
+
+@dataclass(frozen=True)
 class Surface:
     """A camera's cloud ready to be measured against. A point is matched to the cloud's
     surface through the cloud's own image: it is projected into it and the window of
     ``(2 WINDOW + 1)^2`` pixels around gives the surface there (:func:`surface_on_rays`; the
-    normal of a 2 cm voxel grid, facing the camera). Chosen by pixel, not by 3D distance, so
-    the choice does not depend on either camera's depth noise (nearest neighbours in 3D pick
-    the noise that lies closest: measured on race seed 41, surfaces 17 mm apart read as 4)."""
+    normal of a 2 cm voxel grid, facing the camera: :class:`NormalGrid`). Chosen by pixel, not
+    by 3D distance, so the choice does not depend on either camera's depth noise (nearest
+    neighbours in 3D pick the noise that lies closest: measured on race seed 41, surfaces
+    17 mm apart read as 4)."""
 
     cloud: CameraCloud
     points: np.ndarray  # (N,3) float64, camera frame
@@ -126,17 +170,15 @@ class Surface:
     normals: np.ndarray
 
     @classmethod
-    def of(cls, cloud: CameraCloud) -> Surface:
+    def of(cls, cloud: CameraCloud, grid: NormalGrid | None = None) -> Surface:
+        """``cloud``'s surface, its normals from ``grid`` (the cloud's :class:`NormalGrid`,
+        estimated here when None)."""
         pts = cloud.points.astype(float)
         intr = cloud.intrinsics
         index = np.full((intr.height, intr.width), -1, dtype=np.int64)
         index[cloud.pixels[:, 1], cloud.pixels[:, 0]] = np.arange(len(pts))
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(
-            NORMAL_VOXEL_M)
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * NORMAL_VOXEL_M,
-                                                                  max_nn=30))
-        pcd.orient_normals_towards_camera_location(np.zeros(3))
-        return cls(cloud, pts, index, cKDTree(np.asarray(pcd.points)), np.asarray(pcd.normals))
+        grid = grid if grid is not None else NormalGrid.of(pts)
+        return cls(cloud, pts, index, cKDTree(grid.centres), grid.normals)
 
     def normals_at(self, points: np.ndarray) -> np.ndarray:
         return self.normals[self.normal_tree.query(points)[1]]
@@ -265,15 +307,22 @@ def median_se(d: np.ndarray, block: np.ndarray) -> float:
 def fused_agreement(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndarray],
                     pairs: list[tuple[str, str]], models: dict[str, DepthModel],
                     max_distance_m: float = 0.05, bias_tol_mm: float = BIAS_TOL_MM,
-                    seed: int = 0) -> FusedAgreement:
+                    seed: int = 0, grids: dict[str, NormalGrid] | None = None,
+                    ) -> FusedAgreement:
     """The agreement of every overlapping pair of ``pairs`` at ``T_ref_cam``, the clouds as
-    corrected by ``models`` (after) and with the models undone (before)."""
+    corrected by ``models`` (after) and with the models undone (before); ``grids`` the
+    clouds' :class:`NormalGrid` where known (else estimated here), the models undone from
+    them for the surfaces before."""
     rng = np.random.default_rng(seed)
-    named = [c for c in clouds if c in T_ref_cam and len(clouds[c].points) >= MIN_POINTS]
-    surf = {c: Surface.of(clouds[c]) for c in named}
+    used = {x for p in pairs for x in p}
+    named = [c for c in clouds if c in T_ref_cam and c in used
+             and len(clouds[c].points) >= MIN_POINTS]
+    grids = {c: (grids or {}).get(c) or NormalGrid.of(clouds[c].points) for c in named}
+    surf = {c: Surface.of(clouds[c], grids[c]) for c in named}
     raw = {c: undone(clouds[c], models.get(c)) for c in named}
     raw = {c: r if r is None or len(r.points) >= MIN_POINTS else None for c, r in raw.items()}
-    raw_surf = {c: Surface.of(r) for c, r in raw.items() if r is not None}
+    raw_surf = {c: Surface.of(r, grids[c].moved(models.get(c), None))
+                for c, r in raw.items() if r is not None}
     out = []
     for a, b in pairs:
         if a not in surf or b not in surf:

@@ -174,7 +174,8 @@ def predicted_depth_m(model: DepthModel, s: BoardSamples,
     ``inverse_offset`` (1/m, per pixel) moves the plane: ``1/z`` plus it (a view's plane error,
     ``_solve``)."""
     T = model.T_true_measured()
-    inv = np.sum(s.normal * (s.rays @ T[:3, :3].T), axis=1) / (s.distance_m - s.normal @ T[:3, 3])
+    inv = (np.einsum("ij,ij->i", s.normal, s.rays @ T[:3, :3].T)
+           / (s.distance_m - s.normal @ T[:3, 3]))
     inv = inv + inverse_offset
     z = np.divide(1.0, inv, out=np.full_like(inv, -1.0), where=inv > 0)
     return model.measured_depth(s.rays[:, 0], s.rays[:, 1], z)
@@ -198,7 +199,7 @@ def predicted_depth_jacobian(model: DepthModel, s: BoardSamples, names: tuple[st
     T = model.T_true_measured()
     R, t = T[:3, :3], T[:3, 3]
     den = s.distance_m - s.normal @ t
-    num = np.sum(s.normal * (s.rays @ R.T), axis=1)
+    num = np.einsum("ij,ij->i", s.normal, s.rays @ R.T)
     inv = num / den + inverse_offset
     live = inv > 0
     z = np.divide(1.0, inv, out=np.zeros_like(inv), where=live)
@@ -224,7 +225,7 @@ def predicted_depth_jacobian(model: DepthModel, s: BoardSamples, names: tuple[st
             up = model.with_values({p: v(p) + h}).T_true_measured()[:3, :3]
             dn = model.with_values({p: v(p) - h}).T_true_measured()[:3, :3]
             dR = (up - dn) / (2 * h)
-            col = d_inv * np.sum(s.normal * (s.rays @ dR.T), axis=1) / den
+            col = d_inv * np.einsum("ij,ij->i", s.normal, s.rays @ dR.T) / den
         else:  # tx ty tz (mm): 1/den grows by n_i / den^2
             k = "xyz".index(p[1])
             col = d_inv * num * s.normal[:, k] * 1e-3 / (den * den)
@@ -491,14 +492,14 @@ def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: f
                    for v in prior}  # as _plane_priors' ridge: no zero sigma
     planes = np.zeros((n_views, 3))
 
-    members = [np.flatnonzero(s.view == v) for v in range(n_views)] if prior else []
+    members = _ViewSpans(s.view, tuple(prior)) if prior else None
 
     def residual(m: DepthModel, offset: np.ndarray | float) -> np.ndarray:
         pred = predicted_depth_m(m, s, offset)
         return np.where(pred > 0, s.z_measured - pred, np.nan)
 
     def offsets(u: np.ndarray) -> np.ndarray | float:
-        return np.sum(u[s.view] * s.rays, axis=1) if prior else 0.0
+        return np.einsum("ij,ij->i", u[s.view], s.rays) if prior else 0.0
 
     def weighted(m: DepthModel, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         r = residual(m, offsets(u)) / sigma
@@ -594,21 +595,39 @@ def _plane_priors(s: BoardSamples) -> dict[int, np.ndarray]:
     return out
 
 
+class _ViewSpans:
+    """Each of the views ``views``' samples as one span ``[a, b)`` of the samples put in view
+    order (``order``; None when they are in view order already, as :func:`board_samples`
+    gives them), so that per-view sums are slices, not gathers."""
+
+    def __init__(self, view: np.ndarray, views: tuple[int, ...]):
+        order = np.argsort(view, kind="stable")
+        self.order = None if np.array_equal(order, np.arange(len(view))) else order
+        ordered = view if self.order is None else view[order]
+        self.spans = [(int(a), int(b)) for a, b in zip(np.searchsorted(ordered, views, "left"),
+                                                      np.searchsorted(ordered, views, "right"))]
+
+    def ordered(self, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+        return arrays if self.order is None else tuple(a[self.order] for a in arrays)
+
+
 def _reduced(J: np.ndarray, B: np.ndarray | None, r: np.ndarray, w: np.ndarray,
-             members: list[np.ndarray], prior: dict[int, np.ndarray], planes: np.ndarray,
+             members: _ViewSpans | None, prior: dict[int, np.ndarray], planes: np.ndarray,
              ) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[np.ndarray, ...]]]:
     """The normal equations of the model's parameters with each random-effect view's plane
     marginalised (Schur complement): ``H``, the gradient ``g`` and per such view
-    ``(Hpp^-1, Hmp, gp)`` to recover its plane's step (``members``: each view's samples)."""
+    ``(Hpp^-1, Hmp, gp)`` to recover its plane's step (``members``: each view's samples,
+    in the order of ``prior``)."""
     H = J.T @ (w[:, None] * J)
     g = J.T @ (w * r)
     views = {}
-    for v, P in prior.items():
-        m = members[v]
-        Bv, wv = B[m], w[m]
-        Hpp = Bv.T @ (wv[:, None] * Bv) + P
-        Hmp = J[m].T @ (wv[:, None] * Bv)
-        gp = Bv.T @ (wv * r[m]) + P @ planes[v]
+    if not prior or members is None:
+        return H, g, views
+    Js, Bs, rs, wB = members.ordered(J, B, r, w[:, None] * B)
+    for (v, P), (a, b) in zip(prior.items(), members.spans):
+        Hpp = Bs[a:b].T @ wB[a:b] + P
+        Hmp = Js[a:b].T @ wB[a:b]
+        gp = wB[a:b].T @ rs[a:b] + P @ planes[v]
         Hpp_inv = np.linalg.inv(Hpp)
         H -= Hmp @ Hpp_inv @ Hmp.T
         g -= Hmp @ Hpp_inv @ gp

@@ -32,7 +32,15 @@ from typing import Any
 import numpy as np
 
 from ..core.depth_model import DepthModel
-from .agreement import MIN_POINTS, Surface, image_blocks, match_points, median_se, plane_on_rays
+from .agreement import (
+    MIN_POINTS,
+    NormalGrid,
+    Surface,
+    image_blocks,
+    match_points,
+    median_se,
+    plane_on_rays,
+)
 from .clouds import CameraCloud
 from .depth_model_fit import STEP, DepthModelFit
 
@@ -117,13 +125,15 @@ def measured_rays(cloud: CameraCloud, model: DepthModel | None) -> tuple[np.ndar
 
 def overlap_samples(clouds: dict[str, CameraCloud], T_ref_cam: dict[str, np.ndarray],
                     pairs: list[tuple[str, str]], models: dict[str, DepthModel],
-                    seed: int = 0) -> list[OverlapSamples]:
+                    seed: int = 0, grids: dict[str, NormalGrid] | None = None,
+                    ) -> list[OverlapSamples]:
     """The matched points of every pair of ``pairs`` (clouds as corrected by ``models``),
-    matched as the report matches them (:func:`~.agreement.match_points`)."""
+    matched as the report matches them (:func:`~.agreement.match_points`); ``grids`` the
+    clouds' normals where known (else estimated here)."""
     rng = np.random.default_rng(seed)
     used = {x for p in pairs for x in p
             if x in clouds and x in T_ref_cam and clouds[x].n_points >= MIN_POINTS}
-    surf = {c: Surface.of(clouds[c]) for c in used}
+    surf = {c: Surface.of(clouds[c], (grids or {}).get(c)) for c in used}
     raw = {c: measured_rays(clouds[c], models.get(c)) for c in used}
     out = []
     for a, b in pairs:

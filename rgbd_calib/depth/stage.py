@@ -37,7 +37,7 @@ from ..core.progress import Progress, Tick, start, timed
 from ..model.board import Board
 from ..model.dataset import FolderDataset
 from ..solve.bundle_problem import RelativePose
-from .agreement import FusedAgreement, fused_agreement
+from .agreement import MIN_POINTS, FusedAgreement, NormalGrid, fused_agreement
 from .clouds import (
     CameraCloud,
     DepthScaleEstimate,
@@ -110,6 +110,9 @@ class DepthRefinement:
     unmodelled: dict[str, str] = field(default_factory=dict)
     # the depth models updated by the overlaps' medians (with_overlaps); None: not run
     overlaps: OverlapUpdate | None = None
+    # camera -> its cloud's normals as ``clouds`` holds it (estimated once by with_overlaps,
+    # moved with each correction; measure_agreement reuses them); cameras absent: none yet
+    normal_grids: dict[str, NormalGrid] = field(default_factory=dict)
 
     def status_dict(self) -> dict[str, Any]:
         """report.json ``depth``: ``status`` used / skipped / fallback, its ``reason``, the
@@ -773,22 +776,32 @@ def with_overlaps(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
     models = {c: depth.depth_models[c].model for c in clouds}
     held = {c: depth.depth_models[c] for c in clouds if c not in fits}
     pairs = [(o.cam_a, o.cam_b) for o in find_overlapping_pairs(clouds, T_ref_cam, None, config)]
+    grids = _normal_grids(clouds, pairs, depth.normal_grids)
     try:
         update = update_models(models, {c: f.model_cov for c, f in fits.items()},
-                               overlap_samples(clouds, T_ref_cam, pairs, models), T_ref_cam,
-                               extrinsics_cov, held)
+                               overlap_samples(clouds, T_ref_cam, pairs, models, grids=grids),
+                               T_ref_cam, extrinsics_cov, held)
     except (np.linalg.LinAlgError, ValueError) as exc:
         warnings.warn(f"the depth models could not be updated by the overlaps "
                       f"({type(exc).__name__}: {one_line_error(exc)})", RuntimeWarning,
                       stacklevel=2)
         return depth
     if update is None:
-        return depth
+        return replace(depth, normal_grids=grids)
     fitted = {c: replace(depth.depth_models[c], model=m, model_cov=update.covariances[c])
               for c, m in update.models.items()}
     moved = {c: recorrected(depth.clouds[c], models[c], m) for c, m in update.models.items()}
+    grids = {c: g.moved(models[c], update.models[c]) if c in update.models else g
+             for c, g in grids.items()}
     return replace(depth, depth_models={**depth.depth_models, **fitted},
-                   clouds={**depth.clouds, **moved}, overlaps=update)
+                   clouds={**depth.clouds, **moved}, overlaps=update, normal_grids=grids)
+
+
+def _normal_grids(clouds: dict[str, CameraCloud], pairs: list[tuple[str, str]],
+                  known: dict[str, NormalGrid]) -> dict[str, NormalGrid]:
+    """The :class:`NormalGrid` of every cloud in ``pairs``: ``known``'s, or estimated."""
+    used = {c for p in pairs for c in p if c in clouds and clouds[c].n_points >= MIN_POINTS}
+    return {c: known[c] if c in known else NormalGrid.of(clouds[c].points) for c in used}
 
 
 def measure_agreement(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
@@ -805,7 +818,7 @@ def measure_agreement(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
     if models is None:
         models = {c: f.model for c, f in depth.depth_models.items()}
     try:
-        agreement = fused_agreement(clouds, T_ref_cam, pairs, models)
+        agreement = fused_agreement(clouds, T_ref_cam, pairs, models, grids=depth.normal_grids)
     except Exception as exc:  # noqa: BLE001 - a measurement of the result never ends a run
         warnings.warn(f"the fused cloud's agreement could not be measured "
                       f"({type(exc).__name__}: {one_line_error(exc)})", RuntimeWarning,
