@@ -159,3 +159,31 @@ def test_the_fits_closed_form_jacobian_equals_central_differences(seed):
     fd = (predicted_depth_m(model, samples, offset + 1e-5)
           - predicted_depth_m(model, samples, offset - 1e-5)) / 2e-5
     assert np.max(np.abs(fd - d_inv)) <= 1e-6 * np.max(np.abs(fd))
+
+
+def test_normals_moved_through_a_depth_correction_equal_normals_estimated_again():
+    """A camera's normals are estimated once (NormalGrid) and moved with each change of its
+    depth correction: they must be the normals of the corrected cloud, and undoing the move
+    must give the grid back (issue 59, surfaces built once)."""
+    from scipy.spatial import cKDTree
+
+    from rgbd_calib.depth.agreement import NormalGrid
+
+    rng = np.random.default_rng(5)
+    u, w = rng.uniform(-1, 1, 150_000), rng.uniform(0, 1, 150_000)
+    floor = np.column_stack([1.5 * u, np.full_like(u, 0.8), 1 + 3 * w])
+    wall = np.column_stack([-1.2 + 0.3 * w, 0.6 * u, 1 + 3 * w])
+    measured = np.vstack([floor, wall])
+    model = DepthModel(35.0, {"scale": 1.004, "d0": 0.4, "dx": 0.3, "dy": -0.2, "dxx": 0.3,
+                              "rx": 0.2, "ry": -0.1, "tz": 3.0})
+    z = measured[:, 2]
+    corrected = model.correct_points(measured / z[:, None], z)
+    grid = NormalGrid.of(measured)
+    moved, again = grid.moved(None, model), NormalGrid.of(corrected)
+    nearest = cKDTree(again.centres).query(moved.centres)[1]
+    cos = np.abs(np.sum(again.normals[nearest] * moved.normals, axis=1))
+    assert np.percentile(np.degrees(np.arccos(np.clip(cos, 0, 1))), 99) < 0.1
+    assert np.all(np.sum(moved.normals * moved.centres, axis=1) < 0)  # facing the camera
+    back = moved.moved(model, None)
+    assert np.allclose(back.centres, grid.centres, atol=1e-9)
+    assert np.allclose(back.normals, grid.normals, atol=1e-9)
