@@ -485,6 +485,13 @@ def test_a_charuco_recording_without_its_board_file_is_named_not_blamed_on_intri
     errors = [ln for ln in text.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and "ChArUco" in errors[0] and "--board" in errors[0], text
     assert "fx/fy" not in text
+    assert not out.exists()  # nothing written, not even the detection cache
+    # a folder that was there keeps what it held, and gets no cache
+    out.mkdir()
+    (out / "notes.txt").write_text("mine\n")
+    code, text = cli("calibrate", data, "--out", out, "--refine", "none")
+    assert code == cli_app.EXIT_INPUT, text
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
 def test_an_extrinsics_file_of_yours_is_not_overwritten_and_stale_exports_go(

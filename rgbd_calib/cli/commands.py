@@ -511,14 +511,25 @@ def _check_fixed(prior, rig, path: Path) -> None:
 
 
 def _calibrate_and_write(ds, board, cfg, out: Path, fixed=None):
-    """Run the pipeline and write its outputs, with progress bars on every long step."""
+    """Run the pipeline and write its outputs, with progress bars on every long step. A run
+    that stops on bad input (a wrong board, a rig no view links) leaves ``out`` as it found
+    it: the detection cache it started is removed with the folder it created."""
+    import shutil
+
+    from ..core.errors import RgbdCalibError
     from ..outputs.writer import write_outputs
     from ..pipelines.calibrate import calibrate as run_calibration
 
+    created = out if not out.exists() else out / "cache" if not (out / "cache").exists() else None
     with stage_progress() as progress:
-        result = run_calibration(
-            ds, board, cfg, cache_dir=out / "cache", fixed_cameras=fixed, progress=progress
-        )
+        try:
+            result = run_calibration(
+                ds, board, cfg, cache_dir=out / "cache", fixed_cameras=fixed, progress=progress
+            )
+        except RgbdCalibError:
+            if created is not None:
+                shutil.rmtree(created, ignore_errors=True)
+            raise
         write_outputs(result, ds.rig, out, progress=progress, warn=warn_line)
     return result
 
