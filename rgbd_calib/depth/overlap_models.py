@@ -71,6 +71,11 @@ class OverlapSamples:
     sigma_m: np.ndarray
     block: np.ndarray
 
+    def select(self, rows: np.ndarray) -> OverlapSamples:
+        """These samples at ``rows`` only (every per-point array taken at them)."""
+        return replace(self, **{f: getattr(self, f)[rows] for f in (
+            "rays_a", "z_a", "rays_b", "z_b", "valid_b", "normal_b", "sigma_m", "block")})
+
 
 @dataclass(frozen=True)
 class PairMedian:
@@ -229,23 +234,25 @@ def _statistics(models: dict[str, DepthModel], o: OverlapSamples, T_b_a: np.ndar
                       int(np.count_nonzero(ok))), central
 
 
-def _central_mean(models: dict[str, DepthModel], o: OverlapSamples, T_b_a: np.ndarray,
-                  central: np.ndarray) -> float:
-    return float(np.nanmean(signed_distances(models[o.cam_a], models[o.cam_b], o, T_b_a)[0]
-                            [central]))
+def _central_mean(models: dict[str, DepthModel], o: OverlapSamples, T_b_a: np.ndarray
+                  ) -> float:
+    """The mean signed distance of ``o`` (its central half, :meth:`OverlapSamples.select`)."""
+    return float(np.nanmean(signed_distances(models[o.cam_a], models[o.cam_b], o, T_b_a)[0]))
 
 
 def _jacobian(models: dict[str, DepthModel], o: OverlapSamples, T_b_a: np.ndarray,
               central: np.ndarray, free: dict[str, tuple[str, ...]],
               index: dict[tuple[str, str], int]) -> np.ndarray:
     """The derivative of the pair's central mean by every free parameter (forward
-    differences of :data:`~.depth_model_fit.STEP`)."""
-    base = _central_mean(models, o, T_b_a, central)
+    differences of :data:`~.depth_model_fit.STEP`; each point's distance is its own, so the
+    central half is computed alone)."""
+    o = o.select(central)
+    base = _central_mean(models, o, T_b_a)
     J = np.zeros(len(index))
     for c in (o.cam_a, o.cam_b):
         for p in free.get(c, ()):
             trial = {**models, c: models[c].with_values({p: models[c].value(p) + STEP[p]})}
-            J[index[c, p]] = (_central_mean(trial, o, T_b_a, central) - base) / STEP[p]
+            J[index[c, p]] = (_central_mean(trial, o, T_b_a) - base) / STEP[p]
     return J
 
 
