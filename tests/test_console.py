@@ -99,16 +99,20 @@ def test_the_depth_model_line_names_a_camera_with_too_few_views_for_every_term()
     from rgbd_calib.cli.console import depth_model_line
     from rgbd_calib.core.depth_model import TERMS
 
-    def fit(terms, views, few=False):
+    def fit(terms, views, few=False, rejected=None):
         return SimpleNamespace(model=SimpleNamespace(terms=tuple(terms)), n_views=views,
                                too_few_views=few,
+                               held_out=(None if rejected is None
+                                         else SimpleNamespace(rejected=rejected)),
                                bands=[(1.0, 1.5, 900, 4.0, 0.2, 6.0, 2.1, 1.5)])
 
     line = depth_model_line({"a": fit(TERMS, 30), "b": fit(("scale", "offset"), 13, True),
                              "c": fit(("scale", "offset"), 20), "d": fit((), 30),
-                             "e": fit(("scale", "offset"), 13)})
+                             "e": fit(("scale", "offset"), 13), "f": fit((), 16, rejected=True)})
     assert line.startswith("depth model: every term for a, b scale+offset (13 board views, "
-                           "15 free every term), c scale+offset, e scale+offset, 1 identity;"), line
+                           "15 free every term), c scale+offset, e scale+offset, 1 identity, "
+                           "raw depth for f (its model predicted held-out board views no "
+                           "better);"), line
 
 
 def test_the_depth_registration_line_says_what_the_pairs_did_and_how_they_were_weighed():

@@ -265,7 +265,8 @@ def depth_model_line(fits: dict, unmodelled: dict | None = None) -> str:
     """'depth model: every term for left0, left1, right0 offset, 5 identity, none for right3;
     board-plane bias within 0.4 mm after the model (3.1 mm before), noise 5.2 mm' from the
     depth stage's fits and the cameras with depth it had no model for. A camera that kept the
-    ladder's terms for want of views (``depth.model_terms: auto``, ``too_few_views``) says so."""
+    ladder's terms for want of views (``depth.model_terms: auto``, ``too_few_views``) says so,
+    and one whose model predicted held-out board views no better (``held_out.rejected``)."""
     from ..depth.depth_model_fit import EVERY_TERM_MIN_VIEWS  # open3d: not at CLI start
     every = [c for c, f in sorted(fits.items()) if f.model.terms == tuple(TERMS)]
     named = ([f"every term for {', '.join(every)}"] if every else []) + [
@@ -273,8 +274,11 @@ def depth_model_line(fits: dict, unmodelled: dict | None = None) -> str:
             f" ({f.n_views} board views, {EVERY_TERM_MIN_VIEWS} free every term)"
             if f.too_few_views else "")
         for c, f in sorted(fits.items()) if f.model.terms and c not in every]
-    clean = sum(1 for f in fits.values() if not f.model.terms)
-    parts = named + ([f"{clean} identity"] if clean else [])
+    rejected = sorted(c for c, f in fits.items() if f.held_out is not None and f.held_out.rejected)
+    clean = sum(1 for c, f in fits.items() if not f.model.terms and c not in rejected)
+    parts = named + ([f"{clean} identity"] if clean else []) + (
+        [f"raw depth for {', '.join(rejected)} (its model predicted held-out board views no "
+         "better)"] if rejected else [])
     if unmodelled:
         parts.append(f"none for {', '.join(sorted(unmodelled))} (uncorrected)")
     bands = [b for f in fits.values() for b in f.bands]

@@ -235,6 +235,67 @@ def predicted_depth_jacobian(model: DepthModel, s: BoardSamples, names: tuple[st
 
 
 @dataclass(frozen=True)
+class HeldOut:
+    """How well a depth model predicts board views it was not fitted to: each view's pixels
+    predicted by the model refitted without that view (``model``), and by the raw depth, no
+    model (``identity``), as the Huber cost per pixel of the residuals in noise sigmas (0.5:
+    the noise alone). ``rejected``: the model predicted them no better, and the camera keeps
+    its raw depth."""
+
+    model: float
+    identity: float
+    views: int
+    rejected: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"model": self.model, "identity": self.identity, "views": self.views,
+                "rejected": self.rejected}
+
+
+def held_out_cost(solve: _Solve, base: DepthModel, s: BoardSamples, huber_k: float
+                  ) -> HeldOut | None:
+    """:class:`HeldOut` of ``solve``'s model against ``base`` (the identity) on ``s``: each
+    view left out in turn, the model moved by one Gauss-Newton step without its pixels
+    (exact for a model linear in its parameters; the fit's planes of the other views held at
+    their estimates), its pixels predicted on their plane as the colour calibration gives it.
+    None without parameters or with fewer than 3 views."""
+    n_views = len(s.frames)
+    if not solve.names or n_views < 3:
+        return None
+    dp, _ = predicted_depth_jacobian(solve.model, s, solve.names)
+    pred = predicted_depth_m(solve.model, s)
+    r = np.where(pred > 0, s.z_measured - pred, np.nan) / s.sigma_z
+    ok = np.isfinite(r)
+    r, J = np.where(ok, r, 0.0), np.where(ok[:, None], -dp / s.sigma_z[:, None], 0.0)
+    w = np.where(ok, _huber(r, huber_k), 0.0)
+    H = J.T @ (w[:, None] * J)
+    g_all = J.T @ (w * r)
+    costs, raw = [], []
+    raw_pred = predicted_depth_m(base, s)
+    raw_r = np.where(raw_pred > 0, s.z_measured - raw_pred, np.nan) / s.sigma_z
+    for v in range(n_views):
+        m = (s.view == v) & ok & np.isfinite(raw_r)
+        if not np.any(m):
+            continue
+        Hv = J[m].T @ (w[m, None] * J[m])
+        gv = J[m].T @ (w[m] * r[m])
+        # without view v the score is g_all - gv: the step that zeroes it
+        delta = -np.linalg.lstsq(H - Hv, g_all - gv, rcond=None)[0]
+        costs.append(_huber_cost(r[m] + J[m] @ delta, huber_k))
+        raw.append(_huber_cost(raw_r[m], huber_k))
+    if not costs:
+        return None
+    n = float(sum(c.size for c in costs))
+    return HeldOut(float(sum(c.sum() for c in costs)) / n, float(sum(c.sum() for c in raw)) / n,
+                   len(costs))
+
+
+def _huber_cost(r: np.ndarray, k: float) -> np.ndarray:
+    a = np.abs(r)
+    return np.where(a <= k, 0.5 * a * a, k * a - 0.5 * k * k)
+
+
+@dataclass(frozen=True)
 class TermTest:
     """The evidence for one step of :data:`LADDER` when it was last tested (``term``: its terms
     joined by ``+``, e.g. ``scale+offset``): its Wald statistic, the threshold it had to
@@ -275,6 +336,9 @@ class DepthModelFit:
     # the applied model's covariance (of ``model``'s free parameters, in the order of its
     # ``sigmas``); None: none estimated (the identity)
     model_cov: np.ndarray | None = None
+    # each board view predicted by the model fitted without it, against the raw depth
+    # (:class:`HeldOut`); None: the identity, nothing to judge
+    held_out: HeldOut | None = None
 
     def correction_sigma_mm(self, z_measured_m: float, rays: np.ndarray | None = None) -> float:
         """1 sigma (mm) of the true depth this camera's data give for a measured depth
@@ -356,7 +420,7 @@ class DepthModelFit:
             "n_samples": self.n_samples,
             "n_unseen_views": self.n_unseen_views,
             "sigma_factor": self.sigma_factor,
-        }
+        } | ({"held_out": self.held_out.to_dict()} if self.held_out is not None else {})
 
 
 SENSOR_POSE = ("rx", "ry", "rz", "tx", "ty", "tz")  # the depth sensor's pose terms
@@ -690,7 +754,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     base = identity_model(intr)
     n_views = len(samples.frames)
     chosen: list[str] = []
-    current = _solve(base, samples, (), config.scale_huber_k)
+    current = identity = _solve(base, samples, (), config.scale_huber_k)
     tests: dict[tuple[str, ...], TermTest] = {}
     while True:
         best = None
@@ -720,6 +784,10 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     too_few_views = bool(chosen) and config.model_terms == "auto" and not judged
     if chosen and (config.model_terms == "all" or (config.model_terms == "auto" and judged)):
         chosen, current = [t for t in TERMS], law
+    # kept only where it predicts board views it was not fitted to better than the raw depth
+    held = held_out_cost(current, base, samples, config.scale_huber_k) if chosen else None
+    if held is not None and held.model >= held.identity:
+        held, chosen, current, too_few_views = replace(held, rejected=True), [], identity, False
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)
     z = samples.z_measured
     model = DepthModel(
@@ -738,7 +806,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
                          float(math.sqrt(current.chi2 / current.dof)),
                          law_model=law.model, law_names=law.names, law_cov=law.cov,
                          model_cov=current.cov if current.names else None,
-                         too_few_views=too_few_views)
+                         too_few_views=too_few_views, held_out=held)
 
 
 def _image_coverage(pixels: np.ndarray, intr: CameraIntrinsics, cells: int = 8) -> float:

@@ -121,11 +121,14 @@ def _depth_model_entry(fit: Any, far: Any = None) -> dict[str, Any]:
     board-plane residuals by distance band before and after the model, the board views they
     were fitted on (``depth.model_terms: auto`` frees every term from 15), and (``far``, a
     :class:`~rgbd_calib.depth.depth_model_fit.BeyondBoard`) how much of the camera's cloud lies
-    beyond the board's depths and how well its depth is known there."""
+    beyond the board's depths and how well its depth is known there, and (``held_out``) how
+    well the model predicts board views it was not fitted to, against the raw depth."""
     d = fit.to_dict()
     entry = {"terms": d["model"]["terms"],
              "parameters": {p: d["model"]["parameters"][p] for p in d["model"]["sigmas"]},
              "sigmas": d["model"]["sigmas"], "bands": d["bands"], "n_views": d["n_views"]}
+    if "held_out" in d:
+        entry["held_out"] = d["held_out"]
     if far is not None:
         entry["beyond_board"] = far.to_dict()
     return entry

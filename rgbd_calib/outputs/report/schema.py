@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import RgbdCalibError
 
-REPORT_SCHEMA_VERSION = "1.28"
+REPORT_SCHEMA_VERSION = "1.29"
 
 
 class ReportError(RgbdCalibError):
