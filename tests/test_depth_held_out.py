@@ -77,3 +77,30 @@ def test_a_model_that_predicts_no_better_leaves_the_raw_depth(monkeypatch):
                           intr)
     assert fit.model.is_identity and fit.model.terms == () and fit.held_out.rejected
     assert fit.to_dict()["held_out"]["rejected"] is True
+
+
+def test_the_overlaps_update_is_judged_on_pairs_left_out():
+    """Each pair's median predicted by the update made from the others: pairs that agree on
+    one camera reading long are predicted far better than by the board's models; pairs that
+    contradict each other (noise about a zero truth) are not, and the update is refused."""
+    from rgbd_calib.depth.overlap_models import PairMedian, held_out_pairs
+
+    rng = np.random.default_rng(0)
+    cams = ["a", "b", "c", "d"]
+    index = {c: k for k, c in enumerate(cams)}
+    prior = np.eye(4) / 1e-3**2  # each camera's depth offset known to 1 mm from the board
+    pairs = [(x, y) for i, x in enumerate(cams) for y in cams[i + 1:]]
+    jac = {}
+    for x, y in pairs:
+        J = np.zeros(4)
+        J[index[x]], J[index[y]] = 1.0, -1.0  # the pair's median moves with a's and b's depth
+        jac[x, y] = J
+    offset = {"a": 3.0, "b": 0.0, "c": 0.0, "d": 0.0}  # mm: camera a reads 3 mm long
+    agree = [PairMedian(x, y, offset[x] - offset[y] + rng.normal(0, 0.2), 0.2, 1000)
+             for x, y in pairs]
+    held = held_out_pairs(prior, agree, jac)
+    assert held is not None and held.update < 0.2 * held.board
+    rng = np.random.default_rng(0)
+    noise = [PairMedian(x, y, rng.normal(0, 0.2), 0.2, 1000) for x, y in pairs]
+    held = held_out_pairs(prior, noise, jac)
+    assert held is not None and held.update > held.board  # calibrate then keeps the board's

@@ -95,6 +95,48 @@ class PairMedian:
 
 
 @dataclass(frozen=True)
+class PairsHeldOut:
+    """How well the overlaps' update predicts pairs it was not made from: each pair's median
+    (in its standard errors) predicted by the update made without that pair (``update``),
+    and by the board's models alone (``board``), as the mean square over the pairs.
+    ``rejected``: the update predicted them no better and the board's models are kept."""
+
+    update: float
+    board: float
+    pairs: int
+    rejected: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"update": self.update, "board": self.board, "pairs": self.pairs,
+                "rejected": self.rejected}
+
+
+def held_out_pairs(prior_info: np.ndarray, before: list[PairMedian],
+                   jacobian: dict[tuple[str, str], np.ndarray]) -> PairsHeldOut | None:
+    """:class:`PairsHeldOut` of the linear-Gaussian update (the module docstring) at the
+    board's models: each pair left out in turn, the others' information and medians
+    (``before``, with their derivatives ``jacobian``) update the models, which then predict
+    the left-out pair's median; None with fewer than 3 pairs."""
+    rows = [(m, jacobian[m.cam_a, m.cam_b]) for m in before if (m.cam_a, m.cam_b) in jacobian]
+    if len(rows) < 3:
+        return None
+    H = prior_info.copy()
+    g = np.zeros(len(prior_info))
+    for m, J in rows:
+        s2 = (m.se_mm * 1e-3) ** 2
+        H += np.outer(J, J) / s2
+        g += J * (m.median_mm * 1e-3) / s2
+    update, board = [], []
+    for m, J in rows:
+        s2 = (m.se_mm * 1e-3) ** 2
+        step = -np.linalg.lstsq(H - np.outer(J, J) / s2, g - J * (m.median_mm * 1e-3) / s2,
+                                rcond=None)[0]
+        update.append((m.median_mm * 1e-3 + J @ step) ** 2 / s2)
+        board.append((m.median_mm * 1e-3) ** 2 / s2)
+    return PairsHeldOut(float(np.mean(update)), float(np.mean(board)), len(rows))
+
+
+@dataclass(frozen=True)
 class OverlapUpdate:
     """The depth models after the overlaps (cameras with free terms), their covariances (of
     the free terms, in the order of each model's ``sigmas``), and the pairs' medians before
@@ -109,9 +151,18 @@ class OverlapUpdate:
     # as many dof as it has free parameters): a move beyond the board's uncertainty says the
     # board and the overlaps disagree
     shift_chi2: dict[str, float] = field(default_factory=dict)
+    # each pair's median predicted by the update made without it, against the board's models
+    # (:func:`held_out_pairs`); None: fewer than 3 pairs. ``held_out.rejected``: the update
+    # predicts them no better and is not applied (the board's models stay)
+    held_out: PairsHeldOut | None = None
+
+    @property
+    def applied(self) -> bool:
+        return self.held_out is None or not self.held_out.rejected
 
     def to_dict(self) -> dict[str, Any]:
         return {"iterations": self.iterations,
+                **({"held_out": self.held_out.to_dict()} if self.held_out is not None else {}),
                 "cameras": {c: {"shift_chi2": self.shift_chi2.get(c),
                                 "dof": len(self.models[c].sigmas)} for c in sorted(self.models)},
                 "pairs": [{**b.to_dict(), "median_after_mm": a.median_mm,
@@ -336,8 +387,12 @@ def update_models(models: dict[str, DepthModel], covariances: dict[str, np.ndarr
         shift[c] = float(moved[k] @ prior_info[np.ix_(k, k)] @ moved[k])
         out_models[c] = replace(current[c], sigmas={p: float(np.sqrt(max(C[i, i], 0.0)))
                                                     for i, p in enumerate(ps)})
+    held_pairs = held_out_pairs(prior_info, before, jacobian)
+    if held_pairs is not None and held_pairs.update >= held_pairs.board:
+        held_pairs = replace(held_pairs, rejected=True)
     return OverlapUpdate(out_models, out_cov, pairs_before,
-                         tuple(by_pair[m.cam_a, m.cam_b] for m in pairs_before), done, shift)
+                         tuple(by_pair[m.cam_a, m.cam_b] for m in pairs_before), done, shift,
+                         held_pairs)
 
 
 def recorrected(cloud: CameraCloud, old: DepthModel | None, new: DepthModel) -> CameraCloud:

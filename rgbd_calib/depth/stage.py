@@ -788,6 +788,8 @@ def with_overlaps(depth: DepthRefinement, T_ref_cam: dict[str, np.ndarray],
         return depth
     if update is None:
         return replace(depth, normal_grids=grids)
+    if not update.applied:  # held-out pairs predicted no better: the board's models stay
+        return replace(depth, overlaps=update, normal_grids=grids)
     fitted = {c: replace(depth.depth_models[c], model=m, model_cov=update.covariances[c])
               for c, m in update.models.items()}
     moved = {c: recorrected(depth.clouds[c], models[c], m) for c, m in update.models.items()}
