@@ -51,5 +51,5 @@ SCHEDULER_OPTION = typer.Option(
     "--scheduler",
     help="Address of a Dask scheduler (tcp://HOST:8786): its workers run the detection and "
     "the depth pair registrations instead of local processes; they must see the dataset at "
-    "the same path (docs/guide.md, 'Running on a Dask cluster').",
+    "the same path (docs/reference.md, 'Running on a Dask cluster').",
 )
