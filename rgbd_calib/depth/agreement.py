@@ -160,8 +160,7 @@ class Surface:
     ``(2 WINDOW + 1)^2`` pixels around gives the surface there (:func:`surface_on_rays`; the
     normal of a 2 cm voxel grid, facing the camera: :class:`NormalGrid`). Chosen by pixel, not
     by 3D distance, so the choice does not depend on either camera's depth noise (nearest
-    neighbours in 3D pick the noise that lies closest: measured on race seed 41, surfaces
-    17 mm apart read as 4)."""
+    neighbours in 3D pick the noise that lies closest and read surfaces apart as nearer)."""
 
     cloud: CameraCloud
     points: np.ndarray  # (N,3) float64, camera frame

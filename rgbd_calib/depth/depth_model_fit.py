@@ -1,49 +1,35 @@
-"""Each camera's depth model estimated from the board (issue 33; the model:
+"""Each camera's depth model estimated from the board (the model:
 :mod:`rgbd_calib.core.depth_model`).
 
 The colour calibration puts the board in every view it saw, metric through the printed markers
-and independent of depth. So every depth pixel on the board face has a known true surface: the
-face plane ``n . p = d``. With the model's parameters ``theta`` each pixel has a predicted
-measurement, the depth the camera reports for that plane (:func:`predicted_depth_m`); the
-residual is measured minus predicted, its sigma the depth noise (the D435 model of
-:mod:`.noise`). Gauss-Newton with Huber weights (IRLS) solves for the free parameters. The
-report's board-plane residuals are the corrected points' signed distances to the plane
-(:func:`plane_residuals_m`).
+and independent of depth, so every depth pixel on the board face has a known true surface: the
+face plane ``n . p = d`` (camera frame, m). Under the model's parameters ``theta`` each pixel
+has a predicted measurement, the depth the camera reports for that plane
+(:func:`predicted_depth_m`); the residual is measured minus predicted, in units of the depth
+noise (the D435 model of :mod:`.noise`). Gauss-Newton with Huber weights (IRLS) solves for the
+free parameters, with each view's plane error a random effect where its board pose's
+covariance is known (``_solve``). The report's board-plane residuals are the corrected points'
+signed distances to the plane (:func:`plane_residuals_m`).
 
-Whether a camera needs a model, and which terms, is chosen by evidence, as the self-calibration
-does for lens and board:
-forward selection over :data:`LADDER` (the stereo law: scale and disparity offset together;
-the offset's gradients; its curvature; the depth-to-colour pose), at each step adding the first
-step in that order whose Wald statistic ``theta_t^T C_t^-1 theta_t`` exceeds its threshold
-``k F_{k, views - parameters}(1 - 1e-3)`` (never below ``k ln(views)``). Scale and offset are
-one step because both are physical on every stereo camera and, over the board's depth range
-(often 1-2 m), nearly collinear: keeping the one the test happens to prefer extrapolates with a
-bias beyond the board (race seed 101, a camera that kept the scale alone: -6.6 mm at 3.5 m;
-both: +2.0 +- 2.8 mm; docs/depth.md), keeping both extrapolates with an honest, larger sigma.
-``C`` is the cluster-robust (sandwich) covariance with the views as clusters (never below the
-model-based one), so that what is common to one view (its board pose error, depth noise
-correlated over neighbouring pixels) counts once per view, not once per pixel; its sigmas are
-the model's. A step of ``k`` parameters is tried only on more than ``k`` views
-(:func:`step_fits_views`): the sandwich of ``V`` views' scores, which sum to zero at the
-solution, has rank ``V - 1`` at most, so the step's ``k x k`` block of it is singular from
-``V = k`` views down, and the step is judged by the model-based covariance alone, which
-cannot see the model's misfit (a term the model lacks, taken up by the step's): 3 views of a
-camera whose depth sensor sat where it should, with a disparity curvature left out, kept the
-depth sensor's pose at a Wald statistic of 3e5; on an untuned ring two cameras of 3 and 4
-views kept it (tz 73 +- 81 mm) and their clouds lay 31 and 47 mm off the true surfaces, 3 and
-5 mm with the rule (docs/depth.md, 'Few board views'). Each view's board pose error is also
-in the model, where the caller knows the pose's covariance (:func:`board_samples`'
-``pose_covariance``): the plane's error is a random effect of the view, so the model-based
-covariance sees it too, which the sandwich of a few views cannot (``_solve``; docs/depth.md,
-"The board's planes as uncertain as their poses").
-A clean camera keeps the identity. A camera the ladder gives any term gets every term with
-``depth.model_terms: all``, and with ``auto`` (the default) where its views can judge all of
-them (:data:`EVERY_TERM_MIN_VIEWS`: two views beyond the 13 parameters): over the board's
-range the terms trade with each other (scale with offset, the gradients with the pose's tilt),
-so one left out because its test fell short biases the others, and with them the depth beyond
-the board; all of them free give unbiased parameters with larger sigmas, which on a short
-recording are too loose to apply (race, 8 sets: the scene 20-100 mm off; docs/depth.md).
-``evidence`` keeps only the terms the ladder accepted, as ``auto`` does with fewer views."""
+Which terms a camera gets is chosen by evidence:
+
+- forward selection over :data:`LADDER` (scale and disparity offset together, then the offset's
+  gradients, its curvature, the depth-to-colour pose): at each step the first step in that
+  order whose Wald statistic ``theta_t^T C_t^-1 theta_t`` exceeds ``k F_{k, views -
+  parameters}(1 - P_FALSE_TERM)`` (never below ``k ln(views)``), ``C`` the cluster-robust
+  covariance with the views as clusters, never below the model-based one. A step of ``k``
+  parameters is tried only on more than ``k`` views (:func:`step_fits_views`);
+- a camera given any term gets every term where its views can judge all of them
+  (``depth.model_terms: auto`` and :data:`EVERY_TERM_MIN_VIEWS`; ``all``: always), since over
+  the board's depth range the terms trade with each other and one left out biases the rest
+  beyond the board; ``evidence`` keeps the ladder's terms only;
+- the model is applied only when it predicts each board view, refitted without that view,
+  better than the raw depth does (:func:`held_out_cost`); otherwise the camera keeps the
+  identity. A clean camera keeps the identity.
+
+The measurements behind each rule (the terms' trade-offs, few views, plane errors):
+docs/depth.md, "Few board views", "From 15 views", "The board's planes as uncertain as their
+poses"."""
 
 from __future__ import annotations
 
@@ -71,10 +57,7 @@ GN_ITERATIONS = 8
 BACKTRACK = tuple(0.5**k for k in range(20))  # Gauss-Newton step fractions tried in turn
 MIN_CLUSTER_DOF = 4  # views beyond the parameters for the clustered (F) test
 # depth.model_terms auto: every term from two views beyond the parameters (the every-term fit's
-# clustered covariance then has a view to spare). Measured on 11 cameras of 15-16 views over
-# five renders: every term nearer the true surfaces on 7 (the ladder's up to 8.5 mm off
-# where the board never was), the same on 2, further on 2; at 12-14 views mixed
-# (docs/depth.md, 'From 15 views')
+# clustered covariance then has a view to spare; docs/depth.md, 'From 15 views')
 EVERY_TERM_MIN_VIEWS = len(PARAMETERS) + 2
 # central-difference steps per parameter, in the model's units (scale, px, deg, mm)
 STEP = {"scale": 1e-5, "d0": 1e-3, "dx": 1e-3, "dy": 1e-3, "dxx": 1e-3, "dxy": 1e-3,
@@ -358,9 +341,8 @@ class DepthModelFit:
         terms the applied model left out would move there. Within the board's range it is
         small (both fit the board); beyond, a left-out term that trades with the kept ones
         over the board's range (the depth sensor's ``tz`` with scale and offset) makes it the
-        applied model's bias, which the every-term fit's sigma does not hold (a 5-view
-        camera: -36 mm at 3.7 m against a sigma of 6.7 mm, its cloud 29 mm off;
-        docs/depth.md, 'Few board views')."""
+        applied model's bias, which the every-term fit's sigma does not hold (docs/depth.md,
+        'Few board views')."""
         if self.law_model is None or not self.law_names:
             return 0.0
         return 1e3 * (_depth_m(self.model, z_measured_m, rays)
@@ -546,9 +528,9 @@ def _solve(base: DepthModel, s: BoardSamples, names: tuple[str, ...], huber_k: f
     with it, under the prior ``N(0, plane_cov_v)``, and marginalised out of ``H`` and the
     scores (Schur complement per view). A plane's error is a plane in inverse depth, the form
     the scale, offset, gradients and depth-to-colour pose take within one view, so it reaches
-    all of them but the curvature; without it the board pose counts as exact and a few views
-    whose poses are off by 0.5-1 mm (the board where the camera did not detect it, placed by
-    the extrinsics and the time model) make terms of it (race seed 382; docs/depth.md)."""
+    all of them but the curvature; without it the board pose counts as exact, and views whose
+    poses are off (the board where the camera did not detect it) make terms of their error
+    (docs/depth.md, "The board's planes as uncertain as their poses")."""
     sigma = s.sigma_z
     n_views = len(s.frames)
     prior = _plane_priors(s)
