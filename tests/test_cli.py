@@ -208,3 +208,22 @@ def test_calibrate_without_board_reads_the_datasets_board_yaml(small_line, tmp_p
     code, text = run("calibrate", bare, "--out", tmp_path / "thesis", "--refine", "none")
     assert code == 0, text
     assert "board: the thesis board (no --board" in " ".join(text.split())
+
+
+def test_the_command_line_runs_numpy_blas_on_one_thread_unless_told_otherwise():
+    """OpenBLAS's threads on the pipeline's small products slow a loaded machine down
+    (issue 59): the command line sets OPENBLAS_NUM_THREADS=1 before numpy loads, and keeps a
+    user's own setting."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import os, rgbd_calib.cli, numpy; "
+            "print(os.environ.get('OPENBLAS_NUM_THREADS'))")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout.strip()
+    assert out == "1"
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "OPENBLAS_NUM_THREADS": "2"},
+                         capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "2"
