@@ -9,7 +9,7 @@ import pytest
 
 from rgbd_calib.core.camera import CameraIntrinsics
 from rgbd_calib.core.config import BundleConfig
-from rgbd_calib.solve import selfcal
+from rgbd_calib.solve import blocks, selfcal
 
 
 def _terms(rms, n=500, cam="c"):
@@ -85,7 +85,7 @@ def test_time_challenges_the_first_steps_and_only_with_a_model_error():
     both = selfcal.extend(timed, groups[0][0])
     assert both.name == "time + board" and both.board and both.time
     assert selfcal.extend(both, selfcal.TIME_STEP) == both  # skipped by the ladder
-    assert selfcal.time_parameters(cameras=8, views=30) == 2 * 8 - 1 + 6 * 30
+    assert blocks.TimeBlock().parameters(blocks.RigShape(8, 8, 30, None)) == 2 * 8 - 1 + 6 * 30
     assert selfcal.base_level(BundleConfig(time="refine")).time
 
 
@@ -151,3 +151,31 @@ def test_cli_time_option_refuses_a_bad_value(tmp_path):
                                    str(tmp_path / "x"), "--time", "sometimes"])
     assert bad.exit_code == 2 and "bundle.time" in bad.output, bad.output
     assert "Traceback" not in bad.output and not (tmp_path / "x").exists()
+
+
+def test_each_model_block_owns_its_count_its_held_test_and_its_settings():
+    """The ladder asks the blocks (rgbd_calib.solve.blocks, issue 57 item 1): what each adds
+    over the level below, why a freed one was held, and which settings switch it on."""
+    from types import SimpleNamespace
+
+    flat = SimpleNamespace(sheets=())
+    cube = SimpleNamespace(sheets=(1, 2, 3, 4, 5, 6))
+    rig = blocks.RigShape(cameras=6, free_cameras=5, views=40, board=flat)
+    assert blocks.BoardBlock().parameters(rig) == 4
+    assert blocks.BoardBlock().parameters(blocks.RigShape(6, 5, 40, cube)) == 30
+    lens = blocks.IntrinsicsBlock(("fx", "fy", "cx", "cy", "k1", "k2"))
+    pinhole = blocks.IntrinsicsBlock(("fx", "fy", "cx", "cy"))
+    assert blocks.added((pinhole,), (pinhole, lens), rig) == 0 + 2 * 5  # k1 k2 on 5 cameras
+    assert blocks.added((), (blocks.TimeBlock(), blocks.BoardBlock()), rig) == 11 + 240 + 4
+    held = SimpleNamespace(board=SimpleNamespace(held="no view shows both faces"), faces=[])
+    free = SimpleNamespace(board=SimpleNamespace(held=None), faces=[])
+    assert blocks.newly_held((), (blocks.BoardBlock(),), held) == "no view shows both faces"
+    assert blocks.newly_held((blocks.BoardBlock(),), (blocks.BoardBlock(),), held) is None
+    assert blocks.newly_held((), (blocks.BoardBlock(),), free) is None
+    level = selfcal.ModelLevel("time + board + fx fy cx cy", True, pinhole.params, True)
+    assert [b.label for b in level.blocks] == ["time", "board", "fx fy cx cy"]
+    cfg = level.bundle_config(BundleConfig())
+    assert (cfg.time, cfg.board, cfg.intrinsics, tuple(cfg.intrinsics_params)) == (
+        "refine", "refine", "refine", pinhole.params)
+    nominal = selfcal.ModelLevel("nominal", False).bundle_config(BundleConfig())
+    assert (nominal.time, nominal.board, nominal.intrinsics) == ("fixed", "fixed", "fixed")

@@ -26,7 +26,7 @@ from ..core.progress import Progress, Tick, start
 from ..model.board import Board
 from ..model.results import CameraExtrinsics
 from ..model.rig import Rig
-from . import edge_offset, selfcal
+from . import blocks, edge_offset, selfcal
 from .bundle import bundle_adjust
 from .bundle_factors import lens_names
 from .bundle_problem import BundleProblem, BundleResult, MarkerMeasurement
@@ -519,22 +519,16 @@ def _try_level(ladder: _Ladder, config: BundleConfig, trial_level: selfcal.Model
         return _Step(selfcal.LevelFit(trial_level, 0, 0, float("nan"), accepted=False,
                                       reason=f"the solve failed: {_first_line(exc)}"),
                      None, None, {})
-    n_cams = len({m.camera for m in problem.measurements} - set(ladder.fixed_cameras or {}))
-    added = (selfcal.board_parameters(ladder.board) if trial_level.board and not level.board
-             else 0) + (
-        len(trial_level.intrinsics_params) - len(level.intrinsics_params)) * n_cams
-    if trial_level.time and not level.time:
-        added += selfcal.time_parameters(len({m.camera for m in problem.measurements}),
-                                         len({m.view for m in problem.measurements}))
+    cams = {m.camera for m in problem.measurements}
+    rig = blocks.RigShape(len(cams), len(cams - set(ladder.fixed_cameras or {})),
+                          len({m.view for m in problem.measurements}), ladder.board)
+    added = blocks.added(level.blocks, trial_level.blocks, rig)
     terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, config.outlier_px)
     ok, gain, reason = selfcal.compare(current.terms, len(accepted.T_ref_cam), terms,
                                        len(trial.T_ref_cam), added)
-    if ok and trial_level.board and not level.board and trial.board is not None \
-            and trial.board.held:
-        ok, reason = False, trial.board.held
-    if ok and trial_level.board and not level.board and trial.faces \
-            and all(f.held for f in trial.faces):
-        ok, reason = False, "; ".join(f.held for f in trial.faces)
+    pinned = blocks.newly_held(level.blocks, trial_level.blocks, trial) if ok else None
+    if pinned:  # a block freed but held anyway: the data cannot move it
+        ok, reason = False, pinned
     tension = selfcal.prior_tension(trial, ladder.rig)
     if ok and tension is not None and tension[0] > selfcal.PRIOR_TENSION:
         # the data put a parameter several prior sigmas from rig.yaml: the prior is wrong

@@ -48,17 +48,11 @@ from typing import Any
 
 from ..core.camera import PINHOLE_NAMES
 from ..core.config import BundleConfig
+from .blocks import OFF, BoardBlock, IntrinsicsBlock, ModelBlock, TimeBlock
 
 FOCAL_CENTRE = PINHOLE_NAMES
 PRIOR_TENSION = 3.0  # a refined parameter this many prior sigmas from rig.yaml: prior wrong
 LOOSEN = 10.0  # ... and its priors are then widened this many times
-BOARD_PARAMETERS = 4  # in-plane offset (2), rotation about the normal, thickness
-
-
-def board_parameters(board) -> int:
-    """The parameters the board self-calibration adds: :data:`BOARD_PARAMETERS` for the back
-    sheet, 6 per non-reference face of a multi-face target."""
-    return 6 * (len(board.sheets) - 1) if board.sheets else BOARD_PARAMETERS
 
 
 @dataclass(frozen=True)
@@ -71,16 +65,19 @@ class ModelLevel:
     intrinsics_params: tuple[str, ...] = ()
     time: bool = False
 
+    @property
+    def blocks(self) -> tuple[ModelBlock, ...]:
+        """The model blocks this level frees (:mod:`rgbd_calib.solve.blocks`), in the order
+        of its name."""
+        return ((TimeBlock(),) if self.time else ()) + ((BoardBlock(),) if self.board else ()) \
+            + ((IntrinsicsBlock(self.intrinsics_params),) if self.intrinsics_params else ())
+
     def bundle_config(self, base: BundleConfig) -> BundleConfig:
-        """``base`` with this level's board, intrinsics and time modes (explicit, never
+        """``base`` with this level's blocks on and the others off (explicit modes, never
         ``auto``)."""
-        update: dict[str, Any] = {"board": "refine" if self.board else "fixed",
-                                  "time": "refine" if self.time else "fixed"}
-        if self.intrinsics_params:
-            update |= {"intrinsics": "refine",
-                       "intrinsics_params": list(self.intrinsics_params)}
-        else:
-            update["intrinsics"] = "fixed"
+        update: dict[str, Any] = dict(OFF)
+        for block in self.blocks:
+            update |= block.config_update()
         return base.model_copy(update=update)
 
     @property
@@ -240,12 +237,6 @@ def extend(level: ModelLevel, step: Step) -> ModelLevel:
     params = level.intrinsics_params + tuple(
         p for p in step[1] if p not in level.intrinsics_params)
     return ModelLevel(_name(board, params, time), board, params, time)
-
-
-def time_parameters(cameras: int, views: int) -> int:
-    """The parameters the time model adds: an offset and a readout per camera (the
-    reference's offset held), a twist (6) per frame set."""
-    return 2 * cameras - 1 + 6 * views
 
 
 def _name(board: bool, params: tuple[str, ...], time: bool = False) -> str:
