@@ -155,3 +155,14 @@ def test_the_edge_offset_line_names_only_the_modelled_cameras():
     assert line is not None and "a, b read +0.052..+0.101 px per edge" in line, line
     assert "clean" not in line and "taken out of their corners" in line
     assert edge_offset_line({"clean": offsets["clean"]}) is None and edge_offset_line({}) is None
+
+
+def test_the_extrinsics_table_keeps_its_numbers_in_a_file_or_pipe(monkeypatch):
+    """Off a terminal rich lays out 80 columns, which cut the demo's table to '0.53…'; the
+    table gets 100 unless COLUMNS says otherwise."""
+    from rgbd_calib.cli import console as con
+
+    monkeypatch.delenv("COLUMNS", raising=False)
+    assert con._table_console().width == con.OFF_TERMINAL_WIDTH
+    monkeypatch.setenv("COLUMNS", "132")
+    assert con._table_console().width == 132

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import re
 import statistics
 import sys
@@ -27,6 +28,17 @@ if TYPE_CHECKING:
     from ..solve.edge_offset import EdgeOffset
 
 console = Console(stderr=True)
+OFF_TERMINAL_WIDTH = 100  # the tables' width in a file or pipe (rich's own default: 80)
+
+
+def _table_console() -> Console:
+    """stdout for the extrinsics table: the terminal's width, or in a file or pipe
+    :data:`OFF_TERMINAL_WIDTH` columns (at 80 the demo's table cut its numbers to '0.53…'),
+    unless ``COLUMNS`` says otherwise."""
+    out = Console()
+    if not out.is_terminal and "COLUMNS" not in os.environ:
+        out = Console(width=OFF_TERMINAL_WIDTH)
+    return out
 
 
 # --------------------------------------------------------------------------- progress
@@ -330,7 +342,7 @@ def print_summary(result, out: Path, verdict: bool = True, truth=None) -> None:
                      and cam.sigma_rotation_deg else None)
             row += [f"{deg:.4f}", f"{mm:.3f}", "-" if ratio is None else f"{ratio:.1f}"]
         table.add_row(*row)
-    Console().print(table)
+    _table_console().print(table)
     for name, why in result.extrinsics.unconnected.items():
         console.print(f"[yellow]not calibrated[/]: {name}: {why}")
     selection = result.set_selection
