@@ -319,7 +319,9 @@ def test_few_views_whose_board_poses_are_off_keep_the_identity_when_their_planes
                                             s.distance_m[s.view == v][0], cov[f])
                            for v, f in enumerate(s.frames)])
         uncertain.append(fit_depth_model("cam", replace(s, plane_cov=planes), INTR).model.terms)
-    assert sum(bool(t) for t in exact) >= 2, exact  # 3 of 8 today (the pose)
+    # the exact planes' spurious term (the pose): 3 of 8 before held-out board views judged the
+    # model (2026-12-07), 1 of 8 since (tests/test_depth_held_out.py)
+    assert sum(bool(t) for t in exact) >= 1, exact
     assert all(t == () for t in uncertain), uncertain
 
 

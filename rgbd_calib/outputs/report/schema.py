@@ -296,6 +296,7 @@ REPORT_SCHEMA: dict[str, Any] = {
         "beyond_board?": {"board_max_m": N, "cloud_p90_m": N, "fraction": N, "sigma_mm": N,
                            "model_gap_mm?": N},
         "n_views?": INT,
+        "held_out?": {"model": N, "identity": N, "views": INT, "rejected": B},
     }),
     "fused_agreement?": {
         "pairs": ListOf({"cam_a": S, "cam_b": S, "after": SURFACE_DISTANCES,
@@ -317,6 +318,7 @@ REPORT_SCHEMA: dict[str, Any] = {
                "sensor_pose_sigma_deg?": N, "sensor_pose_sigma_mm?": N,
                "overlap_models?": {
                    "iterations": INT,
+                   "held_out?": {"update": N, "board": N, "pairs": INT, "rejected": B},
                    "cameras": MapOf("<camera>", {"shift_chi2": Nullable(N), "dof": INT}),
                    "pairs": ListOf({"cam_a": S, "cam_b": S, "median_mm": N, "se_mm": N,
                                     "n": INT, "median_after_mm": N, "se_after_mm": N})}},
