@@ -238,9 +238,9 @@ class HeldOut:
 def held_out_cost(solve: _Solve, base: DepthModel, s: BoardSamples, huber_k: float
                   ) -> HeldOut | None:
     """:class:`HeldOut` of ``solve``'s model against ``base`` (the identity) on ``s``: each
-    view left out in turn, the model moved by one Gauss-Newton step without its pixels
-    (exact for a model linear in its parameters; the fit's planes of the other views held at
-    their estimates), its pixels predicted on their plane as the colour calibration gives it.
+    view left out in turn, the model moved by one Gauss-Newton step on the other views'
+    pixels (exact for a model linear in its parameters; every view's plane where the colour
+    calibration put it, no plane error fitted), the left-out pixels predicted on their plane.
     None without parameters or with fewer than 3 views."""
     n_views = len(s.frames)
     if not solve.names or n_views < 3:
