@@ -184,8 +184,8 @@ class DetectionConfig(BaseModel, extra="forbid"):
     refine_with_board: bool = Field(
         True,
         description="Run OpenCV's refineDetectedMarkers with the layout of the face seen "
-        "most to recover markers the detector rejected (measured on noisy synthetic renders: "
-        "+44 % markers at 848x480 'race', +9 % at 1280x720 'thesis-line', none wrong).",
+        "most to recover markers the detector rejected (docs/accuracy.md, 'Measurements "
+        "behind the detector's design').",
     )
 
     @model_validator(mode="after")
@@ -424,8 +424,7 @@ class BundleConfig(BaseModel):
         "p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 tau_x tau_y); the others stay at their rig.yaml values. "
         "Distortion is constrained only where the board went: a set that never reaches the "
         "image corners leaves the model there an extrapolation (the report's coverage "
-        "warning); leaving k3 out of a lens that has one biases the rest (measured: race, "
-        "20 frames, unlisted k3 = 0.03: 9.5 mm worst without k3, 3.1 mm with)",
+        "warning); leaving k3 out of a lens that has one biases the rest (docs/accuracy.md)",
     )
     intrinsics_prior_focal_pct: float = Field(
         1.0,
@@ -606,8 +605,8 @@ class DepthConfig(BaseModel, extra="forbid"):
         ge=1,
         description="Frames per camera for the static clouds when the board constrains "
         "every camera and no pair is registered: the clouds then serve only fused.ply and "
-        "the report's cloud checks (their sigma_z counts the frames). Measured: the ring "
-        "(6 x 1280x720) depth stage 9.1 -> 4 s (docs/depth.md, Worth its time).",
+        "the report's cloud checks (their sigma_z counts the frames; docs/depth.md, 'Worth "
+        "its time').",
     )
     board_mask_margin_m: float = Field(
         0.03,
@@ -675,9 +674,8 @@ class DepthConfig(BaseModel, extra="forbid"):
         40,
         ge=1,
         description="Board views per camera read for the depth scale and the depth model, "
-        "sampled evenly (each gives a factor to ~0.01 %; 6 views reached 0.03 % on the race "
-        "rig; the depth model needs the board's whole range: with 12 instead of 40 on race "
-        "seed 101 its worst band was 13.7 mm instead of 7.1, docs/depth.md).",
+        "sampled evenly (each gives a factor to ~0.01 %; the depth model needs the board's "
+        "whole range of distances, docs/depth.md).",
     )
     scale_min_points: int = Field(
         200, ge=10, description="Fewest board-face pixels for a frame to count."

@@ -475,8 +475,8 @@ def _widened(r: PairRegistration, sensor_poses: dict[str, tuple[np.ndarray, np.n
 def _within_fix_reach(r: PairRegistration) -> PairRegistration:
     """A fix starts from the check's estimate of where the camera is now (millimetres from it,
     the board's and the depth's evidence together): a pair that moves it further than
-    :data:`FIX_REACH` found another minimum (measured: a guided global alignment accepted at
-    586 mm on race seed 0) and is rejected, not weighed."""
+    :data:`FIX_REACH` found another minimum (a guided global alignment can lock onto a
+    repeated structure half a metre away) and is rejected, not weighed."""
     mm, deg = FIX_REACH
     if r.accepted and (r.correction_mm > mm or r.correction_deg > deg):
         return replace(r, accepted=False, rejected_by=("fix_reach",), reason=(
