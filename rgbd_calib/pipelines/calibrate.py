@@ -61,6 +61,7 @@ from ..solve.ladder import (
     refined_rig,
     self_calibrated_bundle,
     unsolved_views,
+    warm_intrinsics,
 )
 from ..solve.pose import DROP_ADVICE, BoardObservation, RejectedView, board_poses, pose_edges
 from ..solve.posegraph import PoseGraphResult, calibrate_pose_graph
@@ -279,7 +280,8 @@ def _redetect(run: _Run, pg: PoseGraphResult, solved: _Solved) -> _Solved:
             measurements = marker_measurements(views.observations, pg, run.rig, True,
                                                run.board, True, boards)
             problem = replace(problem, measurements=measurements,
-                              T_ref_cam={**pg.T_ref_cam, **bundle.T_ref_cam}, T_ref_board=boards)
+                              T_ref_cam={**pg.T_ref_cam, **bundle.T_ref_cam}, T_ref_board=boards,
+                              intrinsics_start=warm_intrinsics(problem, bundle))
             bundle = bundle_sound_first(problem, pg.model_error)
         moved = lens_moved(lens_rig, bundle.intrinsics, views.observations)
         if not moved:

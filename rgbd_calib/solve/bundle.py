@@ -157,7 +157,8 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
             problem.measurements, problem.edge_offset))
     # the variables, their keys and priors; the measurements with initialised ends
     layout, kept, board_model, face_models = _factor_layout(problem)
-    values = _initial_values(layout, problem.T_ref_cam, problem.T_ref_board)
+    values = _initial_values(layout, problem.T_ref_cam, problem.T_ref_board,
+                             problem.intrinsics_start)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(layout.config.max_iterations)
     params.setRelativeErrorTol(layout.config.relative_error_tol)
@@ -726,9 +727,12 @@ def _view_factor(p: _FactorLayout, g: _ViewGroup, sigma: float | CornerNoise, ki
 
 
 def _initial_values(p: _FactorLayout, init_T_ref_cam: dict[str, np.ndarray],
-                    init_T_ref_board: dict[str, np.ndarray]) -> gtsam.Values:
-    """Camera poses (fixed ones where they are held), board poses, the intrinsics' prior
-    values and the back sheet at the board file: the solve's starting point."""
+                    init_T_ref_board: dict[str, np.ndarray],
+                    intrinsics_start: dict[str, CameraIntrinsics] | None = None,
+                    ) -> gtsam.Values:
+    """Camera poses (fixed ones where they are held), board poses, the intrinsics at
+    ``intrinsics_start`` (a simpler model's estimate) or else their prior values, and the back
+    sheet at the board file: the solve's starting point."""
     values = gtsam.Values()
     for c in p.cams:
         T = p.fixed.get(c, init_T_ref_cam.get(c))
@@ -739,7 +743,8 @@ def _initial_values(p: _FactorLayout, init_T_ref_cam: dict[str, np.ndarray],
             values.insert(p.view_key[v], gtsam.Pose3(init_T_ref_board[v]))
     for c, k in p.intr_key.items():
         if values.exists(p.cam_key[c]):
-            values.insert(k, p.x0[c])
+            start = (intrinsics_start or {}).get(c)
+            values.insert(k, p.x0[c] if start is None else intrinsics_vector(start, p.names))
     for key, _, _ in p.moving:
         values.insert(key, gtsam.Pose3())
     for c, k in p.time_key.items():  # a nonzero readout breaks the standstill saddle

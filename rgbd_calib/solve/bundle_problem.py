@@ -125,6 +125,9 @@ class BundleProblem:
     # the time model: each frame set's nominal time (ms, from timestamps): consecutive sets
     # of a continuous recording are tied by the motion prior (time_model.motion_links)
     set_ms: dict[str, float] | None = None
+    # refine: where the refined intrinsics start (a simpler model's or the last solve's
+    # estimate; camera -> model); their priors stay at ``intrinsics``. None: at the priors
+    intrinsics_start: dict[str, CameraIntrinsics] | None = None
     # per camera its detector's edge offset (px per edge), taken out of its edge-fitted
     # corners before the solve (rgbd_calib/solve/edge_offset.py; estimated by ladder.py)
     edge_offset: dict[str, float] | None = None

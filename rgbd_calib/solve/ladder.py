@@ -240,6 +240,13 @@ def bundle_sound_first(problem: BundleProblem, model_error: Collection[str]) -> 
     )
 
 
+def warm_intrinsics(problem: BundleProblem, result: BundleResult
+                    ) -> dict[str, CameraIntrinsics] | None:
+    """Where a re-solve of ``problem`` starts its refined intrinsics: ``result``'s estimate
+    (the priors stay at the rig's), else where ``problem`` started them."""
+    return dict(result.intrinsics) if result.intrinsics else problem.intrinsics_start
+
+
 def edge_offset_modelled(problem: BundleProblem, result: BundleResult,
                          model_error: Collection[str]) -> tuple[BundleResult, BundleProblem]:
     """``problem`` solved again with each camera's detector edge offset taken out of its
@@ -257,7 +264,8 @@ def edge_offset_modelled(problem: BundleProblem, result: BundleResult,
     for _ in range(edge_offset.ITERATIONS):
         problem = replace(problem, edge_offset=modelled,
                           T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
-                          T_ref_board={**problem.T_ref_board, **result.T_ref_board})
+                          T_ref_board={**problem.T_ref_board, **result.T_ref_board},
+                          intrinsics_start=warm_intrinsics(problem, result))
         result = bundle_sound_first(problem, model_error)
         read = result.edge_offset
         moved = max((abs(read[c].residual_px) for c in modelled if c in read), default=0.0)
@@ -283,10 +291,12 @@ class _Ladder:
     set_ms: dict[str, float] | None = None
 
     def solve(self, level: BundleConfig, init_cam: dict[str, np.ndarray],
-              init_board: dict[str, np.ndarray],
-              freed: bool) -> tuple[BundleResult, BundleProblem]:
+              init_board: dict[str, np.ndarray], freed: bool,
+              start: BundleResult | None = None) -> tuple[BundleResult, BundleProblem]:
         """The bundle adjustment with ``level``'s board and intrinsics models, started at
-        ``init_cam`` / ``init_board``; ``freed`` keeps the pose graph's outlier views."""
+        ``init_cam`` / ``init_board`` and at ``start``'s refined intrinsics (a simpler
+        model's solve: warm, the priors unchanged); ``freed`` keeps the pose graph's outlier
+        views."""
         self.tick(1)
         refined = level.intrinsics == "refine"
         if refined:  # a frame one camera alone saw measures its lens
@@ -298,6 +308,8 @@ class _Ladder:
                                    boards=init_board if refined else None)
         problem = bundle_problem(meas, self.rig, self.board, init_cam, init_board, level,
                                  self.fixed_cameras, self.capture_ms, self.set_ms)
+        if start is not None and start.intrinsics:
+            problem = replace(problem, intrinsics_start=dict(start.intrinsics))
         return bundle_sound_first(problem, self.pg.model_error), problem
 
 
@@ -394,7 +406,8 @@ def _solved_again(problem: BundleProblem, result: BundleResult, update: dict,
     trial's solve stands)."""
     again = replace(problem, config=problem.config.model_copy(update=update),
                     T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
-                    T_ref_board={**problem.T_ref_board, **result.T_ref_board})
+                    T_ref_board={**problem.T_ref_board, **result.T_ref_board},
+                    intrinsics_start=warm_intrinsics(problem, result))
     try:
         solved = bundle_sound_first(again, model_error)
     except _SOLVE_ERRORS:
@@ -514,7 +527,7 @@ def _try_level(ladder: _Ladder, config: BundleConfig, trial_level: selfcal.Model
     init_board = {**ladder.pg.T_ref_board, **accepted.T_ref_board}
     try:
         trial, problem = ladder.solve(_trial_config(trial_level, config), init_cam, init_board,
-                                      True)
+                                      True, accepted)
     except _SOLVE_ERRORS as exc:
         return _Step(selfcal.LevelFit(trial_level, 0, 0, float("nan"), accepted=False,
                                       reason=f"the solve failed: {_first_line(exc)}"),
@@ -538,7 +551,7 @@ def _try_level(ladder: _Ladder, config: BundleConfig, trial_level: selfcal.Model
         try:
             trial, problem = ladder.solve(selfcal.loosened(problem.config),
                                           {**init_cam, **trial.T_ref_cam},
-                                          {**init_board, **trial.T_ref_board}, True)
+                                          {**init_board, **trial.T_ref_board}, True, trial)
             terms = selfcal.marker_terms(trial.residuals_px, trial.outliers, config.outlier_px)
             reason += (f"; {name} of {cam} came {z:.1f} prior sigmas from rig.yaml: "
                        f"priors loosened {selfcal.LOOSEN:.0f}x")
