@@ -165,11 +165,11 @@ class DepthModel:
         z = p[:, 2]
         x, y = p[:, 0] / z, p[:, 1] / z
         v = self.value
-        r = self._ratio(x, y, z)
-        held = (r < RATIO_MIN) | (r > RATIO_MAX)
-        r = np.clip(r, RATIO_MIN, RATIO_MAX)
         fb = self.focal_baseline_px_m
         kappa = self.disparity_offset_px(x, y) / fb
+        r = v("scale") - z * kappa  # as _ratio
+        held = (r < RATIO_MIN) | (r > RATIO_MAX)
+        r = np.clip(r, RATIO_MIN, RATIO_MAX)
         k_x = (v("dx") + 2 * v("dxx") * x + v("dxy") * y) / fb
         k_y = (v("dy") + v("dxy") * x + 2 * v("dyy") * y) / fb
         # r = s - z kappa(X/Z, Y/Z): its gradient by (X, Y, Z)

@@ -111,6 +111,22 @@ class PairsHeldOut:
                 "rejected": self.rejected}
 
 
+def normal_equations(prior_info: np.ndarray, moved: np.ndarray,
+                     medians: list[PairMedian], jacobian: dict[tuple[str, str], np.ndarray],
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """``H`` and ``g`` of the linear-Gaussian update (the module docstring): the board fits'
+    information ``prior_info`` about the parameters ``moved`` from them, and each pair's
+    median (m) with its derivative ``jacobian`` (per m), weighed by its standard error."""
+    H = prior_info.copy()
+    g = prior_info @ moved
+    for m in medians:
+        J = jacobian[m.cam_a, m.cam_b]
+        s2 = (m.se_mm * 1e-3) ** 2
+        H += np.outer(J, J) / s2
+        g += J * (m.median_mm * 1e-3) / s2
+    return H, g
+
+
 def held_out_pairs(prior_info: np.ndarray, before: list[PairMedian],
                    jacobian: dict[tuple[str, str], np.ndarray]) -> PairsHeldOut | None:
     """:class:`PairsHeldOut` of the linear-Gaussian update (the module docstring) at the
@@ -120,12 +136,8 @@ def held_out_pairs(prior_info: np.ndarray, before: list[PairMedian],
     rows = [(m, jacobian[m.cam_a, m.cam_b]) for m in before if (m.cam_a, m.cam_b) in jacobian]
     if len(rows) < 3:
         return None
-    H = prior_info.copy()
-    g = np.zeros(len(prior_info))
-    for m, J in rows:
-        s2 = (m.se_mm * 1e-3) ** 2
-        H += np.outer(J, J) / s2
-        g += J * (m.median_mm * 1e-3) / s2
+    H, g = normal_equations(prior_info, np.zeros(len(prior_info)), [m for m, _ in rows],
+                            jacobian)
     update, board = [], []
     for m, J in rows:
         s2 = (m.se_mm * 1e-3) ** 2
@@ -344,8 +356,6 @@ def update_models(models: dict[str, DepthModel], covariances: dict[str, np.ndarr
     jacobian: dict[tuple[str, str], np.ndarray] = {}  # at the board's models: nearly linear
     for it in range(iterations):
         theta = np.array([current[c].value(p) for c, p in index])
-        H = prior_info.copy()
-        g = prior_info @ (theta - theta0)
         medians = []
         for o in overlaps:
             T = T_b_a[o.cam_a, o.cam_b]
@@ -356,14 +366,11 @@ def update_models(models: dict[str, DepthModel], covariances: dict[str, np.ndarr
             medians.append(pm)
             if (o.cam_a, o.cam_b) not in jacobian:
                 jacobian[o.cam_a, o.cam_b] = _jacobian(current, o, T, central, free, index)
-            J = jacobian[o.cam_a, o.cam_b]
-            s2 = (pm.se_mm * 1e-3) ** 2
-            H += np.outer(J, J) / s2
-            g += J * (pm.median_mm * 1e-3) / s2
         if it == 0:
             before = medians
         if not medians:
             return None
+        H, g = normal_equations(prior_info, theta - theta0, medians, jacobian)
         step = -np.linalg.solve(H, g)
         current = {c: (m.with_values({p: m.value(p) + step[index[c, p]] for p in free[c]})
                        if c in free else m) for c, m in current.items()}
