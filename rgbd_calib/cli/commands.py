@@ -520,7 +520,7 @@ def _calibrate_and_write(ds, board, cfg, out: Path, fixed=None):
     from ..outputs.writer import write_outputs
     from ..pipelines.calibrate import calibrate as run_calibration
 
-    created = out if not out.exists() else out / "cache" if not (out / "cache").exists() else None
+    created = next((p for p in (out, out / "cache") if not p.exists()), None)  # this run's
     with stage_progress() as progress:
         try:
             result = run_calibration(

@@ -308,8 +308,8 @@ class _Ladder:
                                    boards=init_board if refined else None)
         problem = bundle_problem(meas, self.rig, self.board, init_cam, init_board, level,
                                  self.fixed_cameras, self.capture_ms, self.set_ms)
-        if start is not None and start.intrinsics:
-            problem = replace(problem, intrinsics_start=dict(start.intrinsics))
+        if start is not None:
+            problem = replace(problem, intrinsics_start=warm_intrinsics(problem, start))
         return bundle_sound_first(problem, self.pg.model_error), problem
 
 
