@@ -163,6 +163,6 @@ def test_the_extrinsics_table_keeps_its_numbers_in_a_file_or_pipe(monkeypatch):
     from rgbd_calib.cli import console as con
 
     monkeypatch.delenv("COLUMNS", raising=False)
-    assert con._table_console().width == con.OFF_TERMINAL_WIDTH
+    assert con._table_console().width == con.CONSOLE_WIDTH == 100
     monkeypatch.setenv("COLUMNS", "132")
     assert con._table_console().width == 132

@@ -28,16 +28,16 @@ if TYPE_CHECKING:
     from ..solve.edge_offset import EdgeOffset
 
 console = Console(stderr=True)
-OFF_TERMINAL_WIDTH = 100  # the tables' width in a file or pipe (rich's own default: 80)
 
 
 def _table_console() -> Console:
     """stdout for the extrinsics table: the terminal's width, or in a file or pipe
-    :data:`OFF_TERMINAL_WIDTH` columns (at 80 the demo's table cut its numbers to '0.53…'),
+    :data:`CONSOLE_WIDTH` columns (at rich's default 80 the demo's table cut its numbers to
+    '0.53…'),
     unless ``COLUMNS`` says otherwise."""
     out = Console()
     if not out.is_terminal and "COLUMNS" not in os.environ:
-        out = Console(width=OFF_TERMINAL_WIDTH)
+        out = Console(width=CONSOLE_WIDTH)
     return out
 
 
