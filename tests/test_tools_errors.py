@@ -79,3 +79,16 @@ def test_every_tool_answers_help(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     assert "BAD []" in done.stdout, done.stdout[-3000:]
     assert done.stdout.count("usage:") >= len(SCRIPTS), done.stdout[-3000:]
+
+
+def test_the_floor_bench_on_a_missing_or_wrong_folder_is_one_line_and_exit_2(tmp_path):
+    """tools/bench_floor.py (issue 59 item 4): a folder that is not there, and one that is no
+    dataset, each one line naming it, exit 2, before any work."""
+    (tmp_path / "empty").mkdir()
+    for folder in ("nowhere", "empty"):
+        done = _run(str(REPO / "tools" / "bench_floor.py"), str(tmp_path / folder),
+                    cwd=tmp_path)
+        assert done.returncode == 2, done.stderr
+        assert "Traceback" not in done.stderr
+        last = done.stderr.strip().splitlines()[-1]
+        assert last.startswith("error: bench_floor.py: ") and folder in last, last
