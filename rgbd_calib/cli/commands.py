@@ -607,7 +607,9 @@ def demo(
     strict: Annotated[bool, STRICT_OPTION] = False,
 ) -> None:
     """Render a small synthetic rig, calibrate it and compare with its ground truth (a re-run
-    with the same options reuses the render and the detections). Exit codes as calibrate's."""
+    with the same options reuses the render and the detections). The race keeps depth within
+    2.2 m of each camera (depth.max_range_m: the race, not the room's walls; in
+    config_resolved.yaml). Exit codes as calibrate's."""
     from ..model.board import thesis_board
     from ..model.dataset import FolderDataset
     from ..synth.render import SynthParams, load_ground_truth, synthesize_cached
@@ -626,9 +628,6 @@ def demo(
         from ..core.config import load_config
 
         cfg = load_config(None, **{"depth.max_range_m": DEMO_SCENE_RANGE_M[layout]})
-        console.print(f"the fused cloud keeps depth within {DEMO_SCENE_RANGE_M[layout]} m: the "
-                      "race and the cameras across it, not the room's walls behind them "
-                      "(depth.max_range_m)", highlight=False)
     result = _calibrate_and_write(ds, board, cfg, out / "calibration")
     print_summary(result, out / "calibration", verdict=False, truth=load_ground_truth(dataset))
     print_verdict(out / "calibration")
