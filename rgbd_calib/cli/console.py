@@ -311,7 +311,7 @@ def print_summary(result, out: Path, verdict: bool = True, truth=None) -> None:
     from rich import box
     from rich.table import Table
 
-    from ..core.geometry import transform_error
+    from ..core.geometry import invert_transform, transform_error
     from ..outputs.report.build import board_refined_entry
     from ..outputs.report.findings import (
         board_scale_sentence,
@@ -336,7 +336,8 @@ def print_summary(result, out: Path, verdict: bool = True, truth=None) -> None:
                _fixed(t[2], 4), _fixed(cam.sigma_rotation_deg, 4),
                _fixed(cam.sigma_translation_mm, 3)]
         if truth is not None:
-            deg, mm = transform_error(cam.T_ref_cam, truth.T_ref_cam[name])
+            deg, mm = transform_error(cam.T_ref_cam, invert_transform(
+                truth.T_ref_cam[result.extrinsics.reference]) @ truth.T_ref_cam[name])
             ratio = (max(mm / cam.sigma_translation_mm, deg / cam.sigma_rotation_deg)
                      if name != result.extrinsics.reference and cam.sigma_translation_mm
                      and cam.sigma_rotation_deg else None)

@@ -145,6 +145,7 @@ def calibrate(
     # 2. one board pose per view (PnP, covariance, gates)
     with timed(run.timings, "pose"):
         views = _Views(*board_poses(detections, board, run.rig, run.config.pose))
+    run, stand_in = _reference_with_views(run, views.observations)
     _check_views(run.dataset, detections, views.observations, views.rejected, n_images,
                  run.board)
     # 2b. a long continuous recording: runs of consecutive sets spread over it
@@ -153,6 +154,11 @@ def calibrate(
     with timed(run.timings, "pose_graph"):
         pg = pose_graph(run.dataset, views.observations, run.config, fixed_cameras)
     unconnected = _unconnected(run.rig.names, views.observations, pg.unconnected)
+    if stand_in is not None:
+        unconnected[stand_in] = (
+            f"{unconnected[stand_in]}; so the reference frame is {run.rig.reference!r}, the "
+            f"camera with the most board views: record the board in {stand_in}'s view, or "
+            "name the reference you want in rig.yaml")
     solved = _Solved(views, *model_error_sigmas(dict(pg.cameras), None, pg, run.config.bundle))
     if run.config.method == "bundle":
         # 4. bundle adjustment on the marker corners (and detection with a refined lens)
@@ -521,6 +527,34 @@ def _refines_distortion(bundle: BundleConfig) -> bool:
 
 
 # ----------------------------------------------------------------------------- checks
+def _reference_with_views(run: _Run, observations: list[BoardObservation],
+                          ) -> tuple[_Run, str | None]:
+    """When rig.yaml's reference has no usable board view but other cameras share views, the
+    run with the camera of the most views shared with another camera as its reference (rig
+    order breaks ties) and the camera it stands in for: the rest of the rig is calibrated, the
+    reference is reported not calibrated with the reason (a POOR result, exit 3) instead of
+    nothing at all. Unchanged when the reference has a view, when no camera shares one (the
+    checks that follow say why), and when cameras are held at given poses (their frame is the
+    reference's)."""
+    reference = run.rig.reference
+    cameras_of: dict[str, set[str]] = defaultdict(set)
+    for o in observations:
+        cameras_of[o.frame].add(o.camera)
+    if run.fixed_cameras or any(reference in cams for cams in cameras_of.values()):
+        return run, None
+    shared = defaultdict(int)
+    for cams in cameras_of.values():
+        if len(cams) > 1:
+            for c in cams:
+                shared[c] += 1
+    if not shared:
+        return run, None
+    order = {c: i for i, c in enumerate(run.rig.names)}
+    new = min(shared, key=lambda c: (-shared[c], order[c]))
+    rig = replace(run.rig, reference=new)
+    return replace(run, dataset=run.dataset.with_rig(rig)), reference
+
+
 def _check_views(
     dataset: FolderDataset,
     detections: dict[tuple[str, str], MarkerDetections],
