@@ -92,8 +92,8 @@ def test_a_change_is_a_percentage_only_of_a_prior_that_is_a_base():
 
 
 def test_the_depth_model_line_names_a_camera_with_too_few_views_for_every_term():
-    """``depth.model_terms: auto``: every term from 15 board views; a camera with fewer that
-    kept the ladder's terms says how many views it had, one with enough does not."""
+    """``depth.model_fit.model_terms: auto``: every term from 15 board views; a camera with
+    fewer that kept the ladder's terms says how many views it had, one with enough does not."""
     from types import SimpleNamespace
 
     from rgbd_calib.cli.console import depth_model_line
@@ -117,8 +117,8 @@ def test_the_depth_model_line_names_a_camera_with_too_few_views_for_every_term()
 
 def test_the_depth_registration_line_says_what_the_pairs_did_and_how_they_were_weighed():
     """calibrate's console line on the depth pairs: used with their variance factor (the
-    pairs' covariance x the factor: at least depth.pair_variance_floor), not used and why
-    (markup in the reason escaped), not needed, or nothing."""
+    pairs' covariance x the factor: at least depth.uncertainty.pair_variance_floor), not used
+    and why (markup in the reason escaped), not needed, or nothing."""
     import numpy as np
 
     from rgbd_calib.cli.console import depth_registration_line

@@ -90,10 +90,10 @@ def test_a_clean_camera_keeps_the_identity(seed):
 
 
 def test_a_camera_that_needs_a_model_gets_every_term():
-    """``depth.model_terms: all``: the ladder's evidence decides that the camera needs a model;
-    once it does, every term is free (unbiased parameters with their own, larger sigmas), and
-    the tests still say which terms the evidence alone accepted. ``evidence`` keeps those
-    only. A clean camera keeps the identity either way."""
+    """``depth.model_fit.model_terms: all``: the ladder's evidence decides that the camera needs
+    a model; once it does, every term is free (unbiased parameters with their own, larger
+    sigmas), and the tests still say which terms the evidence alone accepted. ``evidence`` keeps
+    those only. A clean camera keeps the identity either way."""
     from rgbd_calib.core.config import DepthConfig
     from rgbd_calib.core.depth_model import PARAMETERS, TERMS
 
@@ -115,10 +115,10 @@ def test_a_camera_that_needs_a_model_gets_every_term():
 
 @pytest.mark.parametrize("n_views", [30, 15, 14, 8])
 def test_auto_frees_every_term_where_the_views_can_judge_them(n_views):
-    """``depth.model_terms: auto`` (the default): a camera that needs a model gets every term
-    when its views are at least the 13 parameters and 2 more (the clustered covariance has a
-    view to spare), the ladder's terms with fewer (on 8 frame sets every term put a race's
-    scene 20-100 mm off: docs/depth.md)."""
+    """``depth.model_fit.model_terms: auto`` (the default): a camera that needs a model gets
+    every term when its views are at least the 13 parameters and 2 more (the clustered
+    covariance has a view to spare), the ladder's terms with fewer (on 8 frame sets every term
+    put a race's scene 20-100 mm off: docs/depth.md)."""
     from rgbd_calib.core.config import DepthConfig
     from rgbd_calib.core.depth_model import TERMS
 

@@ -101,7 +101,7 @@ def test_kinect_noise_model_is_chosen_per_camera_and_correlated(realisations):
     config = DepthConfig()
     assert DN.depth_noise(a.intrinsics, config).correlation_px == 1.0
     assert DN.depth_noise(a.intrinsics, config).sigma_z(np.array(2.0)) == pytest.approx(
-        4.0 * config.subpixel_px / (a.intrinsics.fx * config.baseline_m))
+        4.0 * config.clouds.subpixel_px / (a.intrinsics.fx * config.clouds.baseline_m))
     noise = DN.depth_noise(kinect, config)
     assert noise == DN.KINECT_V1_NOISE
     assert float(noise.sigma_z(np.array(1.0))) == pytest.approx(0.125 / (580.0 * 0.075))

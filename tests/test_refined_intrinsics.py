@@ -58,5 +58,5 @@ def test_a_cloud_carries_the_variance_of_estimated_intrinsics(tiny_dataset):
     assert exact.intrinsics_variance == {}
     ds.rig = replace(ds.rig, sigmas={cam: {"fx": 0.3, "cx": 0.5}})
     cloud = static_cloud(ds, cam, {}, np.eye(4), None, config)
-    f2 = config.lens_sigma_factor ** 2
+    f2 = config.uncertainty.lens_sigma_factor ** 2
     assert cloud.intrinsics_variance == pytest.approx({"fx": f2 * 0.09, "cx": f2 * 0.25})

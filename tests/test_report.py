@@ -359,8 +359,8 @@ def test_depth_scale_advice_only_when_significant(runs):
     assert codes["depth_scale"]["cameras"] == [a]
     assert "depth_model.yaml" in codes["depth_scale"]["advice"] and "1.0050" in codes[
         "depth_scale"]["advice"]
-    # every term free (depth.model_terms: all): the scale is there whether needed or not, and
-    # only one more than 3 sigmas from 1 is advice
+    # every term free (depth.model_fit.model_terms: all): the scale is there whether needed or
+    # not, and only one more than 3 sigmas from 1 is advice
     report["depth_models"][a] = {**model, "terms": ["scale", "offset"],
                                  "parameters": {"scale": 1.005, "d0": 0.1},
                                  "sigmas": {"scale": 0.003, "d0": 0.02}}

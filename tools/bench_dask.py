@@ -3,7 +3,7 @@
 extrinsics are identical.
 
 A thesis-line rig (4 cameras, ``--frames`` frame sets at 1280x720, rendered once into
-``--data``) is calibrated with the defaults except ``depth.board_weak_sigma_mm`` /
+``--data``) is calibrated with the defaults except ``depth.uncertainty.board_weak_sigma_mm`` /
 ``_deg`` = 0, so that the depth stage registers every overlapping pair (through the executor)
 instead of skipping a rig the board already holds. No detection cache: each run detects
 every image. The cluster (processes, 1 thread each) is started once, before the timed runs;
@@ -50,7 +50,8 @@ def main() -> None:
 
     def run(scheduler: str | None):
         config = load_config(None, workers=args.workers, scheduler=scheduler,
-                             **{"depth.board_weak_sigma_mm": 0, "depth.board_weak_sigma_deg": 0})
+                             **{"depth.uncertainty.board_weak_sigma_mm": 0,
+                                "depth.uncertainty.board_weak_sigma_deg": 0})
         t0 = time.perf_counter()
         result = calibrate(ds, board, config)
         return time.perf_counter() - t0, result

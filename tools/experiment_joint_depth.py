@@ -205,7 +205,7 @@ def fit_joint(base: dict[str, DepthModel], board: dict[str, BoardSamples],
     the module docstring). ``base`` are the identity models; ``start_terms`` the terms to
     start from (default none). Returns the final solve and each camera's term tests."""
     config = config or DepthConfig()
-    k = config.scale_huber_k
+    k = config.model_fit.scale_huber_k
     terms = {c: list(start_terms.get(c, ())) if start_terms else [] for c in base}
 
     def names_of(t: dict[str, list[str]]) -> dict[str, tuple[str, ...]]:
@@ -295,7 +295,7 @@ def main() -> None:
                          else tuple(p for p in PARAMETERS if p in m0[c].sigmas)) for c in base}
             start = {c: base[c].with_values({p: m0[c].value(p) for p in names[c]})
                      for c in base}
-            sol = joint_solve(start, names, board, overlaps, T, config.scale_huber_k)
+            sol = joint_solve(start, names, board, overlaps, T, config.model_fit.scale_huber_k)
         solved[mode] = sol
     cams = {c.name: c for c in rig.cameras}
     print("camera: median signed distance to the true surfaces (mm) [by band "

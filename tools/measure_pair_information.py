@@ -34,7 +34,7 @@ def main(path, perturb_mm, perturb_deg, method="colored-icp", max_frames=15, cal
         ds = copy.copy(ds)
         ds.rig = load_rig(Path(calibration) / "rig_refined.yaml")
         report = json.loads((Path(calibration) / "report.json").read_text())
-        variances = {c: {k: (config.lens_sigma_factor * v["sigma"]) ** 2
+        variances = {c: {k: (config.uncertainty.lens_sigma_factor * v["sigma"]) ** 2
                          for k, v in (cam.get("intrinsics_refined") or {}).items()}
                      for c, cam in report["cameras"].items()}
     clouds = {c: DC.static_cloud(ds, c, gt.T_ref_board, gt.T_ref_cam[c], thesis_board(), config,

@@ -589,7 +589,7 @@ def posegraph(
 
 
 # the demo's scene of interest per layout (m): a race rig fuses the race, out to the cameras
-# across it (2.0-2.2 m away), as a user sets depth.max_range_m; the room's walls behind them
+# across it (2.0-2.2 m away), as a user sets depth.clouds.max_range_m; the room's walls behind them
 # (3.8 m) are beyond any board pose the thesis board can be detected at in 848 x 480
 DEMO_SCENE_RANGE_M = {"race": 2.2}
 
@@ -608,7 +608,7 @@ def demo(
 ) -> None:
     """Render a small synthetic rig, calibrate it and compare with its ground truth (a re-run
     with the same options reuses the render and the detections). The race keeps depth within
-    2.2 m of each camera (depth.max_range_m: the race, not the room's walls; in
+    2.2 m of each camera (depth.clouds.max_range_m: the race, not the room's walls; in
     config_resolved.yaml). Exit codes as calibrate's."""
     from ..model.board import thesis_board
     from ..model.dataset import FolderDataset
@@ -627,7 +627,7 @@ def demo(
     if layout in DEMO_SCENE_RANGE_M:
         from ..core.config import load_config
 
-        cfg = load_config(None, **{"depth.max_range_m": DEMO_SCENE_RANGE_M[layout]})
+        cfg = load_config(None, **{"depth.clouds.max_range_m": DEMO_SCENE_RANGE_M[layout]})
     result = _calibrate_and_write(ds, board, cfg, out / "calibration")
     print_summary(result, out / "calibration", verdict=False, truth=load_ground_truth(dataset))
     print_verdict(out / "calibration")

@@ -269,7 +269,8 @@ def depth_registration_line(depth: Any) -> str | None:
         return (f"depth registration: {len(depth.relative_poses)} of {len(pairs)} camera "
                 "pairs used with the board's corners for the weakly held cameras"
                 + (f" (their covariance x{factor:.2f}: variance factor from their residuals, "
-                   f"at least depth.pair_variance_floor{plus})" if factor is not None else ""))
+                   f"at least depth.uncertainty.pair_variance_floor{plus})"
+                   if factor is not None else ""))
     return None
 
 
@@ -277,8 +278,9 @@ def depth_model_line(fits: dict, unmodelled: dict | None = None) -> str:
     """'depth model: every term for left0, left1, right0 offset, 5 identity, none for right3;
     board-plane bias within 0.4 mm after the model (3.1 mm before), noise 5.2 mm' from the
     depth stage's fits and the cameras with depth it had no model for. A camera that kept the
-    ladder's terms for want of views (``depth.model_terms: auto``, ``too_few_views``) says so,
-    and one whose model predicted held-out board views no better (``held_out.rejected``)."""
+    ladder's terms for want of views (``depth.model_fit.model_terms: auto``, ``too_few_views``)
+    says so, and one whose model predicted held-out board views no better
+    (``held_out.rejected``)."""
     from ..depth.depth_model_fit import EVERY_TERM_MIN_VIEWS  # open3d: not at CLI start
     every = [c for c, f in sorted(fits.items()) if f.model.terms == tuple(TERMS)]
     named = ([f"every term for {', '.join(every)}"] if every else []) + [

@@ -248,7 +248,7 @@ def static_cloud(
     depth_model: DepthModel | None = None,
 ) -> CameraCloud:
     """The static scene of one camera: per-pixel temporal median of depth over up to
-    ``config.max_frames`` frames sampled evenly (read one at a time).
+    ``config.clouds.max_frames`` frames sampled evenly (read one at a time).
 
     ``T_ref_board`` maps frame -> board pose (4x4, metres, reference frame; may be empty) and
     ``T_ref_cam`` is this camera's current extrinsics: together they place the board in each
@@ -262,7 +262,7 @@ def static_cloud(
     its bound holds are dropped and counted). Points are back-projected with the rig
     intrinsics (depth_scale from the rig); the intrinsics the rig marks as estimated
     (``rig.sigmas``) give the cloud its ``intrinsics_variance``, their sigma times
-    ``config.lens_sigma_factor``."""
+    ``config.uncertainty.lens_sigma_factor``."""
     config = config or DepthConfig()
     intr = dataset.rig.cameras[camera]
     frames = [f for f in dataset.frames if dataset.depth_path(camera, f) is not None
@@ -272,7 +272,7 @@ def static_cloud(
             f"{dataset.path / camera}: no frame with both colour and depth; "
             "depth steps need <camera>/depth/<frame>.png aligned to colour"
         )
-    picked = _even_sample(frames, config.max_frames)
+    picked = _even_sample(frames, config.clouds.max_frames)
     n, H, W = len(picked), intr.height, intr.width
     if depth_model is not None:
         depth_scale_factor = depth_model.value("scale")
@@ -286,7 +286,7 @@ def static_cloud(
         z[z <= 0] = np.nan
         if frame in T_ref_board:
             m = board_mask(intr, T_cam_ref @ T_ref_board[frame], board,
-                           config.board_mask_margin_m, config.board_mask_dilate_px)
+                           config.clouds.board_mask_margin_m, config.clouds.board_mask_dilate_px)
             z[m] = np.nan
             masked += m
         depth[k] = z
@@ -304,15 +304,15 @@ def static_cloud(
     # a pixel needs min_samples valid samples, or all its board-free frames when fewer, but
     # never fewer than 2 when 2 frames or more were read (one sample cannot show motion)
     unmasked = n - masked
-    need = np.maximum(np.minimum(config.min_samples, unmasked), min(2, n))
-    enough = (count >= need) & (count >= config.min_valid_fraction * unmasked)
-    moving = enough & (n > 1) & (spread > config.motion_k * sigma1)
+    need = np.maximum(np.minimum(config.clouds.min_samples, unmasked), min(2, n))
+    enough = (count >= need) & (count >= config.clouds.min_valid_fraction * unmasked)
+    moving = enough & (n > 1) & (spread > config.clouds.motion_k * sigma1)
     with np.errstate(invalid="ignore"):
-        in_range = (med >= config.min_range_m) & (med <= config.max_range_m)
+        in_range = (med >= config.clouds.min_range_m) & (med <= config.clouds.max_range_m)
     edge = np.zeros((H, W), dtype=bool)
-    if config.edge_jump_sigmas is not None:
+    if config.clouds.edge_jump_sigmas is not None:
         disp = np.where(enough & ~moving, 1.0 / np.where(med > 0, med, np.nan), np.nan)
-        thr = config.edge_jump_sigmas * noise.disparity_sigma
+        thr = config.clouds.edge_jump_sigmas * noise.disparity_sigma
         with np.errstate(invalid="ignore"):
             jump_x = np.abs(np.diff(disp, axis=1)) > thr
             jump_y = np.abs(np.diff(disp, axis=0)) > thr
@@ -322,7 +322,7 @@ def static_cloud(
         edge[:-1, :] |= jump_y
     keep = enough & ~moving & in_range & ~edge
     # 4. colour: mean of the samples that agree with the median
-    inlier = dev <= config.motion_k * sigma1[None]  # NaN compares False
+    inlier = dev <= config.clouds.motion_k * sigma1[None]  # NaN compares False
     n_in = np.maximum(inlier.sum(axis=0), 1)
     rgb = np.zeros((H, W, 3), dtype=np.float32)
     for k in range(n):  # frame by frame: no float copy of the whole colour stack
@@ -354,7 +354,7 @@ def static_cloud(
         frames=tuple(picked),
         depth_scale_factor=float(depth_scale_factor),
         correlation_px=noise.correlation_px,
-        intrinsics_variance={name: (config.lens_sigma_factor * sigma) ** 2
+        intrinsics_variance={name: (config.uncertainty.lens_sigma_factor * sigma) ** 2
                              for name, sigma in dataset.rig.sigmas.get(camera, {}).items()},
     )
 
@@ -435,7 +435,7 @@ def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.n
     as a common depth scale) unless the camera did not detect the board in this view
     (``detected`` False: placed by the other cameras, it may be hidden from this one), where
     a median off 1 by more than the gate means the face is hidden (None)."""
-    mg = config.scale_face_margin_m
+    mg = config.model_fit.scale_face_margin_m
     facing = _facing_face(board, T_cam_board)
     if facing is None:
         return None
@@ -449,7 +449,7 @@ def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.n
     n_c = T[:3, 2]  # face normal (board z) in the camera
     p0 = face_c[0]
     to_face = face_c.mean(axis=0)
-    cos_max = math.cos(math.radians(config.scale_max_view_angle_deg))
+    cos_max = math.cos(math.radians(config.model_fit.scale_max_view_angle_deg))
     if abs(n_c @ to_face) / np.linalg.norm(to_face) < cos_max:
         return None
     uv = intr.project(face_c)
@@ -472,15 +472,15 @@ def board_face_pixels(raw: np.ndarray, intr: CameraIntrinsics, T_cam_board: np.n
         & (hit_b[:, 1] > y0 + mg) & (hit_b[:, 1] < y1 - mg)
     )
     z_meas = raw[vs, us].astype(float) * intr.depth_scale
-    if np.count_nonzero(inside) < config.scale_min_points:
+    if np.count_nonzero(inside) < config.model_fit.scale_min_points:
         return None
     ratio = z_meas / np.where(inside, z_true, 1.0)
     centre = float(np.median(ratio[inside]))  # a gate about the face itself would cut the
     # noise of a camera whose depth reads 1-2 % short on one side only: a bias
-    if not detected and abs(centre - 1.0) > config.board_depth_gate:
+    if not detected and abs(centre - 1.0) > config.model_fit.board_depth_gate:
         return None  # most of the face's pixels are something else: the board is hidden
-    inside &= np.abs(ratio - centre) <= config.board_depth_gate
-    if np.count_nonzero(inside) < config.scale_min_points:
+    inside &= np.abs(ratio - centre) <= config.model_fit.board_depth_gate
+    if np.count_nonzero(inside) < config.model_fit.scale_min_points:
         return None
     return BoardFacePixels(us[inside], vs[inside], z_meas[inside], z_true[inside], n_c.copy(),
                            float(n_c @ p0))
@@ -495,7 +495,7 @@ def board_faces(dataset: FolderDataset, camera: str, T_cam_board: dict[str, np.n
     (:func:`board_face_pixels`)."""
     intr = dataset.rig.cameras[camera]
     out = []
-    for frame in _even_sample(sorted(T_cam_board), config.scale_max_frames):
+    for frame in _even_sample(sorted(T_cam_board), config.model_fit.scale_max_frames):
         raw = dataset.read_depth(camera, frame)
         if raw is None:
             continue
@@ -542,7 +542,7 @@ def estimate_depth_scale(
         z_true = face.z_true
         z_meas = face.z_measured
         sigma = face_sigma_z(noise, intr, z_true)
-        f, err = _fit_scale(z_meas, z_true, sigma, config.scale_huber_k)
+        f, err = _fit_scale(z_meas, z_true, sigma, config.model_fit.scale_huber_k)
         frames.append(frame)
         factors.append(f)
         errors.append(err)
@@ -550,10 +550,11 @@ def estimate_depth_scale(
     if not factors:
         raise DatasetError(
             f"{dataset.path / camera}: no frame shows a board face to this camera's depth "
-            f"(at least {config.scale_min_points} pixels); cannot estimate its depth scale"
+            f"(at least {config.model_fit.scale_min_points} pixels); cannot estimate its depth "
+            "scale"
         )
     fk, sk = np.asarray(factors), np.asarray(errors)
-    factor, sigma = _combine_frames(fk, sk, config.scale_huber_k)
+    factor, sigma = _combine_frames(fk, sk, config.model_fit.scale_huber_k)
     return DepthScaleEstimate(camera, factor, sigma, len(fk), n_points,
                               dict(zip(frames, map(float, fk))))
 

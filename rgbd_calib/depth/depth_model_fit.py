@@ -20,9 +20,9 @@ Which terms a camera gets is chosen by evidence:
   covariance with the views as clusters, never below the model-based one. A step of ``k``
   parameters is tried only on more than ``k`` views (:func:`step_fits_views`);
 - a camera given any term gets every term where its views can judge all of them
-  (``depth.model_terms: auto`` and :data:`EVERY_TERM_MIN_VIEWS`; ``all``: always), since over
-  the board's depth range the terms trade with each other and one left out biases the rest
-  beyond the board; ``evidence`` keeps the ladder's terms only;
+  (``depth.model_fit.model_terms: auto`` and :data:`EVERY_TERM_MIN_VIEWS`; ``all``: always),
+  since over the board's depth range the terms trade with each other and one left out biases
+  the rest beyond the board; ``evidence`` keeps the ladder's terms only;
 - the model is applied only when it predicts each board view, refitted without that view,
   better than the raw depth does (:func:`held_out_cost`); otherwise the camera keeps the
   identity. A clean camera keeps the identity.
@@ -56,8 +56,9 @@ MAX_PIXELS_PER_VIEW = 1500  # board pixels sampled per view (evenly)
 GN_ITERATIONS = 8
 BACKTRACK = tuple(0.5**k for k in range(20))  # Gauss-Newton step fractions tried in turn
 MIN_CLUSTER_DOF = 4  # views beyond the parameters for the clustered (F) test
-# depth.model_terms auto: every term from two views beyond the parameters (the every-term fit's
-# clustered covariance then has a view to spare; docs/depth.md, 'From 15 views')
+# depth.model_fit.model_terms auto: every term from two views beyond the parameters (the
+# every-term fit's clustered covariance then has a view to spare; docs/depth.md, 'From 15
+# views')
 EVERY_TERM_MIN_VIEWS = len(PARAMETERS) + 2
 # central-difference steps per parameter, in the model's units (scale, px, deg, mm)
 STEP = {"scale": 1e-5, "d0": 1e-3, "dx": 1e-3, "dy": 1e-3, "dxx": 1e-3, "dxy": 1e-3,
@@ -309,7 +310,7 @@ class DepthModelFit:
     n_samples: int
     sigma_factor: float  # sqrt(chi2 / dof) of the chosen fit: the noise model's accuracy
     n_unseen_views: int = 0  # of n_views: the board where the camera did not detect it
-    # depth.model_terms auto kept the ladder's terms because n_views < EVERY_TERM_MIN_VIEWS
+    # depth.model_fit.model_terms auto kept the ladder's terms: n_views < EVERY_TERM_MIN_VIEWS
     too_few_views: bool = False
     # the fit with every term free whatever the ladder chose: what the data say of the depth
     # beyond the board (correction_sigma_mm); not written to files
@@ -736,7 +737,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     base = identity_model(intr)
     n_views = len(samples.frames)
     chosen: list[str] = []
-    current = identity = _solve(base, samples, (), config.scale_huber_k)
+    current = identity = _solve(base, samples, (), config.model_fit.scale_huber_k)
     tests: dict[tuple[str, ...], TermTest] = {}
     while True:
         best = None
@@ -746,7 +747,7 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
             names = tuple(p for t in TERMS if t in chosen or t in step for p in TERMS[t])
             if not step_fits_views(len(_params(step)), n_views):
                 continue
-            trial = _solve(current.model, samples, names, config.scale_huber_k)
+            trial = _solve(current.model, samples, names, config.model_fit.scale_huber_k)
             wald, thr = _wald(trial, step), _threshold(step, n_views, len(names))
             tests[step] = TermTest("+".join(step), wald, thr, False)
             if wald > thr and best is None:  # the first in the ladder's order that passes
@@ -759,15 +760,16 @@ def fit_depth_model(camera: str, samples: BoardSamples, intr: CameraIntrinsics,
     # what the data say of the depth beyond the board, whatever the ladder chose: every term
     # free (the terms it left out are there on a real camera, only too small to show here)
     law = (current if current.names == PARAMETERS
-           else _solve(current.model, samples, PARAMETERS, config.scale_huber_k))
+           else _solve(current.model, samples, PARAMETERS, config.model_fit.scale_huber_k))
     # the camera needs a model: all of it, where the views can judge every term
     # (EVERY_TERM_MIN_VIEWS)
     judged = n_views >= EVERY_TERM_MIN_VIEWS
-    too_few_views = bool(chosen) and config.model_terms == "auto" and not judged
-    if chosen and (config.model_terms == "all" or (config.model_terms == "auto" and judged)):
+    too_few_views = bool(chosen) and config.model_fit.model_terms == "auto" and not judged
+    terms = config.model_fit.model_terms
+    if chosen and (terms == "all" or (terms == "auto" and judged)):
         chosen, current = [t for t in TERMS], law
     # kept only where it predicts board views it was not fitted to better than the raw depth
-    held = held_out_cost(current, base, samples, config.scale_huber_k) if chosen else None
+    held = held_out_cost(current, base, samples, config.model_fit.scale_huber_k) if chosen else None
     if held is not None and held.model >= held.identity:
         held, chosen, current, too_few_views = replace(held, rejected=True), [], identity, False
     sig = np.sqrt(np.maximum(np.diag(current.cov), 0.0)) if current.names else np.zeros(0)

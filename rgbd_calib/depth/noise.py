@@ -63,7 +63,8 @@ def depth_noise(intr: CameraIntrinsics, config: DepthConfig) -> DepthNoise:
     colour)."""
     if intr.depth_noise == "kinect-v1":
         return KINECT_V1_NOISE
-    return DepthNoise(config.subpixel_px, config.baseline_m, config.depth_focal_px or intr.fx)
+    clouds = config.clouds
+    return DepthNoise(clouds.subpixel_px, clouds.baseline_m, clouds.depth_focal_px or intr.fx)
 
 
 _MEDIAN_EFFICIENCY = math.pi / 2.0  # var(median of n Gaussian samples) ~ pi/2 * sigma^2 / n

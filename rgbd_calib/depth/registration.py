@@ -272,20 +272,19 @@ def find_overlapping_pairs(
     config = config or DepthConfig()
     names = [c for c in clouds if c in T_ref_cam]
     intrinsics = intrinsics or {c: clouds[c].intrinsics for c in names}
-    sample = {
-        c: clouds[c].points[voxel_pick(clouds[c].points, config.overlap_voxel_m)].astype(float)
-        for c in names
-    }
+    voxel = config.registration.overlap_voxel_m
+    sample = {c: clouds[c].points[voxel_pick(clouds[c].points, voxel)].astype(float)
+              for c in names}
     trees = {c: cKDTree(sample[c]) for c in names}
     pairs = []
     for a, b in combinations(names, 2):
         T_b_a = invert_transform(T_ref_cam[b]) @ T_ref_cam[a]
         f_ab, n_ab = _overlap_fraction(sample[a], T_b_a, intrinsics[b], trees[b],
-                                       config.overlap_distance_m)
+                                       config.registration.overlap_distance_m)
         f_ba, n_ba = _overlap_fraction(sample[b], invert_transform(T_b_a), intrinsics[a],
-                                       trees[a], config.overlap_distance_m)
+                                       trees[a], config.registration.overlap_distance_m)
         frac = min(f_ab, f_ba)
-        if frac >= config.min_overlap and min(n_ab, n_ba) > 0:
+        if frac >= config.registration.min_overlap and min(n_ab, n_ba) > 0:
             pairs.append(PairOverlap(a, b, frac, min(n_ab, n_ba), f_ab, f_ba))
     return sorted(pairs, key=lambda p: -p.overlap_fraction)
 
@@ -328,18 +327,19 @@ def _colored_icp_level(src: VoxelLevel, tgt: VoxelLevel, T: np.ndarray, distance
 
 def _colored_icp_call(src: VoxelLevel, tgt: VoxelLevel, T: np.ndarray, distance: float,
                       iterations: int, config: DepthConfig) -> np.ndarray:
-    if config.icp_backend == "tensor":
+    if config.registration.icp_backend == "tensor":
         reg = o3d.t.pipelines.registration
         result = reg.icp(
             _tensor_cloud(src), _tensor_cloud(tgt), distance,
-            o3d.core.Tensor(T), reg.TransformationEstimationForColoredICP(config.lambda_geometric),
+            o3d.core.Tensor(T),
+            reg.TransformationEstimationForColoredICP(config.registration.lambda_geometric),
             reg.ICPConvergenceCriteria(1e-6, 1e-6, iterations),
         )
         return result.transformation.numpy().astype(float)
     reg = o3d.pipelines.registration
     result = reg.registration_colored_icp(
         _legacy_cloud(src), _legacy_cloud(tgt), distance, T,
-        reg.TransformationEstimationForColoredICP(lambda_geometric=config.lambda_geometric),
+        reg.TransformationEstimationForColoredICP(lambda_geometric=config.registration.lambda_geometric),
         reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
                                    max_iteration=iterations),
     )
@@ -353,14 +353,14 @@ def _geometric_icp_level(src: VoxelLevel, tgt: VoxelLevel, T: np.ndarray, voxel:
     voxels only, hence the coarse-to-fine levels), the source thinned to 1.5 voxels as
     kiss-icp's own pipeline does."""
     voxel_map = VoxelHashMap(voxel_size=voxel, max_distance=1e6,
-                             max_points_per_voxel=config.kiss_max_points_per_voxel)
+                             max_points_per_voxel=config.registration.kiss_max_points_per_voxel)
     voxel_map.add_points(np.ascontiguousarray(tgt.points, dtype=np.float64))
     source = voxel_down_sample(np.ascontiguousarray(src.points, dtype=np.float64), 1.5 * voxel)
     return np.asarray(
         registration.align_points_to_map(
             points=source, voxel_map=voxel_map, initial_guess=T,
-            max_correspondance_distance=config.max_correspondence_factor * voxel,
-            kernel=config.kiss_kernel_factor * voxel,
+            max_correspondance_distance=config.registration.max_correspondence_factor * voxel,
+            kernel=config.registration.kiss_kernel_factor * voxel,
         ),
         dtype=float,
     )
@@ -379,23 +379,24 @@ def _common_surfaces(cloud_a: CameraCloud, cloud_b: CameraCloud, T_b_a0: np.ndar
     """Points of each cloud the other camera can see (in view, low noise, facing it), with
     their normal fields; the selection is made once, at the initial ``T_b_a0``."""
     T_a_b0 = invert_transform(T_b_a0)
+    reg = config.registration
     # 1. what each camera can see of the other's cloud
     keep_a = in_view(cloud_b.intrinsics, transform_points(T_b_a0, cloud_a.points),
-                      config.crop_margin_px, 0.05, np.inf)
+                     reg.crop_margin_px, 0.05, np.inf)
     keep_b = in_view(cloud_a.intrinsics, transform_points(T_a_b0, cloud_b.points),
-                      config.crop_margin_px, 0.05, np.inf)
-    keep_a &= cloud_a.sigma_z <= config.icp_max_sigma_z_m
-    keep_b &= cloud_b.sigma_z <= config.icp_max_sigma_z_m
-    normals_a = NormalField(cloud_a.points[keep_a].astype(float), config.normal_voxel_m,
-                             config.normal_radius_m)
-    normals_b = NormalField(cloud_b.points[keep_b].astype(float), config.normal_voxel_m,
-                             config.normal_radius_m)
+                     reg.crop_margin_px, 0.05, np.inf)
+    keep_a &= cloud_a.sigma_z <= reg.icp_max_sigma_z_m
+    keep_b &= cloud_b.sigma_z <= reg.icp_max_sigma_z_m
+    normals_a = NormalField(cloud_a.points[keep_a].astype(float), reg.normal_voxel_m,
+                            reg.normal_radius_m)
+    normals_b = NormalField(cloud_b.points[keep_b].astype(float), reg.normal_voxel_m,
+                            reg.normal_radius_m)
     # surfaces the other camera sees from behind (the far side of a rail, a post) or at a
     # grazing angle are not common to both views: drop them
     keep_a[keep_a] &= _faces_camera(cloud_a.points[keep_a], normals_a, T_b_a0,
-                                    config.max_incidence_deg)
+                                    reg.max_incidence_deg)
     keep_b[keep_b] &= _faces_camera(cloud_b.points[keep_b], normals_b, T_a_b0,
-                                    config.max_incidence_deg)
+                                    reg.max_incidence_deg)
     return keep_a, keep_b, normals_a, normals_b
 
 
@@ -408,13 +409,14 @@ def pair_rmse_mm(cloud_a: CameraCloud, cloud_b: CameraCloud, T_ref_a_initial: np
     config = config or DepthConfig()
     T_b_a0 = invert_transform(T_ref_b_initial) @ np.asarray(T_ref_a_initial, dtype=float)
     keep_a, keep_b, normals_a, normals_b = _common_surfaces(cloud_a, cloud_b, T_b_a0, config)
-    voxel = config.voxel_schedule_m[-1]
+    voxel = config.registration.voxel_schedule_m[-1]
     src = voxel_level(cloud_a, keep_a, voxel, normals_a)
     tgt = voxel_level(cloud_b, keep_b, voxel, normals_b)
     if src.points.shape[0] == 0 or tgt.points.shape[0] < 3:
         return float("nan")
     T_b_a = invert_transform(T_ref_b) @ np.asarray(T_ref_a, dtype=float)
-    return rmse_mm(nearest_matches(src, tgt, cKDTree(tgt.points), T_b_a, config.eval_distance_m))
+    return rmse_mm(nearest_matches(src, tgt, cKDTree(tgt.points), T_b_a,
+                                   config.registration.eval_distance_m))
 
 
 @dataclass(frozen=True)
@@ -513,15 +515,16 @@ def _coarse_to_fine(cloud_a: CameraCloud, cloud_b: CameraCloud,
     failed or diverged (None when none did)."""
     T = T_b_a0.copy()
     finest: tuple[VoxelLevel, VoxelLevel] | None = None
-    kiss = Registration(max_num_iterations=config.kiss_max_iterations,
+    reg = config.registration
+    kiss = Registration(max_num_iterations=reg.kiss_max_iterations,
                         convergence_criterion=1e-5, max_num_threads=_THREADS["kiss"])
-    for voxel, iterations in zip(config.voxel_schedule_m, config.iterations):
+    for voxel, iterations in zip(reg.voxel_schedule_m, reg.iterations):
         src = voxel_level(cloud_a, keep[0], voxel, normals[0])
         tgt = voxel_level(cloud_b, keep[1], voxel, normals[1])
         finest = (src, tgt)
         if src.points.shape[0] < 10 or tgt.points.shape[0] < 10:
             break
-        distance = config.max_correspondence_factor * voxel
+        distance = reg.max_correspondence_factor * voxel
         try:
             if method == "colored-icp":
                 T = _colored_icp_level(src, tgt, T, distance, iterations, config)
@@ -543,12 +546,13 @@ def _finest_fit(src: VoxelLevel, tgt: VoxelLevel, T: np.ndarray, T_b_a0: np.ndar
     """Step 3 of :func:`register_pair`: correspondences of the finest level at ``T`` (and at
     ``T_b_a0`` for the RMSE before), their fit and the information of ``T``."""
     cloud_a, cloud_b = clouds
-    fine_distance = config.max_correspondence_factor * config.voxel_schedule_m[-1]
+    reg = config.registration
+    fine_distance = reg.max_correspondence_factor * reg.voxel_schedule_m[-1]
     if src.points.shape[0] > 0 and tgt.points.shape[0] >= 3:
         tree = cKDTree(tgt.points)
         final = nearest_matches(src, tgt, tree, T, fine_distance)
-        before = nearest_matches(src, tgt, tree, T_b_a0, config.eval_distance_m)
-        after = nearest_matches(src, tgt, tree, T, config.eval_distance_m)
+        before = nearest_matches(src, tgt, tree, T_b_a0, config.registration.eval_distance_m)
+        after = nearest_matches(src, tgt, tree, T, config.registration.eval_distance_m)
     else:
         empty = np.zeros((0, 3))
         none = np.zeros(0, dtype=int)
@@ -556,10 +560,10 @@ def _finest_fit(src: VoxelLevel, tgt: VoxelLevel, T: np.ndarray, T_b_a0: np.ndar
                                          np.zeros(0), none, none)
     n_corr = int(final.residual.size)
     colour = None
-    if method == "colored-icp" and config.lambda_geometric < 1.0 and n_corr >= 7:
+    if method == "colored-icp" and config.registration.lambda_geometric < 1.0 and n_corr >= 7:
         colour = (src, tgt, color_gradients(tgt.points, tgt.normals, tgt.colors,
                                             at=final.tgt_index))
-    rows = whitened_rows(final, T, config.information_patch_m, colour, free_scale,
+    rows = whitened_rows(final, T, config.uncertainty.information_patch_m, colour, free_scale,
                          ((cloud_a.intrinsics, cloud_a.intrinsics_variance),
                           (cloud_b.intrinsics, cloud_b.intrinsics_variance)))
     # the noise model's Gauss-Newton information says which directions the overlap
@@ -587,43 +591,44 @@ def _verdict(fit: _Fit, clouds: tuple[CameraCloud, CameraCloud], config: DepthCo
     noise_rms, cond, improvement = fit.normalised_rms, fit.conditioning, fit.improvement_chi2
     corr_deg, corr_mm = fit.correction_deg, fit.correction_mm
     reasons = []
-    if n_corr < config.min_correspondences:
+    gate = config.acceptance
+    if n_corr < gate.min_correspondences:
         reasons.append(("correspondences",
-                        f"{n_corr} correspondences < {config.min_correspondences}"))
-    if fitness < config.min_fitness:
-        reasons.append(("fitness", f"fitness {fitness:.2f} < {config.min_fitness}"))
-    if not rmse_after <= config.max_rmse_mm:
+                        f"{n_corr} correspondences < {gate.min_correspondences}"))
+    if fitness < gate.min_fitness:
+        reasons.append(("fitness", f"fitness {fitness:.2f} < {gate.min_fitness}"))
+    if not rmse_after <= gate.max_rmse_mm:
         reasons.append(("rmse", f"point-to-plane RMSE {rmse_after:.1f} mm > "
-                                f"{config.max_rmse_mm} mm"))
-    if n_corr and not noise_rms <= config.max_normalised_rms:
+                                f"{gate.max_rmse_mm} mm"))
+    if n_corr and not noise_rms <= gate.max_normalised_rms:
         reasons.append((
             "residuals",
             f"residuals {noise_rms:.1f}x the {_noise_name(*clouds)} noise model (limit "
-            f"{config.max_normalised_rms}x): the surfaces do not fit (a wrong local minimum, "
+            f"{gate.max_normalised_rms}x): the surfaces do not fit (a wrong local minimum, "
             "a moving scene or a depth error)"))
-    if cond < config.min_conditioning:
+    if cond < gate.min_conditioning:
         reasons.append((
             "conditioning",
-            f"poorly conditioned overlap ({cond:.3g} < {config.min_conditioning}): "
+            f"poorly conditioned overlap ({cond:.3g} < {gate.min_conditioning}): "
             "the common surfaces leave a direction unconstrained (e.g. a single plane)"
         ))
-    if n_corr and fit.n_patches < config.min_patches:
+    if n_corr and fit.n_patches < gate.min_patches:
         reasons.append(("patches", f"{fit.n_patches} surface patches of "
-                        f"{config.information_patch_m} m < {config.min_patches}: too few to "
-                        "estimate the pair's uncertainty"))
-    if corr_mm > 1000.0 * config.max_correction_m or corr_deg > config.max_correction_deg:
+                        f"{config.uncertainty.information_patch_m} m < {gate.min_patches}: "
+                        "too few to estimate the pair's uncertainty"))
+    if corr_mm > 1000.0 * gate.max_correction_m or corr_deg > gate.max_correction_deg:
         reasons.append((
             "correction",
             f"moved {corr_mm:.0f} mm / {corr_deg:.1f} deg from the initial guess (limit "
-            f"{1000.0 * config.max_correction_m:.0f} mm / {config.max_correction_deg} deg)"
+            f"{1000.0 * gate.max_correction_m:.0f} mm / {gate.max_correction_deg} deg)"
         ))
-    agrees = not reasons and not improvement >= config.min_improvement_chi2
+    agrees = not reasons and not improvement >= gate.min_improvement_chi2
     if agrees:
         reasons.append((
             "not_significant",
             f"no significant improvement on the current extrinsics: ICP moved "
             f"{corr_mm:.2f} mm / {corr_deg:.3f} deg, chi2 {improvement:.1f} < "
-            f"{config.min_improvement_chi2} (6 dof) under its own uncertainty"
+            f"{config.acceptance.min_improvement_chi2} (6 dof) under its own uncertainty"
             + (" (depth scale unknown: a move a depth-scale error explains does not count)"
                if any(free_scale) else "")))
     if not np.all(np.isfinite(fit.information)):
@@ -664,7 +669,7 @@ def failed_registration(cam_a: str, cam_b: str, method: str, T_b_a_initial: np.n
 # --------------------------------------------------------------------------- robust registration
 def _fpfh_cloud(cloud: CameraCloud, voxel: float, config: DepthConfig):
     """Voxel means of the well-measured points with normals and FPFH features."""
-    keep = cloud.sigma_z <= config.icp_max_sigma_z_m  # the points registration uses
+    keep = cloud.sigma_z <= config.registration.icp_max_sigma_z_m  # the points registration uses
     pts, _, _ = voxel_mean(cloud.points[keep].astype(float), voxel)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
@@ -726,11 +731,11 @@ def wide_config(config: DepthConfig) -> DepthConfig:
     """``config`` with a wider basin: two coarser ICP levels first (0.16 and 0.08 m voxels,
     each its own correspondence distance: a 5 deg turn moves a wall 2 m away by 0.17 m) and
     a 100 px wider crop (the crop to the other camera's view is made under the wrong guess)."""
-    levels = [v for v in (0.16, 0.08) if v > config.voxel_schedule_m[0]]
-    return config.model_copy(update={
-        "voxel_schedule_m": levels + list(config.voxel_schedule_m),
-        "iterations": [40] * len(levels) + list(config.iterations),
-        "crop_margin_px": config.crop_margin_px + 100.0})
+    reg = config.registration
+    levels = [v for v in (0.16, 0.08) if v > reg.voxel_schedule_m[0]]
+    return config.replaced(voxel_schedule_m=levels + list(reg.voxel_schedule_m),
+                           iterations=[40] * len(levels) + list(reg.iterations),
+                           crop_margin_px=reg.crop_margin_px + 100.0)
 
 
 def _better(first: PairRegistration, second: PairRegistration) -> PairRegistration:

@@ -172,7 +172,8 @@ def weak_cameras(covariance: dict[str, np.ndarray | None], config: DepthConfig,
             continue
         worst_deg = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0))))
         worst_mm = float(1000.0 * np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
-        if worst_mm > config.board_weak_sigma_mm or worst_deg > config.board_weak_sigma_deg:
+        weak = config.uncertainty
+        if worst_mm > weak.board_weak_sigma_mm or worst_deg > weak.board_weak_sigma_deg:
             out[cam] = f"board sigma {worst_mm:.3f} mm / {worst_deg:.4f} deg in its worst direction"
     return out
 
@@ -198,7 +199,7 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     (:func:`unseen_board_views`, same form) are the board where the camera did not detect it,
     for its depth model only; ``pose_covariance`` (camera -> frame -> 6x6:
     :func:`view_pose_covariances`) the uncertainty of each of those board poses, which the
-    depth model takes into account (``depth.model_plane_uncertainty``).
+    depth model takes into account (``depth.model_fit.model_plane_uncertainty``).
 
     With ``board_covariance`` (camera -> 6x6 marginal of the board solve) only pairs with a
     camera the board constrains weakly (:func:`weak_cameras`) are registered, and nothing but
@@ -231,8 +232,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                        if c in scales else (depth_scales or {}).get(c, 1.0) for c in cams}
         jobs = [(c, T_ref_cam[c], corrections[c]) for c in cams]
         # no registration: the clouds are for fused.ply and the cloud checks only
-        cloud_config = (config.model_copy(update={"max_frames": min(
-            config.max_frames, config.skipped_max_frames)}) if no_pair else config)
+        cloud_config = (config.replaced(max_frames=min(
+            config.clouds.max_frames, config.clouds.skipped_max_frames)) if no_pair else config)
         clouds, skipped = static_clouds(dataset, jobs, T_ref_board or {}, board, cloud_config,
                                         workers, start(progress, "static clouds", len(cams)),
                                         scheduler)
@@ -245,7 +246,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
         return DepthRefinement(
             method, scales, clouds, [], [], dict(T_ref_cam), timings, skipped,
             note=(f"not needed: the board alone holds every camera within "
-                  f"{config.board_weak_sigma_mm} mm / {config.board_weak_sigma_deg} deg"),
+                  f"{config.uncertainty.board_weak_sigma_mm} mm / "
+                  f"{config.uncertainty.board_weak_sigma_deg} deg"),
             weak_cameras={}, depth_models=models, beyond_board=far, unmodelled=unmodelled)
 
     pairs: list[DepthPair] = []
@@ -256,7 +258,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
             dataset, clouds, models, scales, T_ref_cam, T_ref_board, board,
             board_covariance is not None, config, workers, scheduler, timings, corrections)
         if moments:
-            sensor_pose = (config.sensor_pose_sigma_deg, config.sensor_pose_sigma_mm)
+            sensor_pose = (config.uncertainty.sensor_pose_sigma_deg,
+                           config.uncertainty.sensor_pose_sigma_mm)
         with timed(timings, "registration"):
             intrinsics = {c: dataset.rig.cameras[c] for c in registering}
             overlaps = find_overlapping_pairs(registering, T_ref_cam, intrinsics, config)
@@ -307,7 +310,7 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
                                                                            np.ndarray]]]:
     """The clouds the pairs register, and per camera what its depth sensor's pose may leave
     on its cloud (:func:`with_sensor_poses` widens the pairs by it; empty with
-    ``depth.sensor_pose_sigma_deg`` and ``_mm`` 0, the poses taken as exact).
+    ``depth.uncertainty.sensor_pose_sigma_deg`` and ``_mm`` 0, the poses taken as exact).
 
     calibrate (``calibrating``) registers only where the board is weak, which is where the
     depth models are fitted on few views: their extrapolation to the scene's depths has a
@@ -337,7 +340,7 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
 def _pose_prior(config: DepthConfig) -> tuple[float, float] | None:
     """The depth sensors' pose prior (deg, mm per axis), None when both are 0: the poses
     taken as exact."""
-    prior = (config.sensor_pose_sigma_deg, config.sensor_pose_sigma_mm)
+    prior = (config.uncertainty.sensor_pose_sigma_deg, config.uncertainty.sensor_pose_sigma_mm)
     return None if prior == (0.0, 0.0) else prior
 
 
@@ -360,8 +363,8 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
         return scales, models, {}
     unmodelled = {c: NO_BOARD_DEPTH for c in cams} if config.model == "auto" else {}
     tick = start(progress, "depth model per camera", len(cams))
-    unseen_config = config.model_copy(update={"scale_max_frames": max(
-        config.model_unseen_max_frames, 1)})
+    unseen_config = config.replaced(scale_max_frames=max(
+        config.model_fit.model_unseen_max_frames, 1))
     for c in cams:
         views = board_views.get(c, {})
         if views:
@@ -375,10 +378,10 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                 continue  # too few board pixels with depth: the factor stays 1 (reported)
             far = (board_faces(dataset, c, (unseen_views or {}).get(c, {}), board,
                                unseen_config, detected=False)
-                   if config.model == "auto" and config.model_unseen_max_frames else [])
+                   if config.model == "auto" and config.model_fit.model_unseen_max_frames else [])
             samples = (board_samples(dataset.rig.cameras[c], faces + far, config,
                                      (pose_covariance or {}).get(c)
-                                     if config.model_plane_uncertainty else None)
+                                     if config.model_fit.model_plane_uncertainty else None)
                        if config.model == "auto" else None)
             if samples is not None:
                 models[c] = replace(fit_depth_model(c, samples, dataset.rig.cameras[c], config),
@@ -402,7 +405,7 @@ def unseen_board_views(T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, 
     camera's capture, by the time model; :func:`board_views_per_camera`) replaces
     ``T_ref_board`` and leaves out the sets it lacks."""
     out: dict[str, dict[str, np.ndarray]] = {}
-    if board is None or not config.model_unseen_views:
+    if board is None or not config.model_fit.model_unseen_views:
         return out
     corners = target_corners(board)
     for c, T_rc in T_ref_cam.items():
@@ -416,7 +419,8 @@ def unseen_board_views(T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, 
                 continue
             T_cb = T_cr @ T_rb
             pts = corners @ T_cb[:3, :3].T + T_cb[:3, 3]
-            if np.any(in_view(intr, pts, 0.0, config.min_range_m, config.max_range_m)):
+            if np.any(in_view(intr, pts, 0.0, config.clouds.min_range_m,
+                              config.clouds.max_range_m)):
                 out.setdefault(c, {})[frame] = T_cb
     return out
 
@@ -602,7 +606,7 @@ def consistent_with_board(reg: PairRegistration, board_covariance: dict[str, np.
                           T_ref_cam: dict[str, np.ndarray], config: DepthConfig,
                           ) -> PairRegistration:
     """``reg``, rejected when ICP's move from the board's ``T_b_a`` is beyond what the board
-    and the pair allow together: ``xi^T (C_rel + C_pair)^-1 xi > config.max_board_chi2`` with
+    and the pair allow together: ``xi^T (C_rel + C_pair)^-1 xi > acceptance.max_board_chi2`` with
     ``C_rel = C_a + Ad(T_a_b) C_b Ad(T_a_b)^T`` the board marginals of the two cameras
     carried to the right perturbation of ``T_b_a`` (``T_b_a Exp(xi_a - Ad(T_a_b) xi_b)``;
     their correlation is left out, which widens the gate) and ``C_pair`` the pair's own
@@ -618,12 +622,12 @@ def consistent_with_board(reg: PairRegistration, board_covariance: dict[str, np.
         chi2 = float(xi @ np.linalg.solve(total, xi))
     except np.linalg.LinAlgError:
         return reg
-    if chi2 <= config.max_board_chi2:
+    if chi2 <= config.acceptance.max_board_chi2:
         return reg
     return replace(reg, accepted=False, rejected_by=("beyond_extrinsics",), reason=(
         f"ICP moved {reg.correction_mm:.2f} mm / {reg.correction_deg:.3f} deg from the board's "
         f"extrinsics, beyond their uncertainty and the pair's (chi2 {chi2:.0f} > "
-        f"{config.max_board_chi2}, 6 dof): a wrong local minimum or a depth error"))
+        f"{config.acceptance.max_board_chi2}, 6 dof): a wrong local minimum or a depth error"))
 
 
 def fit_pose_moments(models: dict[str, DepthModelFit | None], prior: tuple[float, float],
@@ -631,7 +635,7 @@ def fit_pose_moments(models: dict[str, DepthModelFit | None], prior: tuple[float
     """camera -> what its depth sensor's pose leaves on a cloud NOT corrected for it (the
     clouds calibrate registers: :func:`_registration_clouds`), as :func:`with_sensor_poses`
     takes it: the every-term fit's estimate and covariance with the zero-mean ``prior`` (deg,
-    mm per axis; config ``depth.sensor_pose_sigma_deg`` / ``_mm``:
+    mm per axis; config ``depth.uncertainty.sensor_pose_sigma_deg`` / ``_mm``:
     :meth:`~rgbd_calib.depth.depth_model_fit.DepthModelFit.sensor_pose_moment`), the prior
     alone for a camera without a fit (None)."""
     return {c: DepthModelFit.prior_moment(*prior) if m is None else m.sensor_pose_moment(*prior)
@@ -643,7 +647,7 @@ def applied_pose_moments(corrections: dict[str, float | DepthModel], cameras,
     """camera -> what its depth sensor's pose may still leave on a cloud corrected by
     ``corrections`` (the models or factors ``check`` and ``refine`` build their clouds with;
     a camera of ``cameras`` without one has none): :func:`applied_pose_moment`. Empty with
-    ``depth.sensor_pose_sigma_deg`` and ``_mm`` 0 (the poses taken as exact)."""
+    ``depth.uncertainty.sensor_pose_sigma_deg`` and ``_mm`` 0 (the poses taken as exact)."""
     prior = _pose_prior(config)
     return {} if prior is None else {c: applied_pose_moment(corrections.get(c), *prior)
                                      for c in cameras}

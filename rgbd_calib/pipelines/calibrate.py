@@ -387,12 +387,13 @@ def _joint_solve(run: _Run, pg: PoseGraphResult, solved: _Solved,
                  T_ref_cam: dict[str, np.ndarray]) -> _Solved:
     """The corners and the accepted depth pairs in one solve, started at the board-only
     cameras ``T_ref_cam``, the pairs' covariance times their variance factor (``depth.
-    pair_variance_factor``): from ``depth.pair_variance_floor``, the solve is repeated with
-    the factor times the pairs' chi-square over their redundancy in it (:func:`~rgbd_calib.
-    solve.bundle.relative_pose_fit`: variance-component estimation; the corners' sigma is
-    estimated as always), never below the floor, until it changes by less than
-    :data:`PAIR_FACTOR_TOLERANCE` or after ``depth.variance_component_iterations`` solves;
-    each pair's covariance also gains the bias ``depth.pair_bias_sigma_mm`` / ``_deg``
+    pair_variance_factor``): from ``depth.uncertainty.pair_variance_floor``, the solve is
+    repeated with the factor times the pairs' chi-square over their redundancy in it
+    (:func:`~rgbd_calib. solve.bundle.relative_pose_fit`: variance-component estimation; the
+    corners' sigma is estimated as always), never below the floor, until it changes by less than
+    :data:`PAIR_FACTOR_TOLERANCE` or after ``depth.uncertainty.variance_component_iterations``
+    solves;
+    each pair's covariance also gains the bias ``depth.uncertainty.pair_bias_sigma_mm`` / ``_deg``
     (:func:`~rgbd_calib.depth.information.with_bias_floor`: colored ICP's error that does not
     shrink with its points).
     Colored ICP's pairs carry a bias their information does not show, and where the board is
@@ -410,7 +411,8 @@ def _joint_solve(run: _Run, pg: PoseGraphResult, solved: _Solved,
     def solve(factors: dict[str, float]):
         joint = bundle_sound_first(replace(problem, relative_poses=[
             replace(r, information=with_bias_floor(
-                r.information / factors["pairs"], cfg.pair_bias_sigma_deg, cfg.pair_bias_sigma_mm))
+                r.information / factors["pairs"], cfg.uncertainty.pair_bias_sigma_deg,
+                cfg.uncertainty.pair_bias_sigma_mm))
             for r in depth.relative_poses]), pg.model_error)
         fit = np.array(joint.relative_pose_fit).reshape(-1, 2)
         return joint, {"pairs": (fit[:, 0], fit[:, 1])}
@@ -418,14 +420,15 @@ def _joint_solve(run: _Run, pg: PoseGraphResult, solved: _Solved,
     try:
         with timed(run.timings, "joint"):
             joint, factors = estimate_factors(
-                solve, {"pairs": run.config.depth.pair_variance_floor},
-                run.config.depth.variance_component_iterations, PAIR_FACTOR_TOLERANCE)
+                solve, {"pairs": run.config.depth.uncertainty.pair_variance_floor},
+                run.config.depth.uncertainty.variance_component_iterations, PAIR_FACTOR_TOLERANCE)
     except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
         return replace(solved, depth=depth.with_fallback(
             f"the joint solve with the depth pairs failed "
             f"({type(exc).__name__}: {exc})".replace("\n", " ")))
     depth = replace(depth, pair_variance_factor=factors["pairs"],
-                    pair_bias_sigma=(cfg.pair_bias_sigma_mm, cfg.pair_bias_sigma_deg))
+                    pair_bias_sigma=(cfg.uncertainty.pair_bias_sigma_mm,
+                                     cfg.uncertainty.pair_bias_sigma_deg))
     joint_cameras, joint_factors = model_error_sigmas(cameras_from_solve(joint), joint, pg,
                                                       solved.problem.config)
     beyond = moved_beyond_board(solved.cameras, joint_cameras)

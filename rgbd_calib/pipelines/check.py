@@ -114,10 +114,10 @@ def check_config(config: DepthConfig | None) -> DepthConfig:
     move far (``max_correction`` 0.5 m / 30 deg: the correction of ``T_b_a`` is the knock's
     turn times the baseline, 0.15 m for 5 deg across a 1.7 m ring, beyond calibrate's
     wrong-minimum guard; here the noise-model fit guards against wrong minima)."""
-    return (config or DepthConfig()).model_copy(update={
-        "min_improvement_chi2": 0.0,
-        "max_correction_m": max((config or DepthConfig()).max_correction_m, 0.5),
-        "max_correction_deg": max((config or DepthConfig()).max_correction_deg, 30.0)})
+    config = config or DepthConfig()
+    return config.replaced(min_improvement_chi2=0.0,
+                           max_correction_m=max(config.acceptance.max_correction_m, 0.5),
+                           max_correction_deg=max(config.acceptance.max_correction_deg, 30.0))
 
 
 def _jobs(pairs: list[tuple[str, str]], T: dict[str, np.ndarray],
@@ -341,8 +341,7 @@ def check_dataset(dataset: FolderDataset, calib: Extrinsics,
         dataset, [(c, calib.T_ref_cam(c), scales.get(c, 1.0)) for c in cams], placed, board,
         config, workers, start(progress, "static clouds", len(cams)), scheduler)
     T = {c: calib.T_ref_cam(c) for c in clouds}
-    wide = config.model_copy(update={"overlap_distance_m": max(config.overlap_distance_m,
-                                                               0.15)})
+    wide = config.replaced(overlap_distance_m=max(config.registration.overlap_distance_m, 0.15))
     overlaps = [(o.cam_a, o.cam_b) for o in find_overlapping_pairs(
         clouds, T, {c: dataset.rig.cameras[c] for c in clouds}, wide)]
     tick = start(progress, f"registering pairs ({method})", len(overlaps))

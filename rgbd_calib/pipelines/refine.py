@@ -145,7 +145,7 @@ def refine_extrinsics(dataset: FolderDataset, init: Extrinsics,
         res, factors = solve_variance_components(
             {c: dataset.rig.cameras[c].K for c in T_init}, init.reference, T_init,
             {"initial": priors, "pairs": depth.relative_poses},
-            max_iterations=config.variance_component_iterations)
+            max_iterations=config.uncertainty.variance_component_iterations)
     except Exception as exc:  # noqa: BLE001 - the depth pairs must never end a run
         depth = depth.with_fallback(f"the pose graph of the depth pairs failed "
                                     f"({type(exc).__name__}: {exc})".replace("\n", " "))

@@ -119,7 +119,7 @@ def report_dict(
 def _depth_model_entry(fit: Any, far: Any = None) -> dict[str, Any]:
     """report.json ``depth_models.<camera>``: the chosen terms, their parameters and sigmas, the
     board-plane residuals by distance band before and after the model, the board views they
-    were fitted on (``depth.model_terms: auto`` frees every term from 15), and (``far``, a
+    were fitted on (``depth.model_fit.model_terms: auto`` frees every term from 15), and (``far``, a
     :class:`~rgbd_calib.depth.depth_model_fit.BeyondBoard`) how much of the camera's cloud lies
     beyond the board's depths and how well its depth is known there, and (``held_out``) how
     well the model predicts board views it was not fitted to, against the raw depth."""

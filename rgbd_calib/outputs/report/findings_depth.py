@@ -350,8 +350,8 @@ def depth_extrapolated(report: dict[str, Any], earlier: list[Finding]) -> list[F
             + ".",
             "The depth model is fitted where the board was and extrapolated beyond: hold the "
             "board at those distances too (the cameras that detect it place it; "
-            "depth.model_unseen_views reads it where this camera cannot detect it), or count "
-            "the far cloud that uncertain; docs/depth.md."))
+            "depth.model_fit.model_unseen_views reads it where this camera cannot detect it), "
+            "or count the far cloud that uncertain; docs/depth.md."))
     return out
 
 

@@ -1,0 +1,45 @@
+"""What every group of settings shares: :class:`Section` (unknown keys are errors, also in
+``model_copy``) and :func:`lift_flat`, which reads a group's settings given at the level above
+it, as config files did before the groups. Imports pydantic only."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict
+
+
+class Section(BaseModel):
+    """A group of settings: unknown keys are errors, in a config file and in ``model_copy``
+    (whose ``update`` pydantic would otherwise take without a check, leaving a setting given
+    at its old place silently unused)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    def model_copy(self, *, update: dict[str, Any] | None = None, deep: bool = False):
+        unknown = set(update or ()) - set(type(self).model_fields)
+        if unknown:
+            raise TypeError(f"{type(self).__name__} has no setting {', '.join(sorted(unknown))}")
+        return super().model_copy(update=update, deep=deep)
+
+
+def lift_flat(data: Any, groups: dict[str, type[BaseModel]]) -> Any:
+    """``data`` (a mapping of settings, or anything else, returned as it is) with every setting
+    of a group that is given at the mapping's own level moved into that group's mapping.
+    Raises ValueError for a setting given at both places with different values."""
+    if not isinstance(data, dict):
+        return data
+    out = dict(data)
+    for name, model in groups.items():
+        flat = {k: out.pop(k) for k in list(out) if k in model.model_fields and k not in groups}
+        if not flat:
+            continue
+        group = out.get(name, {})
+        group = group.model_dump() if isinstance(group, BaseModel) else dict(group or {})
+        for k, v in flat.items():
+            if k in group and group[k] != v:
+                raise ValueError(f"{k} is given twice, as {v!r} and as {name}.{k} "
+                                 f"{group[k]!r}; give it once")
+            group[k] = v
+        out[name] = group
+    return out
