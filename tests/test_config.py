@@ -45,6 +45,41 @@ def test_depth_config_rejects_unknown_keys_and_inconsistent_schedules():
         DepthConfig(min_range_m=3.0, max_range_m=2.0)
 
 
+def test_grouped_settings_read_at_their_group_or_where_they_were_before(tmp_path):
+    """A depth setting in its group or, as config files gave it before the groups, directly
+    under ``depth:``: the same config; both at once and different: one line naming it."""
+    grouped, flat, both = (tmp_path / n for n in ("grouped.yaml", "flat.yaml", "both.yaml"))
+    grouped.write_text("depth:\n  clouds: {max_frames: 8}\n  acceptance: {min_fitness: 0.4}\n")
+    flat.write_text("depth:\n  max_frames: 8\n  min_fitness: 0.4\n")
+    both.write_text("depth:\n  max_frames: 9\n  clouds: {max_frames: 8}\n")
+    cfg = load_config(grouped)
+    assert cfg == load_config(flat) != CalibrationConfig()
+    assert cfg.depth.clouds.max_frames == 8 and cfg.depth.acceptance.min_fitness == 0.4
+    assert load_config(None, **{"depth.max_frames": 8, "depth.min_fitness": 0.4}) == cfg
+    with pytest.raises(ConfigError, match="max_frames is given twice") as err:
+        load_config(both)
+    assert "\n" not in str(err.value) and str(both) in str(err.value)
+    # the resolved file lists the groups and reads back unchanged
+    write_config(cfg, tmp_path / "resolved.yaml")
+    assert "  clouds:\n    max_frames: 8" in (tmp_path / "resolved.yaml").read_text()
+    assert load_config(tmp_path / "resolved.yaml") == cfg
+
+
+def test_a_group_refuses_a_setting_it_does_not_hold_in_model_copy_and_replaced():
+    """pydantic's model_copy takes any key without a check: a setting left at its place
+    before the groups would be silently unused. The groups refuse it; ``replaced`` finds each
+    setting's group itself."""
+    depth = DepthConfig()
+    with pytest.raises(TypeError, match="max_frames"):
+        depth.model_copy(update={"max_frames": 3})
+    assert depth.replaced(max_frames=3, model="none").clouds.max_frames == 3
+    assert depth.replaced(model="none").model == "none"
+    with pytest.raises(TypeError, match="max_frame"):
+        depth.replaced(max_frame=3)
+    with pytest.raises(ValidationError):
+        depth.replaced(min_range_m=5.0)  # beyond max_range_m: validated as a file is
+
+
 def test_load_config_applies_the_yaml_then_the_overrides(tmp_path):
     path = tmp_path / "calib.yaml"
     path.write_text("method: posegraph\npose:\n  min_markers: 3\ngraph:\n  kernel: huber\n")
