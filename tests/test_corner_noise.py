@@ -151,8 +151,8 @@ def test_a_held_ratio_solves_once_as_the_ratio_read_would():
     problem = BundleProblem(meas, dict.fromkeys(truth, K), "c0", truth, boards, marker)
     read = bundle_adjust(problem)
     held = held_corner_ratio(marker, read)
-    assert held.corner_centre_ratio == read.corner_noise.centre_ratio
-    assert first_noise(held) == CornerNoise(0.1, held.corner_centre_ratio)
+    assert held.corners.corner_centre_ratio == read.corner_noise.centre_ratio
+    assert first_noise(held) == CornerNoise(0.1, held.corners.corner_centre_ratio)
     assert first_noise(marker) == 0.1 and first_noise(BundleConfig()) == BundleConfig().pixel_sigma
     again = bundle_adjust(replace(problem, config=held))
     for c in ("c1", "c2"):

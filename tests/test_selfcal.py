@@ -108,8 +108,8 @@ def test_prior_tension_and_loosening():
     z, cam, name = selfcal.prior_tension(bundle, rig)
     assert (cam, name) == ("c", "fx") and z == pytest.approx(5.0)
     loose = selfcal.loosened(BundleConfig())
-    assert loose.intrinsics_prior_focal_pct == pytest.approx(10.0)
-    assert loose.intrinsics_prior_center_px == pytest.approx(100.0)
+    assert loose.intrinsics_prior.intrinsics_prior_focal_pct == pytest.approx(10.0)
+    assert loose.intrinsics_prior.intrinsics_prior_center_px == pytest.approx(100.0)
 
 
 def test_lens_refined_from_thin_coverage_is_named():

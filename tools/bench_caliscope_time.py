@@ -52,7 +52,7 @@ def main() -> None:
         t0 = time.perf_counter()
         r = calibrate(FolderDataset(data), board, config, cache_dir=args.workdir / "cache")
         clock = r.bundle.time
-        print(f"\ntime_link_ms {link} (= {r.config.bundle.time_link_ms:g} ms): "
+        print(f"\ntime_link_ms {link} (= {r.config.bundle.time_model.time_link_ms:g} ms): "
               f"{time.perf_counter() - t0:.0f} s, chosen "
               f"{r.self_calibration.chosen.name}, {len(r.observations)} views, "
               f"{clock.linked_sets if clock else 0} sets linked")

@@ -157,7 +157,7 @@ def main() -> None:
                           if config is None else
                           calibrate(FolderDataset(data), board, config, cache_dir=cache))
                 if method.startswith("default, link"):  # the window used
-                    method += f" = {result.config.bundle.time_link_ms:g} ms"
+                    method += f" = {result.config.bundle.time_model.time_link_ms:g} ms"
                 print(f"| {label} " + row(data, method, result, time.perf_counter() - t0),
                       flush=True)
 

@@ -4,9 +4,9 @@ it, as config files did before the groups. Imports pydantic only."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
 
 class Section(BaseModel):
@@ -43,3 +43,28 @@ def lift_flat(data: Any, groups: dict[str, type[BaseModel]]) -> Any:
             group[k] = v
         out[name] = group
     return out
+
+
+class Grouped(Section):
+    """A stage's settings with groups of expert settings: ``GROUPS`` (a group's field name ->
+    its :class:`Section`); a config may give a grouped setting in its group or, as before the
+    groups, at the stage's level (:func:`lift_flat`)."""
+
+    GROUPS: ClassVar[dict[str, type[Section]]] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _lift(cls, data: Any) -> Any:
+        return lift_flat(data, cls.GROUPS)
+
+    def replaced(self, **settings: Any):
+        """This config with ``settings`` changed, each by its name whether it sits at the top
+        or in a group, validated as a config file's are. TypeError for an unknown name."""
+        data = self.model_dump()
+        for name, value in settings.items():
+            group = next((g for g, model in self.GROUPS.items() if name in model.model_fields),
+                         None)
+            if group is None and name not in type(self).model_fields:
+                raise TypeError(f"{type(self).__name__} has no setting {name}")
+            (data[group] if group else data)[name] = value
+        return type(self).model_validate(data)

@@ -7,11 +7,11 @@ their acceptance, under the three a user tunes (``model``, ``overlap_models``,
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import ClassVar, Literal
 
 from pydantic import Field, model_validator
 
-from .config_base import Section, lift_flat
+from .config_base import Grouped, Section
 
 
 class CloudsConfig(Section):
@@ -434,9 +434,11 @@ GROUPS: dict[str, type[Section]] = {
 }
 
 
-class DepthConfig(Section):
+class DepthConfig(Grouped):
     """Settings of the depth stage: the three a user tunes, then the groups (module
     docstring)."""
+
+    GROUPS: ClassVar[dict[str, type[Section]]] = GROUPS
 
     model: Literal["auto", "none"] = Field(
         "auto",
@@ -463,21 +465,5 @@ class DepthConfig(Section):
     registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
     uncertainty: PairUncertaintyConfig = Field(default_factory=PairUncertaintyConfig)
     acceptance: PairAcceptanceConfig = Field(default_factory=PairAcceptanceConfig)
-
-    @model_validator(mode="before")
-    @classmethod
-    def _groups(cls, data: object) -> object:
-        return lift_flat(data, GROUPS)
-
-    def replaced(self, **settings: Any) -> DepthConfig:
-        """This config with ``settings`` changed, each by its name whether it sits at the top
-        or in a group, validated as a config file's are. TypeError for an unknown name."""
-        data = self.model_dump()
-        for name, value in settings.items():
-            group = next((g for g, model in GROUPS.items() if name in model.model_fields), None)
-            if group is None and name not in type(self).model_fields:
-                raise TypeError(f"DepthConfig has no setting {name}")
-            (data[group] if group else data)[name] = value
-        return type(self).model_validate(data)
 
 

@@ -254,7 +254,7 @@ def _bundle(run: _Run, pg: PoseGraphResult, views: _Views) -> _Solved:
                     else _refines_distortion(config.bundle))
     if lens_refined and (ladder is not None or run.board.pattern is None):
         solved = _redetect(run, pg, solved)
-    if config.bundle.edge_offset == "auto":  # the detector's edge offset, where it is read
+    if config.bundle.corners.edge_offset == "auto":  # the detector's edge offset, where it is read
         with timed(run.timings, "bundle"):
             bundle, problem = edge_offset_modelled(solved.problem, solved.bundle,
                                                    pg.model_error)
@@ -468,15 +468,14 @@ def _set_ms(run: _Run) -> dict[str, float]:
 
 
 def _with_link_window(run: _Run) -> _Run:
-    """The run with ``bundle.time_link_ms`` as a number (``auto``: from the recording's frame
-    period, :func:`~rgbd_calib.solve.runs.link_window_ms`), so the stages and
+    """The run with ``bundle.time_model.time_link_ms`` as a number (``auto``: from the
+    recording's frame period, :func:`~rgbd_calib.solve.runs.link_window_ms`), so the stages and
     ``config_resolved.yaml`` use and show one window."""
     bundle = run.config.bundle
-    if bundle.time_link_ms != "auto":
+    if bundle.time_model.time_link_ms != "auto":
         return run
     link_ms = round(link_window_ms("auto", _set_ms(run)), 1)
-    config = run.config.model_copy(
-        update={"bundle": bundle.model_copy(update={"time_link_ms": link_ms})})
+    config = run.config.model_copy(update={"bundle": bundle.replaced(time_link_ms=link_ms)})
     return replace(run, config=config)
 
 
@@ -489,7 +488,7 @@ def _thinned(run: _Run, views: _Views) -> tuple[_Run, _Views]:
     for o in views.observations:
         seen[o.frame][o.camera] = o.n_markers
     selection = select_sets(_set_ms(run), seen, config.max_sets, config.set_run_length,
-                            config.time_link_ms)
+                            config.time_model.time_link_ms)
     if selection is None:
         return run, views
     return replace(run, selection=selection), _kept(views, selection)

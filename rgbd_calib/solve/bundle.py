@@ -147,10 +147,10 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
 
     ``edge_offset`` (camera -> px per edge) is taken out of each camera's edge-fitted corners
     first (:func:`~rgbd_calib.solve.edge_offset.without_offset`); ``result.edge_offset`` reads
-    what is left in the residuals, on top of it. ``config.corner_noise == "marker"`` weighs
+    what is left in the residuals, on top of it. ``config.corners.corner_noise == "marker"`` weighs
     each marker's centre and shape by their own sigmas (:mod:`~rgbd_calib.solve.corner_noise`;
     ``corner_centre_ratio``, or read from a first solve, then solved again) and adds the rig's scale
-    (``config.scale_sigma_ppm``) to every camera's covariance; the board's printed size
+    (``config.corners.scale_sigma_ppm``) to every camera's covariance; the board's printed size
     (``problem.board_scale_sigma``) is added the same way, in quadrature."""
     if problem.edge_offset:
         problem = replace(problem, measurements=measurements_without_offset(
@@ -168,14 +168,15 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
     # with the corners at it, so that board and depth measurements are weighted against each
     # other by their real uncertainties
     config = layout.config
-    if config.corner_noise == "marker" and solution.active and not config.corner_centre_ratio:
+    corners = config.corners
+    if corners.corner_noise == "marker" and solution.active and not corners.corner_centre_ratio:
         ratio = _noise(layout, solution).centre_ratio  # centre and shape weighed apart
         solution = _solve_at_sigma(layout, solution, CornerNoise(config.pixel_sigma, ratio),
                                    params)
     sigma_hat = solution.sigma_px(layout)
     sigma_marg = _noise_a_posteriori(layout, solution, sigma_hat)
     clock = None
-    if layout.timed and config.time_twist_prior_from_data:  # priors against the corners
+    if layout.timed and config.time_model.time_twist_prior_from_data:  # priors against the corners
         # the clocks from the solve with the wide prior, which barely pulls their scale
         clock = _time_model(layout, solution.values, gtsam.Marginals(_build_graph(
             layout, solution.groups, sigma_marg, solution.connected, robust=False),
@@ -318,7 +319,7 @@ def _factor_layout(problem: BundleProblem) -> tuple[
         prior_intr = {c: gtsam.noiseModel.Diagonal.Sigmas(
             intrinsics_prior_sigmas(intrinsics[c], names, config)) for c in intr_key}
     timing = {}
-    link_ms = link_window_ms(config.time_link_ms, problem.set_ms or {})
+    link_ms = link_window_ms(config.time_model.time_link_ms, problem.set_ms or {})
     if config.time == "refine":
         if intrinsics is None:
             raise CalibrationError("the time model needs the rig's camera models")
@@ -376,7 +377,7 @@ def _noise_a_posteriori(layout: _FactorLayout, solution: _Solution,
     config = layout.config
     if not config.estimate_sigma:
         return config.pixel_sigma
-    if config.corner_noise == "marker" and solution.active:
+    if config.corners.corner_noise == "marker" and solution.active:
         noise = _noise(layout, solution)
         return replace(noise, sigma_px=max(noise.sigma_px, 1e-3))
     return max(sigma_hat, 1e-3)
@@ -452,9 +453,10 @@ def _twist_prior_from_data(layout: _FactorLayout, solution: _Solution,
         sigma_w, sigma_v = np.sqrt(second[:, :3].mean()), np.sqrt(second[:, 3:].mean())
         cfg = layout.config  # what a hand does bounds it from above (time_twist_sigma_*)
         layout = replace(layout, twist_sigma=TwistPrior(
-            sigma_mps=min(max(float(sigma_v), TWIST_FLOOR.sigma_mps), cfg.time_twist_sigma_mps),
+            sigma_mps=min(max(float(sigma_v), TWIST_FLOOR.sigma_mps),
+                          cfg.time_model.time_twist_sigma_mps),
             sigma_dps=min(max(float(np.degrees(sigma_w)), TWIST_FLOOR.sigma_dps),
-                          cfg.time_twist_sigma_dps)),
+                          cfg.time_model.time_twist_sigma_dps)),
             motion_prior=_motion_prior_from_data(layout, solution.values, marginals))
         solution = _solve_at_sigma(layout, solution, sigma, params)
     return layout, solution
@@ -503,8 +505,9 @@ def _result(layout: _FactorLayout, solution: _Solution, sigma_hat: float,
     corner_res = (layout.marker_residuals(solution.groups, len(solution.active), values)
                   if solution.active else np.zeros((0, 4, 2)))
     runs = _run_correlation(layout, solution, corner_res)
-    scale_ppm = math.hypot(layout.config.scale_sigma_ppm if layout.config.corner_noise
-                           == "marker" else 0.0, 1e6 * layout.board_scale_sigma)
+    corners = layout.config.corners
+    scale_ppm = math.hypot(corners.scale_sigma_ppm if corners.corner_noise == "marker" else 0.0,
+                           1e6 * layout.board_scale_sigma)
     for c in cov:
         if c in runs:
             cov[c] = cov[c] * runs[c].factor
@@ -557,8 +560,8 @@ def _held_out(layout: _FactorLayout, solution: _Solution,
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(HELD_OUT_ITERATIONS)
     params.setRelativeErrorTol(1e-5)
-    twist_sigma = layout.twist_sigma or TwistPrior(layout.config.time_twist_sigma_mps,
-                                                   layout.config.time_twist_sigma_dps)
+    twist_sigma = layout.twist_sigma or TwistPrior(layout.config.time_model.time_twist_sigma_mps,
+                                                   layout.config.time_model.time_twist_sigma_dps)
     values, out = solution.values, {}
     for view, groups in by_view.items():
         if len(groups) < 2:
@@ -691,8 +694,8 @@ def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float | Corn
     if p.timed:
         for c in connected:
             graph.add(time_prior(p.time_key[c], p.time_priors[c], c == p.reference))
-        twist_sigma = p.twist_sigma or TwistPrior(config.time_twist_sigma_mps,
-                                                  config.time_twist_sigma_dps)
+        twist_sigma = p.twist_sigma or TwistPrior(config.time_model.time_twist_sigma_mps,
+                                                  config.time_model.time_twist_sigma_dps)
         seen = dict.fromkeys(g.view for g in groups)
         for v in seen:
             graph.add(twist_prior(p.twist_key[v], twist_sigma))
@@ -783,8 +786,8 @@ def _time_model(p: _FactorLayout, values: gtsam.Values,
                      for v in twists},
         anchored=tuple(sorted({c for c, _ in p.capture_ms} & set(times))),
         capture_ms=dict(p.capture_ms),
-        twist_prior=p.twist_sigma or TwistPrior(p.config.time_twist_sigma_mps,
-                                                p.config.time_twist_sigma_dps),
+        twist_prior=p.twist_sigma or TwistPrior(p.config.time_model.time_twist_sigma_mps,
+                                                p.config.time_model.time_twist_sigma_dps),
         acceleration=p.accelerations(values),
         linked_sets=len({v for f, g, _ in p.links for v in (f, g)}),
         motion_prior=p.motion_prior,

@@ -124,17 +124,18 @@ BOARD_TILT_SIGMA_RAD = 1e-6  # a sheet glued flat on the panel does not tilt: he
 
 def board_prior_sigmas(config: BundleConfig) -> np.ndarray:
     """Prior sigmas of ``T_front_back`` in GTSAM's order ``[rx, ry, rz, tx, ty, tz]``."""
+    prior = config.board_prior
     return np.array([BOARD_TILT_SIGMA_RAD, BOARD_TILT_SIGMA_RAD,
-                     np.radians(config.board_prior_rotation_deg),
-                     config.board_prior_offset_mm / 1000.0, config.board_prior_offset_mm / 1000.0,
-                     config.board_prior_thickness_mm / 1000.0])
+                     np.radians(prior.board_prior_rotation_deg),
+                     prior.board_prior_offset_mm / 1000.0, prior.board_prior_offset_mm / 1000.0,
+                     prior.board_prior_thickness_mm / 1000.0])
 
 
 def face_prior_sigmas(config: BundleConfig) -> np.ndarray:
     """Prior sigmas of a multi-face target's face correction ``Delta`` (face frame, GTSAM's
     order ``[rx, ry, rz, tx, ty, tz]``)."""
-    r = np.radians(config.board_prior_face_rotation_deg)
-    t = config.board_prior_face_offset_mm / 1000.0
+    r = np.radians(config.board_prior.board_prior_face_rotation_deg)
+    t = config.board_prior.board_prior_face_offset_mm / 1000.0
     return np.array([r, r, r, t, t, t])
 
 

@@ -92,9 +92,9 @@ class BundleResult:
     # per camera: the edge offset its corner residuals read (:mod:`rgbd_calib.solve.edge_offset`)
     edge_offset: dict[str, EdgeOffset] = field(default_factory=dict)
     # the corners' centre and shape noise read from the residuals; the rig scale's sigma (ppm)
-    corner_noise: CornerNoise | None = None  # in every covariance (config.corner_noise: marker)
+    corner_noise: CornerNoise | None = None  # in every covariance (corners.corner_noise: marker)
     # the rig scale's relative sigma (ppm) in every covariance: the marker model's
-    # (config.scale_sigma_ppm) and the board's printed size (board_scale_sigma) together
+    # (config.corners.scale_sigma_ppm) and the board's printed size (board_scale_sigma) together
     scale_sigma_ppm: float = 0.0
     # config.held_out: each marker's corner RMS (px) predicted from the other cameras' views of
     # its frame set, (camera, view, marker) -> px (rgbd_calib/solve/bundle.py _held_out)
@@ -149,13 +149,14 @@ def intrinsics_prior_sigmas(base: CameraIntrinsics, names: tuple[str, ...],
     """Prior sigmas of the parameters ``names``: focal in percent of its value, centre in
     pixels, p1/p2 tangential, every other coefficient with the distortion sigma."""
     out = []
+    prior = config.intrinsics_prior
     for n in lens_names(base, names):
         if n in ("fx", "fy"):
-            out.append(config.intrinsics_prior_focal_pct / 100.0 * getattr(base, n))
+            out.append(prior.intrinsics_prior_focal_pct / 100.0 * getattr(base, n))
         elif n in ("cx", "cy"):
-            out.append(config.intrinsics_prior_center_px)
+            out.append(prior.intrinsics_prior_center_px)
         elif n in ("p1", "p2"):
-            out.append(config.intrinsics_prior_tangential)
+            out.append(prior.intrinsics_prior_tangential)
         else:
-            out.append(config.intrinsics_prior_distortion)
+            out.append(prior.intrinsics_prior_distortion)
     return np.array(out, dtype=float)

@@ -118,6 +118,6 @@ def first_noise(config: BundleConfig) -> float | CornerNoise:
     """The corner noise a bundle adjustment's first solve takes: ``pixel_sigma`` for every
     corner, or with ``corner_noise: marker`` and a known ``corner_centre_ratio`` both sigmas
     at that ratio (the solve is then not repeated)."""
-    if config.corner_noise == "marker" and config.corner_centre_ratio:
-        return CornerNoise(config.pixel_sigma, config.corner_centre_ratio)
+    if config.corners.corner_noise == "marker" and config.corners.corner_centre_ratio:
+        return CornerNoise(config.pixel_sigma, config.corners.corner_centre_ratio)
     return config.pixel_sigma

@@ -80,8 +80,8 @@ def bundle_problem(measurements: list[MarkerMeasurement], rig: Rig, board: Board
     the time model) and ``board``'s back sheet or faces, started at ``T_ref_cam`` /
     ``T_ref_board`` (4x4, m); ``capture_ms`` the views' capture times from the cameras'
     timestamps (:func:`~rgbd_calib.solve.time_model.capture_offsets`), which anchor the time
-    model's offsets (``config.time_offset_sigma_ms``); ``set_ms`` each frame set's time on the
-    reference's clock (:func:`~rgbd_calib.solve.time_model.set_times_ms`), which ties
+    model's offsets (``config.time_model.time_offset_sigma_ms``); ``set_ms`` each frame set's
+    time on the reference's clock (:func:`~rgbd_calib.solve.time_model.set_times_ms`), which ties
     consecutive sets by the motion prior."""
     capture_ms = capture_ms or {}
     return BundleProblem(measurements, camera_matrices(rig), rig.reference, T_ref_cam,
@@ -89,7 +89,7 @@ def bundle_problem(measurements: list[MarkerMeasurement], rig: Rig, board: Board
                          back_centre=back_centre(board), face_frames=face_frames(board),
                          capture_ms=capture_ms,
                          time_priors=anchored_priors(rig.names, capture_ms,
-                                                     config.time_offset_sigma_ms),
+                                                     config.time_model.time_offset_sigma_ms),
                          set_ms=set_ms, board_scale_sigma=board.print_scale_sigma or 0.0)
 
 
@@ -370,7 +370,7 @@ def self_calibrated_bundle(
     level = selfcal.base_level(config)
     result, problem = ladder.solve(_trial_config(level, config), pg.T_ref_cam, pg.T_ref_board,
                                    level.board or level.time)
-    given_ratio = config.corner_centre_ratio  # the run's later solves hold the one read first
+    given_ratio = config.corners.corner_centre_ratio  # later solves hold the one read first
     config = held_corner_ratio(config, result)
     problem = replace(problem, config=held_corner_ratio(problem.config, result))
     terms = selfcal.marker_terms(result.residuals_px, result.outliers, config.outlier_px)
@@ -386,11 +386,11 @@ def self_calibrated_bundle(
         # corners' centre-to-shape ratio read again (the timeless first solve's took motion
         # for centre noise: 0.50 against 0.38 on a moving race)
         result, problem = _solved_again(problem, result, {
-            "time_twist_prior_from_data": config.time_twist_prior_from_data,
+            "time_twist_prior_from_data": config.time_model.time_twist_prior_from_data,
             "relative_error_tol": config.relative_error_tol,
             "max_iterations": config.max_iterations,
             "corner_centre_ratio": given_ratio}, pg.model_error)
-    elif chosen is not start_step and config.corner_noise == "marker" and not given_ratio:
+    elif chosen is not start_step and config.corners.corner_noise == "marker" and not given_ratio:
         # the ratio read again on the richer model chosen
         result, problem = _solved_again(problem, result, {"corner_centre_ratio": None},
                                         pg.model_error)
@@ -404,7 +404,7 @@ def _solved_again(problem: BundleProblem, result: BundleResult, update: dict,
     """``problem`` solved once more from ``result``'s poses with ``update`` to its config, the
     corners' ratio then held at what that solve read; ``(result, problem)`` when it fails (the
     trial's solve stands)."""
-    again = replace(problem, config=problem.config.model_copy(update=update),
+    again = replace(problem, config=problem.config.replaced(**update),
                     T_ref_cam={**problem.T_ref_cam, **result.T_ref_cam},
                     T_ref_board={**problem.T_ref_board, **result.T_ref_board},
                     intrinsics_start=warm_intrinsics(problem, result))
@@ -420,10 +420,10 @@ def held_corner_ratio(config: BundleConfig, result: BundleResult) -> BundleConfi
     ``result`` read (unless given): the run's later solves (the ladder's trials, the edge
     offset's, the depth stage's joint solve) weigh the corners alike without reading it again
     in a solve of their own."""
-    if (config.corner_noise != "marker" or config.corner_centre_ratio
+    if (config.corners.corner_noise != "marker" or config.corners.corner_centre_ratio
             or result.corner_noise is None):
         return config
-    return config.model_copy(update={"corner_centre_ratio": result.corner_noise.centre_ratio})
+    return config.replaced(corner_centre_ratio=result.corner_noise.centre_ratio)
 
 
 # a timed level the ladder compares stops at this relative decrease of its error: along the
@@ -442,7 +442,7 @@ def _trial_config(level: selfcal.ModelLevel, config: BundleConfig) -> BundleConf
     if level.time:
         update["relative_error_tol"] = max(config.relative_error_tol, TIME_TRIAL_TOL)
         update["max_iterations"] = min(config.max_iterations, TIME_TRIAL_ITERATIONS)
-    return level.bundle_config(config).model_copy(update=update)
+    return level.bundle_config(config).replaced(**update)
 
 
 def _climb(ladder: _Ladder, config: BundleConfig,

@@ -58,7 +58,7 @@ def frame_period_ms(set_ms: Mapping[str, float]) -> float | None:
 
 
 def link_window_ms(setting: float | str, set_ms: Mapping[str, float]) -> float:
-    """``bundle.time_link_ms`` as a number: a number as given; ``"auto"``
+    """``bundle.time_model.time_link_ms`` as a number: a number as given; ``"auto"``
     :data:`LINK_PERIODS` frame periods of the recording (:func:`frame_period_ms`), at least
     :data:`LINK_MIN_MS`; :data:`LINK_MIN_MS` when the sets show no frame period (nothing to
     link then, or the stretches of a 30 fps recording)."""

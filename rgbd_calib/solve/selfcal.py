@@ -262,12 +262,13 @@ def prior_tension(bundle: Any, rig: Any) -> tuple[float, str, str] | None:
 
 def loosened(config: BundleConfig) -> BundleConfig:
     """``config`` with every intrinsics prior sigma :data:`LOOSEN` times wider."""
-    return config.model_copy(update={
-        "intrinsics_prior_focal_pct": config.intrinsics_prior_focal_pct * LOOSEN,
-        "intrinsics_prior_center_px": config.intrinsics_prior_center_px * LOOSEN,
-        "intrinsics_prior_distortion": config.intrinsics_prior_distortion * LOOSEN,
-        "intrinsics_prior_tangential": config.intrinsics_prior_tangential * LOOSEN,
-    })
+    prior = config.intrinsics_prior
+    return config.model_copy(update={"intrinsics_prior": prior.model_copy(update={
+        "intrinsics_prior_focal_pct": prior.intrinsics_prior_focal_pct * LOOSEN,
+        "intrinsics_prior_center_px": prior.intrinsics_prior_center_px * LOOSEN,
+        "intrinsics_prior_distortion": prior.intrinsics_prior_distortion * LOOSEN,
+        "intrinsics_prior_tangential": prior.intrinsics_prior_tangential * LOOSEN,
+    })})
 
 
 def marker_terms(residuals: list[tuple[str, str, int, float]],
