@@ -80,6 +80,15 @@ def test_a_group_refuses_a_setting_it_does_not_hold_in_model_copy_and_replaced()
         depth.replaced(min_range_m=5.0)  # beyond max_range_m: validated as a file is
 
 
+def test_a_grouped_stage_dumps_flat_as_before_the_groups():
+    """The detection cache's fingerprint hashes the settings flat (sorted keys), so caches
+    written before the groups stay valid: every setting once, no group left."""
+    flat = DetectionConfig(edge_passes=3, subpix_win_size_px=7).flat_dump()
+    assert flat["edge_passes"] == 3 and flat["subpix_win_size_px"] == 7
+    assert not {"edges", "aruco"} & set(flat) and len(flat) == 27
+    assert DetectionConfig(**flat) == DetectionConfig(edge_passes=3, subpix_win_size_px=7)
+
+
 def test_load_config_applies_the_yaml_then_the_overrides(tmp_path):
     path = tmp_path / "calib.yaml"
     path.write_text("method: posegraph\npose:\n  min_markers: 3\ngraph:\n  kernel: huber\n")

@@ -319,10 +319,10 @@ def test_residual_bound_adapts_to_poor_images_only(board, rendered):
     image's median where every edge fits worse (webcams: ~0.10, tests/test_real_corners.py),
     never above the cap."""
     config = DetectionConfig()
-    assert edge_residual_bound(np.full(8, 0.015), config) == config.max_edge_residual
+    assert edge_residual_bound(np.full(8, 0.015), config) == config.edges.max_edge_residual
     assert edge_residual_bound(np.full(8, 0.10), config) == pytest.approx(0.15)
-    assert edge_residual_bound(np.full(8, 0.5), config) == config.max_edge_residual_cap
-    assert edge_residual_bound(np.zeros(0), config) == config.max_edge_residual
+    assert edge_residual_bound(np.full(8, 0.5), config) == config.edges.max_edge_residual_cap
+    assert edge_residual_bound(np.zeros(0), config) == config.edges.max_edge_residual
     fixed = DetectionConfig(edge_residual_factor=None)
     for image, _, _ in finished(rendered, NOISY, seed=2):
         a, b = detect_markers(image, board), detect_markers(image, board, fixed)

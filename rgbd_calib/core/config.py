@@ -12,7 +12,7 @@ receives one) must not load cv2, gtsam, open3d or kiss_icp (tests/test_config.py
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal, get_args
+from typing import Annotated, Any, ClassVar, Literal, get_args
 
 import yaml
 from pydantic import (
@@ -24,6 +24,7 @@ from pydantic import (
     model_validator,
 )
 
+from .config_base import Grouped, Section
 from .config_bundle import BundleConfig
 from .config_depth import DepthConfig
 from .errors import ConfigError
@@ -46,37 +47,10 @@ DEFAULT_KERNEL_THRESHOLD = 4.1
 
 
 # ----------------------------------------------------------------------------- detection
-class DetectionConfig(BaseModel, extra="forbid"):
-    """ArUco detection and corner refinement (the detection stage of the pipeline)."""
+class ArucoConfig(Section):
+    """OpenCV's ArUco detector parameters: the adaptive threshold's windows and the corner
+    subpixel search (``refinement: subpix``)."""
 
-    refinement: Refinement = Field(
-        "edges",
-        description="Corner refinement: 'edges' fits lines to the four outer marker "
-        "edges (unbiased; a corner it cannot fit gets OpenCV's SUBPIX refinement and "
-        "refined=False); 'subpix', 'none' and 'contour' are OpenCV's CORNER_REFINE_* methods "
-        "(biased 0.2-0.6 px towards the marker centre).",
-    )
-    charuco_corners: Literal["painted", "subpix", "opencv"] = Field(
-        "painted",
-        description="ChArUco boards: saddle-corner refinement of the corners OpenCV's "
-        "CharucoDetector interpolated. 'painted' fills the detected markers with their "
-        "square's white, then cornerSubPix on a window of 0.4 square; 'subpix' runs "
-        "cornerSubPix on the raw image within the white margin around the markers; 'opencv' "
-        "keeps the detector's own corners (docs/accuracy.md compares them).",
-    )
-    min_marker_perimeter_px: float = Field(
-        40.0,
-        gt=0,
-        description="Smallest marker perimeter (px) the detector accepts; converted "
-        "to OpenCV's minMarkerPerimeterRate for each image size.",
-    )
-    error_correction_rate: float = Field(
-        0.6,
-        ge=0.0,
-        le=1.0,
-        description="OpenCV errorCorrectionRate: fraction of the "
-        "dictionary's correctable bits used. Lower it if foreign/stray ids appear.",
-    )
     adaptive_thresh_win_size_min: int = Field(
         3, ge=3, description="OpenCV adaptive threshold: smallest window (px)."
     )
@@ -101,6 +75,18 @@ class DetectionConfig(BaseModel, extra="forbid"):
     )
     subpix_max_iterations: int = Field(30, ge=1, description="SUBPIX iterations.")
     subpix_min_accuracy_px: float = Field(0.01, gt=0, description="SUBPIX stopping accuracy.")
+
+    @model_validator(mode="after")
+    def _check(self) -> ArucoConfig:
+        if self.adaptive_thresh_win_size_min > self.adaptive_thresh_win_size_max:
+            raise ValueError("adaptive_thresh_win_size_min must not exceed the max")
+        return self
+
+
+class EdgesConfig(Section):
+    """The edge refinement of marker corners (``refinement: edges``): which pixels of each
+    outline edge are fitted, how, and which fits are kept."""
+
     edge_span: tuple[float, float] = Field(
         (0.15, 0.85),
         description="Part of each edge sampled by the edge fit, as fractions of "
@@ -176,6 +162,51 @@ class DetectionConfig(BaseModel, extra="forbid"):
         description="Fraction of an edge's band pixels that must be in the "
         "image and survive outlier rejection for its line to be used.",
     )
+
+    @model_validator(mode="after")
+    def _check(self) -> EdgesConfig:
+        a, b = self.edge_span
+        if not 0.0 <= a < b <= 1.0:
+            raise ValueError("edge_span must satisfy 0 <= start < end <= 1")
+        lo, hi = self.edge_band_px
+        if not 0.0 < lo <= hi:
+            raise ValueError("edge_band_px must be (min, max) with 0 < min <= max")
+        return self
+
+
+class DetectionConfig(Grouped):
+    """ArUco detection and corner refinement (the detection stage of the pipeline)."""
+
+    GROUPS: ClassVar[dict[str, type[Section]]] = {"aruco": ArucoConfig, "edges": EdgesConfig}
+
+    refinement: Refinement = Field(
+        "edges",
+        description="Corner refinement: 'edges' fits lines to the four outer marker "
+        "edges (unbiased; a corner it cannot fit gets OpenCV's SUBPIX refinement and "
+        "refined=False); 'subpix', 'none' and 'contour' are OpenCV's CORNER_REFINE_* methods "
+        "(biased 0.2-0.6 px towards the marker centre).",
+    )
+    charuco_corners: Literal["painted", "subpix", "opencv"] = Field(
+        "painted",
+        description="ChArUco boards: saddle-corner refinement of the corners OpenCV's "
+        "CharucoDetector interpolated. 'painted' fills the detected markers with their "
+        "square's white, then cornerSubPix on a window of 0.4 square; 'subpix' runs "
+        "cornerSubPix on the raw image within the white margin around the markers; 'opencv' "
+        "keeps the detector's own corners (docs/accuracy.md compares them).",
+    )
+    min_marker_perimeter_px: float = Field(
+        40.0,
+        gt=0,
+        description="Smallest marker perimeter (px) the detector accepts; converted "
+        "to OpenCV's minMarkerPerimeterRate for each image size.",
+    )
+    error_correction_rate: float = Field(
+        0.6,
+        ge=0.0,
+        le=1.0,
+        description="OpenCV errorCorrectionRate: fraction of the "
+        "dictionary's correctable bits used. Lower it if foreign/stray ids appear.",
+    )
     max_corner_shift_px: float = Field(
         3.0,
         gt=0,
@@ -188,18 +219,8 @@ class DetectionConfig(BaseModel, extra="forbid"):
         "most to recover markers the detector rejected (docs/accuracy.md, 'Measurements "
         "behind the detector's design').",
     )
-
-    @model_validator(mode="after")
-    def _check(self) -> DetectionConfig:
-        lo, hi = self.edge_span
-        if not 0.0 <= lo < hi <= 1.0:
-            raise ValueError("edge_span must satisfy 0 <= start < end <= 1")
-        if not 0 < self.edge_band_px[0] <= self.edge_band_px[1]:
-            raise ValueError("edge_band_px must be (min, max) with 0 < min <= max")
-        if self.adaptive_thresh_win_size_min > self.adaptive_thresh_win_size_max:
-            raise ValueError("adaptive_thresh_win_size_min must not exceed the max")
-        return self
-
+    aruco: ArucoConfig = Field(default_factory=ArucoConfig)
+    edges: EdgesConfig = Field(default_factory=EdgesConfig)
 
 # ----------------------------------------------------------------------------- pose
 class PoseConfig(BaseModel, extra="forbid"):

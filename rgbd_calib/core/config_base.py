@@ -57,6 +57,14 @@ class Grouped(Section):
     def _lift(cls, data: Any) -> Any:
         return lift_flat(data, cls.GROUPS)
 
+    def flat_dump(self) -> dict[str, Any]:
+        """Every setting by its name, the groups' lifted to the top: the settings as they were
+        before the groups (a fingerprint of them stays the same)."""
+        data = self.model_dump()
+        for name in self.GROUPS:
+            data |= data.pop(name)
+        return data
+
     def replaced(self, **settings: Any):
         """This config with ``settings`` changed, each by its name whether it sits at the top
         or in a group, validated as a config file's are. TypeError for an unknown name."""

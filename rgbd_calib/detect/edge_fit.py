@@ -104,11 +104,12 @@ def _fit_edge_lines(
     # the band's pixels as flat per-pixel arrays, ordered by edge
     curved = intrinsics is not None and intrinsics.has_distortion
     samples, n_expected, tau_scale = _edge_samples(
-        gray, frame, layout, band, tau_lo, tau_hi, config.edge_max_samples, curved, compiled
+        gray, frame, layout, band, tau_lo, tau_hi, config.edges.edge_max_samples, curved, compiled
     )
     # the edge model fitted per marker
     fit = _fit_edge_models_compiled if compiled else _fit_edge_models
-    local, width, weight, contrast, resid = fit(samples, band, blur_prior, config.edge_iterations)
+    local, width, weight, contrast, resid = fit(samples, band, blur_prior,
+                                                config.edges.edge_iterations)
     # which edges are usable: every test passed
     tests = _edge_tests(samples, local, width, weight, contrast, resid, band, n_expected, config)
     ok = np.logical_and.reduce(list(tests.values()))
@@ -190,11 +191,12 @@ def _edge_cell_layout(corners: np.ndarray, white: np.ndarray, frame: _EdgeFrame)
 def _edge_band(config: DetectionConfig, m_at0: np.ndarray, length: np.ndarray):
     """Per edge ``(M,4)``: the band half-width across it (px) and the sampled span along it,
     ``tau_lo .. tau_hi`` (px from the midpoint), kept away from the corners."""
+    edges = config.edges
     module = np.clip(m_at0, 0.1, None)
-    band = np.clip(config.edge_band_modules * module, *config.edge_band_px)
-    margin = np.minimum(config.edge_corner_margin_px / length, 0.4)
-    tau_lo = (np.maximum(config.edge_span[0], margin) - 0.5) * length  # span about the midpoint
-    tau_hi = (np.minimum(config.edge_span[1], 1.0 - margin) - 0.5) * length
+    band = np.clip(edges.edge_band_modules * module, *edges.edge_band_px)
+    margin = np.minimum(edges.edge_corner_margin_px / length, 0.4)
+    tau_lo = (np.maximum(edges.edge_span[0], margin) - 0.5) * length  # span about the midpoint
+    tau_hi = (np.minimum(edges.edge_span[1], 1.0 - margin) - 0.5) * length
     return band, tau_lo, tau_hi
 
 
@@ -611,8 +613,8 @@ def _edge_tests(
     c = contrast[:, None]
     w = np.broadcast_to(width[:, None], rho.shape)
     tests = {
-        "contrast": np.broadcast_to(c >= config.min_edge_contrast, rho.shape),
-        "inliers": (n_in >= 6) & (n_in >= config.min_edge_inliers * n_expected),
+        "contrast": np.broadcast_to(c >= config.edges.min_edge_contrast, rho.shape),
+        "inliers": (n_in >= 6) & (n_in >= config.edges.min_edge_inliers * n_expected),
         "offset": np.abs(rho) < band,
         "blur_floor": w > 0.15,
         "blur_cap": w < 3.0,
@@ -630,11 +632,11 @@ def edge_residual_bound(relative: np.ndarray, config: DetectionConfig) -> float:
     the median of its edges
     ``relative`` (those passing the other tests), at most ``max_edge_residual_cap``. An
     occluded or wrong edge still stands out against the image's own median."""
-    if relative.size == 0 or config.edge_residual_factor is None:
-        return config.max_edge_residual
-    adaptive = config.edge_residual_factor * float(np.median(relative))
-    return float(np.clip(adaptive, config.max_edge_residual,
-                         max(config.max_edge_residual_cap, config.max_edge_residual)))
+    if relative.size == 0 or config.edges.edge_residual_factor is None:
+        return config.edges.max_edge_residual
+    adaptive = config.edges.edge_residual_factor * float(np.median(relative))
+    return float(np.clip(adaptive, config.edges.max_edge_residual,
+                         max(config.edges.max_edge_residual_cap, config.edges.max_edge_residual)))
 
 
 def _edge_lines(
@@ -763,13 +765,13 @@ def refine_corners_edges(
     if n == 0:
         return out, refined
     side = np.linalg.norm(np.roll(initial, -1, axis=1) - initial, axis=-1)
-    sel = np.nonzero(side.min(axis=1) >= config.min_edge_length_px)[0]
+    sel = np.nonzero(side.min(axis=1) >= config.edges.min_edge_length_px)[0]
     if sel.size == 0:
         return out, refined
     current = initial[sel].copy()
     ok_corner = np.zeros((sel.size, 4), dtype=bool)
-    blur_prior = config.blur_prior_px
-    for _ in range(config.edge_passes):
+    blur_prior = config.edges.blur_prior_px
+    for _ in range(config.edges.edge_passes):
         nrm, rho, ok_line, width = _fit_edge_lines(
             gray, current, white[sel], config, intrinsics, blur_prior, compiled
         )

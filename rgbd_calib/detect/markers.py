@@ -74,9 +74,9 @@ def _marker_parameters(config: DetectionConfig, image_size: tuple[int, int],
     params.markerBorderBits = int(border_bits)
     params.minMarkerPerimeterRate = config.min_marker_perimeter_px / max(image_size)
     params.errorCorrectionRate = config.error_correction_rate
-    params.adaptiveThreshWinSizeMin = config.adaptive_thresh_win_size_min
-    params.adaptiveThreshWinSizeMax = config.adaptive_thresh_win_size_max
-    params.adaptiveThreshWinSizeStep = config.adaptive_thresh_win_size_step
+    params.adaptiveThreshWinSizeMin = config.aruco.adaptive_thresh_win_size_min
+    params.adaptiveThreshWinSizeMax = config.aruco.adaptive_thresh_win_size_max
+    params.adaptiveThreshWinSizeStep = config.aruco.adaptive_thresh_win_size_step
     return params
 
 
@@ -93,10 +93,10 @@ def _detector(
     method = config.refinement
     params.cornerRefinementMethod = _CV_REFINE["subpix" if from_junctions and method == "edges"
                                                else method]
-    params.cornerRefinementWinSize = config.subpix_win_size_px
-    params.relativeCornerRefinmentWinSize = config.subpix_relative_win_size  # (sic)
-    params.cornerRefinementMaxIterations = config.subpix_max_iterations
-    params.cornerRefinementMinAccuracy = config.subpix_min_accuracy_px
+    params.cornerRefinementWinSize = config.aruco.subpix_win_size_px
+    params.relativeCornerRefinmentWinSize = config.aruco.subpix_relative_win_size  # (sic)
+    params.cornerRefinementMaxIterations = config.aruco.subpix_max_iterations
+    params.cornerRefinementMinAccuracy = config.aruco.subpix_min_accuracy_px
     return cv2.aruco.ArucoDetector(dictionary, params)
 
 
@@ -221,13 +221,13 @@ def _subpix_fallback(
     out = corners_px.copy()
     cells = int(aruco_dictionary(board.dictionary).markerSize) + 2 * board.border_bits
     side = np.linalg.norm(np.roll(corners_px, -1, axis=1) - corners_px, axis=-1).mean(axis=1)
-    win = np.clip(
-        np.ceil(config.subpix_relative_win_size * side / cells), 1, config.subpix_win_size_px
-    ).astype(int)
+    aruco = config.aruco
+    win = np.clip(np.ceil(aruco.subpix_relative_win_size * side / cells), 1,
+                  aruco.subpix_win_size_px).astype(int)
     criteria = (
         cv2.TERM_CRITERIA_MAX_ITER | cv2.TERM_CRITERIA_EPS,
-        config.subpix_max_iterations,
-        config.subpix_min_accuracy_px,
+        config.aruco.subpix_max_iterations,
+        config.aruco.subpix_min_accuracy_px,
     )
     for w in np.unique(win[mask.any(axis=1)]):
         sel = mask & (win == w)[:, None]
@@ -430,7 +430,7 @@ def _saddle_subpix(
     fraction = CHARUCO_WIN_FRACTION if fraction is None else fraction
     win = np.clip(np.floor(fraction * size_px), 2, 25).astype(int)
     criteria = (cv2.TERM_CRITERIA_MAX_ITER | cv2.TERM_CRITERIA_EPS,
-                config.subpix_max_iterations, 0.001)
+                config.aruco.subpix_max_iterations, 0.001)
     for w in np.unique(win):
         sel = win == w
         pts = px[sel].astype(np.float32).reshape(-1, 1, 2)

@@ -32,7 +32,7 @@ CACHE_SAVE_EVERY_S = 30.0  # an interrupted detection loses at most about this m
 
 def _fingerprint(board: Board, config: DetectionConfig) -> str:
     text = json.dumps(
-        [board.to_dict(), board.corners.tolist(), config.model_dump(), CACHE_VERSION],
+        [board.to_dict(), board.corners.tolist(), config.flat_dump(), CACHE_VERSION],
         sort_keys=True,
         default=str,
     )
