@@ -194,6 +194,23 @@ def bundle_adjust(problem: BundleProblem) -> BundleResult:
 
 
 @dataclass(frozen=True)
+class _TimeLayout:
+    """The time model's part of a :class:`_FactorLayout`: its keys (empty without the time
+    model), the clocks' priors and known capture times, the image heights (the rolling
+    shutter's rows), the twist prior read from the data, the linked sets and the runs."""
+
+    time_key: dict[str, int] = field(default_factory=dict)  # camera -> clock key; {}: no model
+    twist_key: dict[str, int] = field(default_factory=dict)
+    time_priors: dict[str, TimePrior] = field(default_factory=dict)
+    capture_ms: dict[tuple[str, str], float] = field(default_factory=dict)
+    heights: dict[str, int] = field(default_factory=dict)
+    twist_sigma: TwistPrior | None = None  # the twist prior estimated from the data
+    links: tuple[tuple[str, str, float], ...] = ()  # (set, next set, dt_s): motion prior
+    runs: tuple[tuple[str, ...], ...] = ()  # the continuous stretches (runs.recording_runs)
+    motion_prior: MotionPrior = MotionPrior()  # its scale (estimated from the data)
+
+
+@dataclass(frozen=True)
 class _FactorLayout:
     """What one bundle adjustment's factor graph is made of (see :func:`bundle_adjust`)."""
 
@@ -213,32 +230,24 @@ class _FactorLayout:
     reference: str
     cams: list[str]
     views: list[str]
-    time_key: dict[str, int] = field(default_factory=dict)  # time model only
-    twist_key: dict[str, int] = field(default_factory=dict)
-    time_priors: dict[str, TimePrior] = field(default_factory=dict)
-    capture_ms: dict[tuple[str, str], float] = field(default_factory=dict)
-    heights: dict[str, int] = field(default_factory=dict)
-    twist_sigma: TwistPrior | None = None  # the twist prior estimated from the data
-    links: tuple[tuple[str, str, float], ...] = ()  # (set, next set, dt_s): motion prior
-    runs: tuple[tuple[str, ...], ...] = ()  # the continuous stretches (runs.recording_runs)
-    motion_prior: MotionPrior = MotionPrior()  # its scale (estimated from the data)
+    time: _TimeLayout = field(default_factory=_TimeLayout)  # the time model's part
     edge_offset: dict[str, float] = field(default_factory=dict)  # taken out of the corners
     board_scale_sigma: float = 0.0  # the printed board's size, relative 1 sigma
 
     @property
     def timed(self) -> bool:
-        return bool(self.time_key)
+        return bool(self.time.time_key)
 
     @property
     def stencils(self) -> dict[str, tuple[tuple[str, float], ...]]:
         """Per linked set, its acceleration from the twists (time_model.acceleration_stencils)."""
-        return acceleration_stencils(self.links)
+        return acceleration_stencils(self.time.links)
 
     def accelerations(self, values: gtsam.Values) -> dict[str, np.ndarray]:
         """Per linked set with every twist of its stencil in ``values``: its acceleration."""
         out = {}
         for v, stencil in self.stencils.items():
-            keys = [(self.twist_key[u], c) for u, c in stencil]
+            keys = [(self.time.twist_key[u], c) for u, c in stencil]
             if all(values.exists(k) for k, _ in keys):
                 out[v] = sum(c * values.atVector(k) for k, c in keys)
         return out
@@ -255,8 +264,8 @@ class _FactorLayout:
                                         self.intr_key)
         for key, _, _ in self.moving:
             sub.insert(key, values.atPose3(key))
-        for owner_keys, pose_keys in ((self.time_key, self.cam_key),
-                                      (self.twist_key, self.view_key)):
+        for owner_keys, pose_keys in ((self.time.time_key, self.cam_key),
+                                      (self.time.twist_key, self.view_key)):
             for owner, k in owner_keys.items():
                 if sub.exists(pose_keys[owner]) and values.exists(k):
                     sub.insert(k, values.atVector(k))
@@ -273,10 +282,10 @@ class _FactorLayout:
         """:func:`_marker_residuals` through the current models and face poses of ``values``."""
         timing = None
         if self.timed:
-            timing = (self.heights, self.capture_ms,
-                      {c: values.atVector(k) for c, k in self.time_key.items()
+            timing = (self.time.heights, self.time.capture_ms,
+                      {c: values.atVector(k) for c, k in self.time.time_key.items()
                        if values.exists(k)},
-                      {v: values.atVector(k) for v, k in self.twist_key.items()
+                      {v: values.atVector(k) for v, k in self.time.twist_key.items()
                        if values.exists(k)}, self.accelerations(values))
         return _marker_residuals(groups, n, values, self.cam_key, self.view_key, self.K,
                            _current_models(self, values),
@@ -334,7 +343,7 @@ def _factor_layout(problem: BundleProblem) -> tuple[
     timing["runs"] = recording_runs(problem.set_ms or {}, views, link_ms)
     layout = _FactorLayout(config, problem.K, cam_key, view_key, intr_key, intrinsics, names,
                            x0, prior_intr, fixed, problem.relative_poses, tuple(moving), refine,
-                           problem.reference, cams, views, **timing,
+                           problem.reference, cams, views, _TimeLayout(**timing),
                            edge_offset=dict(problem.edge_offset or {}),
                            board_scale_sigma=problem.board_scale_sigma)
     return layout, kept, board_model, face_models
@@ -447,17 +456,17 @@ def _twist_prior_from_data(layout: _FactorLayout, solution: _Solution,
     for _ in range(TWIST_PRIOR_STEPS):
         graph = _build_graph(layout, solution.groups, sigma, solution.connected, robust=False)
         marginals = gtsam.Marginals(graph, solution.values)
-        keys = [k for k in layout.twist_key.values() if solution.values.exists(k)]
+        keys = [k for k in layout.time.twist_key.values() if solution.values.exists(k)]
         second = np.array([solution.values.atVector(k) ** 2
                            + np.diag(marginals.marginalCovariance(k)) for k in keys])
         sigma_w, sigma_v = np.sqrt(second[:, :3].mean()), np.sqrt(second[:, 3:].mean())
         cfg = layout.config  # what a hand does bounds it from above (time_twist_sigma_*)
-        layout = replace(layout, twist_sigma=TwistPrior(
+        layout = replace(layout, time=replace(layout.time, twist_sigma=TwistPrior(
             sigma_mps=min(max(float(sigma_v), TWIST_FLOOR.sigma_mps),
                           cfg.time_model.time_twist_sigma_mps),
             sigma_dps=min(max(float(np.degrees(sigma_w)), TWIST_FLOOR.sigma_dps),
                           cfg.time_model.time_twist_sigma_dps)),
-            motion_prior=_motion_prior_from_data(layout, solution.values, marginals))
+            motion_prior=_motion_prior_from_data(layout, solution.values, marginals)))
         solution = _solve_at_sigma(layout, solution, sigma, params)
     return layout, solution
 
@@ -472,8 +481,8 @@ def _motion_prior_from_data(layout: _FactorLayout, values: gtsam.Values,
     averaged over links, linear and angular parts apart, floored at :data:`MOTION_FLOOR`);
     ``layout``'s own without links."""
     rows = []
-    for f, g, dt_s in layout.links:
-        kf, kg = layout.twist_key[f], layout.twist_key[g]
+    for f, g, dt_s in layout.time.links:
+        kf, kg = layout.time.twist_key[f], layout.time.twist_key[g]
         if not (values.exists(kf) and values.exists(kg)):
             continue
         d = values.atVector(kg) - values.atVector(kf)
@@ -481,7 +490,7 @@ def _motion_prior_from_data(layout: _FactorLayout, values: gtsam.Values,
         var = np.diag(C[:6, :6]) + np.diag(C[6:, 6:]) - 2.0 * np.diag(C[:6, 6:])
         rows.append((d**2 + var) / dt_s)
     if not rows:
-        return layout.motion_prior
+        return layout.time.motion_prior
     second = np.array(rows)
     return MotionPrior(q_mps=max(float(np.sqrt(second[:, 3:].mean())), MOTION_FLOOR.q_mps),
                        q_dps=max(float(np.degrees(np.sqrt(second[:, :3].mean()))),
@@ -560,14 +569,15 @@ def _held_out(layout: _FactorLayout, solution: _Solution,
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(HELD_OUT_ITERATIONS)
     params.setRelativeErrorTol(1e-5)
-    twist_sigma = layout.twist_sigma or TwistPrior(layout.config.time_model.time_twist_sigma_mps,
-                                                   layout.config.time_model.time_twist_sigma_dps)
+    configured = layout.config.time_model
+    twist_sigma = layout.time.twist_sigma or TwistPrior(configured.time_twist_sigma_mps,
+                                                        configured.time_twist_sigma_dps)
     values, out = solution.values, {}
     for view, groups in by_view.items():
         if len(groups) < 2:
             continue
         free = {layout.view_key[view]} | (
-            {layout.twist_key[view]} if layout.timed else set())
+            {layout.time.twist_key[view]} if layout.timed else set())
         for g in groups:
             graph, start = gtsam.NonlinearFactorGraph(), gtsam.Values()
             for h in groups:
@@ -579,7 +589,7 @@ def _held_out(layout: _FactorLayout, solution: _Solution,
                     if not start.exists(k):
                         _insert_held(graph, start, values, k, k not in free)
             if layout.timed:
-                graph.add(twist_prior(layout.twist_key[view], twist_sigma))
+                graph.add(twist_prior(layout.time.twist_key[view], twist_sigma))
             try:
                 solved = gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
             except RuntimeError:
@@ -643,7 +653,7 @@ def _stencil_keys(p: _FactorLayout, stencil: tuple[tuple[str, float], ...],
     """A set's acceleration stencil as twist keys, empty unless all its sets are solved."""
     if not all(u in in_graph for u, _ in stencil):
         return ()
-    return tuple((p.twist_key[u], c) for u, c in stencil)
+    return tuple((p.time.twist_key[u], c) for u, c in stencil)
 
 
 def _run_correlation(layout: _FactorLayout, solution: _Solution, corner_res: np.ndarray,
@@ -651,9 +661,9 @@ def _run_correlation(layout: _FactorLayout, solution: _Solution, corner_res: np.
     """:func:`~rgbd_calib.solve.runs.run_inflation` of the solution's corner residuals
     ``corner_res`` (n, 4, 2) over the layout's runs of consecutive frames (empty without
     runs)."""
-    if not layout.runs:
+    if not layout.time.runs:
         return {}
-    return run_inflation(layout.runs, {(m.camera, m.view, m.marker_id): r
+    return run_inflation(layout.time.runs, {(m.camera, m.view, m.marker_id): r
                                        for m, r in zip(solution.active, corner_res)})
 
 
@@ -693,16 +703,16 @@ def _build_graph(p: _FactorLayout, groups: list[_ViewGroup], sigma: float | Corn
         graph.add(rel.factor(p.cam_key))
     if p.timed:
         for c in connected:
-            graph.add(time_prior(p.time_key[c], p.time_priors[c], c == p.reference))
-        twist_sigma = p.twist_sigma or TwistPrior(config.time_model.time_twist_sigma_mps,
+            graph.add(time_prior(p.time.time_key[c], p.time.time_priors[c], c == p.reference))
+        twist_sigma = p.time.twist_sigma or TwistPrior(config.time_model.time_twist_sigma_mps,
                                                   config.time_model.time_twist_sigma_dps)
         seen = dict.fromkeys(g.view for g in groups)
         for v in seen:
-            graph.add(twist_prior(p.twist_key[v], twist_sigma))
-        for f, g, dt_s in p.links:
+            graph.add(twist_prior(p.time.twist_key[v], twist_sigma))
+        for f, g, dt_s in p.time.links:
             if f in seen and g in seen:
-                graph.add(motion_link_factor(p.view_key[f], p.twist_key[f], p.view_key[g],
-                                             p.twist_key[g], dt_s, p.motion_prior))
+                graph.add(motion_link_factor(p.view_key[f], p.time.twist_key[f], p.view_key[g],
+                                             p.time.twist_key[g], dt_s, p.time.motion_prior))
     return graph
 
 
@@ -716,10 +726,10 @@ def _view_factor(p: _FactorLayout, g: _ViewGroup, sigma: float | CornerNoise, ki
     if p.timed:
         intr = (p.intr_key[g.camera], p.intrinsics[g.camera]) if p.refine else None
         return timed_view_factor(
-            p.cam_key[g.camera], p.view_key[g.view], p.twist_key[g.view],
-            p.time_key[g.camera], p.K.get(g.camera), p.heights[g.camera], g.object_points,
+            p.cam_key[g.camera], p.view_key[g.view], p.time.twist_key[g.view],
+            p.time.time_key[g.camera], p.K.get(g.camera), p.time.heights[g.camera], g.object_points,
             g.corners_px, sigma, kind, config.robust_k, intr, p.names, **extra,
-            known_ms=p.capture_ms.get((g.camera, g.view), 0.0), accel=accel)
+            known_ms=p.time.capture_ms.get((g.camera, g.view), 0.0), accel=accel)
     if p.refine:
         return view_factor_intrinsics(
             p.cam_key[g.camera], p.view_key[g.view], p.intr_key[g.camera],
@@ -750,19 +760,19 @@ def _initial_values(p: _FactorLayout, init_T_ref_cam: dict[str, np.ndarray],
             values.insert(k, p.x0[c] if start is None else intrinsics_vector(start, p.names))
     for key, _, _ in p.moving:
         values.insert(key, gtsam.Pose3())
-    for c, k in p.time_key.items():  # a nonzero readout breaks the standstill saddle
+    for c, k in p.time.time_key.items():  # a nonzero readout breaks the standstill saddle
         if values.exists(p.cam_key[c]):
-            prior = p.time_priors[c]
+            prior = p.time.time_priors[c]
             free = prior.readout_sigma_ms > READOUT_INIT_MS  # not a known or held readout
             readout = prior.readout_ms or (READOUT_INIT_MS if free else 0.0)
             values.insert(k, np.array([0.0 if c == p.reference else prior.offset_ms, readout]))
     starts: dict[str, list[np.ndarray]] = {}  # linked sets: the twist between their poses
-    for f, g, dt_s in p.links:
+    for f, g, dt_s in p.time.links:
         if f in init_T_ref_board and g in init_T_ref_board:
             x = twist_from_poses(init_T_ref_board[f], init_T_ref_board[g], dt_s)
             starts.setdefault(f, []).append(x)
             starts.setdefault(g, []).append(x)
-    for v, k in p.twist_key.items():
+    for v, k in p.time.twist_key.items():
         if values.exists(p.view_key[v]):
             values.insert(k, np.mean(starts[v], axis=0) if v in starts else np.zeros(6))
     return values
@@ -773,31 +783,31 @@ def _time_model(p: _FactorLayout, values: gtsam.Values,
     """The time model's estimates and marginal sigmas (None without it)."""
     if not p.timed:
         return None
-    times = {c: values.atVector(k) for c, k in p.time_key.items() if values.exists(k)}
-    t_sig = {c: np.sqrt(np.diag(marginals.marginalCovariance(p.time_key[c]))) for c in times}
-    twists = {v: values.atVector(k) for v, k in p.twist_key.items() if values.exists(k)}
+    times = {c: values.atVector(k) for c, k in p.time.time_key.items() if values.exists(k)}
+    t_sig = {c: np.sqrt(np.diag(marginals.marginalCovariance(p.time.time_key[c]))) for c in times}
+    twists = {v: values.atVector(k) for v, k in p.time.twist_key.items() if values.exists(k)}
     return TimeModel(
         offset_ms={c: float(t[0]) for c, t in times.items()},
         sigma_offset_ms={c: 0.0 if c == p.reference else float(t_sig[c][0]) for c in times},
         readout_ms={c: float(t[1]) for c, t in times.items()},
         sigma_readout_ms={c: float(t_sig[c][1]) for c in times},
         twist=twists,
-        sigma_twist={v: np.sqrt(np.diag(marginals.marginalCovariance(p.twist_key[v])))
+        sigma_twist={v: np.sqrt(np.diag(marginals.marginalCovariance(p.time.twist_key[v])))
                      for v in twists},
-        anchored=tuple(sorted({c for c, _ in p.capture_ms} & set(times))),
-        capture_ms=dict(p.capture_ms),
-        twist_prior=p.twist_sigma or TwistPrior(p.config.time_model.time_twist_sigma_mps,
+        anchored=tuple(sorted({c for c, _ in p.time.capture_ms} & set(times))),
+        capture_ms=dict(p.time.capture_ms),
+        twist_prior=p.time.twist_sigma or TwistPrior(p.config.time_model.time_twist_sigma_mps,
                                                 p.config.time_model.time_twist_sigma_dps),
         acceleration=p.accelerations(values),
-        linked_sets=len({v for f, g, _ in p.links for v in (f, g)}),
-        motion_prior=p.motion_prior,
-        offset_prior_sigma_ms={c: 0.0 if c == p.reference else p.time_priors[c].offset_sigma_ms
+        linked_sets=len({v for f, g, _ in p.time.links for v in (f, g)}),
+        motion_prior=p.time.motion_prior,
+        offset_prior_sigma_ms={c: 0.0 if c == p.reference else p.time.time_priors[c].offset_sigma_ms
                                for c in times})
 
 
 def _with_prior(clock: TimeModel, p: _FactorLayout) -> TimeModel:
     """``clock`` with the twist and motion priors the final solve used."""
-    return replace(clock, twist_prior=p.twist_sigma, motion_prior=p.motion_prior)
+    return replace(clock, twist_prior=p.time.twist_sigma, motion_prior=p.time.motion_prior)
 
 
 def _current_models(p: _FactorLayout, values: gtsam.Values) -> dict[str, CameraIntrinsics] | None:
@@ -828,8 +838,8 @@ def _residual_dof(p: _FactorLayout, n_markers: int, values: gtsam.Values) -> int
                         for c, k in p.intr_key.items() if values.exists(k))
     n_back = len(p.moving)
     face_params = sum(4 if A is None else 6 for _, _, A in p.moving)
-    n_time = sum(values.exists(k) for k in p.time_key.values())
-    n_twist = sum(values.exists(k) for k in p.twist_key.values())
+    n_time = sum(values.exists(k) for k in p.time.time_key.values())
+    n_twist = sum(values.exists(k) for k in p.time.twist_key.values())
     time_params = 2 * n_time - (1 if n_time else 0) + 6 * n_twist  # the reference's offset held
     return max(8 * n_markers - 6 * (values.size() - n_intr - n_back - len(p.fixed)
                                     - n_time - n_twist)
