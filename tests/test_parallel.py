@@ -111,6 +111,20 @@ def test_calibrate_through_a_cluster_gives_the_same_extrinsics(tiny_calibration,
     assert report["pairs"], "the depth stage registered no pair: nothing went through Dask"
 
 
+def test_depth_models_fitted_in_worker_processes_equal_the_ones_fitted_here(tiny_calibration,
+                                                                           tmp_path):
+    """The depth stage fits each camera's depth model in its own task: two worker processes
+    (tiny_calibration's ``--workers 2``) and one process give the same depth_model.yaml and
+    extrinsics, byte for byte."""
+    dataset, pooled, _ = tiny_calibration
+    out = tmp_path / "here"
+    res = runner.invoke(app, ["calibrate", str(dataset), "--out", str(out), "--workers", "1"])
+    assert res.exit_code == 0, res.output
+    assert (pooled / "depth_model.yaml").is_file()
+    for name in ("depth_model.yaml", "extrinsics.yaml"):
+        assert (out / name).read_text() == (pooled / name).read_text(), name
+
+
 def test_initializer_runs_on_every_worker_and_map_keeps_order(tiny_dataset, cluster):
     from rgbd_calib.detect.markers import detect_job, init_detector
 

@@ -204,8 +204,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     With ``board_covariance`` (camera -> 6x6 marginal of the board solve) only pairs with a
     camera the board constrains weakly (:func:`weak_cameras`) are registered, and nothing but
     the depth scale is measured when the board constrains every camera well: depth adds no
-    information there. Pairs run in ``workers`` processes (default: all cores) or on the Dask
-    cluster of ``scheduler``.
+    information there. The cameras' depth models and the pairs run in ``workers`` processes
+    (default: all cores) or on the Dask cluster of ``scheduler``.
 
     ``depth_scales`` (camera -> depth model or factor of the calibration being refined:
     :func:`rgbd_calib.model.calib_folder.load_depth_corrections`) are used for cameras the
@@ -223,7 +223,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
     timings: dict[str, float] = {}
     with timed(timings, "depth_scale"):
         scales, models, unmodelled = _board_depth(dataset, cams, board, board_views, config,
-                                                  progress, unseen_views, pose_covariance)
+                                                  progress, unseen_views, pose_covariance,
+                                                  workers, scheduler)
         unmodelled = {c: why for c, why in unmodelled.items() if c not in (depth_scales or {})}
 
     no_pair = method != "none" and weak is not None and not weak
@@ -349,6 +350,7 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
                  progress: Progress | None,
                  unseen_views: dict[str, dict[str, np.ndarray]] | None = None,
                  pose_covariance: dict[str, dict[str, np.ndarray]] | None = None,
+                 workers: int | None = 1, scheduler: str | None = None,
                  ) -> tuple[dict[str, DepthScaleEstimate], dict[str, DepthModelFit],
                             dict[str, str]]:
     """Per camera with board views: its depth scale (:func:`estimate_depth_scale`) and its
@@ -356,39 +358,64 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
     ``unseen_views`` (:func:`unseen_board_views`). The clouds are corrected by the model; the
     reported factor (and refine's) is still the scale estimate's, of the views it detected (not
     yet the model's scale: with a second term chosen its sigma grows beyond what refine
-    needs). Third: with ``config.model`` auto, each camera that got no model and why."""
+    needs). Third: with ``config.model`` auto, each camera that got no model and why.
+
+    One camera per task (:func:`_camera_board_depth`, each reads its own images), in
+    ``workers`` processes (1: here; None: all cores) or on the Dask cluster of ``scheduler``
+    (:func:`rgbd_calib.core.parallel.executor`): the same result in any of them."""
     scales: dict[str, DepthScaleEstimate] = {}
     models: dict[str, DepthModelFit] = {}
     if board is None or board_views is None:
         return scales, models, {}
     unmodelled = {c: NO_BOARD_DEPTH for c in cams} if config.model == "auto" else {}
     tick = start(progress, "depth model per camera", len(cams))
+    jobs = [(dataset, c, board_views.get(c, {}), (unseen_views or {}).get(c, {}), board, config,
+             (pose_covariance or {}).get(c)) for c in cams]
+    n = min(workers or os.cpu_count() or 1, sum(1 for job in jobs if job[2]))
+    pool = executor(n, scheduler) if n > 1 or (scheduler and n) else None
+    with pool or nullcontext():
+        # map: in order, so the result is the serial one
+        done = (pool.map(_camera_board_depth, *zip(*jobs)) if pool is not None
+                else (_camera_board_depth(*job) for job in jobs))
+        for c, (scale, model, why) in zip(cams, done):
+            if scale is not None:
+                scales[c] = scale
+            if model is not None:
+                models[c] = model
+                unmodelled.pop(c, None)
+            elif why is not None and c in unmodelled:
+                unmodelled[c] = why
+            tick(1)
+    return scales, models, unmodelled
+
+
+def _camera_board_depth(dataset: FolderDataset, c: str, views: dict[str, np.ndarray],
+                        unseen: dict[str, np.ndarray], board: Board, config: DepthConfig,
+                        pose_covariance: dict[str, np.ndarray] | None,
+                        ) -> tuple[DepthScaleEstimate | None, DepthModelFit | None, str | None]:
+    """One camera's part of :func:`_board_depth`: ``(scale, model, why no model)`` from its
+    board ``views`` (frame -> ``T_cam_board``) and the views it did not detect (``unseen``);
+    ``(None, None, FEW_BOARD_PIXELS)`` when its board pixels with depth are too few for a
+    scale, ``(None, None, None)`` without views."""
+    if not views:
+        return None, None, None
+    faces = board_faces(dataset, c, views, board, config)  # each image read once
+    try:
+        scale = estimate_depth_scale(dataset, c, views, board, config, faces)
+    except (CalibrationError, DatasetError):
+        return None, None, FEW_BOARD_PIXELS  # the factor stays 1 (reported)
+    if config.model != "auto":
+        return scale, None, None
     unseen_config = config.replaced(scale_max_frames=max(
         config.model_fit.model_unseen_max_frames, 1))
-    for c in cams:
-        views = board_views.get(c, {})
-        if views:
-            faces = board_faces(dataset, c, views, board, config)  # each image read once
-            try:
-                scales[c] = estimate_depth_scale(dataset, c, views, board, config, faces)
-            except (CalibrationError, DatasetError):
-                tick(1)
-                if c in unmodelled:
-                    unmodelled[c] = FEW_BOARD_PIXELS
-                continue  # too few board pixels with depth: the factor stays 1 (reported)
-            far = (board_faces(dataset, c, (unseen_views or {}).get(c, {}), board,
-                               unseen_config, detected=False)
-                   if config.model == "auto" and config.model_fit.model_unseen_max_frames else [])
-            samples = (board_samples(dataset.rig.cameras[c], faces + far, config,
-                                     (pose_covariance or {}).get(c)
-                                     if config.model_fit.model_plane_uncertainty else None)
-                       if config.model == "auto" else None)
-            if samples is not None:
-                models[c] = replace(fit_depth_model(c, samples, dataset.rig.cameras[c], config),
-                                    n_unseen_views=len(far))
-                unmodelled.pop(c, None)
-        tick(1)
-    return scales, models, unmodelled
+    far = (board_faces(dataset, c, unseen, board, unseen_config, detected=False)
+           if config.model_fit.model_unseen_max_frames else [])
+    samples = board_samples(dataset.rig.cameras[c], faces + far, config,
+                            pose_covariance if config.model_fit.model_plane_uncertainty
+                            else None)
+    model = replace(fit_depth_model(c, samples, dataset.rig.cameras[c], config),
+                    n_unseen_views=len(far))
+    return scale, model, None
 
 
 def unseen_board_views(T_ref_cam: dict[str, np.ndarray], T_ref_board: dict[str, np.ndarray],
