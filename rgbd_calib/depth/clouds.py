@@ -47,6 +47,19 @@ class CloudStats:
 
 
 @dataclass(frozen=True)
+class DisparityMoment:
+    """What a cloud's depths keep of their camera's disparity offset ``delta(x, y) = d0 + dx x
+    + dy y + dxx x^2 + dxy x y + dyy y^2`` (px, at ray coordinates ``x = X/Z, y = Y/Z``;
+    :class:`~rgbd_calib.core.depth_model.DepthModel`) when they were not corrected for it:
+    the six coefficients' second moment about zero (6x6, px^2, in that order: the estimate's
+    outer product plus its covariance), and ``focal_baseline_px_m`` (f B), which turns an
+    offset into the relative depth error ``z delta / (f B)``."""
+
+    focal_baseline_px_m: float
+    second_moment: np.ndarray
+
+
+@dataclass(frozen=True)
 class CameraCloud:
     """The static scene seen by one camera, in that camera's frame.
 
@@ -68,6 +81,9 @@ class CameraCloud:
     # variance (px^2 / unitless^2) of the parameters of ``intrinsics`` that were estimated
     # (e.g. refined in the bundle adjustment): name -> variance; empty means exact
     intrinsics_variance: dict[str, float] = field(default_factory=dict)
+    # the disparity offset its depths were not corrected for (calibrate registers clouds
+    # divided by their depth-scale factor alone): every point of it off together; None: none
+    disparity: DisparityMoment | None = None
 
     @property
     def n_points(self) -> int:

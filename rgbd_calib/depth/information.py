@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from ..core.camera import FISHEYE, CameraIntrinsics
 from ..core.geometry import invert_transform, matrix_to_rotvec, skew, transform_points
-from .clouds import VoxelLevel, voxel_keys
+from .clouds import DisparityMoment, VoxelLevel, voxel_keys
 
 INFORMATION_FRAME = (
     "right perturbation of T_b_a: T_b_a_true = T_b_a @ Exp(xi), xi = [omega (rad), v (m)] in "
@@ -212,10 +212,14 @@ class _WhitenedRows:
     patch: np.ndarray  # (M,) patch index in [0, n_patches)
     n_patches: int
     n_geometric: int  # the first n_geometric rows are point-to-plane, the rest photometric
-    # d(whitened residual)/d(lens parameter) (M,P) and the parameters' variances (P,): the
-    # intrinsics the two clouds were back-projected with are uncertain (None: exact)
+    # d(whitened residual)/d(parameter) (M,P) and the parameters' variances (P,): the
+    # intrinsics the two clouds were back-projected with, and the disparity offsets their
+    # depths keep, are uncertain (None: exact)
     D: np.ndarray | None = None
     lens_variance: np.ndarray | None = None
+    # D's first n_disparity columns are the clouds' disparity offsets (unit variance): kept out
+    # of the information (the gates judge a pair by its own noise), given by disparity_covariance
+    n_disparity: int = 0
 
 
 def back_projection_jacobian(points: np.ndarray, intr: CameraIntrinsics,
@@ -268,10 +272,26 @@ def _lens_columns(v_b: np.ndarray, T_b_a: np.ndarray, src: np.ndarray, tgt: np.n
     return np.hstack(cols) if cols else np.zeros((src.shape[0], 0))
 
 
+def _disparity_columns(v: np.ndarray, points: np.ndarray, moment: DisparityMoment,
+                       ) -> np.ndarray:
+    """d r / d u (M,6) of residuals ``r = v . p + ...`` (``p``: a cloud's points in its own
+    frame) for the disparity offset of ``moment`` in unit-variance coordinates ``u`` (the
+    coefficients ``L u``, ``L L^T`` their second moment): each point moves along its ray by
+    its relative depth error ``z delta(x, y) / (f B)``."""
+    z = points[:, 2]
+    x, y = points[:, 0] / z, points[:, 1] / z
+    basis = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    along = np.einsum("ij,ij->i", v, points) * z / moment.focal_baseline_px_m
+    w, V = np.linalg.eigh(0.5 * (moment.second_moment + moment.second_moment.T))
+    return (along[:, None] * basis) @ (V * np.sqrt(np.clip(w, 0.0, None)))
+
+
 def whitened_rows(matches: Matches, T_b_a: np.ndarray, patch_m: float,
                   colour: tuple[VoxelLevel, VoxelLevel, np.ndarray] | None = None,
                   free_scale: tuple[bool, bool] = (False, False),
-                  lenses: tuple[Lens, Lens] | None = None) -> _WhitenedRows:
+                  lenses: tuple[Lens, Lens] | None = None,
+                  disparity: tuple[DisparityMoment | None, DisparityMoment | None] = (None, None),
+                  ) -> _WhitenedRows:
     """Point-to-plane residuals over their noise-model sigma (:func:`nearest_matches`), and, with
     ``colour = (src, tgt, gradients_b)``, the photometric residuals of colored ICP over their
     RMS (colour has no noise model: its variance comes from the residuals). Rows are grouped
@@ -284,7 +304,8 @@ def whitened_rows(matches: Matches, T_b_a: np.ndarray, patch_m: float,
     ``lenses`` ``((intrinsics_a, variance_a), (intrinsics_b, variance_b))``: each camera's
     intrinsics and the variances of those that were estimated (name -> variance; empty:
     exact); their derivatives (:func:`back_projection_jacobian`) become ``D`` for
-    :func:`noise_model_information`."""
+    :func:`noise_model_information`. So do, with ``disparity``, the disparity offsets each
+    cloud's depths keep (:func:`_disparity_columns`, unit variance each)."""
     lenses = lenses if lenses is not None and (lenses[0][1] or lenses[1][1]) else None
     m = matches.normals_b @ T_b_a[:3, :3]
     cols = [np.cross(matches.src, m), m]
@@ -294,8 +315,18 @@ def whitened_rows(matches: Matches, T_b_a: np.ndarray, patch_m: float,
         cols.append(-np.einsum("ij,ij->i", matches.normals_b, matches.tgt)[:, None])
     J = np.hstack(cols) / matches.sigma[:, None]
     r = matches.residual / matches.sigma
-    D = (_lens_columns(matches.normals_b, T_b_a, matches.src, matches.tgt, lenses)
-         / matches.sigma[:, None] if lenses is not None else None)
+
+    def nuisance(v_b: np.ndarray) -> np.ndarray:  # D's columns for residuals along v_b
+        out = [_disparity_columns(v, p, d) for v, p, d in (
+            (v_b @ T_b_a[:3, :3], matches.src, disparity[0]),
+            (-v_b, matches.tgt, disparity[1])) if d is not None]
+        if lenses is not None:
+            out.append(_lens_columns(v_b, T_b_a, matches.src, matches.tgt, lenses))
+        return np.hstack(out)
+
+    n_disparity = 6 * sum(d is not None for d in disparity)
+    has_d = lenses is not None or n_disparity > 0
+    D = nuisance(matches.normals_b) / matches.sigma[:, None] if has_d else None
     n_geo = r.size
     if colour is not None and r.size >= 7:
         src, tgt, gradients_b = colour
@@ -314,17 +345,18 @@ def whitened_rows(matches: Matches, T_b_a: np.ndarray, patch_m: float,
         J = np.vstack([J, np.hstack(cols) / sigma_c])
         r = np.concatenate([r, rc / sigma_c])
         if D is not None:
-            D = np.vstack([D, _lens_columns(d_q, T_b_a, matches.src, matches.tgt, lenses)
-                           / sigma_c])
-    variance = (np.array([*lenses[0][1].values(), *lenses[1][1].values()], dtype=float)
-                if lenses is not None else None)
+            D = np.vstack([D, nuisance(d_q) / sigma_c])
+    variance = (np.array([1.0] * n_disparity + ([*lenses[0][1].values(),
+                                                 *lenses[1][1].values()] if lenses else []),
+                         dtype=float) if has_d else None)
     if n_geo == 0:
         return _WhitenedRows(np.zeros((0, J.shape[1])), np.zeros(0), np.zeros(0, int), 0, 0)
     _, patch = np.unique(voxel_keys(matches.src, patch_m), return_inverse=True)
     patch = patch.ravel()
     n_patches = int(patch.max()) + 1
     # a photometric row belongs to the patch of its point-to-plane row
-    return _WhitenedRows(J, r, np.tile(patch, r.size // n_geo), n_patches, n_geo, D, variance)
+    return _WhitenedRows(J, r, np.tile(patch, r.size // n_geo), n_patches, n_geo, D, variance,
+                         n_disparity)
 
 
 def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
@@ -348,8 +380,9 @@ def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
     per-row meat ``sum (r_i J_i)^T (r_i J_i)`` over G is added to M so that a direction no
     patch's score happened to span keeps a finite variance.
 
-    Intrinsics that were estimated (``rows.D``, ``rows.lens_variance``) move every point of a
-    cloud together, so their error does not average out over points: the estimate moves by
+    Intrinsics that were estimated and a disparity offset a cloud's depths keep (``rows.D``,
+    ``rows.lens_variance``) move every point of a cloud together, so their error does not
+    average out over points: the estimate moves by
     ``S dtheta`` with ``S = -H^-1 J^T D`` (the Gauss-Newton step for residuals changed by
     ``D dtheta``), which adds ``S diag(var) S^T`` to ``Cov``. The result is the inverse of
     ``Cov``'s pose block."""
@@ -370,11 +403,27 @@ def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
     try:
         H_inv = np.linalg.inv(H)
         cov = H_inv @ M @ H_inv
-        if rows.D is not None and rows.lens_variance is not None:
-            S = H_inv @ (rows.J.T @ rows.D)
-            cov = cov + (S * rows.lens_variance) @ S.T
+        k0 = rows.n_disparity  # the lens's columns of D follow the disparity offsets'
+        if rows.D is not None and rows.lens_variance is not None and rows.D.shape[1] > k0:
+            S = H_inv @ (rows.J.T @ rows.D[:, k0:])
+            cov = cov + (S * rows.lens_variance[k0:]) @ S.T
         # columns beyond the pose (free depth scales) are marginalised: pose block of Cov
         info = np.linalg.inv(cov[:6, :6])
     except np.linalg.LinAlgError:
         return np.zeros((6, 6))
     return 0.5 * (info + info.T)
+
+
+def disparity_covariance(rows: _WhitenedRows) -> np.ndarray | None:
+    """The covariance (6x6, pose block) the clouds' disparity offsets add to a registration
+    (``rows.D``'s first ``rows.n_disparity`` columns, unit variance each): every point of a
+    cloud moves with its offset, so the estimate moves by ``S u`` with ``S = -H^-1 J^T D``,
+    which nothing averages out. None without them (or a singular ``H``)."""
+    if rows.D is None or not rows.n_disparity or rows.n_geometric < rows.J.shape[1]:
+        return None
+    try:
+        S = np.linalg.solve(rows.J.T @ rows.J, rows.J.T @ rows.D[:, :rows.n_disparity])
+    except np.linalg.LinAlgError:
+        return None
+    C = S[:6] @ S[:6].T
+    return 0.5 * (C + C.T)

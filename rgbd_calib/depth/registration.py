@@ -40,12 +40,14 @@ from .information import (
     Matches,
     color_gradients,
     conditioning,
+    disparity_covariance,
     nearest_matches,
     noise_model_information,
     normalised_rms,
     rmse_mm,
     tangent_error,
     whitened_rows,
+    with_covariance,
 )
 
 # --------------------------------------------------------------------------- results
@@ -125,6 +127,17 @@ class PairRegistration:
     # uncertainty: the depth agrees with the extrinsics it started from (a confirmation)
     agrees: bool = False
     rejected_by: tuple[str, ...] = ()  # the REJECTION_KINDS of ``reason``'s clauses, in order
+    # what the clouds' uncorrected disparity offsets add to the covariance (6x6, same frame;
+    # None: none): left out of ``information`` and the gates, which judge the registration by
+    # its own noise; :meth:`solve_information` adds it for the joint solve
+    disparity_covariance: np.ndarray | None = None
+
+    def solve_information(self) -> np.ndarray:
+        """``information`` with :attr:`disparity_covariance` added to its covariance: the
+        weight the pair has in a joint solve."""
+        if self.disparity_covariance is None:
+            return self.information
+        return with_covariance(self.information, self.disparity_covariance)
 
     @property
     def covariance(self) -> np.ndarray:
@@ -436,6 +449,7 @@ class _Fit:
     correction_deg: float
     correction_mm: float
     improvement_chi2: float
+    disparity_covariance: np.ndarray | None = None
 
 
 def register_pair(
@@ -498,6 +512,7 @@ def register_pair(
         accepted=not reasons,
         reason="; ".join(text for _, text in reasons) or None,
         time_s=time.perf_counter() - t_start,
+        disparity_covariance=fit.disparity_covariance,
         normalised_rms=fit.normalised_rms,
         improvement_chi2=fit.improvement_chi2,
         n_patches=fit.n_patches,
@@ -565,7 +580,8 @@ def _finest_fit(src: VoxelLevel, tgt: VoxelLevel, T: np.ndarray, T_b_a0: np.ndar
                                             at=final.tgt_index))
     rows = whitened_rows(final, T, config.uncertainty.information_patch_m, colour, free_scale,
                          ((cloud_a.intrinsics, cloud_a.intrinsics_variance),
-                          (cloud_b.intrinsics, cloud_b.intrinsics_variance)))
+                          (cloud_b.intrinsics, cloud_b.intrinsics_variance)),
+                         (cloud_a.disparity, cloud_b.disparity))
     # the noise model's Gauss-Newton information says which directions the overlap
     # constrains (conditioning); the sandwich over patches says how well (information)
     cond = conditioning(rows.J[:, :6].T @ rows.J[:, :6], final.src) if n_corr else 0.0
@@ -579,7 +595,7 @@ def _finest_fit(src: VoxelLevel, tgt: VoxelLevel, T: np.ndarray, T_b_a0: np.ndar
     improvement = float(move @ information @ move)
     return _Fit(n_corr, fitness, inlier_rmse_mm, rmse_mm(before), rmse_mm(after),
                 normalised_rms(final), cond, information, rows.n_patches, corr_deg, corr_mm,
-                improvement)
+                improvement, disparity_covariance(rows) if n_corr else None)
 
 
 def _verdict(fit: _Fit, clouds: tuple[CameraCloud, CameraCloud], config: DepthConfig,

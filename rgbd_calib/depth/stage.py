@@ -287,7 +287,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
                     reg = with_sensor_poses(reg, moments)
                 pairs.append(DepthPair(reg, ov))
                 if reg.accepted:
-                    relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a, reg.information))
+                    relative.append(RelativePose(reg.cam_a, reg.cam_b, reg.T_b_a,
+                                                 reg.solve_information()))
     depth = DepthRefinement(method, scales, clouds, pairs, relative, dict(T_ref_cam), timings,
                             skipped, weak_cameras=weak,
                             scale_source={c: "board" if c in scales else "given"
@@ -319,8 +320,10 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
     explains), and the pairs pulled the cameras by millimetres (weak race, 6 sets: 2.17 mm
     against 0.34 with the scale alone; docs/depth.md, 'Weak board data'). So its pairs
     register the clouds divided by the depth-scale factor, as before the models (fused.ply
-    and the checks keep the models), and none of them is corrected for its sensor's pose:
-    :func:`fit_pose_moments`. refine registers the clouds as built, with their
+    and the checks keep the models), and none of them is corrected for its sensor's pose
+    (:func:`fit_pose_moments`) or its disparity offset: each pair carries both as an
+    uncertainty (the offset through :class:`~rgbd_calib.depth.clouds.DisparityMoment`). refine
+    registers the clouds as built, with their
     ``corrections`` (the models fitted here, else the scale factors, else the calibration's):
     :func:`applied_pose_moments`."""
     if not calibrating:
@@ -332,7 +335,9 @@ def _registration_clouds(dataset: FolderDataset, clouds: dict[str, CameraCloud],
                                                  for c in models if c in clouds],
                                        T_ref_board or {}, board, config, workers, None,
                                        scheduler)
-        registering = {**clouds, **rebuilt}
+        # their disparity offsets are not taken out: each pair carries them
+        registering = {**clouds, **{c: replace(cloud, disparity=models[c].disparity_moment())
+                                    for c, cloud in rebuilt.items()}}
     prior = _pose_prior(config)
     return registering, ({} if prior is None else
                          fit_pose_moments({c: models.get(c) for c in registering}, prior))
