@@ -380,12 +380,12 @@ def noise_model_information(rows: _WhitenedRows) -> np.ndarray:
     per-row meat ``sum (r_i J_i)^T (r_i J_i)`` over G is added to M so that a direction no
     patch's score happened to span keeps a finite variance.
 
-    Intrinsics that were estimated and a disparity offset a cloud's depths keep (``rows.D``,
+    Intrinsics that were estimated (``rows.D`` past its disparity columns,
     ``rows.lens_variance``) move every point of a cloud together, so their error does not
-    average out over points: the estimate moves by
-    ``S dtheta`` with ``S = -H^-1 J^T D`` (the Gauss-Newton step for residuals changed by
-    ``D dtheta``), which adds ``S diag(var) S^T`` to ``Cov``. The result is the inverse of
-    ``Cov``'s pose block."""
+    average out over points: the estimate moves by ``S dtheta`` with ``S = -H^-1 J^T D`` (the
+    Gauss-Newton step for residuals changed by ``D dtheta``), which adds ``S diag(var) S^T`` to
+    ``Cov``. The result is the inverse of ``Cov``'s pose block. The disparity offsets the
+    clouds keep do the same, but are left out here (:func:`disparity_covariance`)."""
     k = rows.J.shape[1]
     if rows.n_geometric < k or rows.n_patches < 2:
         return np.zeros((6, 6))

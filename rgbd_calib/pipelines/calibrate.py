@@ -389,11 +389,11 @@ def _joint_solve(run: _Run, pg: PoseGraphResult, solved: _Solved,
     cameras ``T_ref_cam``, the pairs' covariance times their variance factor (``depth.
     pair_variance_factor``): from ``depth.uncertainty.pair_variance_floor``, the solve is
     repeated with the factor times the pairs' chi-square over their redundancy in it
-    (:func:`~rgbd_calib. solve.bundle.relative_pose_fit`: variance-component estimation; the
-    corners' sigma is estimated as always), never below the floor, until it changes by less than
-    :data:`PAIR_FACTOR_TOLERANCE` or after ``depth.uncertainty.variance_component_iterations``
-    solves;
-    each pair's covariance also gains the bias ``depth.uncertainty.pair_bias_sigma_mm`` / ``_deg``
+    (:func:`~rgbd_calib.solve.bundle.relative_pose_fit`: variance-component estimation; the
+    corners' sigma is estimated as always), never below the floor, until it changes by less
+    than :data:`PAIR_FACTOR_TOLERANCE` or after
+    ``depth.uncertainty.variance_component_iterations`` solves; each pair's covariance also
+    gains the bias ``depth.uncertainty.pair_bias_sigma_mm`` / ``_deg``
     (:func:`~rgbd_calib.depth.information.with_bias_floor`: colored ICP's error that does not
     shrink with its points).
     Colored ICP's pairs carry a bias their information does not show, and where the board is
