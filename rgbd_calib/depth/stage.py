@@ -209,9 +209,8 @@ def measure_depth(dataset: FolderDataset, board: Board | None, T_ref_cam: dict[s
 
     ``depth_scales`` (camera -> depth model or factor of the calibration being refined:
     :func:`rgbd_calib.model.calib_folder.load_depth_corrections`) are used for cameras the
-    board gives none for. A camera with neither has an
-    unknown depth scale: its pairs' information leaves out the directions a depth-scale error
-    would explain (:func:`rgbd_calib.depth.information.whitened_rows`, ``free_scale``).
+    board gives none for. A camera with neither has an unknown depth scale: its pairs'
+    information leaves out what a depth-scale error would explain (``free_scale``).
     Intrinsics the rig marks as estimated (``dataset.rig.sigmas``) carry their uncertainty into
     each pair (:func:`rgbd_calib.depth.clouds.static_cloud`)."""
     config = config or DepthConfig()
