@@ -375,8 +375,10 @@ def _board_depth(dataset: FolderDataset, cams: list[str], board: Board | None,
     tick = start(progress, "depth model per camera", len(cams))
     jobs = [(dataset, c, board_views.get(c, {}), (unseen_views or {}).get(c, {}), board, config,
              (pose_covariance or {}).get(c)) for c in cams]
-    n = min(workers or os.cpu_count() or 1, sum(1 for job in jobs if job[2]))
-    pool = executor(n, scheduler) if n > 1 or (scheduler and n) else None
+    with_views = sum(1 for job in jobs if job[2])
+    n = min(workers or os.cpu_count() or 1, with_views)
+    # as the pairs and the static clouds: a pool (or the cluster) only for two tasks or more
+    pool = executor(n, scheduler) if with_views > 1 and (scheduler or n > 1) else None
     with pool or nullcontext():
         # map: in order, so the result is the serial one
         done = (pool.map(_camera_board_depth, *zip(*jobs)) if pool is not None
